@@ -1,0 +1,436 @@
+//! Pipeline loading against a small catalog that mimics the real one.
+
+use crate::catalog::*;
+use crate::pipeline::*;
+use crate::{load_str, LoadError};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+#[derive(Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields, default)]
+struct ProjectParams {
+    min_depth: f32,
+    border: u32,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct DataConfig {
+    root: String,
+    version: String,
+}
+
+impl Default for DataConfig {
+    fn default() -> Self {
+        DataConfig {
+            root: String::new(),
+            version: "v1.0-mini".into(),
+        }
+    }
+}
+
+#[derive(Serialize, Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct NoParams {}
+
+struct Stage {
+    kind: &'static str,
+    inputs: Vec<PortSpec>,
+    outputs: Vec<PortSpec>,
+    grains: Vec<&'static str>,
+    params: ParamsSpec,
+}
+
+impl StageSchema for Stage {
+    fn kind(&self) -> &'static str {
+        self.kind
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn summary(&self) -> &'static str {
+        ""
+    }
+    fn inputs(&self) -> &[PortSpec] {
+        &self.inputs
+    }
+    fn outputs(&self) -> &[PortSpec] {
+        &self.outputs
+    }
+    fn grains(&self) -> &[&'static str] {
+        &self.grains
+    }
+    fn params(&self) -> &ParamsSpec {
+        &self.params
+    }
+}
+
+struct Data {
+    config: ParamsSpec,
+}
+
+const DIMS: [DimSpec; 3] = [
+    DimSpec {
+        name: "scene",
+        ordered: false,
+    },
+    DimSpec {
+        name: "frame",
+        ordered: true,
+    },
+    DimSpec {
+        name: "camera",
+        ordered: false,
+    },
+];
+const PORTS: [SourcePortSpec; 2] = [
+    SourcePortSpec {
+        name: "lidar",
+        ty: "PointCloud",
+        grain: "frame",
+        doc: "",
+    },
+    SourcePortSpec {
+        name: "image",
+        ty: "Image",
+        grain: "camera",
+        doc: "",
+    },
+];
+
+impl DatasetSchema for Data {
+    fn kind(&self) -> &'static str {
+        "NuScenes"
+    }
+    fn summary(&self) -> &'static str {
+        ""
+    }
+    fn dims(&self) -> &[DimSpec] {
+        &DIMS
+    }
+    fn ports(&self) -> &[SourcePortSpec] {
+        &PORTS
+    }
+    fn config(&self) -> &ParamsSpec {
+        &self.config
+    }
+    fn path_fields(&self) -> &[&'static str] {
+        &["root"]
+    }
+}
+
+struct Cat {
+    stages: Vec<Stage>,
+    data: Data,
+}
+
+impl Catalog for Cat {
+    fn stage(&self, kind: &str) -> Option<&dyn StageSchema> {
+        self.stages
+            .iter()
+            .find(|s| s.kind == kind)
+            .map(|s| s as &dyn StageSchema)
+    }
+    fn stage_kinds(&self) -> Vec<&'static str> {
+        self.stages.iter().map(|s| s.kind).collect()
+    }
+    fn dataset(&self, kind: &str) -> Option<&dyn DatasetSchema> {
+        (kind == "NuScenes").then_some(&self.data as &dyn DatasetSchema)
+    }
+    fn dataset_kinds(&self) -> Vec<&'static str> {
+        vec!["NuScenes"]
+    }
+    fn exportable(&self, ty: &str) -> bool {
+        ty == "File"
+    }
+}
+
+fn catalog() -> Cat {
+    Cat {
+        stages: vec![
+            Stage {
+                kind: "Project",
+                inputs: vec![
+                    PortSpec::one("points", "PointCloud", ""),
+                    PortSpec::one("image", "Image", ""),
+                ],
+                outputs: vec![PortSpec::one("depth", "DepthMap", "")],
+                grains: vec!["camera"],
+                params: ParamsSpec::of::<ProjectParams>(),
+            },
+            Stage {
+                kind: "Encode",
+                inputs: vec![PortSpec::one("depth", "DepthMap", "")],
+                outputs: vec![
+                    PortSpec::one("png", "File", ""),
+                    PortSpec::one("depth", "DepthMap", ""),
+                ],
+                grains: vec!["camera", "frame"],
+                params: ParamsSpec::of::<NoParams>(),
+            },
+            Stage {
+                kind: "Fuse",
+                inputs: vec![PortSpec::many("depths", "DepthMap", "")],
+                outputs: vec![PortSpec::one("depth", "DepthMap", "")],
+                grains: vec!["frame", "camera"],
+                params: ParamsSpec::of::<NoParams>(),
+            },
+        ],
+        data: Data {
+            config: ParamsSpec::of::<DataConfig>(),
+        },
+    }
+}
+
+fn load(text: &str, sets: &[&str]) -> Result<Pipeline, LoadError> {
+    let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+    load_str(
+        "p.ron",
+        text,
+        Path::new("dir/p.ron"),
+        Path::new("/base"),
+        &sets,
+        Path::new("/cwd"),
+        &catalog(),
+    )
+}
+
+const GOOD: &str = r#"Pipeline(
+    dataset: NuScenes(root: "data"),
+    stages: {
+        "project": Project(
+            inputs: {"points": "dataset.lidar", "image": "dataset.image"},
+            params: (min_depth: 1.0),
+        ),
+        "encode": Encode(inputs: {"depth": "project.depth"}),
+        "fuse": Fuse(inputs: {"depths": Gather("project.depth", camera)}),
+        "window": Fuse(inputs: {"depths": Window("fuse.depth", frame, -1, 1)}),
+    },
+    export: {"encode.png": "{scene}/{camera}/{frame}.png"},
+)"#;
+
+fn errors(text: &str, sets: &[&str]) -> String {
+    load(text, sets)
+        .map(|_| "loaded".to_string())
+        .unwrap_or_else(|e| e.render())
+}
+
+#[test]
+fn a_good_pipeline_loads_into_a_typed_dag() {
+    let p = load(GOOD, &[]).unwrap();
+    assert_eq!(p.name, "p");
+    assert_eq!(
+        p.dataset.config,
+        r#"(root:"/base/data",version:"v1.0-mini")"#
+    );
+    let project = &p.nodes[p.node_by_name("project").unwrap()];
+    assert_eq!(project.grain, 3);
+    assert_eq!(project.stage().unwrap().params, "(min_depth:1.0,border:0)");
+    let fuse = &p.nodes[p.node_by_name("fuse").unwrap()];
+    assert_eq!(fuse.grain, 2);
+    assert_eq!(
+        fuse.stage().unwrap().inputs[0].selector,
+        Selector::Gather { dim: 2 }
+    );
+    let window = p.nodes[p.node_by_name("window").unwrap()].stage().unwrap();
+    assert_eq!(
+        window.inputs[0].selector,
+        Selector::Window {
+            dim: 1,
+            before: -1,
+            after: 1
+        }
+    );
+    // Sources come before the stages that read them.
+    let pos = |n: &str| p.order.iter().position(|&i| p.nodes[i].name == n).unwrap();
+    assert!(
+        pos("dataset.lidar") < pos("project")
+            && pos("project") < pos("fuse")
+            && pos("fuse") < pos("window")
+    );
+    assert_eq!(p.exports.len(), 1);
+    assert!(p.to_dot().contains("Gather(camera)"));
+}
+
+#[test]
+fn set_overrides_params_and_dataset_fields() {
+    let p = load(
+        GOOD,
+        &[
+            "project.min_depth=2.5",
+            "dataset.root=rel/x",
+            "dataset.version=v1.0-trainval",
+        ],
+    )
+    .unwrap();
+    let project = &p.nodes[p.node_by_name("project").unwrap()];
+    assert_eq!(project.stage().unwrap().params, "(min_depth:2.5,border:0)");
+    assert_eq!(
+        p.dataset.config,
+        r#"(root:"/cwd/rel/x",version:"v1.0-trainval")"#
+    );
+}
+
+#[test]
+fn set_errors_point_into_the_argument() {
+    let out = errors(
+        GOOD,
+        &["project.min_dept=2", "nosuch.x=1", "project.border=-1"],
+    );
+    assert!(out.contains("unknown param `min_dept`"), "{out}");
+    assert!(out.contains("--> --set:1:9"), "{out}");
+    assert!(out.contains("did you mean `min_depth`?"), "{out}");
+    assert!(
+        out.contains("stage `nosuch`, which the pipeline does not have"),
+        "{out}"
+    );
+}
+
+#[test]
+fn every_problem_is_reported_at_once_with_locations() {
+    let text = r#"Pipeline(
+    dataset: NuScenes(root: "data", versoin: "x"),
+    stages: {
+        "project": Project(
+            inputs: {"points": "dataset.image", "imag": "dataset.image"},
+            params: (min_dept: 1.0, border: 2),
+        ),
+        "encode": Encdoe(inputs: {"depth": "project.depth"}),
+        "fuse": Fuse(inputs: {"depths": "project.depht"}),
+    },
+)"#;
+    let out = errors(text, &[]);
+    // Dataset config.
+    assert!(
+        out.contains("unknown param `versoin` of dataset NuScenes"),
+        "{out}"
+    );
+    assert!(out.contains("p.ron:2:37"), "{out}");
+    // Unknown kind, with a suggestion and the list.
+    assert!(out.contains("unknown stage kind `Encdoe`"), "{out}");
+    assert!(out.contains("did you mean `Encode`?"), "{out}");
+    // Unknown param, naming what exists.
+    assert!(out.contains("unknown param `min_dept`"), "{out}");
+    assert!(
+        out.contains("params: min_depth (default 0.0), border (default 0)"),
+        "{out}"
+    );
+    // Type mismatch names both types.
+    assert!(
+        out.contains(
+            "input `points` of stage `project` takes PointCloud but `dataset.image` gives Image"
+        ),
+        "{out}"
+    );
+    // Unknown input port and the missing one.
+    assert!(out.contains("has no input port `imag`"), "{out}");
+    assert!(
+        out.contains("input `image` (Image) of stage `project` is not wired"),
+        "{out}"
+    );
+    // Unknown output port with suggestion.
+    assert!(
+        out.contains("stage `project` has no output port `depht`"),
+        "{out}"
+    );
+    // Carets under the offending text.
+    assert!(
+        out.contains(
+            "            params: (min_dept: 1.0, border: 2),\n  |                      ^^^^^^^^"
+        ),
+        "{out}"
+    );
+    assert!(out.contains("problems found; nothing was run"), "{out}");
+}
+
+#[test]
+fn syntax_errors_have_a_location() {
+    let out = errors(
+        "Pipeline(\n  dataset: NuScenes(root: \"x\")\n  stages: {},\n)",
+        &[],
+    );
+    assert!(out.contains("expected `,` or `)`"), "{out}");
+    assert!(out.contains("p.ron:3:3"), "{out}");
+}
+
+#[test]
+fn type_errors_in_params_point_at_the_value() {
+    let text = GOOD.replace("min_depth: 1.0", "min_depth: \"far\"");
+    let out = errors(&text, &[]);
+    assert!(
+        out.contains("bad params of stage `project` (Project): expected a number, found a string"),
+        "{out}"
+    );
+    assert!(out.contains("p.ron:6:33"), "{out}");
+}
+
+#[test]
+fn cycles_name_their_stages() {
+    let text = r#"Pipeline(
+    dataset: NuScenes(root: "d"),
+    stages: {
+        "a": Fuse(inputs: {"depths": Window("c.depth", frame, -1, 0)}),
+        "b": Fuse(inputs: {"depths": "a.depth"}),
+        "c": Fuse(inputs: {"depths": "b.depth"}),
+        "ok": Fuse(inputs: {"depths": "c.depth"}),
+    },
+)"#;
+    let out = errors(text, &[]);
+    assert!(
+        out.contains("the stages `a` -> `b` -> `c` form a cycle"),
+        "{out}"
+    );
+    assert!(!out.contains("`ok`"), "{out}");
+}
+
+#[test]
+fn selectors_must_fit_the_grains() {
+    let text = r#"Pipeline(
+    dataset: NuScenes(root: "d"),
+    stages: {
+        "project": Project(inputs: {"points": "dataset.lidar", "image": "dataset.image"}),
+        "fine_to_coarse": Fuse(inputs: {"depths": "project.depth"}),
+        "gather_wrong": Fuse(inputs: {"depths": Gather("project.depth", frame)}),
+        "window_camera": Fuse(inputs: {"depths": Window("project.depth", camera, -1, 1)}),
+        "one_gets_many": Encode(inputs: {"depth": Window("project.depth", frame, -1, 1)}),
+        "unknown_dim": Fuse(inputs: {"depths": Offset("project.depth", time, 1)}),
+        "bad_grain": Project(inputs: {"points": "dataset.lidar", "image": "dataset.image"}, grain: frame),
+    },
+)"#;
+    let out = errors(text, &[]);
+    assert!(out.contains("stage `fine_to_coarse` runs per frame but its input `depths` from `project.depth` (per camera) is finer: gather it with Gather(\"..\", camera)"), "{out}");
+    assert!(out.contains("cannot be gathered over `frame`"), "{out}");
+    assert!(
+        out.contains("`Window` cannot move along `camera`: it has no order"),
+        "{out}"
+    );
+    assert!(out.contains("input `depth` of stage `one_gets_many` takes one DepthMap but Window(frame, -1, 1) gives several"), "{out}");
+    assert!(out.contains("the dataset has no dimension `time`"), "{out}");
+    assert!(
+        out.contains("stage `bad_grain` (Project) cannot run per `frame`"),
+        "{out}"
+    );
+}
+
+#[test]
+fn exports_need_files_and_every_dimension_of_the_grain() {
+    let text = GOOD.replace(
+        r#"export: {"encode.png": "{scene}/{camera}/{frame}.png"}"#,
+        r#"export: {"encode.png": "{scene}/{frame}.png", "encode.depth": "{scene}/{frame}/{camera}.bin", "nope.x": "a"}"#,
+    );
+    let out = errors(&text, &[]);
+    assert!(out.contains("it must name `{camera}`"), "{out}");
+    assert!(
+        out.contains("`encode.depth` gives DepthMap, which is not an encoded file"),
+        "{out}"
+    );
+    assert!(out.contains("export names stage `nope`"), "{out}");
+}
+
+#[test]
+fn missing_dataset_and_unknown_top_level_fields() {
+    let out = errors("Pipeline(stages: {}, stagse: 1)", &[]);
+    assert!(out.contains("the pipeline has no `dataset`"), "{out}");
+    assert!(out.contains("unknown field `stagse` in Pipeline"), "{out}");
+    assert!(out.contains("did you mean `stages`?"), "{out}");
+}
