@@ -21,20 +21,10 @@ pub struct PortSpec {
 
 impl PortSpec {
     pub const fn one(name: &'static str, ty: &'static str, doc: &'static str) -> PortSpec {
-        PortSpec {
-            name,
-            ty,
-            many: false,
-            doc,
-        }
+        PortSpec { name, ty, many: false, doc }
     }
     pub const fn many(name: &'static str, ty: &'static str, doc: &'static str) -> PortSpec {
-        PortSpec {
-            name,
-            ty,
-            many: true,
-            doc,
-        }
+        PortSpec { name, ty, many: true, doc }
     }
 }
 
@@ -87,15 +77,9 @@ impl ParamsSpec {
                 let default = defaults
                     .as_ref()
                     .and_then(|d| d.field(n))
-                    .map(|f| {
-                        defaults_text[f.value.span.start as usize..f.value.span.end as usize]
-                            .to_string()
-                    })
+                    .map(|f| defaults_text[f.value.span.start as usize..f.value.span.end as usize].to_string())
                     .unwrap_or_else(|| "(required)".into());
-                ParamInfo {
-                    name: n.to_string(),
-                    default,
-                }
+                ParamInfo { name: n.to_string(), default }
             })
             .collect();
         let check = Box::new(|value: Option<&Value>| -> Result<String, DeError> {
@@ -103,10 +87,7 @@ impl ParamsSpec {
                 Some(v) => from_value(v)?,
                 None => P::default(),
             };
-            ron::to_string(&params).map_err(|e| DeError {
-                message: format!("cannot write params: {e}"),
-                span: None,
-            })
+            ron::to_string(&params).map_err(|e| DeError { message: format!("cannot write params: {e}"), span: None })
         });
         ParamsSpec { fields, check }
     }
@@ -125,11 +106,7 @@ impl ParamsSpec {
         if self.fields.is_empty() {
             return "none".into();
         }
-        self.fields
-            .iter()
-            .map(|f| format!("{} (default {})", f.name, f.default))
-            .collect::<Vec<_>>()
-            .join(", ")
+        self.fields.iter().map(|f| format!("{} (default {})", f.name, f.default)).collect::<Vec<_>>().join(", ")
     }
 }
 

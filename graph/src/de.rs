@@ -26,10 +26,7 @@ impl std::error::Error for DeError {}
 
 impl de::Error for DeError {
     fn custom<T: fmt::Display>(msg: T) -> Self {
-        DeError {
-            message: msg.to_string(),
-            span: None,
-        }
+        DeError { message: msg.to_string(), span: None }
     }
 }
 
@@ -89,10 +86,7 @@ struct ValueDe<'a>(&'a Value);
 
 impl<'a> ValueDe<'a> {
     fn invalid<T>(&self, expected: &str) -> Result<T, DeError> {
-        Err(DeError {
-            message: format!("expected {expected}, found {}", self.0.describe()),
-            span: Some(self.0.span),
-        })
+        Err(DeError { message: format!("expected {expected}, found {}", self.0.describe()), span: Some(self.0.span) })
     }
 }
 
@@ -127,14 +121,8 @@ impl<'de> de::Deserializer<'de> for ValueDe<'de> {
             ValueKind::Char(c) => v.visit_char(*c),
             ValueKind::Ident(i) => v.visit_borrowed_str(i),
             ValueKind::List(items) | ValueKind::Tuple(_, items) => v.visit_seq(Seq(items.iter())),
-            ValueKind::Map(entries) => v.visit_map(MapEntries {
-                iter: entries.iter(),
-                value: None,
-            }),
-            ValueKind::Struct(_, fields) => v.visit_map(StructFields {
-                iter: fields.iter(),
-                value: None,
-            }),
+            ValueKind::Map(entries) => v.visit_map(MapEntries { iter: entries.iter(), value: None }),
+            ValueKind::Struct(_, fields) => v.visit_map(StructFields { iter: fields.iter(), value: None }),
         };
         r.map_err(|e| e.at(span))
     }
@@ -196,19 +184,15 @@ impl<'de> de::Deserializer<'de> for ValueDe<'de> {
         }
     }
 
-    fn deserialize_newtype_struct<V: Visitor<'de>>(
-        self,
-        _: &'static str,
-        v: V,
-    ) -> Result<V::Value, DeError> {
+    fn deserialize_newtype_struct<V: Visitor<'de>>(self, _: &'static str, v: V) -> Result<V::Value, DeError> {
         v.visit_newtype_struct(self)
     }
 
     fn deserialize_seq<V: Visitor<'de>>(self, v: V) -> Result<V::Value, DeError> {
         match &self.0.kind {
-            ValueKind::List(items) | ValueKind::Tuple(None, items) => v
-                .visit_seq(Seq(items.iter()))
-                .map_err(|e| e.at(self.0.span)),
+            ValueKind::List(items) | ValueKind::Tuple(None, items) => {
+                v.visit_seq(Seq(items.iter())).map_err(|e| e.at(self.0.span))
+            }
             ValueKind::Unit => v.visit_seq(Seq([].iter())),
             _ => self.invalid("a list `[..]`"),
         }
@@ -218,28 +202,20 @@ impl<'de> de::Deserializer<'de> for ValueDe<'de> {
         self.deserialize_seq(v)
     }
 
-    fn deserialize_tuple_struct<V: Visitor<'de>>(
-        self,
-        _: &'static str,
-        _: usize,
-        v: V,
-    ) -> Result<V::Value, DeError> {
+    fn deserialize_tuple_struct<V: Visitor<'de>>(self, _: &'static str, _: usize, v: V) -> Result<V::Value, DeError> {
         match &self.0.kind {
-            ValueKind::Tuple(_, items) | ValueKind::List(items) => v
-                .visit_seq(Seq(items.iter()))
-                .map_err(|e| e.at(self.0.span)),
+            ValueKind::Tuple(_, items) | ValueKind::List(items) => {
+                v.visit_seq(Seq(items.iter())).map_err(|e| e.at(self.0.span))
+            }
             _ => self.invalid("a tuple `(..)`"),
         }
     }
 
     fn deserialize_map<V: Visitor<'de>>(self, v: V) -> Result<V::Value, DeError> {
         match &self.0.kind {
-            ValueKind::Map(entries) => v
-                .visit_map(MapEntries {
-                    iter: entries.iter(),
-                    value: None,
-                })
-                .map_err(|e| e.at(self.0.span)),
+            ValueKind::Map(entries) => {
+                v.visit_map(MapEntries { iter: entries.iter(), value: None }).map_err(|e| e.at(self.0.span))
+            }
             _ => self.invalid("a map `{..}`"),
         }
     }
@@ -251,12 +227,9 @@ impl<'de> de::Deserializer<'de> for ValueDe<'de> {
         v: V,
     ) -> Result<V::Value, DeError> {
         match self.0.fields() {
-            Some(fields) => v
-                .visit_map(StructFields {
-                    iter: fields.iter(),
-                    value: None,
-                })
-                .map_err(|e| e.at(self.0.span)),
+            Some(fields) => {
+                v.visit_map(StructFields { iter: fields.iter(), value: None }).map_err(|e| e.at(self.0.span))
+            }
             None => self.invalid("a struct `(name: value, ..)`"),
         }
     }
@@ -288,15 +261,9 @@ struct Seq<'a>(std::slice::Iter<'a, Value>);
 
 impl<'de> de::SeqAccess<'de> for Seq<'de> {
     type Error = DeError;
-    fn next_element_seed<T: DeserializeSeed<'de>>(
-        &mut self,
-        seed: T,
-    ) -> Result<Option<T::Value>, DeError> {
+    fn next_element_seed<T: DeserializeSeed<'de>>(&mut self, seed: T) -> Result<Option<T::Value>, DeError> {
         match self.0.next() {
-            Some(v) => seed
-                .deserialize(ValueDe(v))
-                .map(Some)
-                .map_err(|e| e.at(v.span)),
+            Some(v) => seed.deserialize(ValueDe(v)).map(Some).map_err(|e| e.at(v.span)),
             None => Ok(None),
         }
     }
@@ -309,25 +276,17 @@ struct MapEntries<'a> {
 
 impl<'de> de::MapAccess<'de> for MapEntries<'de> {
     type Error = DeError;
-    fn next_key_seed<K: DeserializeSeed<'de>>(
-        &mut self,
-        seed: K,
-    ) -> Result<Option<K::Value>, DeError> {
+    fn next_key_seed<K: DeserializeSeed<'de>>(&mut self, seed: K) -> Result<Option<K::Value>, DeError> {
         match self.iter.next() {
             Some((k, v)) => {
                 self.value = Some(v);
-                seed.deserialize(ValueDe(k))
-                    .map(Some)
-                    .map_err(|e| e.at(k.span))
+                seed.deserialize(ValueDe(k)).map(Some).map_err(|e| e.at(k.span))
             }
             None => Ok(None),
         }
     }
     fn next_value_seed<T: DeserializeSeed<'de>>(&mut self, seed: T) -> Result<T::Value, DeError> {
-        let v = self
-            .value
-            .take()
-            .expect("serde asks for a value after its key");
+        let v = self.value.take().expect("serde asks for a value after its key");
         seed.deserialize(ValueDe(v)).map_err(|e| e.at(v.span))
     }
 }
@@ -339,27 +298,18 @@ struct StructFields<'a> {
 
 impl<'de> de::MapAccess<'de> for StructFields<'de> {
     type Error = DeError;
-    fn next_key_seed<K: DeserializeSeed<'de>>(
-        &mut self,
-        seed: K,
-    ) -> Result<Option<K::Value>, DeError> {
+    fn next_key_seed<K: DeserializeSeed<'de>>(&mut self, seed: K) -> Result<Option<K::Value>, DeError> {
         match self.iter.next() {
             Some(f) => {
                 self.value = Some(&f.value);
-                let key =
-                    de::value::BorrowedStrDeserializer::<'de, DeError>::new(f.name.text.as_str());
-                seed.deserialize(key)
-                    .map(Some)
-                    .map_err(|e| e.at(f.name.span))
+                let key = de::value::BorrowedStrDeserializer::<'de, DeError>::new(f.name.text.as_str());
+                seed.deserialize(key).map(Some).map_err(|e| e.at(f.name.span))
             }
             None => Ok(None),
         }
     }
     fn next_value_seed<T: DeserializeSeed<'de>>(&mut self, seed: T) -> Result<T::Value, DeError> {
-        let v = self
-            .value
-            .take()
-            .expect("serde asks for a value after its key");
+        let v = self.value.take().expect("serde asks for a value after its key");
         seed.deserialize(ValueDe(v)).map_err(|e| e.at(v.span))
     }
 }
@@ -369,15 +319,10 @@ struct EnumDe<'a>(&'a Value);
 impl<'de> de::EnumAccess<'de> for EnumDe<'de> {
     type Error = DeError;
     type Variant = VariantDe<'de>;
-    fn variant_seed<V: DeserializeSeed<'de>>(
-        self,
-        seed: V,
-    ) -> Result<(V::Value, VariantDe<'de>), DeError> {
+    fn variant_seed<V: DeserializeSeed<'de>>(self, seed: V) -> Result<(V::Value, VariantDe<'de>), DeError> {
         let (name, span, payload): (&str, Span, Option<&Value>) = match &self.0.kind {
             ValueKind::Ident(s) | ValueKind::Str(s) => (s, self.0.span, None),
-            ValueKind::Tuple(Some(n), _) | ValueKind::Struct(Some(n), _) => {
-                (&n.text, n.span, Some(self.0))
-            }
+            ValueKind::Tuple(Some(n), _) | ValueKind::Struct(Some(n), _) => (&n.text, n.span, Some(self.0)),
             _ => {
                 return Err(DeError {
                     message: format!("expected a variant name, found {}", self.0.describe()),
@@ -398,17 +343,12 @@ impl<'de> de::VariantAccess<'de> for VariantDe<'de> {
     fn unit_variant(self) -> Result<(), DeError> {
         match self.0 {
             None => Ok(()),
-            Some(v) => Err(DeError {
-                message: "this variant takes no values".into(),
-                span: Some(v.span),
-            }),
+            Some(v) => Err(DeError { message: "this variant takes no values".into(), span: Some(v.span) }),
         }
     }
     fn newtype_variant_seed<T: DeserializeSeed<'de>>(self, seed: T) -> Result<T::Value, DeError> {
         match self.0.map(|v| &v.kind) {
-            Some(ValueKind::Tuple(_, items)) if items.len() == 1 => {
-                seed.deserialize(ValueDe(&items[0]))
-            }
+            Some(ValueKind::Tuple(_, items)) if items.len() == 1 => seed.deserialize(ValueDe(&items[0])),
             _ => Err(DeError {
                 message: "this variant takes one value: `Variant(value)`".into(),
                 span: self.0.map(|v| v.span),
@@ -424,16 +364,9 @@ impl<'de> de::VariantAccess<'de> for VariantDe<'de> {
             }),
         }
     }
-    fn struct_variant<V: Visitor<'de>>(
-        self,
-        _: &'static [&'static str],
-        v: V,
-    ) -> Result<V::Value, DeError> {
+    fn struct_variant<V: Visitor<'de>>(self, _: &'static [&'static str], v: V) -> Result<V::Value, DeError> {
         match self.0.and_then(|x| x.fields()) {
-            Some(fields) => v.visit_map(StructFields {
-                iter: fields.iter(),
-                value: None,
-            }),
+            Some(fields) => v.visit_map(StructFields { iter: fields.iter(), value: None }),
             None => Err(DeError {
                 message: "this variant takes named fields: `Variant(x: ..)`".into(),
                 span: self.0.map(|v| v.span),
@@ -478,13 +411,7 @@ mod tests {
         let (p, _) = read("(min_depth: 2, mode: Far, name: \"x\", range: (-1, 1))");
         assert_eq!(
             p.unwrap(),
-            P {
-                min_depth: 2.0,
-                border: 0,
-                name: Some("x".into()),
-                mode: Mode::Far,
-                range: (-1, 1)
-            }
+            P { min_depth: 2.0, border: 0, name: Some("x".into()), mode: Mode::Far, range: (-1, 1) }
         );
     }
 
@@ -500,18 +427,11 @@ mod tests {
         let e = p.unwrap_err();
         let span = e.span.unwrap();
         assert_eq!(&text[span.start as usize..span.end as usize], "min_dept");
-        assert!(
-            e.message.contains("unknown field `min_dept`"),
-            "{}",
-            e.message
-        );
+        assert!(e.message.contains("unknown field `min_dept`"), "{}", e.message);
     }
 
     #[test]
     fn finds_struct_field_names() {
-        assert_eq!(
-            struct_fields::<P>(),
-            &["min_depth", "border", "name", "mode", "range"]
-        );
+        assert_eq!(struct_fields::<P>(), &["min_depth", "border", "name", "mode", "range"]);
     }
 }

@@ -16,21 +16,11 @@ pub struct Diagnostic {
 
 impl Diagnostic {
     pub fn error(message: impl Into<String>, span: Span) -> Diagnostic {
-        Diagnostic {
-            message: message.into(),
-            span: Some(span),
-            label: None,
-            notes: Vec::new(),
-        }
+        Diagnostic { message: message.into(), span: Some(span), label: None, notes: Vec::new() }
     }
 
     pub fn without_span(message: impl Into<String>) -> Diagnostic {
-        Diagnostic {
-            message: message.into(),
-            span: None,
-            label: None,
-            notes: Vec::new(),
-        }
+        Diagnostic { message: message.into(), span: None, label: None, notes: Vec::new() }
     }
 
     pub fn with_label(mut self, label: impl Into<String>) -> Diagnostic {
@@ -67,18 +57,9 @@ impl Diagnostic {
             let _ = writeln!(out, "{} | {}", loc.line, line_text);
             // Carets under the span, clipped to the first line it covers.
             let text_from_col: String = line_text.chars().skip(loc.column - 1).collect();
-            let span_chars = sources
-                .slice(span)
-                .chars()
-                .take_while(|c| *c != '\n')
-                .count();
+            let span_chars = sources.slice(span).chars().take_while(|c| *c != '\n').count();
             let width = span_chars.clamp(1, text_from_col.chars().count().max(1));
-            let _ = write!(
-                out,
-                "{pad} | {}{}",
-                " ".repeat(loc.column - 1),
-                "^".repeat(width)
-            );
+            let _ = write!(out, "{pad} | {}{}", " ".repeat(loc.column - 1), "^".repeat(width));
             if let Some(label) = &self.label {
                 let _ = write!(out, " {label}");
             }
@@ -99,20 +80,12 @@ pub fn render_all(diags: &[Diagnostic], sources: &Sources) -> String {
         out.push('\n');
     }
     let n = diags.len();
-    let _ = writeln!(
-        out,
-        "{} problem{} found; nothing was run",
-        n,
-        if n == 1 { "" } else { "s" }
-    );
+    let _ = writeln!(out, "{} problem{} found; nothing was run", n, if n == 1 { "" } else { "s" });
     out
 }
 
 /// The candidate closest to `word` by edit distance, if it is close enough to be a likely typo.
-pub fn did_you_mean<'a>(
-    word: &str,
-    candidates: impl IntoIterator<Item = &'a str>,
-) -> Option<&'a str> {
+pub fn did_you_mean<'a>(word: &str, candidates: impl IntoIterator<Item = &'a str>) -> Option<&'a str> {
     candidates
         .into_iter()
         .map(|c| (edit_distance(word, c), c))
@@ -155,10 +128,7 @@ mod tests {
 
     #[test]
     fn suggests_close_names_only() {
-        assert_eq!(
-            did_you_mean("min_dept", ["min_depth", "border"]),
-            Some("min_depth")
-        );
+        assert_eq!(did_you_mean("min_dept", ["min_depth", "border"]), Some("min_depth"));
         assert_eq!(did_you_mean("zzz", ["min_depth", "border"]), None);
     }
 }

@@ -12,14 +12,11 @@ pub mod pipeline;
 pub mod source;
 pub mod syntax;
 
-pub use catalog::{
-    Catalog, DatasetSchema, DimSpec, ParamInfo, ParamsSpec, PortSpec, SourcePortSpec, StageSchema,
-};
+pub use catalog::{Catalog, DatasetSchema, DimSpec, ParamInfo, ParamsSpec, PortSpec, SourcePortSpec, StageSchema};
 pub use diag::Diagnostic;
 pub use load::{load_file, load_str, LoadError};
 pub use pipeline::{
-    DatasetDecl, Dim, Export, Input, Node, NodeId, NodeKind, OutPort, Pipeline, Selector,
-    StageNode, TemplatePart,
+    DatasetDecl, Dim, Export, Input, Node, NodeId, NodeKind, OutPort, Pipeline, Selector, StageNode, TemplatePart,
 };
 
 #[cfg(test)]

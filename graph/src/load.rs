@@ -38,12 +38,7 @@ impl std::error::Error for LoadError {}
 ///
 /// `overrides` are `target.field=value` strings (`project.min_depth=2`, `dataset.root=/data`);
 /// relative paths given through them resolve against `cwd`.
-pub fn load_file(
-    path: &Path,
-    overrides: &[String],
-    cwd: &Path,
-    catalog: &dyn Catalog,
-) -> Result<Pipeline, LoadError> {
+pub fn load_file(path: &Path, overrides: &[String], cwd: &Path, catalog: &dyn Catalog) -> Result<Pipeline, LoadError> {
     let text = match std::fs::read_to_string(path) {
         Ok(t) => t,
         Err(e) => {
@@ -58,23 +53,9 @@ pub fn load_file(
     };
     let base = path
         .parent()
-        .map(|p| {
-            if p.as_os_str().is_empty() {
-                cwd.to_path_buf()
-            } else {
-                cwd.join(p)
-            }
-        })
+        .map(|p| if p.as_os_str().is_empty() { cwd.to_path_buf() } else { cwd.join(p) })
         .unwrap_or_else(|| cwd.to_path_buf());
-    load_str(
-        &path.display().to_string(),
-        &text,
-        path,
-        &base,
-        overrides,
-        cwd,
-        catalog,
-    )
+    load_str(&path.display().to_string(), &text, path, &base, overrides, cwd, catalog)
 }
 
 /// Like [`load_file`] for text already in memory; `base` is where relative paths in it resolve.
@@ -91,58 +72,34 @@ pub fn load_str(
     let file = sources.add(name, text);
     let mut root = match syntax::parse(text, file) {
         Ok(v) => v,
-        Err(d) => {
-            return Err(LoadError {
-                sources,
-                diagnostics: vec![d],
-            })
-        }
+        Err(d) => return Err(LoadError { sources, diagnostics: vec![d] }),
     };
-    let mut checker = Checker {
-        catalog,
-        diags: Vec::new(),
-        bases: HashMap::new(),
-    };
+    let mut checker = Checker { catalog, diags: Vec::new(), bases: HashMap::new() };
     checker.bases.insert(file, base.to_path_buf());
     apply_overrides(&mut root, overrides, &mut sources, cwd, &mut checker);
-    let default_name = path
-        .file_stem()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "pipeline".into());
+    let default_name = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "pipeline".into());
     let pipeline = checker.pipeline(&root, default_name, path.to_path_buf());
     match pipeline {
         Some(p) if checker.diags.is_empty() => Ok(p),
         _ => {
             if checker.diags.is_empty() {
-                checker
-                    .diags
-                    .push(Diagnostic::without_span("the pipeline is not valid"));
+                checker.diags.push(Diagnostic::without_span("the pipeline is not valid"));
             }
-            Err(LoadError {
-                sources,
-                diagnostics: checker.diags,
-            })
+            Err(LoadError { sources, diagnostics: checker.diags })
         }
     }
 }
 
 /// Applies `--set target.field=value` arguments to the parsed tree.
-fn apply_overrides(
-    root: &mut Value,
-    overrides: &[String],
-    sources: &mut Sources,
-    cwd: &Path,
-    checker: &mut Checker,
-) {
+fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources, cwd: &Path, checker: &mut Checker) {
     for arg in overrides {
         let id = sources.add("--set", arg.clone());
         checker.bases.insert(id, cwd.to_path_buf());
         let whole = Span::new(id, 0, arg.len());
         let Some(eq) = arg.find('=') else {
-            checker.diags.push(
-                Diagnostic::error("a --set takes `target.param=value`", whole)
-                    .with_label("no `=` here"),
-            );
+            checker
+                .diags
+                .push(Diagnostic::error("a --set takes `target.param=value`", whole).with_label("no `=` here"));
             continue;
         };
         let path_span = Span::new(id, 0, eq);
@@ -155,39 +112,21 @@ fn apply_overrides(
             continue;
         }
         let value = parse_override_value(arg, eq + 1, id);
-        let field = Field {
-            name: Name {
-                text: parts[1].to_string(),
-                span: Span::new(id, parts[0].len() + 1, eq),
-            },
-            value,
-        };
+        let field =
+            Field { name: Name { text: parts[1].to_string(), span: Span::new(id, parts[0].len() + 1, eq) }, value };
         let target_span = Span::new(id, 0, parts[0].len());
         let target: Option<&mut Value> = if parts[0] == "dataset" {
-            root.fields_mut()
-                .and_then(|f| f.iter_mut().find(|f| f.name.text == "dataset"))
-                .map(|f| &mut f.value)
+            root.fields_mut().and_then(|f| f.iter_mut().find(|f| f.name.text == "dataset")).map(|f| &mut f.value)
         } else {
-            let stages = root
-                .fields_mut()
-                .and_then(|f| f.iter_mut().find(|f| f.name.text == "stages"));
+            let stages = root.fields_mut().and_then(|f| f.iter_mut().find(|f| f.name.text == "stages"));
             match stages.map(|f| &mut f.value.kind) {
                 Some(ValueKind::Map(entries)) => {
-                    let names: Vec<String> = entries
-                        .iter()
-                        .filter_map(|(k, _)| k.as_str().map(String::from))
-                        .collect();
-                    match entries
-                        .iter_mut()
-                        .find(|(k, _)| k.as_str() == Some(parts[0]))
-                    {
+                    let names: Vec<String> = entries.iter().filter_map(|(k, _)| k.as_str().map(String::from)).collect();
+                    match entries.iter_mut().find(|(k, _)| k.as_str() == Some(parts[0])) {
                         Some((_, stage)) => params_of(stage),
                         None => {
                             let mut d = Diagnostic::error(
-                                format!(
-                                    "--set names stage `{}`, which the pipeline does not have",
-                                    parts[0]
-                                ),
+                                format!("--set names stage `{}`, which the pipeline does not have", parts[0]),
                                 target_span,
                             )
                             .with_label("no such stage");
@@ -205,10 +144,7 @@ fn apply_overrides(
                 Some(existing) => existing.value = field.value,
                 None => fields.push(field),
             },
-            None => checker.diags.push(Diagnostic::error(
-                format!("cannot apply --set to `{}`", parts[0]),
-                target_span,
-            )),
+            None => checker.diags.push(Diagnostic::error(format!("cannot apply --set to `{}`", parts[0]), target_span)),
         }
     }
 }
@@ -219,20 +155,11 @@ fn params_of(stage: &mut Value) -> Option<&mut Value> {
     let fields = stage.fields_mut()?;
     if !fields.iter().any(|f| f.name.text == "params") {
         fields.push(Field {
-            name: Name {
-                text: "params".into(),
-                span,
-            },
-            value: Value {
-                kind: ValueKind::Struct(None, Vec::new()),
-                span,
-            },
+            name: Name { text: "params".into(), span },
+            value: Value { kind: ValueKind::Struct(None, Vec::new()), span },
         });
     }
-    fields
-        .iter_mut()
-        .find(|f| f.name.text == "params")
-        .map(|f| &mut f.value)
+    fields.iter_mut().find(|f| f.name.text == "params").map(|f| &mut f.value)
 }
 
 /// A --set value is RON when it parses as RON, else a plain string (paths, `v1.0-mini`).
@@ -245,10 +172,7 @@ fn parse_override_value(arg: &str, start: usize, id: SourceId) -> Value {
             shift_spans(&mut v, id, start as u32);
             v
         }
-        Err(_) => Value {
-            kind: ValueKind::Str(text.to_string()),
-            span: Span::new(id, start, arg.len()),
-        },
+        Err(_) => Value { kind: ValueKind::Str(text.to_string()), span: Span::new(id, start, arg.len()) },
     }
 }
 
@@ -260,9 +184,7 @@ fn shift_spans(v: &mut Value, id: SourceId, by: u32) {
     };
     fix(&mut v.span);
     match &mut v.kind {
-        ValueKind::List(items) | ValueKind::Tuple(_, items) => {
-            items.iter_mut().for_each(|i| shift_spans(i, id, by))
-        }
+        ValueKind::List(items) | ValueKind::Tuple(_, items) => items.iter_mut().for_each(|i| shift_spans(i, id, by)),
         ValueKind::Map(entries) => entries.iter_mut().for_each(|(k, x)| {
             shift_spans(k, id, by);
             shift_spans(x, id, by)
@@ -305,11 +227,8 @@ impl<'c> Checker<'c> {
         for f in fields {
             if !allowed.contains(&f.name.text.as_str()) {
                 ok = false;
-                let mut d = Diagnostic::error(
-                    format!("unknown field `{}` in {what}", f.name.text),
-                    f.name.span,
-                )
-                .with_label("unknown field");
+                let mut d = Diagnostic::error(format!("unknown field `{}` in {what}", f.name.text), f.name.span)
+                    .with_label("unknown field");
                 if let Some(s) = did_you_mean(&f.name.text, allowed.iter().copied()) {
                     d = d.with_note(format!("did you mean `{s}`?"));
                 }
@@ -329,11 +248,9 @@ impl<'c> Checker<'c> {
                     for f in fields {
                         if !spec.names().any(|n| n == f.name.text) {
                             unknown = true;
-                            let mut d = Diagnostic::error(
-                                format!("unknown param `{}` of {what}", f.name.text),
-                                f.name.span,
-                            )
-                            .with_label("not a param of this kind");
+                            let mut d =
+                                Diagnostic::error(format!("unknown param `{}` of {what}", f.name.text), f.name.span)
+                                    .with_label("not a param of this kind");
                             if let Some(s) = did_you_mean(&f.name.text, spec.names()) {
                                 d = d.with_note(format!("did you mean `{s}`?"));
                             }
@@ -347,10 +264,7 @@ impl<'c> Checker<'c> {
                 }
                 None => {
                     self.err(Diagnostic::error(
-                        format!(
-                            "params of {what} must be a struct `(name: value, ..)`, found {}",
-                            v.describe()
-                        ),
+                        format!("params of {what} must be a struct `(name: value, ..)`, found {}", v.describe()),
                         v.span,
                     ));
                     return None;
@@ -363,9 +277,7 @@ impl<'c> Checker<'c> {
                 let span = e.span.or(value.map(|v| v.span));
                 let d = match span {
                     Some(s) => Diagnostic::error(format!("bad params of {what}: {}", e.message), s),
-                    None => {
-                        Diagnostic::without_span(format!("bad params of {what}: {}", e.message))
-                    }
+                    None => Diagnostic::without_span(format!("bad params of {what}: {}", e.message)),
                 };
                 self.err(d.with_note(format!("params: {}", spec.describe())));
                 None
@@ -374,15 +286,9 @@ impl<'c> Checker<'c> {
     }
 
     fn pipeline(&mut self, root: &Value, default_name: String, path: PathBuf) -> Option<Pipeline> {
-        let Some(fields) = root
-            .fields()
-            .filter(|_| root.type_name().is_none_or(|n| n.text == "Pipeline"))
-        else {
+        let Some(fields) = root.fields().filter(|_| root.type_name().is_none_or(|n| n.text == "Pipeline")) else {
             self.err(Diagnostic::error(
-                format!(
-                    "a pipeline file holds `Pipeline(dataset: .., stages: {{..}})`, found {}",
-                    root.describe()
-                ),
+                format!("a pipeline file holds `Pipeline(dataset: .., stages: {{..}})`, found {}", root.describe()),
                 root.span,
             ));
             return None;
@@ -406,9 +312,8 @@ impl<'c> Checker<'c> {
             Some(f) => self.dataset(&f.value),
             None => {
                 self.err(
-                    Diagnostic::error("the pipeline has no `dataset`", root.span).with_note(
-                        format!("dataset kinds: {}", self.catalog.dataset_kinds().join(", ")),
-                    ),
+                    Diagnostic::error("the pipeline has no `dataset`", root.span)
+                        .with_note(format!("dataset kinds: {}", self.catalog.dataset_kinds().join(", "))),
                 );
                 None
             }
@@ -420,37 +325,22 @@ impl<'c> Checker<'c> {
         let mut nodes: Vec<Node> = Vec::new();
         let mut declared: Vec<Declared> = Vec::new();
         match root.field("stages").map(|f| &f.value) {
-            Some(Value {
-                kind: ValueKind::Map(entries),
-                ..
-            }) => {
+            Some(Value { kind: ValueKind::Map(entries), .. }) => {
                 for (key, value) in entries {
                     self.stage(key, value, dims.as_deref(), &mut nodes, &mut declared);
                 }
             }
             Some(other) => self.err(Diagnostic::error(
-                format!(
-                    "`stages` must be a map `{{\"name\": Kind(..), ..}}`, found {}",
-                    other.describe()
-                ),
+                format!("`stages` must be a map `{{\"name\": Kind(..), ..}}`, found {}", other.describe()),
                 other.span,
             )),
             None => self.err(Diagnostic::error("the pipeline has no `stages`", root.span)),
         }
 
         // Inputs, now that every stage name is known. Sources are added as they are referenced.
-        let source_ports = dataset
-            .as_ref()
-            .map(|(_, _, ports)| ports.clone())
-            .unwrap_or_default();
+        let source_ports = dataset.as_ref().map(|(_, _, ports)| ports.clone()).unwrap_or_default();
         for d in &declared {
-            self.inputs(
-                d,
-                dims.as_deref(),
-                &source_ports,
-                dataset.is_some(),
-                &mut nodes,
-            );
+            self.inputs(d, dims.as_deref(), &source_ports, dataset.is_some(), &mut nodes);
         }
 
         let order = self.order(&nodes, &declared)?;
@@ -459,43 +349,25 @@ impl<'c> Checker<'c> {
             _ => Vec::new(),
         };
         let (decl, dims, _) = dataset?;
-        Some(Pipeline {
-            name,
-            path,
-            dataset: decl?,
-            dims,
-            nodes,
-            order,
-            exports,
-        })
+        Some(Pipeline { name, path, dataset: decl?, dims, nodes, order, exports })
     }
 
     #[allow(clippy::type_complexity)]
-    fn dataset(
-        &mut self,
-        v: &Value,
-    ) -> Option<(Option<DatasetDecl>, Vec<Dim>, Vec<(String, String, usize)>)> {
+    fn dataset(&mut self, v: &Value) -> Option<(Option<DatasetDecl>, Vec<Dim>, Vec<(String, String, usize)>)> {
         let Some(kind) = v.type_name() else {
             self.err(
                 Diagnostic::error(
-                    format!(
-                        "`dataset` must name its kind, e.g. `NuScenes(root: \"..\")`, found {}",
-                        v.describe()
-                    ),
+                    format!("`dataset` must name its kind, e.g. `NuScenes(root: \"..\")`, found {}", v.describe()),
                     v.span,
                 )
-                .with_note(format!(
-                    "dataset kinds: {}",
-                    self.catalog.dataset_kinds().join(", ")
-                )),
+                .with_note(format!("dataset kinds: {}", self.catalog.dataset_kinds().join(", "))),
             );
             return None;
         };
         let Some(schema) = self.catalog.dataset(&kind.text) else {
             let kinds = self.catalog.dataset_kinds();
-            let mut d =
-                Diagnostic::error(format!("unknown dataset kind `{}`", kind.text), kind.span)
-                    .with_label("not a dataset kind");
+            let mut d = Diagnostic::error(format!("unknown dataset kind `{}`", kind.text), kind.span)
+                .with_label("not a dataset kind");
             if let Some(s) = did_you_mean(&kind.text, kinds.iter().copied()) {
                 d = d.with_note(format!("did you mean `{s}`?"));
             }
@@ -505,10 +377,7 @@ impl<'c> Checker<'c> {
         // Resolve relative paths against the directory of the text they were written in.
         let mut config = v.clone();
         if let Some(fields) = config.fields_mut() {
-            for f in fields
-                .iter_mut()
-                .filter(|f| schema.path_fields().contains(&f.name.text.as_str()))
-            {
+            for f in fields.iter_mut().filter(|f| schema.path_fields().contains(&f.name.text.as_str())) {
                 if let ValueKind::Str(s) | ValueKind::Ident(s) = &f.value.kind {
                     let p = Path::new(s);
                     if p.is_relative() {
@@ -522,28 +391,15 @@ impl<'c> Checker<'c> {
         let canonical = match &config.kind {
             ValueKind::Tuple(Some(n), items) if !items.is_empty() => {
                 self.err(Diagnostic::error(
-                    format!(
-                        "dataset `{}` takes named fields: `{}(root: \"..\")`",
-                        n.text, n.text
-                    ),
+                    format!("dataset `{}` takes named fields: `{}(root: \"..\")`", n.text, n.text),
                     v.span,
                 ));
                 None
             }
-            _ => self.params(
-                Some(&config),
-                schema.config(),
-                &format!("dataset {}", schema.kind()),
-            ),
+            _ => self.params(Some(&config), schema.config(), &format!("dataset {}", schema.kind())),
         };
-        let dims = schema
-            .dims()
-            .iter()
-            .map(|d| Dim {
-                name: d.name.to_string(),
-                ordered: d.ordered,
-            })
-            .collect::<Vec<_>>();
+        let dims =
+            schema.dims().iter().map(|d| Dim { name: d.name.to_string(), ordered: d.ordered }).collect::<Vec<_>>();
         let ports = schema
             .ports()
             .iter()
@@ -551,21 +407,11 @@ impl<'c> Checker<'c> {
                 (
                     p.name.to_string(),
                     p.ty.to_string(),
-                    dims.iter()
-                        .position(|d| d.name == p.grain)
-                        .map(|i| i + 1)
-                        .unwrap_or(0),
+                    dims.iter().position(|d| d.name == p.grain).map(|i| i + 1).unwrap_or(0),
                 )
             })
             .collect();
-        Some((
-            canonical.map(|config| DatasetDecl {
-                kind: schema.kind().to_string(),
-                config,
-            }),
-            dims,
-            ports,
-        ))
+        Some((canonical.map(|config| DatasetDecl { kind: schema.kind().to_string(), config }), dims, ports))
     }
 
     fn stage<'v>(
@@ -577,37 +423,33 @@ impl<'c> Checker<'c> {
         declared: &mut Vec<Declared<'v>>,
     ) {
         let Some(name) = key.as_str() else {
-            self.err(Diagnostic::error(
-                format!("stage names are strings, found {}", key.describe()),
-                key.span,
-            ));
+            self.err(Diagnostic::error(format!("stage names are strings, found {}", key.describe()), key.span));
             return;
         };
-        if name.is_empty()
-            || name == "dataset"
-            || !name
-                .chars()
-                .all(|c| c.is_alphanumeric() || c == '_' || c == '-')
-        {
+        if name.is_empty() || name == "dataset" || !name.chars().all(|c| c.is_alphanumeric() || c == '_' || c == '-') {
             self.err(
-                Diagnostic::error(format!("`{name}` cannot name a stage"), key.span).with_note(
-                    "stage names use letters, digits, `_` and `-`, and `dataset` is reserved",
-                ),
+                Diagnostic::error(format!("`{name}` cannot name a stage"), key.span)
+                    .with_note("stage names use letters, digits, `_` and `-`, and `dataset` is reserved"),
             );
             return;
         }
         let Some(kind) = value.type_name() else {
-            self.err(Diagnostic::error(format!("stage `{name}` must name its kind, e.g. `ProjectLidar(inputs: {{..}})`, found {}", value.describe()), value.span)
-                .with_note(format!("stage kinds: {}", self.catalog.stage_kinds().join(", "))));
+            self.err(
+                Diagnostic::error(
+                    format!(
+                        "stage `{name}` must name its kind, e.g. `ProjectLidar(inputs: {{..}})`, found {}",
+                        value.describe()
+                    ),
+                    value.span,
+                )
+                .with_note(format!("stage kinds: {}", self.catalog.stage_kinds().join(", "))),
+            );
             return;
         };
         let Some(schema) = self.catalog.stage(&kind.text) else {
             let kinds = self.catalog.stage_kinds();
-            let mut d = Diagnostic::error(
-                format!("unknown stage kind `{}` (stage `{name}`)", kind.text),
-                kind.span,
-            )
-            .with_label("not a stage kind");
+            let mut d = Diagnostic::error(format!("unknown stage kind `{}` (stage `{name}`)", kind.text), kind.span)
+                .with_label("not a stage kind");
             if let Some(s) = did_you_mean(&kind.text, kinds.iter().copied()) {
                 d = d.with_note(format!("did you mean `{s}`?"));
             }
@@ -618,26 +460,15 @@ impl<'c> Checker<'c> {
             Some(f) => f,
             None => {
                 self.err(Diagnostic::error(
-                    format!(
-                        "stage `{name}` takes named fields: `{}(inputs: {{..}}, params: (..))`",
-                        kind.text
-                    ),
+                    format!("stage `{name}` takes named fields: `{}(inputs: {{..}}, params: (..))`", kind.text),
                     value.span,
                 ));
                 return;
             }
         };
-        self.known_fields(
-            fields,
-            &["inputs", "params", "grain"],
-            &format!("stage `{name}`"),
-        );
+        self.known_fields(fields, &["inputs", "params", "grain"], &format!("stage `{name}`"));
         let what = format!("stage `{name}` ({})", schema.kind());
-        let params = self.params(
-            value.field("params").map(|f| &f.value),
-            schema.params(),
-            &what,
-        );
+        let params = self.params(value.field("params").map(|f| &f.value), schema.params(), &what);
 
         let grain = match (value.field("grain"), dims) {
             (_, None) => None,
@@ -652,15 +483,12 @@ impl<'c> Checker<'c> {
                     }
                     _ => {
                         self.err(
-                            Diagnostic::error(
-                                format!("{what} cannot run per `{}`", self.text(&f.value)),
-                                f.value.span,
-                            )
-                            .with_note(format!(
-                                "{} runs per one of: {}",
-                                schema.kind(),
-                                schema.grains().join(", ")
-                            )),
+                            Diagnostic::error(format!("{what} cannot run per `{}`", self.text(&f.value)), f.value.span)
+                                .with_note(format!(
+                                    "{} runs per one of: {}",
+                                    schema.kind(),
+                                    schema.grains().join(", ")
+                                )),
                         );
                         None
                     }
@@ -678,10 +506,7 @@ impl<'c> Checker<'c> {
                             )
                             .with_note(format!(
                                 "dataset dimensions: {}",
-                                dims.iter()
-                                    .map(|d| d.name.as_str())
-                                    .collect::<Vec<_>>()
-                                    .join(", ")
+                                dims.iter().map(|d| d.name.as_str()).collect::<Vec<_>>().join(", ")
                             )),
                         );
                         None
@@ -692,26 +517,17 @@ impl<'c> Checker<'c> {
 
         let inputs = value.field("inputs").map(|f| &f.value);
         if inputs.is_none() && !schema.inputs().is_empty() {
-            self.err(
-                Diagnostic::error(format!("{what} has no `inputs`"), kind.span).with_note(format!(
-                    "{} inputs: {}",
-                    schema.kind(),
-                    describe_ports(schema.inputs())
-                )),
-            );
+            self.err(Diagnostic::error(format!("{what} has no `inputs`"), kind.span).with_note(format!(
+                "{} inputs: {}",
+                schema.kind(),
+                describe_ports(schema.inputs())
+            )));
         }
         let node = nodes.len();
         nodes.push(Node {
             name: name.to_string(),
             grain: grain.unwrap_or(0),
-            outputs: schema
-                .outputs()
-                .iter()
-                .map(|p| OutPort {
-                    name: p.name.into(),
-                    ty: p.ty.into(),
-                })
-                .collect(),
+            outputs: schema.outputs().iter().map(|p| OutPort { name: p.name.into(), ty: p.ty.into() }).collect(),
             kind: NodeKind::Stage(StageNode {
                 kind: schema.kind().into(),
                 version: schema.version(),
@@ -750,7 +566,13 @@ impl<'c> Checker<'c> {
             Some(ValueKind::Map(e)) => e,
             Some(_) => {
                 let v = d.inputs.unwrap();
-                self.err(Diagnostic::error(format!("`inputs` of {what} must be a map `{{\"port\": \"stage.port\", ..}}`, found {}", v.describe()), v.span));
+                self.err(Diagnostic::error(
+                    format!(
+                        "`inputs` of {what} must be a map `{{\"port\": \"stage.port\", ..}}`, found {}",
+                        v.describe()
+                    ),
+                    v.span,
+                ));
                 return;
             }
             None => &[],
@@ -765,9 +587,8 @@ impl<'c> Checker<'c> {
                 continue;
             };
             let Some(spec) = d.schema_inputs.iter().find(|p| p.name == port) else {
-                let mut diag =
-                    Diagnostic::error(format!("{what} has no input port `{port}`"), key.span)
-                        .with_label("unknown input port");
+                let mut diag = Diagnostic::error(format!("{what} has no input port `{port}`"), key.span)
+                    .with_label("unknown input port");
                 if let Some(s) = did_you_mean(port, d.schema_inputs.iter().map(|p| p.name)) {
                     diag = diag.with_note(format!("did you mean `{s}`?"));
                 }
@@ -778,15 +599,21 @@ impl<'c> Checker<'c> {
             let Some((reference, ref_span, selector)) = self.selector(sel, dims) else {
                 continue;
             };
-            let Some((from, from_port)) =
-                self.resolve(&reference, ref_span, source_ports, have_dataset, nodes)
-            else {
+            let Some((from, from_port)) = self.resolve(&reference, ref_span, source_ports, have_dataset, nodes) else {
                 continue;
             };
             let from_ty = nodes[from].outputs[from_port].ty.clone();
             if from_ty != spec.ty {
-                self.err(Diagnostic::error(format!("type mismatch: input `{port}` of {what} takes {} but `{reference}` gives {from_ty}", spec.ty), ref_span)
-                    .with_label(format!("this is {from_ty}, not {}", spec.ty)));
+                self.err(
+                    Diagnostic::error(
+                        format!(
+                            "type mismatch: input `{port}` of {what} takes {} but `{reference}` gives {from_ty}",
+                            spec.ty
+                        ),
+                        ref_span,
+                    )
+                    .with_label(format!("this is {from_ty}, not {}", spec.ty)),
+                );
                 continue;
             }
             if spec.many != selector.gives_many() && !spec.many {
@@ -799,9 +626,7 @@ impl<'c> Checker<'c> {
                         ),
                         sel.span,
                     )
-                    .with_note(
-                        "use the plain `\"stage.port\"` form or Offset(..) for one artifact",
-                    ),
+                    .with_note("use the plain `\"stage.port\"` form or Offset(..) for one artifact"),
                 );
                 continue;
             }
@@ -810,7 +635,11 @@ impl<'c> Checker<'c> {
                 if u > 0 && dn > 0 {
                     if let Err(msg) = grain_allows(selector, u, dn, dims) {
                         self.err(Diagnostic::error(
-                            format!("{what} runs per {} but its input `{port}` from `{reference}` (per {}) {msg}", dims[dn - 1].name, dims[u - 1].name),
+                            format!(
+                                "{what} runs per {} but its input `{port}` from `{reference}` (per {}) {msg}",
+                                dims[dn - 1].name,
+                                dims[u - 1].name
+                            ),
                             sel.span,
                         ));
                         continue;
@@ -833,22 +662,15 @@ impl<'c> Checker<'c> {
                 let span = d.inputs.map(|v| v.span).unwrap_or(d.kind_span);
                 if d.inputs.is_some() {
                     self.err(
-                        Diagnostic::error(
-                            format!("input `{}` ({}) of {what} is not wired", spec.name, spec.ty),
-                            span,
-                        )
-                        .with_note(format!(
-                            "wire it: \"{}\": \"stage.port\" ({})",
-                            spec.name, spec.doc
-                        )),
+                        Diagnostic::error(format!("input `{}` ({}) of {what} is not wired", spec.name, spec.ty), span)
+                            .with_note(format!("wire it: \"{}\": \"stage.port\" ({})", spec.name, spec.doc)),
                     );
                 }
             }
         }
         // Inputs in the schema's port order, so that operators can rely on it.
         if let NodeKind::Stage(s) = &mut nodes[d.node].kind {
-            s.inputs
-                .sort_by_key(|i| d.schema_inputs.iter().position(|p| p.name == i.port));
+            s.inputs.sort_by_key(|i| d.schema_inputs.iter().position(|p| p.name == i.port));
         }
         let _ = d.name_span;
     }
@@ -861,27 +683,15 @@ impl<'c> Checker<'c> {
         let usage = "an input is \"stage.port\", Same(\"stage.port\"), Window(\"stage.port\", frame, -1, 1), Offset(\"stage.port\", frame, 2), Gather(\"stage.port\", camera) or Scene(\"stage.port\")";
         let ValueKind::Tuple(Some(name), items) = &v.kind else {
             self.err(
-                Diagnostic::error(
-                    format!("expected an input reference, found {}", v.describe()),
-                    v.span,
-                )
-                .with_note(usage),
+                Diagnostic::error(format!("expected an input reference, found {}", v.describe()), v.span)
+                    .with_note(usage),
             );
             return None;
         };
-        let Some(first) = items
-            .first()
-            .and_then(|i| i.as_str().map(|s| (s.to_string(), i.span)))
-        else {
+        let Some(first) = items.first().and_then(|i| i.as_str().map(|s| (s.to_string(), i.span))) else {
             self.err(
-                Diagnostic::error(
-                    format!(
-                        "`{}` takes the input reference \"stage.port\" first",
-                        name.text
-                    ),
-                    v.span,
-                )
-                .with_note(usage),
+                Diagnostic::error(format!("`{}` takes the input reference \"stage.port\" first", name.text), v.span)
+                    .with_note(usage),
             );
             return None;
         };
@@ -891,24 +701,14 @@ impl<'c> Checker<'c> {
             "Offset" => 3,
             "Window" => 4,
             _ => {
-                self.err(
-                    Diagnostic::error(format!("unknown selector `{}`", name.text), name.span)
-                        .with_note(usage),
-                );
+                self.err(Diagnostic::error(format!("unknown selector `{}`", name.text), name.span).with_note(usage));
                 return None;
             }
         };
         if items.len() != arity {
             self.err(
-                Diagnostic::error(
-                    format!(
-                        "`{}` takes {arity} values, found {}",
-                        name.text,
-                        items.len()
-                    ),
-                    v.span,
-                )
-                .with_note(usage),
+                Diagnostic::error(format!("`{}` takes {arity} values, found {}", name.text, items.len()), v.span)
+                    .with_note(usage),
             );
             return None;
         }
@@ -930,37 +730,20 @@ impl<'c> Checker<'c> {
                 Some(_) => {
                     this.err(
                         Diagnostic::error(
-                            format!(
-                                "`{}` cannot move along `{text}`: it has no order",
-                                name.text
-                            ),
+                            format!("`{}` cannot move along `{text}`: it has no order", name.text),
                             item.span,
                         )
                         .with_note(format!(
                             "ordered dimensions: {}",
-                            dims.iter()
-                                .filter(|d| d.ordered)
-                                .map(|d| d.name.as_str())
-                                .collect::<Vec<_>>()
-                                .join(", ")
+                            dims.iter().filter(|d| d.ordered).map(|d| d.name.as_str()).collect::<Vec<_>>().join(", ")
                         )),
                     );
                     None
                 }
                 None => {
-                    this.err(
-                        Diagnostic::error(
-                            format!("the dataset has no dimension `{text}`"),
-                            item.span,
-                        )
-                        .with_note(format!(
-                            "dimensions: {}",
-                            dims.iter()
-                                .map(|d| d.name.as_str())
-                                .collect::<Vec<_>>()
-                                .join(", ")
-                        )),
-                    );
+                    this.err(Diagnostic::error(format!("the dataset has no dimension `{text}`"), item.span).with_note(
+                        format!("dimensions: {}", dims.iter().map(|d| d.name.as_str()).collect::<Vec<_>>().join(", ")),
+                    ));
                     None
                 }
             }
@@ -980,13 +763,8 @@ impl<'c> Checker<'c> {
         let sel = match name.text.as_str() {
             "Same" => Selector::Same,
             "Scene" => Selector::Scene,
-            "Gather" => Selector::Gather {
-                dim: dim(self, 1, false)?,
-            },
-            "Offset" => Selector::Offset {
-                dim: dim(self, 1, true)?,
-                by: int(self, 2)?,
-            },
+            "Gather" => Selector::Gather { dim: dim(self, 1, false)? },
+            "Offset" => Selector::Offset { dim: dim(self, 1, true)?, by: int(self, 2)? },
             _ => {
                 let (dim, before, after) = (dim(self, 1, true)?, int(self, 2)?, int(self, 3)?);
                 if before > after {
@@ -1013,11 +791,8 @@ impl<'c> Checker<'c> {
     ) -> Option<(NodeId, usize)> {
         let Some((stage, port)) = reference.split_once('.') else {
             self.err(
-                Diagnostic::error(
-                    format!("`{reference}` is not a `stage.port` reference"),
-                    span,
-                )
-                .with_label("expected `stage.port`"),
+                Diagnostic::error(format!("`{reference}` is not a `stage.port` reference"), span)
+                    .with_label("expected `stage.port`"),
             );
             return None;
         };
@@ -1028,20 +803,13 @@ impl<'c> Checker<'c> {
             let Some((_, ty, grain)) = source_ports.iter().find(|(n, _, _)| n == port) else {
                 let mut d = Diagnostic::error(format!("the dataset has no port `{port}`"), span)
                     .with_label("unknown dataset port");
-                if let Some(s) = did_you_mean(port, source_ports.iter().map(|(n, _, _)| n.as_str()))
-                {
+                if let Some(s) = did_you_mean(port, source_ports.iter().map(|(n, _, _)| n.as_str())) {
                     d = d.with_note(format!("did you mean `dataset.{s}`?"));
                 }
-                self.err(
-                    d.with_note(format!(
-                        "dataset ports: {}",
-                        source_ports
-                            .iter()
-                            .map(|(n, t, _)| format!("{n} ({t})"))
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    )),
-                );
+                self.err(d.with_note(format!(
+                    "dataset ports: {}",
+                    source_ports.iter().map(|(n, t, _)| format!("{n} ({t})")).collect::<Vec<_>>().join(", ")
+                )));
                 return None;
             };
             let name = format!("dataset.{port}");
@@ -1051,49 +819,28 @@ impl<'c> Checker<'c> {
             nodes.push(Node {
                 name,
                 grain: *grain,
-                outputs: vec![OutPort {
-                    name: port.into(),
-                    ty: ty.clone(),
-                }],
+                outputs: vec![OutPort { name: port.into(), ty: ty.clone() }],
                 kind: NodeKind::Source { port: port.into() },
             });
             return Some((nodes.len() - 1, 0));
         }
-        let Some(from) = nodes
-            .iter()
-            .position(|n| n.name == stage && n.stage().is_some())
-        else {
-            let names: Vec<&str> = nodes
-                .iter()
-                .filter(|n| n.stage().is_some())
-                .map(|n| n.name.as_str())
-                .collect();
-            let mut d = Diagnostic::error(format!("no stage named `{stage}`"), span)
-                .with_label("unknown stage");
+        let Some(from) = nodes.iter().position(|n| n.name == stage && n.stage().is_some()) else {
+            let names: Vec<&str> = nodes.iter().filter(|n| n.stage().is_some()).map(|n| n.name.as_str()).collect();
+            let mut d = Diagnostic::error(format!("no stage named `{stage}`"), span).with_label("unknown stage");
             if let Some(s) = did_you_mean(stage, names.iter().copied()) {
                 d = d.with_note(format!("did you mean `{s}`?"));
             }
-            self.err(d.with_note(format!(
-                "stages: {} (and `dataset.<port>`)",
-                names.join(", ")
-            )));
+            self.err(d.with_note(format!("stages: {} (and `dataset.<port>`)", names.join(", "))));
             return None;
         };
         match nodes[from].outputs.iter().position(|p| p.name == port) {
             Some(p) => Some((from, p)),
             None => {
-                let outs = nodes[from]
-                    .outputs
-                    .iter()
-                    .map(|p| format!("{} ({})", p.name, p.ty))
-                    .collect::<Vec<_>>()
-                    .join(", ");
-                let mut d =
-                    Diagnostic::error(format!("stage `{stage}` has no output port `{port}`"), span)
-                        .with_label("unknown output port");
-                if let Some(s) =
-                    did_you_mean(port, nodes[from].outputs.iter().map(|p| p.name.as_str()))
-                {
+                let outs =
+                    nodes[from].outputs.iter().map(|p| format!("{} ({})", p.name, p.ty)).collect::<Vec<_>>().join(", ");
+                let mut d = Diagnostic::error(format!("stage `{stage}` has no output port `{port}`"), span)
+                    .with_label("unknown output port");
+                if let Some(s) = did_you_mean(port, nodes[from].outputs.iter().map(|p| p.name.as_str())) {
                     d = d.with_note(format!("did you mean `{stage}.{s}`?"));
                 }
                 self.err(d.with_note(format!("outputs of `{stage}`: {outs}")));
@@ -1123,22 +870,11 @@ impl<'c> Checker<'c> {
                     }
                     let mut members: Vec<NodeId> = scc.iter().map(|i| g[*i]).collect();
                     members.sort();
-                    let names: Vec<String> = members
-                        .iter()
-                        .map(|m| format!("`{}`", nodes[*m].name))
-                        .collect();
-                    let span = declared
-                        .iter()
-                        .find(|d| d.node == members[0])
-                        .map(|d| d.name_span);
-                    let msg = format!(
-                        "the stages {} form a cycle: each needs another's output",
-                        names.join(" -> ")
-                    );
+                    let names: Vec<String> = members.iter().map(|m| format!("`{}`", nodes[*m].name)).collect();
+                    let span = declared.iter().find(|d| d.node == members[0]).map(|d| d.name_span);
+                    let msg = format!("the stages {} form a cycle: each needs another's output", names.join(" -> "));
                     let d = match span {
-                        Some(s) => {
-                            Diagnostic::error(msg, s).with_label("this stage is in the cycle")
-                        }
+                        Some(s) => Diagnostic::error(msg, s).with_label("this stage is in the cycle"),
                         None => Diagnostic::without_span(msg),
                     };
                     self.err(d);
@@ -1150,7 +886,13 @@ impl<'c> Checker<'c> {
 
     fn exports(&mut self, v: &Value, nodes: &[Node], dims: &[Dim]) -> Vec<Export> {
         let ValueKind::Map(entries) = &v.kind else {
-            self.err(Diagnostic::error(format!("`export` must be a map `{{\"stage.port\": \"{{scene}}/{{frame}}.ext\"}}`, found {}", v.describe()), v.span));
+            self.err(Diagnostic::error(
+                format!(
+                    "`export` must be a map `{{\"stage.port\": \"{{scene}}/{{frame}}.ext\"}}`, found {}",
+                    v.describe()
+                ),
+                v.span,
+            ));
             return Vec::new();
         };
         let mut out: Vec<Export> = Vec::new();
@@ -1163,16 +905,10 @@ impl<'c> Checker<'c> {
                 continue;
             };
             let Some((stage, port)) = reference.split_once('.') else {
-                self.err(Diagnostic::error(
-                    format!("`{reference}` is not a `stage.port` reference"),
-                    key.span,
-                ));
+                self.err(Diagnostic::error(format!("`{reference}` is not a `stage.port` reference"), key.span));
                 continue;
             };
-            let Some(node) = nodes
-                .iter()
-                .position(|n| n.name == stage && n.stage().is_some())
-            else {
+            let Some(node) = nodes.iter().position(|n| n.name == stage && n.stage().is_some()) else {
                 self.err(Diagnostic::error(
                     format!("export names stage `{stage}`, which the pipeline does not have"),
                     key.span,
@@ -1180,48 +916,33 @@ impl<'c> Checker<'c> {
                 continue;
             };
             let Some(p) = nodes[node].outputs.iter().position(|o| o.name == port) else {
-                let outs = nodes[node]
-                    .outputs
-                    .iter()
-                    .map(|p| p.name.as_str())
-                    .collect::<Vec<_>>()
-                    .join(", ");
+                let outs = nodes[node].outputs.iter().map(|p| p.name.as_str()).collect::<Vec<_>>().join(", ");
                 self.err(
-                    Diagnostic::error(
-                        format!("stage `{stage}` has no output port `{port}`"),
-                        key.span,
-                    )
-                    .with_note(format!("outputs: {outs}")),
+                    Diagnostic::error(format!("stage `{stage}` has no output port `{port}`"), key.span)
+                        .with_note(format!("outputs: {outs}")),
                 );
                 continue;
             };
             let ty = &nodes[node].outputs[p].ty;
             if !self.catalog.exportable(ty) {
-                self.err(Diagnostic::error(format!("`{reference}` gives {ty}, which is not an encoded file"), key.span)
-                    .with_note("export takes outputs of encoding stages (e.g. EncodeDepth.exr); add one between"));
+                self.err(
+                    Diagnostic::error(format!("`{reference}` gives {ty}, which is not an encoded file"), key.span)
+                        .with_note("export takes outputs of encoding stages (e.g. EncodeDepth.exr); add one between"),
+                );
                 continue;
             }
             let grain = nodes[node].grain;
             match parse_template(template, dims, grain) {
                 Ok(parts) => {
                     if out.iter().any(|e| e.template == template) {
-                        self.err(Diagnostic::error(
-                            format!("two exports write to `{template}`"),
-                            value.span,
-                        ));
+                        self.err(Diagnostic::error(format!("two exports write to `{template}`"), value.span));
                         continue;
                     }
-                    out.push(Export {
-                        node,
-                        port: p,
-                        template: template.to_string(),
-                        parts,
-                    })
+                    out.push(Export { node, port: p, template: template.to_string(), parts })
                 }
-                Err(msg) => self.err(Diagnostic::error(
-                    format!("bad export path for `{reference}`: {msg}"),
-                    value.span,
-                )),
+                Err(msg) => {
+                    self.err(Diagnostic::error(format!("bad export path for `{reference}`: {msg}"), value.span))
+                }
             }
         }
         out
@@ -1264,19 +985,12 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
         match dims.iter().position(|d| d.name == name) {
             Some(k) if k < grain => parts.push(TemplatePart::Dim(k)),
             Some(_) => {
-                return Err(format!(
-                    "`{{{name}}}` is finer than the stage's grain (per {})",
-                    dims[grain - 1].name
-                ))
+                return Err(format!("`{{{name}}}` is finer than the stage's grain (per {})", dims[grain - 1].name))
             }
             None => {
                 return Err(format!(
                     "unknown placeholder `{{{name}}}`; use {}",
-                    dims[..grain]
-                        .iter()
-                        .map(|d| format!("{{{}}}", d.name))
-                        .collect::<Vec<_>>()
-                        .join(", ")
+                    dims[..grain].iter().map(|d| format!("{{{}}}", d.name)).collect::<Vec<_>>().join(", ")
                 ))
             }
         }
@@ -1287,10 +1001,7 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
     }
     for (k, d) in dims[..grain].iter().enumerate() {
         if !parts.contains(&TemplatePart::Dim(k)) {
-            return Err(format!(
-                "it must name `{{{}}}` so that items do not overwrite each other",
-                d.name
-            ));
+            return Err(format!("it must name `{{{}}}` so that items do not overwrite each other", d.name));
         }
     }
     Ok(parts)
@@ -1299,14 +1010,7 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
 fn describe_ports(ports: &[crate::catalog::PortSpec]) -> String {
     ports
         .iter()
-        .map(|p| {
-            format!(
-                "{} ({}{})",
-                p.name,
-                p.ty,
-                if p.many { ", several" } else { "" }
-            )
-        })
+        .map(|p| format!("{} ({}{})", p.name, p.ty, if p.many { ", several" } else { "" }))
         .collect::<Vec<_>>()
         .join(", ")
 }

@@ -26,10 +26,7 @@ pub enum Selector {
 impl Selector {
     /// Whether the selector can give more than one artifact.
     pub fn gives_many(self) -> bool {
-        matches!(
-            self,
-            Selector::Window { .. } | Selector::Gather { .. } | Selector::Scene
-        )
+        matches!(self, Selector::Window { .. } | Selector::Gather { .. } | Selector::Scene)
     }
 
     /// RON form, for `graph` output and messages.
@@ -152,10 +149,7 @@ impl Pipeline {
 
     /// Ids of the stage nodes (not sources), in topological order.
     pub fn stage_order(&self) -> impl Iterator<Item = NodeId> + '_ {
-        self.order
-            .iter()
-            .copied()
-            .filter(|&n| self.nodes[n].stage().is_some())
+        self.order.iter().copied().filter(|&n| self.nodes[n].stage().is_some())
     }
 
     /// Name of a grain (its innermost dimension).
@@ -183,10 +177,7 @@ impl Pipeline {
 
     /// Graphviz DOT of the DAG: sources as ellipses, stages as boxes, edges labelled with ports.
     pub fn to_dot(&self) -> String {
-        let mut out = format!(
-            "digraph \"{}\" {{\n  rankdir=LR;\n  node [fontname=\"Helvetica\"];\n",
-            esc(&self.name)
-        );
+        let mut out = format!("digraph \"{}\" {{\n  rankdir=LR;\n  node [fontname=\"Helvetica\"];\n", esc(&self.name));
         for (i, node) in self.nodes.iter().enumerate() {
             let grain = self.grain_name(node.grain);
             match &node.kind {

@@ -19,20 +19,12 @@ pub struct Span {
 
 impl Span {
     pub fn new(source: SourceId, start: usize, end: usize) -> Span {
-        Span {
-            source,
-            start: start as u32,
-            end: end.max(start) as u32,
-        }
+        Span { source, start: start as u32, end: end.max(start) as u32 }
     }
 
     /// The smallest span covering both (they must share a source).
     pub fn to(self, other: Span) -> Span {
-        Span {
-            source: self.source,
-            start: self.start.min(other.start),
-            end: self.end.max(other.end),
-        }
+        Span { source: self.source, start: self.start.min(other.start), end: self.end.max(other.end) }
     }
 }
 
@@ -49,11 +41,7 @@ impl SourceFile {
     fn new(name: String, text: String) -> SourceFile {
         let mut line_starts = vec![0];
         line_starts.extend(text.match_indices('\n').map(|(i, _)| i + 1));
-        SourceFile {
-            name,
-            text,
-            line_starts,
-        }
+        SourceFile { name, text, line_starts }
     }
 
     /// 1-based line and column (in characters) of a byte offset.
@@ -63,21 +51,14 @@ impl SourceFile {
             Err(i) => i - 1,
         };
         let start = self.line_starts[line];
-        let col = self.text[start..offset.min(self.text.len())]
-            .chars()
-            .count()
-            + 1;
+        let col = self.text[start..offset.min(self.text.len())].chars().count() + 1;
         (line + 1, col)
     }
 
     /// The text of a 1-based line, without its newline.
     pub fn line_text(&self, line: usize) -> &str {
         let start = self.line_starts[line - 1];
-        let end = self
-            .line_starts
-            .get(line)
-            .map(|e| e - 1)
-            .unwrap_or(self.text.len());
+        let end = self.line_starts.get(line).map(|e| e - 1).unwrap_or(self.text.len());
         self.text[start..end].trim_end_matches('\r')
     }
 }
@@ -107,11 +88,7 @@ impl Sources {
     pub fn location(&self, span: Span) -> Location<'_> {
         let file = self.get(span.source);
         let (line, column) = file.line_col(span.start as usize);
-        Location {
-            name: &file.name,
-            line,
-            column,
-        }
+        Location { name: &file.name, line, column }
     }
 }
 

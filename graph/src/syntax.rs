@@ -80,11 +80,7 @@ impl Value {
     pub fn fields(&self) -> Option<&[Field]> {
         match &self.kind {
             ValueKind::Struct(_, f) => Some(f),
-            ValueKind::Unit | ValueKind::Tuple(_, _)
-                if self.tuple_items().is_some_and(|i| i.is_empty()) =>
-            {
-                Some(&[])
-            }
+            ValueKind::Unit | ValueKind::Tuple(_, _) if self.tuple_items().is_some_and(|i| i.is_empty()) => Some(&[]),
             _ => None,
         }
     }
@@ -127,27 +123,16 @@ impl Value {
 
 /// Parses one RON value filling the whole text.
 pub fn parse(text: &str, source: SourceId) -> Result<Value, Diagnostic> {
-    let mut p = Parser {
-        text,
-        bytes: text.as_bytes(),
-        pos: 0,
-        source,
-    };
+    let mut p = Parser { text, bytes: text.as_bytes(), pos: 0, source };
     p.skip_trivia()?;
     if p.pos >= p.bytes.len() {
-        return Err(Diagnostic::error(
-            "the file is empty: expected a pipeline `Pipeline(..)`",
-            p.span(0, 0),
-        ));
+        return Err(Diagnostic::error("the file is empty: expected a pipeline `Pipeline(..)`", p.span(0, 0)));
     }
     let v = p.value()?;
     p.skip_trivia()?;
     if p.pos < p.bytes.len() {
-        return Err(Diagnostic::error(
-            "unexpected text after the end of the value",
-            p.span(p.pos, p.pos + 1),
-        )
-        .with_label("expected nothing more here"));
+        return Err(Diagnostic::error("unexpected text after the end of the value", p.span(p.pos, p.pos + 1))
+            .with_label("expected nothing more here"));
     }
     Ok(v)
 }
@@ -164,12 +149,7 @@ impl<'a> Parser<'a> {
         Span::new(self.source, start, end)
     }
 
-    fn err<T>(
-        &self,
-        message: impl Into<String>,
-        start: usize,
-        end: usize,
-    ) -> Result<T, Diagnostic> {
+    fn err<T>(&self, message: impl Into<String>, start: usize, end: usize) -> Result<T, Diagnostic> {
         Err(Diagnostic::error(message, self.span(start, end)))
     }
 
@@ -225,11 +205,7 @@ impl<'a> Parser<'a> {
 
     fn unexpected<T>(&self, expected: &str) -> Result<T, Diagnostic> {
         match self.text[self.pos..].chars().next() {
-            None => self.err(
-                format!("unexpected end of file: expected {expected}"),
-                self.pos,
-                self.pos,
-            ),
+            None => self.err(format!("unexpected end of file: expected {expected}"), self.pos, self.pos),
             Some(c) => Err(Diagnostic::error(
                 format!("unexpected `{c}`: expected {expected}"),
                 self.span(self.pos, self.pos + c.len_utf8()),
@@ -251,22 +227,14 @@ impl<'a> Parser<'a> {
             Some(b'r') if matches!(self.bytes.get(self.pos + 1), Some(b'"' | b'#')) => {
                 ValueKind::Str(self.raw_string()?)
             }
-            Some(c) if c == b'-' || c == b'+' || c == b'.' || c.is_ascii_digit() => {
-                self.number()?
-            }
+            Some(c) if c == b'-' || c == b'+' || c == b'.' || c.is_ascii_digit() => self.number()?,
             Some(c) if c == b'_' || c.is_ascii_alphabetic() => {
                 let name = self.ident();
                 let name_span = self.span(start, self.pos);
                 let after_name = self.pos;
                 self.skip_trivia()?;
                 if self.peek() == Some(b'(') {
-                    return self.parens(
-                        Some(Name {
-                            text: name,
-                            span: name_span,
-                        }),
-                        start,
-                    );
+                    return self.parens(Some(Name { text: name, span: name_span }), start);
                 }
                 self.pos = after_name;
                 match name.as_str() {
@@ -279,10 +247,7 @@ impl<'a> Parser<'a> {
             }
             Some(_) => return self.unexpected("a value"),
         };
-        Ok(Value {
-            kind,
-            span: self.span(start, self.pos),
-        })
+        Ok(Value { kind, span: self.span(start, self.pos) })
     }
 
     fn ident(&mut self) -> String {
@@ -307,10 +272,7 @@ impl<'a> Parser<'a> {
                 Some(n) => ValueKind::Tuple(Some(n), Vec::new()),
                 None => ValueKind::Unit,
             };
-            return Ok(Value {
-                kind,
-                span: self.span(start, self.pos),
-            });
+            return Ok(Value { kind, span: self.span(start, self.pos) });
         }
         if self.at_field_name() {
             let mut fields: Vec<Field> = Vec::new();
@@ -321,23 +283,14 @@ impl<'a> Parser<'a> {
                     break;
                 }
                 let fstart = self.pos;
-                if !self
-                    .peek()
-                    .is_some_and(|c| c == b'_' || c.is_ascii_alphabetic())
-                {
+                if !self.peek().is_some_and(|c| c == b'_' || c.is_ascii_alphabetic()) {
                     return self.unexpected("a field name or `)`");
                 }
                 let fname = self.ident();
-                let fname = Name {
-                    text: fname,
-                    span: self.span(fstart, self.pos),
-                };
+                let fname = Name { text: fname, span: self.span(fstart, self.pos) };
                 if fields.iter().any(|f| f.name.text == fname.text) {
-                    return Err(Diagnostic::error(
-                        format!("field `{}` is given twice", fname.text),
-                        fname.span,
-                    )
-                    .with_label("second time here"));
+                    return Err(Diagnostic::error(format!("field `{}` is given twice", fname.text), fname.span)
+                        .with_label("second time here"));
                 }
                 self.expect(b':', "`:` after the field name")?;
                 let value = self.value()?;
@@ -346,10 +299,7 @@ impl<'a> Parser<'a> {
                     break;
                 }
             }
-            Ok(Value {
-                kind: ValueKind::Struct(name, fields),
-                span: self.span(start, self.pos),
-            })
+            Ok(Value { kind: ValueKind::Struct(name, fields), span: self.span(start, self.pos) })
         } else {
             let mut items = Vec::new();
             loop {
@@ -363,10 +313,7 @@ impl<'a> Parser<'a> {
                     break;
                 }
             }
-            Ok(Value {
-                kind: ValueKind::Tuple(name, items),
-                span: self.span(start, self.pos),
-            })
+            Ok(Value { kind: ValueKind::Tuple(name, items), span: self.span(start, self.pos) })
         }
     }
 
@@ -388,14 +335,11 @@ impl<'a> Parser<'a> {
 
     fn at_field_name(&mut self) -> bool {
         let save = self.pos;
-        let ok = self
-            .peek()
-            .is_some_and(|c| c == b'_' || c.is_ascii_alphabetic())
-            && {
-                self.ident();
-                let _ = self.skip_trivia();
-                self.peek() == Some(b':')
-            };
+        let ok = self.peek().is_some_and(|c| c == b'_' || c.is_ascii_alphabetic()) && {
+            self.ident();
+            let _ = self.skip_trivia();
+            self.peek() == Some(b':')
+        };
         self.pos = save;
         ok
     }
@@ -429,8 +373,7 @@ impl<'a> Parser<'a> {
             let key = self.value()?;
             if entries.iter().any(|(k, _)| k.kind == key.kind) {
                 return Err(
-                    Diagnostic::error("this key is given twice in the map", key.span)
-                        .with_label("second time here"),
+                    Diagnostic::error("this key is given twice in the map", key.span).with_label("second time here")
                 );
             }
             self.expect(b':', "`:` after the map key")?;
@@ -486,18 +429,10 @@ impl<'a> Parser<'a> {
                 self.pos = open + close + 1;
                 match u32::from_str_radix(hex, 16).ok().and_then(char::from_u32) {
                     Some(c) => c,
-                    None => {
-                        return self.err(format!("`\\u{{{hex}}}` is not a character"), at, self.pos)
-                    }
+                    None => return self.err(format!("`\\u{{{hex}}}` is not a character"), at, self.pos),
                 }
             }
-            other => {
-                return self.err(
-                    format!("unknown escape `\\{}`", other as char),
-                    at,
-                    self.pos,
-                )
-            }
+            other => return self.err(format!("unknown escape `\\{}`", other as char), at, self.pos),
         })
     }
 
@@ -547,11 +482,7 @@ impl<'a> Parser<'a> {
         if self.text[self.pos..].starts_with("inf") {
             self.pos += 3;
             let neg = self.bytes[start] == b'-';
-            return Ok(ValueKind::Float(if neg {
-                f64::NEG_INFINITY
-            } else {
-                f64::INFINITY
-            }));
+            return Ok(ValueKind::Float(if neg { f64::NEG_INFINITY } else { f64::INFINITY }));
         }
         let mut is_float = false;
         while let Some(c) = self.peek() {
@@ -567,17 +498,8 @@ impl<'a> Parser<'a> {
                 _ => break,
             }
         }
-        let text: String = self.text[start..self.pos]
-            .chars()
-            .filter(|c| *c != '_')
-            .collect();
-        let bad = |p: &Self| {
-            p.err::<ValueKind>(
-                format!("`{}` is not a number", &p.text[start..p.pos]),
-                start,
-                p.pos,
-            )
-        };
+        let text: String = self.text[start..self.pos].chars().filter(|c| *c != '_').collect();
+        let bad = |p: &Self| p.err::<ValueKind>(format!("`{}` is not a number", &p.text[start..p.pos]), start, p.pos);
         if is_float {
             match text.parse::<f64>() {
                 Ok(f) => Ok(ValueKind::Float(f)),
@@ -621,9 +543,7 @@ mod tests {
         assert_eq!(f("none"), ValueKind::Ident("None".into()));
         assert_eq!(f("raw"), ValueKind::Str("c:\\d".into()));
         let ValueKind::Map(m) = f("m") else { panic!() };
-        let ValueKind::Tuple(Some(name), items) = &m[0].1.kind else {
-            panic!()
-        };
+        let ValueKind::Tuple(Some(name), items) = &m[0].1.kind else { panic!() };
         assert_eq!(name.text, "Window");
         assert_eq!(items.len(), 4);
         assert_eq!(items[1].kind, ValueKind::Ident("frame".into()));

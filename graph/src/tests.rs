@@ -22,10 +22,7 @@ struct DataConfig {
 
 impl Default for DataConfig {
     fn default() -> Self {
-        DataConfig {
-            root: String::new(),
-            version: "v1.0-mini".into(),
-        }
+        DataConfig { root: String::new(), version: "v1.0-mini".into() }
     }
 }
 
@@ -70,32 +67,13 @@ struct Data {
 }
 
 const DIMS: [DimSpec; 3] = [
-    DimSpec {
-        name: "scene",
-        ordered: false,
-    },
-    DimSpec {
-        name: "frame",
-        ordered: true,
-    },
-    DimSpec {
-        name: "camera",
-        ordered: false,
-    },
+    DimSpec { name: "scene", ordered: false },
+    DimSpec { name: "frame", ordered: true },
+    DimSpec { name: "camera", ordered: false },
 ];
 const PORTS: [SourcePortSpec; 2] = [
-    SourcePortSpec {
-        name: "lidar",
-        ty: "PointCloud",
-        grain: "frame",
-        doc: "",
-    },
-    SourcePortSpec {
-        name: "image",
-        ty: "Image",
-        grain: "camera",
-        doc: "",
-    },
+    SourcePortSpec { name: "lidar", ty: "PointCloud", grain: "frame", doc: "" },
+    SourcePortSpec { name: "image", ty: "Image", grain: "camera", doc: "" },
 ];
 
 impl DatasetSchema for Data {
@@ -126,10 +104,7 @@ struct Cat {
 
 impl Catalog for Cat {
     fn stage(&self, kind: &str) -> Option<&dyn StageSchema> {
-        self.stages
-            .iter()
-            .find(|s| s.kind == kind)
-            .map(|s| s as &dyn StageSchema)
+        self.stages.iter().find(|s| s.kind == kind).map(|s| s as &dyn StageSchema)
     }
     fn stage_kinds(&self) -> Vec<&'static str> {
         self.stages.iter().map(|s| s.kind).collect()
@@ -150,10 +125,7 @@ fn catalog() -> Cat {
         stages: vec![
             Stage {
                 kind: "Project",
-                inputs: vec![
-                    PortSpec::one("points", "PointCloud", ""),
-                    PortSpec::one("image", "Image", ""),
-                ],
+                inputs: vec![PortSpec::one("points", "PointCloud", ""), PortSpec::one("image", "Image", "")],
                 outputs: vec![PortSpec::one("depth", "DepthMap", "")],
                 grains: vec!["camera"],
                 params: ParamsSpec::of::<ProjectParams>(),
@@ -161,10 +133,7 @@ fn catalog() -> Cat {
             Stage {
                 kind: "Encode",
                 inputs: vec![PortSpec::one("depth", "DepthMap", "")],
-                outputs: vec![
-                    PortSpec::one("png", "File", ""),
-                    PortSpec::one("depth", "DepthMap", ""),
-                ],
+                outputs: vec![PortSpec::one("png", "File", ""), PortSpec::one("depth", "DepthMap", "")],
                 grains: vec!["camera", "frame"],
                 params: ParamsSpec::of::<NoParams>(),
             },
@@ -176,23 +145,13 @@ fn catalog() -> Cat {
                 params: ParamsSpec::of::<NoParams>(),
             },
         ],
-        data: Data {
-            config: ParamsSpec::of::<DataConfig>(),
-        },
+        data: Data { config: ParamsSpec::of::<DataConfig>() },
     }
 }
 
 fn load(text: &str, sets: &[&str]) -> Result<Pipeline, LoadError> {
     let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
-    load_str(
-        "p.ron",
-        text,
-        Path::new("dir/p.ron"),
-        Path::new("/base"),
-        &sets,
-        Path::new("/cwd"),
-        &catalog(),
-    )
+    load_str("p.ron", text, Path::new("dir/p.ron"), Path::new("/base"), &sets, Path::new("/cwd"), &catalog())
 }
 
 const GOOD: &str = r#"Pipeline(
@@ -210,80 +169,44 @@ const GOOD: &str = r#"Pipeline(
 )"#;
 
 fn errors(text: &str, sets: &[&str]) -> String {
-    load(text, sets)
-        .map(|_| "loaded".to_string())
-        .unwrap_or_else(|e| e.render())
+    load(text, sets).map(|_| "loaded".to_string()).unwrap_or_else(|e| e.render())
 }
 
 #[test]
 fn a_good_pipeline_loads_into_a_typed_dag() {
     let p = load(GOOD, &[]).unwrap();
     assert_eq!(p.name, "p");
-    assert_eq!(
-        p.dataset.config,
-        r#"(root:"/base/data",version:"v1.0-mini")"#
-    );
+    assert_eq!(p.dataset.config, r#"(root:"/base/data",version:"v1.0-mini")"#);
     let project = &p.nodes[p.node_by_name("project").unwrap()];
     assert_eq!(project.grain, 3);
     assert_eq!(project.stage().unwrap().params, "(min_depth:1.0,border:0)");
     let fuse = &p.nodes[p.node_by_name("fuse").unwrap()];
     assert_eq!(fuse.grain, 2);
-    assert_eq!(
-        fuse.stage().unwrap().inputs[0].selector,
-        Selector::Gather { dim: 2 }
-    );
+    assert_eq!(fuse.stage().unwrap().inputs[0].selector, Selector::Gather { dim: 2 });
     let window = p.nodes[p.node_by_name("window").unwrap()].stage().unwrap();
-    assert_eq!(
-        window.inputs[0].selector,
-        Selector::Window {
-            dim: 1,
-            before: -1,
-            after: 1
-        }
-    );
+    assert_eq!(window.inputs[0].selector, Selector::Window { dim: 1, before: -1, after: 1 });
     // Sources come before the stages that read them.
     let pos = |n: &str| p.order.iter().position(|&i| p.nodes[i].name == n).unwrap();
-    assert!(
-        pos("dataset.lidar") < pos("project")
-            && pos("project") < pos("fuse")
-            && pos("fuse") < pos("window")
-    );
+    assert!(pos("dataset.lidar") < pos("project") && pos("project") < pos("fuse") && pos("fuse") < pos("window"));
     assert_eq!(p.exports.len(), 1);
     assert!(p.to_dot().contains("Gather(camera)"));
 }
 
 #[test]
 fn set_overrides_params_and_dataset_fields() {
-    let p = load(
-        GOOD,
-        &[
-            "project.min_depth=2.5",
-            "dataset.root=rel/x",
-            "dataset.version=v1.0-trainval",
-        ],
-    )
-    .unwrap();
+    let p = load(GOOD, &["project.min_depth=2.5", "dataset.root=rel/x", "dataset.version=v1.0-trainval"]).unwrap();
     let project = &p.nodes[p.node_by_name("project").unwrap()];
     assert_eq!(project.stage().unwrap().params, "(min_depth:2.5,border:0)");
-    assert_eq!(
-        p.dataset.config,
-        r#"(root:"/cwd/rel/x",version:"v1.0-trainval")"#
-    );
+    assert_eq!(p.dataset.config, r#"(root:"/cwd/rel/x",version:"v1.0-trainval")"#);
 }
 
 #[test]
 fn set_errors_point_into_the_argument() {
-    let out = errors(
-        GOOD,
-        &["project.min_dept=2", "nosuch.x=1", "project.border=-1"],
-    );
+    let out = errors(GOOD, &["project.min_dept=2", "nosuch.x=1", "project.border=-1"]);
     assert!(out.contains("unknown param `min_dept`"), "{out}");
     assert!(out.contains("--> --set:1:9"), "{out}");
     assert!(out.contains("did you mean `min_depth`?"), "{out}");
-    assert!(
-        out.contains("stage `nosuch`, which the pipeline does not have"),
-        "{out}"
-    );
+    assert!(out.contains("stage `nosuch`, which the pipeline does not have"), "{out}");
 }
 
 #[test]
@@ -301,43 +224,27 @@ fn every_problem_is_reported_at_once_with_locations() {
 )"#;
     let out = errors(text, &[]);
     // Dataset config.
-    assert!(
-        out.contains("unknown param `versoin` of dataset NuScenes"),
-        "{out}"
-    );
+    assert!(out.contains("unknown param `versoin` of dataset NuScenes"), "{out}");
     assert!(out.contains("p.ron:2:37"), "{out}");
     // Unknown kind, with a suggestion and the list.
     assert!(out.contains("unknown stage kind `Encdoe`"), "{out}");
     assert!(out.contains("did you mean `Encode`?"), "{out}");
     // Unknown param, naming what exists.
     assert!(out.contains("unknown param `min_dept`"), "{out}");
-    assert!(
-        out.contains("params: min_depth (default 0.0), border (default 0)"),
-        "{out}"
-    );
+    assert!(out.contains("params: min_depth (default 0.0), border (default 0)"), "{out}");
     // Type mismatch names both types.
     assert!(
-        out.contains(
-            "input `points` of stage `project` takes PointCloud but `dataset.image` gives Image"
-        ),
+        out.contains("input `points` of stage `project` takes PointCloud but `dataset.image` gives Image"),
         "{out}"
     );
     // Unknown input port and the missing one.
     assert!(out.contains("has no input port `imag`"), "{out}");
-    assert!(
-        out.contains("input `image` (Image) of stage `project` is not wired"),
-        "{out}"
-    );
+    assert!(out.contains("input `image` (Image) of stage `project` is not wired"), "{out}");
     // Unknown output port with suggestion.
-    assert!(
-        out.contains("stage `project` has no output port `depht`"),
-        "{out}"
-    );
+    assert!(out.contains("stage `project` has no output port `depht`"), "{out}");
     // Carets under the offending text.
     assert!(
-        out.contains(
-            "            params: (min_dept: 1.0, border: 2),\n  |                      ^^^^^^^^"
-        ),
+        out.contains("            params: (min_dept: 1.0, border: 2),\n  |                      ^^^^^^^^"),
         "{out}"
     );
     assert!(out.contains("problems found; nothing was run"), "{out}");
@@ -345,10 +252,7 @@ fn every_problem_is_reported_at_once_with_locations() {
 
 #[test]
 fn syntax_errors_have_a_location() {
-    let out = errors(
-        "Pipeline(\n  dataset: NuScenes(root: \"x\")\n  stages: {},\n)",
-        &[],
-    );
+    let out = errors("Pipeline(\n  dataset: NuScenes(root: \"x\")\n  stages: {},\n)", &[]);
     assert!(out.contains("expected `,` or `)`"), "{out}");
     assert!(out.contains("p.ron:3:3"), "{out}");
 }
@@ -357,10 +261,7 @@ fn syntax_errors_have_a_location() {
 fn type_errors_in_params_point_at_the_value() {
     let text = GOOD.replace("min_depth: 1.0", "min_depth: \"far\"");
     let out = errors(&text, &[]);
-    assert!(
-        out.contains("bad params of stage `project` (Project): expected a number, found a string"),
-        "{out}"
-    );
+    assert!(out.contains("bad params of stage `project` (Project): expected a number, found a string"), "{out}");
     assert!(out.contains("p.ron:6:33"), "{out}");
 }
 
@@ -376,10 +277,7 @@ fn cycles_name_their_stages() {
     },
 )"#;
     let out = errors(text, &[]);
-    assert!(
-        out.contains("the stages `a` -> `b` -> `c` form a cycle"),
-        "{out}"
-    );
+    assert!(out.contains("the stages `a` -> `b` -> `c` form a cycle"), "{out}");
     assert!(!out.contains("`ok`"), "{out}");
 }
 
@@ -400,16 +298,15 @@ fn selectors_must_fit_the_grains() {
     let out = errors(text, &[]);
     assert!(out.contains("stage `fine_to_coarse` runs per frame but its input `depths` from `project.depth` (per camera) is finer: gather it with Gather(\"..\", camera)"), "{out}");
     assert!(out.contains("cannot be gathered over `frame`"), "{out}");
+    assert!(out.contains("`Window` cannot move along `camera`: it has no order"), "{out}");
     assert!(
-        out.contains("`Window` cannot move along `camera`: it has no order"),
+        out.contains(
+            "input `depth` of stage `one_gets_many` takes one DepthMap but Window(frame, -1, 1) gives several"
+        ),
         "{out}"
     );
-    assert!(out.contains("input `depth` of stage `one_gets_many` takes one DepthMap but Window(frame, -1, 1) gives several"), "{out}");
     assert!(out.contains("the dataset has no dimension `time`"), "{out}");
-    assert!(
-        out.contains("stage `bad_grain` (Project) cannot run per `frame`"),
-        "{out}"
-    );
+    assert!(out.contains("stage `bad_grain` (Project) cannot run per `frame`"), "{out}");
 }
 
 #[test]
@@ -420,10 +317,7 @@ fn exports_need_files_and_every_dimension_of_the_grain() {
     );
     let out = errors(&text, &[]);
     assert!(out.contains("it must name `{camera}`"), "{out}");
-    assert!(
-        out.contains("`encode.depth` gives DepthMap, which is not an encoded file"),
-        "{out}"
-    );
+    assert!(out.contains("`encode.depth` gives DepthMap, which is not an encoded file"), "{out}");
     assert!(out.contains("export names stage `nope`"), "{out}");
 }
 

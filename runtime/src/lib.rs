@@ -1,1 +1,27 @@
+//! dist4d-runtime: item-level task planning, scheduling, content-addressed cache, resume,
+//! explain and garbage collection. Knows nothing about driving: datasets and stage operators
+//! come in through the [`Dataset`] and [`Operator`] traits.
 
+pub mod digest;
+pub mod exec;
+pub mod export;
+pub mod item;
+pub mod operator;
+pub mod plan;
+pub mod progress;
+pub mod record;
+pub mod runs;
+pub mod segment;
+pub mod store;
+
+pub use digest::Digest;
+pub use exec::{Engine, RunOptions, RunSummary};
+pub use item::{ItemKey, ItemSpace};
+pub use operator::{Artifact, Blob, Dataset, FileDigests, Operator, TaskContext};
+pub use progress::ProgressMode;
+pub use runs::{RunRecord, RunStatus};
+pub use store::{Access, Store};
+pub mod testkit;
+
+#[cfg(test)]
+mod exec_tests;

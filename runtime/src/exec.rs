@@ -1,0 +1,784 @@
+//! The scheduler: runs a pipeline's tasks over the dataset's items.
+//!
+//! One coordinator thread owns all task state. It plans scenes lazily (a task budget bounds how
+//! many are in flight), resolves cache hits itself when every input digest is known cheaply,
+//! and sends the rest to a rayon pool. Workers compute what needs reading (raw-file digests,
+//! input blobs), run the operator, store outputs and the task record, and report back on a
+//! crossbeam channel. Ready tasks are taken in (scene, frame, stage) order, so items stream
+//! through the stages and a frame can finish before later frames start.
+
+use crate::digest::{Digest, DigestBuilder};
+use crate::export::{ExportJob, Exporter};
+use crate::item::{ItemKey, ItemSpace};
+use crate::operator::{Artifact, Blob, Dataset, FileDigests, Operator, TaskContext};
+use crate::plan::{plan_scene, InputSrc, ScenePlan, View};
+use crate::progress::{Counters, ProgressMode, Reporter};
+use crate::record::{OutputRef, RecordInput, TaskRecord, INLINE_MAX};
+use crate::runs::{self, Failure, RunRecord, RunStatus, StageStats};
+use crate::store::Store;
+use anyhow::{anyhow, bail, Context, Result};
+use crossbeam_channel::{unbounded, Receiver, RecvTimeoutError, Sender};
+use dist4d_graph::{NodeKind, Pipeline, StageNode};
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// How to run.
+#[derive(Clone)]
+pub struct RunOptions {
+    /// Worker threads.
+    pub jobs: usize,
+    /// Stop at the first failing task.
+    pub fail_fast: bool,
+    /// Only these scenes (by label); all when `None`.
+    pub scenes: Option<Vec<String>>,
+    /// Only the first N frames (items of the second dimension) of each scene.
+    pub frame_limit: Option<u32>,
+    /// Where exported files go; nothing is exported when `None`.
+    pub out_dir: Option<PathBuf>,
+    /// Set (by a Ctrl-C handler) to stop cleanly: running tasks finish, nothing new starts.
+    pub cancel: Arc<AtomicBool>,
+    pub progress: ProgressMode,
+}
+
+impl Default for RunOptions {
+    fn default() -> Self {
+        RunOptions {
+            jobs: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
+            fail_fast: false,
+            scenes: None,
+            frame_limit: None,
+            out_dir: None,
+            cancel: Arc::new(AtomicBool::new(false)),
+            progress: ProgressMode::Off,
+        }
+    }
+}
+
+/// A pipeline bound to its dataset and operators, ready to run against a store.
+pub struct Engine<'a> {
+    pub pipeline: &'a Pipeline,
+    pub dataset: &'a dyn Dataset,
+    /// One operator per node (None for sources).
+    pub operators: &'a [Option<Box<dyn Operator>>],
+    pub store: &'a Store,
+}
+
+/// Digest of everything about a pipeline that affects its results.
+pub fn pipeline_digest(p: &Pipeline) -> Digest {
+    let mut b = DigestBuilder::new("dist4d-pipeline-v1");
+    b.str(&p.dataset.kind).str(&p.dataset.config);
+    for &n in &p.order {
+        let node = &p.nodes[n];
+        b.str(&node.name).u64(node.grain as u64);
+        if let Some(s) = node.stage() {
+            b.str(&s.kind).u64(s.version as u64).str(&s.params);
+            for i in &s.inputs {
+                b.str(&i.port).str(&p.nodes[i.from].name).u64(i.from_port as u64).str(&format!("{:?}", i.selector));
+            }
+        }
+    }
+    for e in &p.exports {
+        b.str(&p.nodes[e.node].name).u64(e.port as u64).str(&e.template);
+    }
+    b.finish()
+}
+
+/// The task key: stage kind and version, canonical params, the digests of the exact inputs (with
+/// their positions), and the item for seeded stages. Not the upstream task identity: a rerun
+/// upstream task that yields the same bytes leaves downstream keys unchanged (early cutoff).
+pub fn task_key(stage: &StageNode, params: &Digest, item: &ItemKey, inputs: &[Vec<(i64, Digest)>]) -> Digest {
+    let mut b = DigestBuilder::new("dist4d-task-v1");
+    b.str(&stage.kind).u64(stage.version as u64).digest(params);
+    for (spec, got) in stage.inputs.iter().zip(inputs) {
+        b.str(&spec.port).u64(got.len() as u64);
+        for (pos, d) in got {
+            b.u64(*pos as u64).digest(d);
+        }
+    }
+    if stage.seeded {
+        b.bytes(&item.to_bytes());
+    }
+    b.finish()
+}
+
+/// Scene indices selected by label (all when `names` is `None`).
+pub fn select_scenes(space: &dyn ItemSpace, names: Option<&[String]>) -> Result<Vec<u32>> {
+    let n = space.count(&ItemKey::new(&[]));
+    let Some(names) = names else { return Ok((0..n).collect()) };
+    let labels: Vec<String> = (0..n).map(|i| space.label(&ItemKey::new(&[i]))).collect();
+    let mut out = Vec::new();
+    for name in names {
+        match labels.iter().position(|l| l == name) {
+            Some(i) => out.push(i as u32),
+            None => {
+                let some: Vec<&str> = labels.iter().take(8).map(|s| s.as_str()).collect();
+                bail!(
+                    "the dataset has no scene `{name}` (it has {n}: {}{})",
+                    some.join(", "),
+                    if n > 8 { ", ..." } else { "" }
+                );
+            }
+        }
+    }
+    out.sort();
+    out.dedup();
+    Ok(out)
+}
+
+/// What a run did.
+pub struct RunSummary {
+    pub record: RunRecord,
+}
+
+/// An output as the coordinator holds it: the reference, plus the bytes while readers need them.
+#[derive(Clone)]
+struct Produced {
+    r: OutputRef,
+    mem: Option<Blob>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum State {
+    Waiting,
+    Running,
+    Done,
+    Failed,
+    Skipped,
+}
+
+struct SceneRun {
+    plan: ScenePlan,
+    seq: u64,
+    state: Vec<State>,
+    waiting: Vec<u32>,
+    readers_left: Vec<u32>,
+    outputs: Vec<Option<Arc<Vec<Produced>>>>,
+    open: usize,
+}
+
+/// Where a worker finds one input artifact.
+enum Src {
+    Mem(Blob),
+    Inline(Arc<[u8]>),
+    Cas(Digest),
+    Source { port: String },
+}
+
+struct InputJob {
+    item: ItemKey,
+    pos: i64,
+    digest: Option<Digest>,
+    src: Src,
+}
+
+struct Job {
+    slot: u32,
+    task: u32,
+    node: usize,
+    item: ItemKey,
+    key: Option<Digest>,
+    inputs: Vec<Vec<InputJob>>,
+}
+
+enum Outcome {
+    Cached(Digest, Vec<OutputRef>),
+    Executed(Digest, Vec<Produced>, u64),
+}
+
+enum Msg {
+    Task { slot: u32, task: u32, result: Result<Outcome> },
+    Exported { stage: String, item: String, result: Result<()> },
+}
+
+/// Heap entry: lower sorts first (earlier scene, earlier frame, earlier stage).
+type ReadyEntry = Reverse<(u64, u32, u32, u32, u32)>;
+
+impl<'a> Engine<'a> {
+    pub fn run(&self, opts: &RunOptions) -> Result<RunSummary> {
+        let started = Instant::now();
+        let started_unix = runs::now_secs();
+        let p = self.pipeline;
+        let run_id = format!("{}-{}", started_unix, &self.store.writer_id()[..]);
+        let scenes = select_scenes(self.dataset, opts.scenes.as_deref())?;
+        let view = View { space: self.dataset, frame_limit: opts.frame_limit };
+
+        // Canonical params are stored as blobs so that explain can show what changed.
+        let mut params_digest = vec![Digest::default(); p.nodes.len()];
+        for n in p.stage_order() {
+            let text = &p.nodes[n].stage().unwrap().params;
+            params_digest[n] = Digest::of(text.as_bytes());
+            self.store.put_blob(&params_digest[n], text.as_bytes())?;
+        }
+
+        let stage_nodes: Vec<usize> = p.stage_order().collect();
+        let mut rank = vec![0u32; p.nodes.len()];
+        for (i, &n) in p.order.iter().enumerate() {
+            rank[n] = i as u32;
+        }
+        let counters = Arc::new(Counters::new(stage_nodes.iter().map(|&n| p.nodes[n].name.clone()).collect()));
+        let counter_of: Vec<usize> = {
+            let mut v = vec![usize::MAX; p.nodes.len()];
+            for (i, &n) in stage_nodes.iter().enumerate() {
+                v[n] = i;
+            }
+            v
+        };
+        // Expected totals, corrected as scenes are planned.
+        for (i, &n) in stage_nodes.iter().enumerate() {
+            let mut total = 0u64;
+            for &s in &scenes {
+                total += count_items(&view, ItemKey::new(&[s]), p.nodes[n].grain);
+            }
+            counters.total[i].store(total, Ordering::Relaxed);
+        }
+        let stats: Vec<StageStats> = stage_nodes
+            .iter()
+            .map(|&n| {
+                let node = &p.nodes[n];
+                StageStats {
+                    stage: node.name.clone(),
+                    kind: node.stage().unwrap().kind.clone(),
+                    grain: p.grain_name(node.grain).into(),
+                    ..Default::default()
+                }
+            })
+            .collect();
+        let reporter = Reporter::start(counters.clone(), opts.progress);
+
+        let mut exporter = match &opts.out_dir {
+            Some(dir) if !p.exports.is_empty() => Some(Exporter::open(dir, self.store)?),
+            _ => None,
+        };
+        let keys_tmp = self.store.temp_path();
+        let keys_out = std::io::BufWriter::new(
+            std::fs::File::create(&keys_tmp).with_context(|| format!("creating {}", keys_tmp.display()))?,
+        );
+
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(opts.jobs.max(1))
+            .thread_name(|i| format!("dist4d-worker-{i}"))
+            .build()?;
+        let (tx, rx): (Sender<Msg>, Receiver<Msg>) = unbounded();
+        let max_inflight = opts.jobs.max(1) * 2;
+        let task_budget = 4096usize.max(opts.jobs * 256);
+        let mut c = Coord {
+            active: Vec::new(),
+            ready: BinaryHeap::new(),
+            stats,
+            counters: counters.clone(),
+            counter_of,
+            failures: Vec::new(),
+            keys_out,
+            exporter: exporter.take(),
+            rank,
+            live_tasks: 0,
+            export_jobs: Vec::new(),
+        };
+        let ctx = Ctx { engine: self, params_digest: &params_digest };
+        let mut next_scene = 0usize;
+        let mut inflight = 0usize;
+        let mut stopping: Option<RunStatus> = None;
+
+        // The scope guarantees every spawned job has ended before it returns, even on an error.
+        pool.in_place_scope(|scope| -> Result<()> {
+            loop {
+                if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
+                    stopping = Some(RunStatus::Interrupted);
+                }
+                // Admit scenes while there is room.
+                while stopping.is_none() && next_scene < scenes.len() && c.live_tasks < task_budget {
+                    c.admit(p, &view, scenes[next_scene], next_scene as u64, &stage_nodes);
+                    next_scene += 1;
+                }
+
+                // Start ready tasks: cache hits complete here, the rest go to the pool.
+                while stopping.is_none() && inflight < max_inflight {
+                    let Some(Reverse((_, _, _, slot, task))) = c.ready.pop() else { break };
+                    let prepared = ctx.prepare(c.active[slot as usize].as_ref().unwrap(), slot, task);
+                    let hit = match &prepared {
+                        Ok(Job { key: Some(key), .. }) => self.cache_hit(key).map(|outs| (*key, outs)),
+                        _ => None,
+                    };
+                    match (prepared, hit) {
+                        (Err(e), _) => c.finish(self, slot, task, Err(e))?,
+                        (Ok(_), Some((key, outs))) => c.finish(self, slot, task, Ok(Outcome::Cached(key, outs)))?,
+                        (Ok(job), None) => {
+                            c.active[slot as usize].as_mut().unwrap().state[task as usize] = State::Running;
+                            inflight += 1;
+                            let tx = tx.clone();
+                            let params = params_digest[job.node];
+                            scope.spawn(move |_| {
+                                let (slot, task) = (job.slot, job.task);
+                                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                                    self.execute(job, params)
+                                }))
+                                .unwrap_or_else(|panic| Err(anyhow!("the stage panicked: {}", panic_message(&panic))));
+                                let _ = tx.send(Msg::Task { slot, task, result });
+                            });
+                        }
+                    }
+                    if opts.fail_fast && !c.failures.is_empty() {
+                        stopping.get_or_insert(RunStatus::Stopped);
+                    }
+                    inflight += c.spawn_exports(scope, &tx);
+                }
+
+                let scenes_left = stopping.is_none() && next_scene < scenes.len();
+                let ready_left = stopping.is_none() && !c.ready.is_empty();
+                if inflight == 0 && !scenes_left && !ready_left {
+                    return Ok(());
+                }
+                if inflight == 0 {
+                    continue;
+                }
+                match rx.recv_timeout(Duration::from_millis(200)) {
+                    Ok(Msg::Task { slot, task, result }) => {
+                        inflight -= 1;
+                        c.finish(self, slot, task, result)?;
+                        inflight += c.spawn_exports(scope, &tx);
+                    }
+                    Ok(Msg::Exported { stage, item, result }) => {
+                        inflight -= 1;
+                        if let Err(e) = result {
+                            c.failures.push(Failure { stage, item, error: format!("{e:#}") });
+                        }
+                    }
+                    Err(RecvTimeoutError::Timeout) => {}
+                    Err(RecvTimeoutError::Disconnected) => bail!("the worker pool stopped unexpectedly"),
+                }
+                if opts.fail_fast && !c.failures.is_empty() {
+                    stopping.get_or_insert(RunStatus::Stopped);
+                }
+            }
+        })?;
+        drop(pool);
+        drop(reporter);
+        let Coord { mut stats, failures, mut keys_out, exporter, .. } = c;
+        for (i, s) in stats.iter_mut().enumerate() {
+            s.total = counters.total[i].load(Ordering::Relaxed);
+        }
+
+        self.store.sync()?;
+        keys_out.flush()?;
+        drop(keys_out);
+        let id = run_id;
+        std::fs::rename(&keys_tmp, runs::keys_path(self.store, &id)).with_context(|| "saving the run's task keys")?;
+        let exported = match exporter {
+            Some(e) => e.finish()?,
+            None => 0,
+        };
+        let status = match stopping {
+            Some(s) => s,
+            None if failures.is_empty() => RunStatus::Complete,
+            None => RunStatus::Failed,
+        };
+        let record = RunRecord {
+            id,
+            pipeline: p.name.clone(),
+            pipeline_path: p.path.display().to_string(),
+            pipeline_digest: pipeline_digest(p).hex(),
+            started: started_unix,
+            seconds: started.elapsed().as_secs_f64(),
+            status,
+            jobs: opts.jobs,
+            stages: stats,
+            failures,
+            exported,
+            out_dir: opts.out_dir.as_ref().map(|d| d.display().to_string()),
+        };
+        runs::write_run(self.store, &record)?;
+        Ok(RunSummary { record })
+    }
+
+    /// The outputs of a finished task with this key, if all of them can still be read.
+    fn cache_hit(&self, key: &Digest) -> Option<Vec<OutputRef>> {
+        let rec = self.store.lookup(key)?;
+        // A record whose blob was removed (by hand, or found corrupt) is not a hit: recompute.
+        rec.outputs.iter().all(|o| o.inline.is_some() || self.store.has_blob(&o.digest)).then_some(rec.outputs)
+    }
+
+    /// Worker side: resolve the key if the coordinator could not, check the cache, else run.
+    fn execute(&self, mut job: Job, params: Digest) -> Result<Outcome> {
+        let node = &self.pipeline.nodes[job.node];
+        let stage = node.stage().expect("jobs are for stages");
+        let label = self.dataset.path(&job.item);
+        let files = StoreFiles { store: self.store, allow_hash: true };
+        let key = match job.key {
+            Some(k) => k,
+            None => {
+                for (input, spec) in job.inputs.iter_mut().zip(&stage.inputs) {
+                    for a in input.iter_mut() {
+                        if a.digest.is_none() {
+                            if let Src::Source { port } = &a.src {
+                                let d = self
+                                    .dataset
+                                    .source_digest(port, &a.item, &files)
+                                    .with_context(|| {
+                                        format!("fingerprinting dataset.{port} for {}", self.dataset.path(&a.item))
+                                    })?
+                                    .ok_or_else(|| {
+                                        anyhow!(
+                                            "dataset.{port}: no digest for {} (input `{}`)",
+                                            self.dataset.path(&a.item),
+                                            spec.port
+                                        )
+                                    })?;
+                                a.digest = Some(d);
+                            }
+                        }
+                    }
+                }
+                let digests: Vec<Vec<(i64, Digest)>> =
+                    job.inputs.iter().map(|i| i.iter().map(|a| (a.pos, a.digest.unwrap())).collect()).collect();
+                let key = task_key(stage, &params, &job.item, &digests);
+                if let Some(outputs) = self.cache_hit(&key) {
+                    return Ok(Outcome::Cached(key, outputs));
+                }
+                key
+            }
+        };
+        let t0 = Instant::now();
+        let mut artifacts: Vec<Vec<Artifact>> = Vec::with_capacity(job.inputs.len());
+        for (input, spec) in job.inputs.iter().zip(&stage.inputs) {
+            let mut list = Vec::with_capacity(input.len());
+            for a in input {
+                let bytes: Blob = match &a.src {
+                    Src::Mem(b) => b.clone(),
+                    Src::Inline(b) => Arc::new(b.to_vec()),
+                    Src::Cas(d) => {
+                        Arc::new(self.store.get_blob(d).with_context(|| format!("reading input `{}`", spec.port))?)
+                    }
+                    Src::Source { port } => Arc::new(
+                        self.dataset
+                            .load_source(port, &a.item)
+                            .with_context(|| format!("reading dataset.{port} for {}", self.dataset.path(&a.item)))?,
+                    ),
+                };
+                list.push(Artifact { item: a.item, pos: a.pos, bytes });
+            }
+            artifacts.push(list);
+        }
+        let seed = u64::from_le_bytes(
+            DigestBuilder::new("seed").bytes(&job.item.to_bytes()).finish().0[..8].try_into().unwrap(),
+        );
+        let ctx = TaskContext { item: job.item, seed, label: &label };
+        let outs = self.operators[job.node]
+            .as_ref()
+            .ok_or_else(|| anyhow!("no operator for stage `{}`", node.name))?
+            .run(&ctx, &artifacts)
+            .with_context(|| format!("{} ({})", node.name, stage.kind))?;
+        if outs.len() != node.outputs.len() {
+            bail!(
+                "stage `{}` ({}) returned {} outputs, its kind declares {}",
+                node.name,
+                stage.kind,
+                outs.len(),
+                node.outputs.len()
+            );
+        }
+        let micros = t0.elapsed().as_micros() as u64;
+        let mut produced = Vec::with_capacity(outs.len());
+        for bytes in outs {
+            let digest = Digest::of(&bytes);
+            let size = bytes.len() as u64;
+            let inline = if bytes.len() <= INLINE_MAX {
+                Some(Arc::<[u8]>::from(bytes.as_slice()))
+            } else {
+                self.store.put_blob(&digest, &bytes)?;
+                None
+            };
+            produced.push(Produced { r: OutputRef { digest, size, inline }, mem: Some(Arc::new(bytes)) });
+        }
+        let record = TaskRecord {
+            key,
+            stage: node.name.clone(),
+            item: job.item,
+            kind: stage.kind.clone(),
+            version: stage.version,
+            params,
+            inputs: stage
+                .inputs
+                .iter()
+                .zip(&job.inputs)
+                .map(|(spec, got)| RecordInput {
+                    port: spec.port.clone(),
+                    digests: got.iter().map(|a| a.digest.unwrap_or_default()).collect(),
+                })
+                .collect(),
+            outputs: produced.iter().map(|p| p.r.clone()).collect(),
+            finished_ms: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_millis() as u64)
+                .unwrap_or(0),
+            micros,
+        };
+        self.store.append_record(&record)?;
+        Ok(Outcome::Executed(key, produced, micros))
+    }
+}
+
+/// The coordinator's state: only the coordinator thread touches it.
+struct Coord {
+    active: Vec<Option<SceneRun>>,
+    ready: BinaryHeap<ReadyEntry>,
+    stats: Vec<StageStats>,
+    counters: Arc<Counters>,
+    counter_of: Vec<usize>,
+    failures: Vec<Failure>,
+    keys_out: std::io::BufWriter<std::fs::File>,
+    exporter: Option<Exporter>,
+    rank: Vec<u32>,
+    live_tasks: usize,
+    /// Export writes decided by `finish`, to be spawned by the loop.
+    export_jobs: Vec<(ExportJob, String, String)>,
+}
+
+impl Coord {
+    /// Plans a scene and queues its tasks that have no upstream tasks.
+    fn admit(&mut self, p: &Pipeline, view: &View, scene: u32, seq: u64, stage_nodes: &[usize]) {
+        let plan = plan_scene(p, view, scene);
+        // Tasks that could not be planned (offsets past the scene's end) leave the totals.
+        for (i, &n) in stage_nodes.iter().enumerate() {
+            let expected = count_items(view, ItemKey::new(&[scene]), p.nodes[n].grain);
+            let planned = plan.tasks.iter().filter(|t| t.node as usize == n).count() as u64;
+            self.counters.total[i].fetch_sub(expected - planned, Ordering::Relaxed);
+        }
+        let n = plan.tasks.len();
+        if n == 0 {
+            return;
+        }
+        self.live_tasks += n;
+        let slot = match self.active.iter().position(|a| a.is_none()) {
+            Some(s) => s,
+            None => {
+                self.active.push(None);
+                self.active.len() - 1
+            }
+        };
+        let run = SceneRun {
+            seq,
+            state: vec![State::Waiting; n],
+            waiting: plan.tasks.iter().map(|t| t.upstream).collect(),
+            readers_left: plan.tasks.iter().map(|t| t.dependents.len() as u32).collect(),
+            outputs: vec![None; n],
+            open: n,
+            plan,
+        };
+        for (t, task) in run.plan.tasks.iter().enumerate() {
+            if task.upstream == 0 {
+                self.ready.push(entry(&run, slot as u32, t as u32, &self.rank));
+            }
+        }
+        self.active[slot] = Some(run);
+    }
+
+    fn spawn_exports<'s>(&mut self, scope: &rayon::Scope<'s>, tx: &Sender<Msg>) -> usize {
+        let n = self.export_jobs.len();
+        for (job, stage, item) in self.export_jobs.drain(..) {
+            let tx = tx.clone();
+            scope.spawn(move |_| {
+                let result = job.write();
+                let _ = tx.send(Msg::Exported { stage, item, result });
+            });
+        }
+        n
+    }
+
+    /// A task ended (cached, executed or failed): record it and release what waited on it.
+    fn finish(&mut self, e: &Engine, slot: u32, task: u32, result: Result<Outcome>) -> Result<()> {
+        let p = e.pipeline;
+        let run = self.active[slot as usize].as_mut().unwrap();
+        let t = task as usize;
+        let node = run.plan.tasks[t].node as usize;
+        let ci = self.counter_of[node];
+        match result {
+            Ok(outcome) => {
+                let (key, produced) = match outcome {
+                    Outcome::Cached(key, outs) => {
+                        self.stats[ci].cached += 1;
+                        (key, outs.into_iter().map(|r| Produced { r, mem: None }).collect::<Vec<_>>())
+                    }
+                    Outcome::Executed(key, produced, micros) => {
+                        self.stats[ci].executed += 1;
+                        self.stats[ci].seconds += micros as f64 / 1e6;
+                        (key, produced)
+                    }
+                };
+                self.keys_out.write_all(&key.0)?;
+                self.counters.done[ci].fetch_add(1, Ordering::Relaxed);
+                run.state[t] = State::Done;
+                let item = run.plan.tasks[t].item;
+                if let Some(exporter) = self.exporter.as_mut() {
+                    for x in p.exports.iter().filter(|x| x.node == node) {
+                        let out = &produced[x.port];
+                        let names = (p.nodes[node].name.as_str(), p.nodes[node].outputs[x.port].name.as_str());
+                        if let Some(job) = exporter.plan(x, names, &item, e.dataset, &out.r, out.mem.clone(), e.store) {
+                            self.export_jobs.push((job, p.nodes[node].name.clone(), e.dataset.path(&item)));
+                        }
+                    }
+                }
+                let produced = Arc::new(produced);
+                run.outputs[t] = Some(if run.readers_left[t] > 0 { produced } else { strip(&produced) });
+                for i in 0..run.plan.tasks[t].dependents.len() {
+                    let d = run.plan.tasks[t].dependents[i] as usize;
+                    run.waiting[d] -= 1;
+                    if run.waiting[d] == 0 && run.state[d] == State::Waiting {
+                        self.ready.push(entry(run, slot, d as u32, &self.rank));
+                    }
+                }
+            }
+            Err(err) => {
+                self.stats[ci].failed += 1;
+                self.counters.failed[ci].fetch_add(1, Ordering::Relaxed);
+                run.state[t] = State::Failed;
+                self.failures.push(Failure {
+                    stage: p.nodes[node].name.clone(),
+                    item: e.dataset.path(&run.plan.tasks[t].item),
+                    error: format!("{err:#}"),
+                });
+                // Everything downstream of a failed task is skipped (and counted), not run.
+                let mut stack: Vec<usize> = run.plan.tasks[t].dependents.iter().map(|&d| d as usize).collect();
+                while let Some(d) = stack.pop() {
+                    if run.state[d] != State::Waiting {
+                        continue;
+                    }
+                    run.state[d] = State::Skipped;
+                    let dn = self.counter_of[run.plan.tasks[d].node as usize];
+                    self.stats[dn].skipped += 1;
+                    self.counters.failed[dn].fetch_add(1, Ordering::Relaxed);
+                    release_inputs(run, d);
+                    run.open -= 1;
+                    self.live_tasks -= 1;
+                    stack.extend(run.plan.tasks[d].dependents.iter().map(|&x| x as usize));
+                }
+            }
+        }
+        release_inputs(run, t);
+        run.open -= 1;
+        self.live_tasks -= 1;
+        if run.open == 0 {
+            self.active[slot as usize] = None;
+        }
+        Ok(())
+    }
+}
+
+struct Ctx<'e, 'a> {
+    engine: &'e Engine<'a>,
+    params_digest: &'e [Digest],
+}
+
+impl Ctx<'_, '_> {
+    /// Gathers a task's inputs; computes its key when every digest is known without hashing files.
+    fn prepare(&self, run: &SceneRun, slot: u32, task: u32) -> Result<Job> {
+        let e = self.engine;
+        let p = e.pipeline;
+        let t = &run.plan.tasks[task as usize];
+        let node = t.node as usize;
+        let stage = p.nodes[node].stage().unwrap();
+        let files = StoreFiles { store: e.store, allow_hash: false };
+        let mut known = true;
+        let mut inputs = Vec::with_capacity(t.inputs.len());
+        for srcs in &t.inputs {
+            let mut list = Vec::with_capacity(srcs.len());
+            for src in srcs {
+                list.push(match *src {
+                    InputSrc::Task { task: u, port, pos } => {
+                        let outs = run.outputs[u as usize]
+                            .as_ref()
+                            .expect("upstream finished before its dependents are ready");
+                        let o = &outs[port as usize];
+                        let src = match (&o.mem, &o.r.inline) {
+                            (Some(m), _) => Src::Mem(m.clone()),
+                            (None, Some(b)) => Src::Inline(b.clone()),
+                            (None, None) => Src::Cas(o.r.digest),
+                        };
+                        InputJob { item: run.plan.tasks[u as usize].item, pos, digest: Some(o.r.digest), src }
+                    }
+                    InputSrc::Source { node: sn, item, pos } => {
+                        let NodeKind::Source { port } = &p.nodes[sn as usize].kind else { unreachable!("source node") };
+                        let digest = e
+                            .dataset
+                            .source_digest(port, &item, &files)
+                            .with_context(|| format!("fingerprinting dataset.{port} for {}", e.dataset.path(&item)))?;
+                        known &= digest.is_some();
+                        InputJob { item, pos, digest, src: Src::Source { port: port.clone() } }
+                    }
+                });
+            }
+            inputs.push(list);
+        }
+        let key = known.then(|| {
+            let digests: Vec<Vec<(i64, Digest)>> =
+                inputs.iter().map(|i: &Vec<InputJob>| i.iter().map(|a| (a.pos, a.digest.unwrap())).collect()).collect();
+            task_key(stage, &self.params_digest[node], &t.item, &digests)
+        });
+        Ok(Job { slot, task, node, item: t.item, key, inputs })
+    }
+}
+
+struct StoreFiles<'s> {
+    store: &'s Store,
+    allow_hash: bool,
+}
+
+impl FileDigests for StoreFiles<'_> {
+    fn file_digest(&self, path: &Path) -> Result<Option<Digest>> {
+        self.store.file_digest(path, self.allow_hash)
+    }
+}
+
+fn entry(run: &SceneRun, slot: u32, task: u32, rank: &[u32]) -> ReadyEntry {
+    let t = &run.plan.tasks[task as usize];
+    let frame = if t.item.depth >= 2 { t.item.idx[1] } else { u32::MAX };
+    Reverse((run.seq, frame, rank[t.node as usize], slot, task))
+}
+
+/// A task no longer needs its inputs: upstream outputs nobody else will read drop their bytes.
+fn release_inputs(run: &mut SceneRun, t: usize) {
+    let mut seen: Vec<u32> = Vec::new();
+    for srcs in &run.plan.tasks[t].inputs {
+        for src in srcs {
+            if let InputSrc::Task { task: u, .. } = *src {
+                if seen.contains(&u) {
+                    continue;
+                }
+                seen.push(u);
+                let u = u as usize;
+                run.readers_left[u] -= 1;
+                if run.readers_left[u] == 0 {
+                    if let Some(o) = &run.outputs[u] {
+                        run.outputs[u] = Some(strip(o));
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn strip(p: &Arc<Vec<Produced>>) -> Arc<Vec<Produced>> {
+    Arc::new(p.iter().map(|x| Produced { r: x.r.clone(), mem: None }).collect())
+}
+
+fn count_items(view: &View, prefix: ItemKey, depth: usize) -> u64 {
+    if prefix.depth as usize >= depth {
+        return 1;
+    }
+    let n = view.count(&prefix);
+    if prefix.depth as usize + 1 == depth {
+        return n as u64;
+    }
+    (0..n).map(|i| count_items(view, prefix.child(i), depth)).sum()
+}
+
+fn panic_message(p: &Box<dyn std::any::Any + Send>) -> String {
+    p.downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| p.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "unknown panic".into())
+}

@@ -1,0 +1,203 @@
+//! Scheduler behaviour on the synthetic grid: caching, incremental reruns, early cutoff,
+//! failures, determinism.
+
+use crate::exec::{Engine, RunOptions};
+use crate::item::ItemKey;
+use crate::runs::{RunRecord, RunStatus};
+use crate::store::{Access, Store};
+use crate::testkit::{self, Grid};
+use dist4d_graph::Pipeline;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+const CHAIN: &str = r#"Pipeline(
+    dataset: Grid(scenes: 2, frames: 4, cameras: 3),
+    stages: {
+        "a": Echo(inputs: {"x": "dataset.camera_value"}),
+        "b": Echo(inputs: {"x": "a.y"}, params: (size: 5000)),
+        "per_frame": Merge(inputs: {"xs": Gather("b.y", camera)}),
+        "window": Merge(inputs: {"xs": Window("per_frame.y", frame, -1, 1)}),
+        "next": Echo(inputs: {"x": Offset("per_frame.y", frame, 1)}, grain: frame),
+        "file": ToFile(inputs: {"x": "window.y"}, grain: frame),
+    },
+    export: {"file.file": "{scene}/{frame}.bin"},
+)"#;
+
+fn run_with(p: &Pipeline, grid: &Grid, store: &Path, opts: &RunOptions) -> RunRecord {
+    let store = Store::open(store, Access::Shared).unwrap();
+    let ops = testkit::operators(p);
+    let engine = Engine { pipeline: p, dataset: grid, operators: &ops, store: &store };
+    engine.run(opts).unwrap().record
+}
+
+fn run(p: &Pipeline, grid: &Grid, store: &Path) -> RunRecord {
+    run_with(p, grid, store, &RunOptions { jobs: 2, ..Default::default() })
+}
+
+fn executed(r: &RunRecord) -> BTreeMap<String, u64> {
+    r.stages.iter().map(|s| (s.stage.clone(), s.executed)).collect()
+}
+
+fn counts(pairs: &[(&str, u64)]) -> BTreeMap<String, u64> {
+    pairs.iter().map(|(s, n)| (s.to_string(), *n)).collect()
+}
+
+#[test]
+fn plans_every_selector_and_caches_the_second_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let first = run(&p, &grid, dir.path());
+    assert_eq!(first.status, RunStatus::Complete);
+    // 2 scenes x 4 frames x 3 cameras; `next` has no task for the last frame of each scene.
+    assert_eq!(
+        executed(&first),
+        counts(&[("a", 24), ("b", 24), ("per_frame", 8), ("window", 8), ("next", 6), ("file", 8)])
+    );
+    assert_eq!(first.stages.iter().find(|s| s.stage == "next").unwrap().total, 6);
+    let second = run(&p, &grid, dir.path());
+    assert_eq!(second.executed(), 0);
+    assert_eq!(second.cached(), first.executed());
+    assert_eq!(grid.loads.load(std::sync::atomic::Ordering::Relaxed), 24, "cached runs read no sources");
+}
+
+#[test]
+fn a_param_change_reruns_exactly_that_stage_and_its_descendants() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    let changed = testkit::load(CHAIN, &["per_frame.salt=7"]);
+    let r = run(&changed, &grid, dir.path());
+    assert_eq!(executed(&r), counts(&[("a", 0), ("b", 0), ("per_frame", 8), ("window", 8), ("next", 6), ("file", 8)]));
+    // Back to the old value: everything is still cached.
+    assert_eq!(run(&p, &grid, dir.path()).executed(), 0);
+}
+
+#[test]
+fn a_changed_source_reruns_exactly_the_items_that_read_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    grid.bump("camera_value", ItemKey::new(&[1, 2, 0]));
+    let r = run(&p, &grid, dir.path());
+    // One camera of frame 2 of scene 1: its a, b; that frame's merge; the windows of frames
+    // 1, 2, 3; `next` of frame 1 (reads frame 2); the files of the three windows.
+    assert_eq!(executed(&r), counts(&[("a", 1), ("b", 1), ("per_frame", 1), ("window", 3), ("next", 1), ("file", 3)]));
+}
+
+#[test]
+fn identical_upstream_bytes_cut_off_downstream_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    // `note` changes a's key but not its output bytes.
+    let r = run(&testkit::load(CHAIN, &["a.note=\"reworded\""]), &grid, dir.path());
+    assert_eq!(executed(&r), counts(&[("a", 24), ("b", 0), ("per_frame", 0), ("window", 0), ("next", 0), ("file", 0)]));
+}
+
+#[test]
+fn a_failing_item_skips_its_dependents_and_the_rest_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &["b.fail_on=[\"s0/001/cam1\"]"]);
+    let grid = testkit::grid_of(&p);
+    let r = run(&p, &grid, dir.path());
+    assert_eq!(r.status, RunStatus::Failed);
+    assert_eq!(r.failures.len(), 1);
+    assert_eq!(r.failures[0].stage, "b");
+    assert_eq!(r.failures[0].item, "s0/001/cam1");
+    assert!(r.failures[0].error.contains("asked to fail on s0/001/cam1"), "{}", r.failures[0].error);
+    let by = |n: &str| r.stages.iter().find(|s| s.stage == n).unwrap().clone();
+    assert_eq!((by("b").executed, by("b").failed), (23, 1));
+    // Frame 1's merge, the windows of frames 0-2, `next` of frame 0 (reads frame 1), files of frames 0-2.
+    assert_eq!((by("per_frame").executed, by("per_frame").skipped), (7, 1));
+    assert_eq!((by("window").executed, by("window").skipped), (5, 3));
+    assert_eq!((by("next").executed, by("next").skipped), (5, 1));
+    assert_eq!((by("file").executed, by("file").skipped), (5, 3));
+    // Failures are not cached: the rerun tries the failed task again and takes the rest from the cache.
+    let again = run(&p, &grid, dir.path());
+    let by = |n: &str| again.stages.iter().find(|s| s.stage == n).unwrap().clone();
+    assert_eq!((by("b").executed, by("b").cached, by("b").failed), (0, 23, 1));
+    assert_eq!((by("window").cached, by("window").skipped), (5, 3));
+}
+
+#[test]
+fn fail_fast_stops_at_the_first_failure() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &["a.fail_on=[\"s0/000/cam0\"]"]);
+    let grid = testkit::grid_of(&p);
+    let r = run_with(&p, &grid, dir.path(), &RunOptions { jobs: 1, fail_fast: true, ..Default::default() });
+    assert_eq!(r.status, RunStatus::Stopped);
+    assert!(r.executed() + r.failed() < 20, "stopped early: {:?}", executed(&r));
+}
+
+#[test]
+fn cancel_stops_cleanly_and_a_rerun_continues() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let opts = RunOptions { jobs: 1, ..Default::default() };
+    opts.cancel.store(true, std::sync::atomic::Ordering::Relaxed);
+    let r = run_with(&p, &grid, dir.path(), &opts);
+    assert_eq!(r.status, RunStatus::Interrupted);
+    let r = run(&p, &grid, dir.path());
+    assert_eq!(r.status, RunStatus::Complete);
+}
+
+#[test]
+fn outputs_are_identical_whatever_the_thread_count() {
+    let p = testkit::load(CHAIN, &[]);
+    let mut trees = Vec::new();
+    for jobs in [1, 4] {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("out");
+        let grid = testkit::grid_of(&p);
+        run_with(
+            &p,
+            &grid,
+            &dir.path().join("store"),
+            &RunOptions { jobs, out_dir: Some(out.clone()), ..Default::default() },
+        );
+        let mut files: Vec<(String, Vec<u8>)> = Vec::new();
+        for s in 0..2 {
+            for f in 0..4 {
+                let rel = format!("s{s}/{f:03}.bin");
+                files.push((rel.clone(), std::fs::read(out.join(&rel)).unwrap()));
+            }
+        }
+        files.push(("index.json".into(), std::fs::read(out.join("index.json")).unwrap()));
+        trees.push(files);
+    }
+    assert_eq!(trees[0], trees[1]);
+}
+
+#[test]
+fn a_missing_blob_is_recomputed_not_trusted() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    // `b` outputs 5000 bytes: blobs in cas/. Remove them all.
+    std::fs::remove_dir_all(dir.path().join("cas")).unwrap();
+    let r = run(&p, &grid, dir.path());
+    assert_eq!(r.status, RunStatus::Complete);
+    assert_eq!(r.stages.iter().find(|s| s.stage == "b").unwrap().executed, 24);
+}
+
+#[test]
+fn scene_and_frame_filters_restrict_the_items() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let opts = RunOptions { jobs: 2, scenes: Some(vec!["s1".into()]), frame_limit: Some(2), ..Default::default() };
+    let r = run_with(&p, &grid, dir.path(), &opts);
+    assert_eq!(r.stages[0].executed, 6);
+    let bad = RunOptions { scenes: Some(vec!["nope".into()]), ..Default::default() };
+    let store = Store::open(dir.path(), Access::Shared).unwrap();
+    let ops = testkit::operators(&p);
+    let err =
+        Engine { pipeline: &p, dataset: &grid, operators: &ops, store: &store }.run(&bad).err().unwrap().to_string();
+    assert!(err.contains("no scene `nope`"), "{err}");
+}

@@ -1,0 +1,144 @@
+//! Tasks of one scene: which (stage, item) pairs exist and which upstream artifacts feed each.
+//!
+//! Planning is per scene (the outermost dimension) and lazy: the scheduler plans a scene when it
+//! has room, so memory depends on the scenes in flight, not on the dataset size. The scene is the
+//! natural unit because `Scene` selectors may read any item of it.
+
+use crate::item::{ItemKey, ItemSpace};
+use dist4d_graph::{NodeKind, Pipeline, Selector};
+use std::collections::HashMap;
+
+/// Where one input artifact of a task comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum InputSrc {
+    /// Output `port` of task `task` of the same scene plan.
+    Task { task: u32, port: u16, pos: i64 },
+    /// A dataset source node, read from raw files.
+    Source { node: u32, item: ItemKey, pos: i64 },
+}
+
+#[derive(Clone, Debug)]
+pub struct Task {
+    pub node: u32,
+    pub item: ItemKey,
+    /// Per input port, in port order.
+    pub inputs: Vec<Vec<InputSrc>>,
+    /// Tasks that read this one's outputs.
+    pub dependents: Vec<u32>,
+    /// Upstream tasks this one waits for.
+    pub upstream: u32,
+}
+
+pub struct ScenePlan {
+    pub scene: u32,
+    pub tasks: Vec<Task>,
+}
+
+/// The item tree seen through the run's filters: a frame limit applies to dimension 1.
+pub struct View<'a> {
+    pub space: &'a dyn ItemSpace,
+    pub frame_limit: Option<u32>,
+}
+
+impl View<'_> {
+    pub fn count(&self, prefix: &ItemKey) -> u32 {
+        let n = self.space.count(prefix);
+        match (prefix.depth, self.frame_limit) {
+            (1, Some(limit)) => n.min(limit),
+            _ => n,
+        }
+    }
+
+    /// Every item of depth `depth` under `prefix`, in key order.
+    pub fn items_under(&self, prefix: ItemKey, depth: usize, out: &mut Vec<ItemKey>) {
+        if prefix.depth as usize >= depth {
+            out.push(prefix);
+            return;
+        }
+        for i in 0..self.count(&prefix) {
+            self.items_under(prefix.child(i), depth, out);
+        }
+    }
+
+    /// Whether every coordinate of `key` exists.
+    fn exists(&self, key: &ItemKey) -> bool {
+        (0..key.depth as usize).all(|d| key.idx[d] < self.count(&key.prefix(d)))
+    }
+
+    /// The upstream items (of grain `up`) that `sel` picks for `item`, with their positions.
+    pub fn select(&self, sel: Selector, item: ItemKey, up: usize) -> Vec<(ItemKey, i64)> {
+        match sel {
+            Selector::Same => vec![(item.prefix(up), 0)],
+            Selector::Window { dim, before, after } => (before..=after)
+                .filter_map(|delta| self.shifted(item.prefix(up), dim, delta).map(|k| (k, delta as i64)))
+                .collect(),
+            Selector::Offset { dim, by } => {
+                self.shifted(item.prefix(up), dim, by).map(|k| vec![(k, by as i64)]).unwrap_or_default()
+            }
+            Selector::Gather { .. } => (0..self.count(&item)).map(|j| (item.child(j), j as i64)).collect(),
+            Selector::Scene => {
+                let mut all = Vec::new();
+                self.items_under(item.prefix(1), up, &mut all);
+                all.into_iter().enumerate().map(|(i, k)| (k, i as i64)).collect()
+            }
+        }
+    }
+
+    fn shifted(&self, mut key: ItemKey, dim: usize, delta: i32) -> Option<ItemKey> {
+        let c = key.idx[dim] as i64 + delta as i64;
+        if c < 0 || c > u32::MAX as i64 {
+            return None;
+        }
+        key.idx[dim] = c as u32;
+        self.exists(&key).then_some(key)
+    }
+}
+
+/// Plans every task of one scene. Tasks whose single input does not exist (an `Offset` past the
+/// end of the scene) are not planned, nor are tasks that depend on them.
+pub fn plan_scene(pipeline: &Pipeline, view: &View, scene: u32) -> ScenePlan {
+    let mut tasks: Vec<Task> = Vec::new();
+    let mut index: HashMap<(u32, ItemKey), u32> = HashMap::new();
+    let scene_key = ItemKey::new(&[scene]);
+    let mut items = Vec::new();
+    for node_id in pipeline.stage_order() {
+        let node = &pipeline.nodes[node_id];
+        let stage = node.stage().expect("stage_order yields stages");
+        items.clear();
+        view.items_under(scene_key, node.grain, &mut items);
+        'items: for &item in &items {
+            let mut inputs = Vec::with_capacity(stage.inputs.len());
+            let mut ups: Vec<u32> = Vec::new();
+            for input in &stage.inputs {
+                let from = &pipeline.nodes[input.from];
+                let mut srcs = Vec::new();
+                for (key, pos) in view.select(input.selector, item, from.grain) {
+                    match &from.kind {
+                        NodeKind::Source { .. } => {
+                            srcs.push(InputSrc::Source { node: input.from as u32, item: key, pos })
+                        }
+                        NodeKind::Stage(_) => {
+                            if let Some(&t) = index.get(&(input.from as u32, key)) {
+                                srcs.push(InputSrc::Task { task: t, port: input.from_port as u16, pos });
+                                if !ups.contains(&t) {
+                                    ups.push(t);
+                                }
+                            }
+                        }
+                    }
+                }
+                if srcs.is_empty() || (!input.many && srcs.len() != 1) {
+                    continue 'items;
+                }
+                inputs.push(srcs);
+            }
+            let id = tasks.len() as u32;
+            for &u in &ups {
+                tasks[u as usize].dependents.push(id);
+            }
+            index.insert((node_id as u32, item), id);
+            tasks.push(Task { node: node_id as u32, item, inputs, dependents: Vec::new(), upstream: ups.len() as u32 });
+        }
+    }
+    ScenePlan { scene, tasks }
+}

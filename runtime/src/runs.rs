@@ -1,0 +1,139 @@
+//! Run records: one JSON file per run under `<store>/runs/`, plus the task keys it used.
+
+use crate::store::Store;
+use anyhow::{Context, Result};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct StageStats {
+    pub stage: String,
+    pub kind: String,
+    pub grain: String,
+    /// Tasks planned for this run.
+    pub total: u64,
+    pub executed: u64,
+    pub cached: u64,
+    pub failed: u64,
+    /// Not run because an input failed.
+    pub skipped: u64,
+    /// Summed run time of executed tasks.
+    pub seconds: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Failure {
+    pub stage: String,
+    /// `scene-0061/000/CAM_FRONT`.
+    pub item: String,
+    /// The error and its causes, outermost first, joined by `: `.
+    pub error: String,
+}
+
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum RunStatus {
+    /// Every planned task finished.
+    Complete,
+    /// Some tasks failed; the others finished.
+    Failed,
+    /// Stopped at the first failure (`--fail-fast`).
+    Stopped,
+    /// Stopped by Ctrl-C; rerun the same command to continue.
+    Interrupted,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct RunRecord {
+    pub id: String,
+    pub pipeline: String,
+    pub pipeline_path: String,
+    /// Digest of the checked pipeline (stages, params, wiring, dataset config).
+    pub pipeline_digest: String,
+    /// Unix time in seconds.
+    pub started: u64,
+    pub seconds: f64,
+    pub status: RunStatus,
+    pub jobs: usize,
+    pub stages: Vec<StageStats>,
+    pub failures: Vec<Failure>,
+    /// Files written or confirmed in the output directory.
+    pub exported: u64,
+    pub out_dir: Option<String>,
+}
+
+impl RunRecord {
+    pub fn executed(&self) -> u64 {
+        self.stages.iter().map(|s| s.executed).sum()
+    }
+    pub fn cached(&self) -> u64 {
+        self.stages.iter().map(|s| s.cached).sum()
+    }
+    pub fn failed(&self) -> u64 {
+        self.stages.iter().map(|s| s.failed).sum()
+    }
+}
+
+/// Path of the list of task keys a run used (32 bytes each), which `gc` keeps alive.
+pub fn keys_path(store: &Store, id: &str) -> PathBuf {
+    store.runs_dir().join(format!("{id}.keys"))
+}
+
+pub fn write_run(store: &Store, rec: &RunRecord) -> Result<()> {
+    let json = serde_json::to_vec_pretty(rec)?;
+    store.write_atomic(&store.runs_dir().join(format!("{}.json", rec.id)), &json)
+}
+
+/// All run records in the store, oldest first.
+pub fn list_runs(runs_dir: &Path) -> Result<Vec<RunRecord>> {
+    let mut out = Vec::new();
+    let rd = match std::fs::read_dir(runs_dir) {
+        Ok(rd) => rd,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(out),
+        Err(e) => return Err(e).with_context(|| format!("listing {}", runs_dir.display())),
+    };
+    for e in rd {
+        let p = e?.path();
+        if p.extension().is_some_and(|x| x == "json") {
+            let text = std::fs::read(&p).with_context(|| format!("reading {}", p.display()))?;
+            match serde_json::from_slice::<RunRecord>(&text) {
+                Ok(r) => out.push(r),
+                Err(e) => eprintln!("warning: skipping unreadable run record {}: {e}", p.display()),
+            }
+        }
+    }
+    out.sort_by(|a, b| (a.started, &a.id).cmp(&(b.started, &b.id)));
+    Ok(out)
+}
+
+/// `2026-11-21 09:15:02 UTC` from Unix seconds.
+pub fn format_utc(secs: u64) -> String {
+    let days = (secs / 86_400) as i64;
+    let rem = secs % 86_400;
+    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!("{y:04}-{m:02}-{d:02} {:02}:{:02}:{:02} UTC", rem / 3600, rem % 3600 / 60, rem % 60)
+}
+
+pub fn now_secs() -> u64 {
+    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn formats_utc_dates() {
+        assert_eq!(format_utc(0), "1970-01-01 00:00:00 UTC");
+        assert_eq!(format_utc(1_795_000_000), "2026-11-18 11:06:40 UTC");
+    }
+}

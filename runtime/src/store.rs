@@ -1,0 +1,428 @@
+//! The store: content-addressed blobs, task records, file fingerprints and run records.
+//!
+//! ```text
+//! <store>/
+//!   store.lock          shared-locked by runs, exclusively by gc
+//!   cas/ab/cdef...      blobs named by their blake3 digest
+//!   ac/<writer>.seg     task records, packed in per-process append-only segments
+//!   fp/<writer>.seg     memo of raw-file digests: (path, size, mtime, inode) -> digest
+//!   runs/<id>.json      one record per run; <id>.keys lists the task keys it used
+//!   tmp/                temp files, renamed into place when complete
+//! ```
+//!
+//! Every file appears whole or not at all: blobs and JSON are written to `tmp/`, fsynced and
+//! renamed; segment entries carry checksums. So a killed process leaves nothing half-written, and
+//! several processes (or cluster nodes on a shared filesystem) can use one store at once: they
+//! write different segments, and renaming a blob over an identical one is harmless.
+
+use crate::digest::{Digest, DigestMap};
+use crate::record::TaskRecord;
+use crate::segment::{enc, segment_paths, Segment, SegmentWriter};
+use anyhow::{bail, Context, Result};
+use std::collections::HashMap;
+use std::fs::{self, File, OpenOptions};
+use std::io::Write;
+use std::os::unix::fs::MetadataExt;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, RwLock};
+
+/// How a process uses the store.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+pub enum Access {
+    /// Runs and explains: many at once.
+    Shared,
+    /// Garbage collection: alone.
+    Exclusive,
+}
+
+/// What a raw file looked like when it was hashed.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+struct FileStamp {
+    dev: u64,
+    ino: u64,
+    size: u64,
+    mtime_ns: i64,
+}
+
+pub struct Store {
+    pub root: PathBuf,
+    writer_id: String,
+    _store_lock: File,
+    _writer_lock: File,
+    records: Mutex<Option<SegmentWriter>>,
+    fp_writer: Mutex<Option<SegmentWriter>>,
+    segments: Vec<Segment>,
+    index: DigestMap<(u32, u64)>,
+    fingerprints: RwLock<HashMap<PathBuf, (FileStamp, Digest)>>,
+    tmp_counter: AtomicU64,
+}
+
+impl Store {
+    /// Opens (creating if needed) the store at `root` and loads its record index and fingerprint memo.
+    pub fn open(root: &Path, access: Access) -> Result<Store> {
+        for d in ["cas", "ac", "fp", "runs", "tmp"] {
+            fs::create_dir_all(root.join(d))
+                .with_context(|| format!("creating store directory {}", root.join(d).display()))?;
+        }
+        let lock_path = root.join("store.lock");
+        let store_lock = OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&lock_path)
+            .with_context(|| format!("opening {}", lock_path.display()))?;
+        match access {
+            Access::Shared => store_lock.lock_shared(),
+            Access::Exclusive => store_lock
+                .try_lock()
+                .map_err(|_| std::io::Error::other("another dist4d process is using this store; gc needs it alone")),
+        }
+        .with_context(|| format!("locking {}", lock_path.display()))?;
+
+        let writer_id = unique_writer_id();
+        let writer_lock_path = root.join("tmp").join(format!("{writer_id}.lock"));
+        let writer_lock =
+            File::create(&writer_lock_path).with_context(|| format!("creating {}", writer_lock_path.display()))?;
+        writer_lock.lock().with_context(|| format!("locking {}", writer_lock_path.display()))?;
+        remove_dead_writers_temps(&root.join("tmp"), &writer_id)?;
+
+        let mut segments = Vec::new();
+        let mut index = DigestMap::default();
+        for path in segment_paths(&root.join("ac"))? {
+            let seg = Segment::open(&path)?;
+            let si = segments.len() as u32;
+            for (off, payload) in seg.entries() {
+                if let Some(key) = TaskRecord::key_of(payload) {
+                    index.insert(key, (si, off as u64));
+                }
+            }
+            segments.push(seg);
+        }
+        let fingerprints = load_fingerprints(&root.join("fp"))?;
+        Ok(Store {
+            root: root.to_path_buf(),
+            writer_id,
+            _store_lock: store_lock,
+            _writer_lock: writer_lock,
+            records: Mutex::new(None),
+            fp_writer: Mutex::new(None),
+            segments,
+            index,
+            fingerprints: RwLock::new(fingerprints),
+            tmp_counter: AtomicU64::new(0),
+        })
+    }
+
+    /// Number of task records loaded at open.
+    pub fn record_count(&self) -> usize {
+        self.index.len()
+    }
+
+    /// The record of a task key, if a finished task with that key is in the store.
+    pub fn lookup(&self, key: &Digest) -> Option<TaskRecord> {
+        let (seg, off) = *self.index.get(key)?;
+        let payload = self.segments[seg as usize].payload_at(off as usize)?;
+        TaskRecord::decode(payload).ok()
+    }
+
+    /// Every record in the store, as loaded at open (for explain and gc).
+    pub fn all_records(&self) -> impl Iterator<Item = (usize, &[u8])> + '_ {
+        self.segments.iter().enumerate().flat_map(|(i, s)| s.entries().map(move |(_, p)| (i, p)))
+    }
+
+    pub fn append_record(&self, rec: &TaskRecord) -> Result<()> {
+        let mut w = self.records.lock().unwrap();
+        if w.is_none() {
+            *w = Some(SegmentWriter::create(&self.root.join("ac"), &self.writer_id)?);
+        }
+        let w = w.as_mut().unwrap();
+        w.append(&rec.encode())?;
+        // Hand the entry to the OS at once: a SIGKILL then loses nothing; an fsync per record
+        // would cost more than most tasks, so durability against power loss is per `sync`.
+        w.flush()
+    }
+
+    /// Fsyncs this process's segments.
+    pub fn sync(&self) -> Result<()> {
+        for w in [&self.records, &self.fp_writer] {
+            if let Some(w) = w.lock().unwrap().as_mut() {
+                w.sync()?;
+            }
+        }
+        Ok(())
+    }
+
+    pub fn blob_path(&self, d: &Digest) -> PathBuf {
+        let hex = d.hex();
+        self.root.join("cas").join(&hex[..2]).join(&hex[2..])
+    }
+
+    pub fn has_blob(&self, d: &Digest) -> bool {
+        self.blob_path(d).exists()
+    }
+
+    /// Stores bytes under their digest (once: an existing blob is not rewritten).
+    pub fn put_blob(&self, digest: &Digest, bytes: &[u8]) -> Result<()> {
+        let path = self.blob_path(digest);
+        if path.exists() {
+            return Ok(());
+        }
+        self.write_atomic(&path, bytes)
+    }
+
+    /// Reads a blob and checks its digest: a corrupt blob is removed so that it is made again.
+    pub fn get_blob(&self, digest: &Digest) -> Result<Vec<u8>> {
+        let path = self.blob_path(digest);
+        let bytes = fs::read(&path)
+            .with_context(|| format!("cache blob {} is missing ({})", digest.short(), path.display()))?;
+        if Digest::of(&bytes) != *digest {
+            let _ = fs::remove_file(&path);
+            bail!(
+                "cache blob {} is corrupt and was removed ({}); rerun to recompute it",
+                digest.short(),
+                path.display()
+            );
+        }
+        Ok(bytes)
+    }
+
+    /// A path in `tmp/` unique to this process.
+    pub fn temp_path(&self) -> PathBuf {
+        let n = self.tmp_counter.fetch_add(1, Ordering::Relaxed);
+        self.root.join("tmp").join(format!("{}-{n}.tmp", self.writer_id))
+    }
+
+    /// Writes a file whole or not at all: temp file in `tmp/`, fsync, rename.
+    pub fn write_atomic(&self, dest: &Path, bytes: &[u8]) -> Result<()> {
+        write_atomic_via(&self.temp_path(), dest, bytes)
+    }
+
+    /// The content digest of a raw input file, hashing it only when its (path, size, mtime, inode)
+    /// is not in the memo. With `allow_hash` false, returns `None` instead of hashing.
+    pub fn file_digest(&self, path: &Path, allow_hash: bool) -> Result<Option<Digest>> {
+        let meta = fs::metadata(path).with_context(|| format!("reading {}", path.display()))?;
+        let stamp = FileStamp {
+            dev: meta.dev(),
+            ino: meta.ino(),
+            size: meta.size(),
+            mtime_ns: meta.mtime() * 1_000_000_000 + meta.mtime_nsec(),
+        };
+        if let Some((s, d)) = self.fingerprints.read().unwrap().get(path) {
+            if *s == stamp {
+                return Ok(Some(*d));
+            }
+        }
+        if !allow_hash {
+            return Ok(None);
+        }
+        let mut hasher = blake3::Hasher::new();
+        hasher.update_mmap(path).with_context(|| format!("reading {}", path.display()))?;
+        let digest = Digest(*hasher.finalize().as_bytes());
+        // A file modified while it was hashed gets a new stamp; do not memoise a mixed read.
+        let after = fs::metadata(path)?;
+        if after.mtime() * 1_000_000_000 + after.mtime_nsec() == stamp.mtime_ns && after.size() == stamp.size {
+            let mut payload = Vec::new();
+            enc::bytes(&mut payload, path.as_os_str().as_encoded_bytes());
+            for x in [stamp.dev, stamp.ino, stamp.size, stamp.mtime_ns as u64] {
+                enc::u64(&mut payload, x);
+            }
+            payload.extend_from_slice(&digest.0);
+            let mut w = self.fp_writer.lock().unwrap();
+            if w.is_none() {
+                *w = Some(SegmentWriter::create(&self.root.join("fp"), &self.writer_id)?);
+            }
+            let w = w.as_mut().unwrap();
+            w.append(&payload)?;
+            w.flush()?;
+            self.fingerprints.write().unwrap().insert(path.to_path_buf(), (stamp, digest));
+        }
+        Ok(Some(digest))
+    }
+
+    pub fn runs_dir(&self) -> PathBuf {
+        self.root.join("runs")
+    }
+
+    /// Whether the writer with this id is still running (it holds the lock on `tmp/<id>.lock`).
+    pub fn writer_alive(&self, id: &str) -> bool {
+        if id == self.writer_id {
+            return true;
+        }
+        match File::open(self.root.join("tmp").join(format!("{id}.lock"))) {
+            Ok(f) => f.try_lock().is_err(),
+            Err(_) => false,
+        }
+    }
+
+    /// This process's unique writer id (names its segments and temp files).
+    pub fn writer_id(&self) -> &str {
+        &self.writer_id
+    }
+}
+
+/// Writes `bytes` to `tmp`, fsyncs, and renames it to `dest` (creating `dest`'s directory).
+pub fn write_atomic_via(tmp: &Path, dest: &Path, bytes: &[u8]) -> Result<()> {
+    if let Some(dir) = dest.parent() {
+        fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let result = (|| -> std::io::Result<()> {
+        let mut f = File::create(tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        fs::rename(tmp, dest)
+    })();
+    if result.is_err() {
+        let _ = fs::remove_file(tmp);
+    }
+    result.with_context(|| format!("writing {}", dest.display()))
+}
+
+fn unique_writer_id() -> String {
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
+    let host = fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
+    let d = crate::digest::DigestBuilder::new("writer")
+        .str(host.trim())
+        .u64(std::process::id() as u64)
+        .u64(nanos as u64)
+        .finish();
+    format!("{}-{}", std::process::id(), &d.hex()[..10])
+}
+
+/// Removes temp files of writers that are gone. A live writer holds the lock on its
+/// `tmp/<writer>.lock`; if we can take it, its process has exited or been killed.
+fn remove_dead_writers_temps(tmp: &Path, me: &str) -> Result<()> {
+    let mut dead = Vec::new();
+    for e in fs::read_dir(tmp)? {
+        let p = e?.path();
+        let Some(name) = p.file_name().and_then(|n| n.to_str()) else { continue };
+        let Some(writer) = name.strip_suffix(".lock") else { continue };
+        if writer == me {
+            continue;
+        }
+        if let Ok(f) = File::open(&p) {
+            if f.try_lock().is_ok() {
+                dead.push(writer.to_string());
+                let _ = fs::remove_file(&p);
+            }
+        }
+    }
+    if dead.is_empty() {
+        return Ok(());
+    }
+    for e in fs::read_dir(tmp)? {
+        let p = e?.path();
+        let Some(name) = p.file_name().and_then(|n| n.to_str()) else { continue };
+        if dead.iter().any(|w| name.starts_with(&format!("{w}-"))) {
+            let _ = fs::remove_file(&p);
+        }
+    }
+    Ok(())
+}
+
+fn load_fingerprints(dir: &Path) -> Result<HashMap<PathBuf, (FileStamp, Digest)>> {
+    let mut out = HashMap::new();
+    for path in segment_paths(dir)? {
+        let seg = Segment::open(&path)?;
+        for (_, payload) in seg.entries() {
+            let mut r = enc::Reader { buf: payload };
+            let parsed = (|| -> Result<(PathBuf, FileStamp, Digest)> {
+                use std::os::unix::ffi::OsStrExt;
+                let p = PathBuf::from(std::ffi::OsStr::from_bytes(r.bytes()?));
+                let stamp = FileStamp { dev: r.u64()?, ino: r.u64()?, size: r.u64()?, mtime_ns: r.u64()? as i64 };
+                Ok((p, stamp, Digest(r.take(32)?.try_into()?)))
+            })();
+            if let Ok((p, s, d)) = parsed {
+                out.insert(p, (s, d));
+            }
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::item::ItemKey;
+    use crate::record::OutputRef;
+
+    fn record(key: &[u8]) -> TaskRecord {
+        TaskRecord {
+            key: Digest::of(key),
+            stage: "s".into(),
+            item: ItemKey::new(&[0]),
+            kind: "K".into(),
+            version: 1,
+            params: Digest::of(b"()"),
+            inputs: vec![],
+            outputs: vec![OutputRef {
+                digest: Digest::of(b"x"),
+                size: 1,
+                inline: Some(std::sync::Arc::from(&b"x"[..])),
+            }],
+            finished_ms: 0,
+            micros: 0,
+        }
+    }
+
+    #[test]
+    fn records_written_by_one_process_are_found_by_the_next() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let s = Store::open(dir.path(), Access::Shared).unwrap();
+            s.append_record(&record(b"a")).unwrap();
+            s.append_record(&record(b"b")).unwrap();
+        }
+        let s = Store::open(dir.path(), Access::Shared).unwrap();
+        assert_eq!(s.record_count(), 2);
+        assert_eq!(s.lookup(&Digest::of(b"a")).unwrap(), record(b"a"));
+        assert!(s.lookup(&Digest::of(b"c")).is_none());
+    }
+
+    #[test]
+    fn blobs_are_checked_on_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Store::open(dir.path(), Access::Shared).unwrap();
+        let d = Digest::of(b"hello");
+        s.put_blob(&d, b"hello").unwrap();
+        assert_eq!(s.get_blob(&d).unwrap(), b"hello");
+        fs::write(s.blob_path(&d), b"jello").unwrap();
+        let e = s.get_blob(&d).unwrap_err().to_string();
+        assert!(e.contains("corrupt"), "{e}");
+        assert!(!s.has_blob(&d));
+    }
+
+    #[test]
+    fn file_digests_are_memoised_and_follow_content() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("raw.bin");
+        fs::write(&f, b"one").unwrap();
+        let s = Store::open(&dir.path().join("store"), Access::Shared).unwrap();
+        assert_eq!(s.file_digest(&f, false).unwrap(), None);
+        let d1 = s.file_digest(&f, true).unwrap().unwrap();
+        assert_eq!(d1, Digest::of(b"one"));
+        drop(s);
+        let s = Store::open(&dir.path().join("store"), Access::Shared).unwrap();
+        assert_eq!(s.file_digest(&f, false).unwrap(), Some(d1), "memo survives reopening");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+        fs::write(&f, b"two").unwrap();
+        assert_eq!(s.file_digest(&f, false).unwrap(), None, "a changed file is hashed again");
+        assert_eq!(s.file_digest(&f, true).unwrap(), Some(Digest::of(b"two")));
+    }
+
+    #[test]
+    fn temp_files_of_dead_writers_are_removed() {
+        let dir = tempfile::tempdir().unwrap();
+        let tmp = dir.path().join("tmp");
+        fs::create_dir_all(&tmp).unwrap();
+        fs::write(tmp.join("dead-1.lock"), b"").unwrap();
+        fs::write(tmp.join("dead-1-3.tmp"), b"half").unwrap();
+        let live = Store::open(dir.path(), Access::Shared).unwrap();
+        let live_tmp = live.temp_path();
+        fs::write(&live_tmp, b"mine").unwrap();
+        assert!(!tmp.join("dead-1-3.tmp").exists());
+        let _other = Store::open(dir.path(), Access::Shared).unwrap();
+        assert!(live_tmp.exists(), "a live writer's temp files stay");
+        assert!(Store::open(dir.path(), Access::Exclusive).is_err(), "gc waits for runs to end");
+    }
+}

@@ -1,0 +1,278 @@
+//! A synthetic dataset and toy stages, for the runtime's tests and benchmarks.
+//!
+//! `Grid(scenes, frames, cameras)` has sources `frame_value` (per frame) and `camera_value`
+//! (per camera) whose content is a function of the item and a version that tests can bump (as if
+//! a raw file changed). Stages: `Echo` (hash of its input, optionally padded to `size` bytes),
+//! `Merge` (hash of several inputs), `ToFile` (an exportable copy).
+
+use crate::digest::{Digest, DigestBuilder};
+use crate::item::{ItemKey, ItemSpace};
+use crate::operator::{Artifact, Dataset, FileDigests, Operator, TaskContext};
+use anyhow::{bail, Result};
+use dist4d_graph::{Catalog, DatasetSchema, DimSpec, ParamsSpec, Pipeline, PortSpec, SourcePortSpec, StageSchema};
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
+
+#[derive(Serialize, Deserialize, Clone)]
+#[serde(deny_unknown_fields, default)]
+pub struct GridConfig {
+    pub scenes: u32,
+    pub frames: u32,
+    pub cameras: u32,
+}
+
+impl Default for GridConfig {
+    fn default() -> Self {
+        GridConfig { scenes: 2, frames: 4, cameras: 3 }
+    }
+}
+
+pub struct Grid {
+    pub config: GridConfig,
+    /// (port, item) -> version; absent = 0. Bumping one is like editing a raw file.
+    pub versions: Mutex<HashMap<(String, ItemKey), u64>>,
+    pub loads: AtomicU64,
+}
+
+impl Grid {
+    pub fn new(config: GridConfig) -> Grid {
+        Grid { config, versions: Mutex::new(HashMap::new()), loads: AtomicU64::new(0) }
+    }
+
+    pub fn bump(&self, port: &str, item: ItemKey) {
+        *self.versions.lock().unwrap().entry((port.to_string(), item)).or_default() += 1;
+    }
+
+    fn content(&self, port: &str, item: &ItemKey) -> Vec<u8> {
+        let v = self.versions.lock().unwrap().get(&(port.to_string(), *item)).copied().unwrap_or(0);
+        DigestBuilder::new("grid").str(port).bytes(&item.to_bytes()).u64(v).finish().0.to_vec()
+    }
+}
+
+impl ItemSpace for Grid {
+    fn count(&self, prefix: &ItemKey) -> u32 {
+        match prefix.depth {
+            0 => self.config.scenes,
+            1 => self.config.frames,
+            2 => self.config.cameras,
+            _ => 0,
+        }
+    }
+    fn label(&self, item: &ItemKey) -> String {
+        let i = item.idx[item.depth as usize - 1];
+        match item.depth {
+            1 => format!("s{i}"),
+            2 => format!("{i:03}"),
+            _ => format!("cam{i}"),
+        }
+    }
+}
+
+impl Dataset for Grid {
+    fn source_digest(&self, port: &str, item: &ItemKey, _: &dyn FileDigests) -> Result<Option<Digest>> {
+        Ok(Some(Digest::of(&self.content(port, item))))
+    }
+    fn load_source(&self, port: &str, item: &ItemKey) -> Result<Vec<u8>> {
+        self.loads.fetch_add(1, Ordering::Relaxed);
+        Ok(self.content(port, item))
+    }
+}
+
+#[derive(Serialize, Deserialize, Default, Clone)]
+#[serde(deny_unknown_fields, default)]
+pub struct EchoParams {
+    /// Changes the output.
+    pub salt: u32,
+    /// Does not change the output (for early-cutoff tests).
+    pub note: String,
+    /// Pad the output to this many bytes (0: 32 bytes).
+    pub size: usize,
+    /// Item paths (`s0/001/cam2`) on which the task fails.
+    pub fail_on: Vec<String>,
+    /// Sleep this long per task (for kill tests).
+    pub sleep_ms: u64,
+}
+
+struct Kind {
+    kind: &'static str,
+    inputs: Vec<PortSpec>,
+    outputs: Vec<PortSpec>,
+    grains: Vec<&'static str>,
+    params: ParamsSpec,
+}
+
+impl StageSchema for Kind {
+    fn kind(&self) -> &'static str {
+        self.kind
+    }
+    fn version(&self) -> u32 {
+        1
+    }
+    fn summary(&self) -> &'static str {
+        "test stage"
+    }
+    fn inputs(&self) -> &[PortSpec] {
+        &self.inputs
+    }
+    fn outputs(&self) -> &[PortSpec] {
+        &self.outputs
+    }
+    fn grains(&self) -> &[&'static str] {
+        &self.grains
+    }
+    fn params(&self) -> &ParamsSpec {
+        &self.params
+    }
+}
+
+struct GridSchema {
+    config: ParamsSpec,
+}
+
+const DIMS: [DimSpec; 3] = [
+    DimSpec { name: "scene", ordered: false },
+    DimSpec { name: "frame", ordered: true },
+    DimSpec { name: "camera", ordered: false },
+];
+const PORTS: [SourcePortSpec; 2] = [
+    SourcePortSpec { name: "frame_value", ty: "Bytes", grain: "frame", doc: "" },
+    SourcePortSpec { name: "camera_value", ty: "Bytes", grain: "camera", doc: "" },
+];
+
+impl DatasetSchema for GridSchema {
+    fn kind(&self) -> &'static str {
+        "Grid"
+    }
+    fn summary(&self) -> &'static str {
+        "synthetic grid"
+    }
+    fn dims(&self) -> &[DimSpec] {
+        &DIMS
+    }
+    fn ports(&self) -> &[SourcePortSpec] {
+        &PORTS
+    }
+    fn config(&self) -> &ParamsSpec {
+        &self.config
+    }
+}
+
+pub struct TestCatalog {
+    kinds: Vec<Kind>,
+    grid: GridSchema,
+}
+
+impl Default for TestCatalog {
+    fn default() -> Self {
+        let all = vec!["camera", "frame", "scene"];
+        TestCatalog {
+            kinds: vec![
+                Kind {
+                    kind: "Echo",
+                    inputs: vec![PortSpec::one("x", "Bytes", "")],
+                    outputs: vec![PortSpec::one("y", "Bytes", "")],
+                    grains: all.clone(),
+                    params: ParamsSpec::of::<EchoParams>(),
+                },
+                Kind {
+                    kind: "Merge",
+                    inputs: vec![PortSpec::many("xs", "Bytes", "")],
+                    outputs: vec![PortSpec::one("y", "Bytes", "")],
+                    grains: vec!["frame", "scene", "camera"],
+                    params: ParamsSpec::of::<EchoParams>(),
+                },
+                Kind {
+                    kind: "ToFile",
+                    inputs: vec![PortSpec::one("x", "Bytes", "")],
+                    outputs: vec![PortSpec::one("file", "File", "")],
+                    grains: all,
+                    params: ParamsSpec::of::<EchoParams>(),
+                },
+            ],
+            grid: GridSchema { config: ParamsSpec::of::<GridConfig>() },
+        }
+    }
+}
+
+impl Catalog for TestCatalog {
+    fn stage(&self, kind: &str) -> Option<&dyn StageSchema> {
+        self.kinds.iter().find(|k| k.kind == kind).map(|k| k as &dyn StageSchema)
+    }
+    fn stage_kinds(&self) -> Vec<&'static str> {
+        self.kinds.iter().map(|k| k.kind).collect()
+    }
+    fn dataset(&self, kind: &str) -> Option<&dyn DatasetSchema> {
+        (kind == "Grid").then_some(&self.grid as &dyn DatasetSchema)
+    }
+    fn dataset_kinds(&self) -> Vec<&'static str> {
+        vec!["Grid"]
+    }
+    fn exportable(&self, ty: &str) -> bool {
+        ty == "File"
+    }
+}
+
+struct EchoOp(EchoParams);
+
+impl Operator for EchoOp {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Vec<Vec<u8>>> {
+        if self.0.sleep_ms > 0 {
+            std::thread::sleep(std::time::Duration::from_millis(self.0.sleep_ms));
+        }
+        if self.0.fail_on.iter().any(|f| f == ctx.label) {
+            bail!("asked to fail on {}", ctx.label);
+        }
+        let mut b = DigestBuilder::new("echo");
+        b.u64(self.0.salt as u64);
+        for input in inputs {
+            for a in input {
+                b.u64(a.pos as u64).bytes(&a.bytes);
+            }
+        }
+        let d = b.finish().0;
+        let n = if self.0.size == 0 { 32 } else { self.0.size };
+        Ok(vec![d.iter().copied().cycle().take(n).collect()])
+    }
+}
+
+/// The grid dataset a pipeline names, with its config.
+pub fn grid_of(p: &Pipeline) -> Grid {
+    let mut sources = dist4d_graph::source::Sources::default();
+    let id = sources.add("config", p.dataset.config.clone());
+    let v = dist4d_graph::syntax::parse(&p.dataset.config, id).expect("canonical config parses");
+    Grid::new(dist4d_graph::de::from_value(&v).expect("canonical config reads"))
+}
+
+/// Operators for a pipeline of test stages.
+pub fn operators(p: &Pipeline) -> Vec<Option<Box<dyn Operator>>> {
+    p.nodes
+        .iter()
+        .map(|n| {
+            n.stage().map(|s| {
+                let mut sources = dist4d_graph::source::Sources::default();
+                let id = sources.add("params", s.params.clone());
+                let v = dist4d_graph::syntax::parse(&s.params, id).expect("canonical params parse");
+                let params: EchoParams = dist4d_graph::de::from_value(&v).expect("canonical params read");
+                Box::new(EchoOp(params)) as Box<dyn Operator>
+            })
+        })
+        .collect()
+}
+
+/// Loads a test pipeline from text.
+pub fn load(text: &str, sets: &[&str]) -> Pipeline {
+    let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+    let here = std::path::Path::new(".");
+    dist4d_graph::load_str(
+        "test.ron",
+        text,
+        std::path::Path::new("test.ron"),
+        here,
+        &sets,
+        here,
+        &TestCatalog::default(),
+    )
+    .unwrap_or_else(|e| panic!("{}", e.render()))
+}
