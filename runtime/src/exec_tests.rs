@@ -201,3 +201,51 @@ fn scene_and_frame_filters_restrict_the_items() {
         Engine { pipeline: &p, dataset: &grid, operators: &ops, store: &store }.run(&bad).err().unwrap().to_string();
     assert!(err.contains("no scene `nope`"), "{err}");
 }
+
+#[test]
+fn explain_says_what_changed() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let store = |d: &Path| Store::open(d, Access::Shared).unwrap();
+    let explain = |p: &Pipeline| {
+        let s = store(dir.path());
+        let ops = testkit::operators(p);
+        crate::explain::explain(&Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }, None, None)
+            .unwrap()
+    };
+    let fresh = explain(&p);
+    assert_eq!((fresh[0].cached, fresh[0].will_run), (0, 24));
+    assert_eq!(fresh[0].reasons.keys().collect::<Vec<_>>(), vec!["never run"]);
+    run(&p, &grid, dir.path());
+    assert!(explain(&p).iter().all(|s| s.will_run == 0));
+    let changed = testkit::load(CHAIN, &["b.salt=3"]);
+    let e = explain(&changed);
+    let b = e.iter().find(|s| s.stage == "b").unwrap();
+    assert_eq!(b.will_run, 24);
+    assert!(b.reasons.contains_key("param `salt` changed: 0 -> 3"), "{:?}", b.reasons);
+    let pf = e.iter().find(|s| s.stage == "per_frame").unwrap();
+    assert!(pf.reasons.contains_key("upstream `b` will run"), "{:?}", pf.reasons);
+    grid.bump("camera_value", ItemKey::new(&[0, 0, 0]));
+    let e = explain(&p);
+    let a = e.iter().find(|s| s.stage == "a").unwrap();
+    assert_eq!((a.cached, a.will_run), (23, 1));
+    assert_eq!(a.reasons["input `x` (from `dataset.camera_value`) changed"].1, "s0/000/cam0");
+}
+
+#[test]
+fn gc_keeps_what_recent_runs_use() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = testkit::grid_of(&testkit::load(CHAIN, &[]));
+    run(&testkit::load(CHAIN, &["b.salt=1"]), &grid, dir.path());
+    run(&testkit::load(CHAIN, &["b.salt=2"]), &grid, dir.path());
+    let report = crate::gc::gc(dir.path(), 1, None).unwrap();
+    assert_eq!((report.runs_kept, report.runs_dropped), (1, 1));
+    // salt=1's b, per_frame, window, next, file records go; a is shared by both runs.
+    assert_eq!(report.records_dropped, 24 + 8 + 8 + 6 + 8);
+    assert!(report.blobs_dropped >= 24, "{report:?}");
+    let again = run(&testkit::load(CHAIN, &["b.salt=2"]), &grid, dir.path());
+    assert_eq!(again.executed(), 0, "the kept run is still fully cached");
+    let old = run(&testkit::load(CHAIN, &["b.salt=1"]), &grid, dir.path());
+    assert_eq!(old.stages.iter().find(|s| s.stage == "b").unwrap().executed, 24);
+}

@@ -4,7 +4,9 @@
 
 pub mod digest;
 pub mod exec;
+pub mod explain;
 pub mod export;
+pub mod gc;
 pub mod item;
 pub mod operator;
 pub mod plan;

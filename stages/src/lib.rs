@@ -1,1 +1,86 @@
+//! dist4d-stages: the driving domain. Geometry, dataset readers, and every stage, each a module
+//! with its params, ports and a plain function that does the work.
 
+pub mod artifact;
+pub mod geometry;
+pub mod nuscenes;
+pub mod stage;
+pub mod stages {
+    pub mod encode;
+    pub mod project_lidar;
+}
+
+use anyhow::{anyhow, Context, Result};
+use dist4d_graph::{Catalog, DatasetSchema, Pipeline, StageSchema};
+use dist4d_runtime::{Dataset, Operator};
+use stage::{parse_canonical, StageDef};
+
+/// Every stage kind and dataset kind dist4d has.
+pub struct Registry {
+    stages: Vec<StageDef>,
+    nuscenes: nuscenes::NuScenesSchema,
+}
+
+impl Default for Registry {
+    fn default() -> Self {
+        Registry {
+            stages: vec![stages::project_lidar::def(), stages::encode::encode_depth(), stages::encode::encode_points()],
+            nuscenes: nuscenes::NuScenesSchema::default(),
+        }
+    }
+}
+
+impl Registry {
+    pub fn stage_defs(&self) -> &[StageDef] {
+        &self.stages
+    }
+
+    /// Opens the dataset a pipeline names.
+    pub fn open_dataset(&self, p: &Pipeline) -> Result<Box<dyn Dataset>> {
+        match p.dataset.kind.as_str() {
+            "NuScenes" => Ok(Box::new(
+                nuscenes::NuScenes::open(parse_canonical(&p.dataset.config)?)
+                    .context("opening the NuScenes dataset")?,
+            )),
+            other => Err(anyhow!("unknown dataset kind {other}")),
+        }
+    }
+
+    /// One operator per pipeline node (None for sources).
+    pub fn operators(&self, p: &Pipeline) -> Result<Vec<Option<Box<dyn Operator>>>> {
+        p.nodes
+            .iter()
+            .map(|n| match n.stage() {
+                None => Ok(None),
+                Some(s) => {
+                    let def = self
+                        .stages
+                        .iter()
+                        .find(|d| d.kind == s.kind)
+                        .ok_or_else(|| anyhow!("unknown stage kind {}", s.kind))?;
+                    def.build(&s.params).with_context(|| format!("stage `{}`", n.name)).map(Some)
+                }
+            })
+            .collect()
+    }
+}
+
+impl Catalog for Registry {
+    fn stage(&self, kind: &str) -> Option<&dyn StageSchema> {
+        self.stages.iter().find(|s| s.kind == kind).map(|s| s as &dyn StageSchema)
+    }
+    fn stage_kinds(&self) -> Vec<&'static str> {
+        self.stages.iter().map(|s| s.kind).collect()
+    }
+    fn dataset(&self, kind: &str) -> Option<&dyn DatasetSchema> {
+        (kind == "NuScenes").then_some(&self.nuscenes as &dyn DatasetSchema)
+    }
+    fn dataset_kinds(&self) -> Vec<&'static str> {
+        vec!["NuScenes"]
+    }
+    fn exportable(&self, ty: &str) -> bool {
+        ty == artifact::File::TYPE
+    }
+}
+
+use artifact::Artifact as _;

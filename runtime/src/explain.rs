@@ -1,0 +1,218 @@
+//! `explain`: per stage, how many tasks are cached, will run, or failed last time, and why each
+//! task that will run does: never run, stage version changed, which param changed from what to
+//! what, which input changed, or an upstream task will run.
+
+use crate::digest::Digest;
+use crate::exec::{select_scenes, task_key, Engine};
+use crate::item::ItemKey;
+use crate::operator::FileDigests;
+use crate::plan::{plan_scene, InputSrc, View};
+use crate::record::TaskRecord;
+use crate::runs::list_runs;
+use anyhow::Result;
+use dist4d_graph::NodeKind;
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+
+#[derive(Debug, Default, Clone)]
+pub struct StageExplain {
+    pub stage: String,
+    pub kind: String,
+    pub cached: u64,
+    pub will_run: u64,
+    /// Tasks that will run and failed in the last run of this pipeline.
+    pub failed_last_run: u64,
+    /// Reason -> (how many tasks, an example item).
+    pub reasons: BTreeMap<String, (u64, String)>,
+}
+
+struct Files<'s>(&'s crate::store::Store);
+
+impl FileDigests for Files<'_> {
+    fn file_digest(&self, path: &Path) -> Result<Option<Digest>> {
+        self.0.file_digest(path, true)
+    }
+}
+
+/// What the previous task for the same stage and item looked like.
+struct Previous {
+    finished_ms: u64,
+    version: u32,
+    params: Digest,
+    inputs: Vec<(String, Vec<Digest>)>,
+}
+
+pub fn explain(engine: &Engine, scenes: Option<&[String]>, frame_limit: Option<u32>) -> Result<Vec<StageExplain>> {
+    let p = engine.pipeline;
+    let store = engine.store;
+    let view = View { space: engine.dataset, frame_limit };
+    let scenes = select_scenes(engine.dataset, scenes)?;
+
+    // The latest record of every (stage, item), for saying what changed.
+    let mut previous: HashMap<(String, ItemKey), Previous> = HashMap::new();
+    for (_, payload) in store.all_records() {
+        let Ok(rec) = TaskRecord::decode(payload) else { continue };
+        let slot = previous.entry((rec.stage.clone(), rec.item));
+        let newer = match &slot {
+            std::collections::hash_map::Entry::Occupied(o) => o.get().finished_ms <= rec.finished_ms,
+            std::collections::hash_map::Entry::Vacant(_) => true,
+        };
+        if newer {
+            let prev = Previous {
+                finished_ms: rec.finished_ms,
+                version: rec.version,
+                params: rec.params,
+                inputs: rec.inputs.into_iter().map(|i| (i.port, i.digests)).collect(),
+            };
+            match slot {
+                std::collections::hash_map::Entry::Occupied(mut o) => {
+                    o.insert(prev);
+                }
+                std::collections::hash_map::Entry::Vacant(v) => {
+                    v.insert(prev);
+                }
+            }
+        }
+    }
+    // Failures of the last run of this pipeline.
+    let last_failures: HashMap<(String, String), String> = list_runs(&store.runs_dir())?
+        .into_iter()
+        .rev()
+        .find(|r| r.pipeline == p.name)
+        .map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect())
+        .unwrap_or_default();
+
+    let mut params_digest = vec![Digest::default(); p.nodes.len()];
+    let mut out: Vec<StageExplain> = vec![StageExplain::default(); p.nodes.len()];
+    for n in p.stage_order() {
+        let s = p.nodes[n].stage().unwrap();
+        params_digest[n] = Digest::of(s.params.as_bytes());
+        out[n].stage = p.nodes[n].name.clone();
+        out[n].kind = s.kind.clone();
+    }
+    let files = Files(store);
+    for scene in scenes {
+        let plan = plan_scene(p, &view, scene);
+        // Output digests of tasks known to be cached; None = will run.
+        let mut outputs: Vec<Option<Vec<Digest>>> = vec![None; plan.tasks.len()];
+        for (t, task) in plan.tasks.iter().enumerate() {
+            let node = task.node as usize;
+            let stage = p.nodes[node].stage().unwrap();
+            let label = engine.dataset.path(&task.item);
+            let mut digests: Vec<Vec<(i64, Digest)>> = Vec::new();
+            let mut unknown_inputs: Vec<String> = Vec::new();
+            for (srcs, spec) in task.inputs.iter().zip(&stage.inputs) {
+                let mut list = Vec::new();
+                for src in srcs {
+                    match *src {
+                        InputSrc::Task { task: u, port, pos } => match &outputs[u as usize] {
+                            Some(o) => list.push((pos, o[port as usize])),
+                            None => {
+                                let up = &p.nodes[plan.tasks[u as usize].node as usize].name;
+                                if !unknown_inputs.contains(up) {
+                                    unknown_inputs.push(up.clone());
+                                }
+                            }
+                        },
+                        InputSrc::Source { node: sn, item, pos } => {
+                            let NodeKind::Source { port } = &p.nodes[sn as usize].kind else { unreachable!() };
+                            match engine.dataset.source_digest(port, &item, &files) {
+                                Ok(Some(d)) => list.push((pos, d)),
+                                _ => unknown_inputs.push(format!("dataset.{port} (unreadable)")),
+                            }
+                        }
+                    }
+                }
+                let _ = spec;
+                digests.push(list);
+            }
+            let e = &mut out[node];
+            if unknown_inputs.is_empty() {
+                let key = task_key(stage, &params_digest[node], &task.item, &digests);
+                if let Some(rec) = store.lookup(&key) {
+                    if rec.outputs.iter().all(|o| o.inline.is_some() || store.has_blob(&o.digest)) {
+                        e.cached += 1;
+                        outputs[t] = Some(rec.outputs.iter().map(|o| o.digest).collect());
+                        continue;
+                    }
+                }
+            }
+            e.will_run += 1;
+            let mut reasons = Vec::new();
+            if let Some(err) = last_failures.get(&(p.nodes[node].name.clone(), label.clone())) {
+                e.failed_last_run += 1;
+                reasons.push(format!("failed in the last run: {}", first_line(err)));
+            }
+            match previous.get(&(p.nodes[node].name.clone(), task.item)) {
+                None => reasons.push("never run".into()),
+                Some(prev) => {
+                    if prev.version != stage.version {
+                        reasons.push(format!("stage version changed: {} -> {}", prev.version, stage.version));
+                    }
+                    if prev.params != params_digest[node] {
+                        let old = store.get_blob(&prev.params).ok().and_then(|b| String::from_utf8(b).ok());
+                        reasons.extend(param_changes(old.as_deref(), &stage.params));
+                    }
+                    for up in &unknown_inputs {
+                        reasons.push(format!("upstream `{up}` will run"));
+                    }
+                    if unknown_inputs.is_empty() {
+                        for ((spec, now), (port, then)) in stage.inputs.iter().zip(&digests).zip(&prev.inputs) {
+                            let now: Vec<Digest> = now.iter().map(|(_, d)| *d).collect();
+                            if port == &spec.port && &now != then {
+                                let from = &p.nodes[spec.from].name;
+                                reasons.push(format!("input `{}` (from `{from}`) changed", spec.port));
+                            }
+                        }
+                    }
+                }
+            }
+            if reasons.is_empty() {
+                reasons.push("no record of this exact task (removed by gc, or its cached output is missing)".into());
+            }
+            for r in reasons {
+                let entry = e.reasons.entry(r).or_insert((0, label.clone()));
+                entry.0 += 1;
+            }
+        }
+    }
+    Ok(p.stage_order().map(|n| std::mem::take(&mut out[n])).collect())
+}
+
+fn first_line(s: &str) -> &str {
+    s.lines().next().unwrap_or("")
+}
+
+/// `param `min_depth` changed: 1.0 -> 2.0` for each field whose canonical text differs.
+fn param_changes(old: Option<&str>, new: &str) -> Vec<String> {
+    let Some(old) = old else { return vec!["params changed".into()] };
+    let fields = |text: &str| -> BTreeMap<String, String> {
+        let mut sources = dist4d_graph::source::Sources::default();
+        let id = sources.add("p", text);
+        match dist4d_graph::syntax::parse(text, id) {
+            Ok(v) => v
+                .fields()
+                .unwrap_or(&[])
+                .iter()
+                .map(|f| (f.name.text.clone(), sources.slice(f.value.span).to_string()))
+                .collect(),
+            Err(_) => BTreeMap::new(),
+        }
+    };
+    let (a, b) = (fields(old), fields(new));
+    let mut out = Vec::new();
+    for (k, v) in &b {
+        match a.get(k) {
+            Some(o) if o == v => {}
+            Some(o) => out.push(format!("param `{k}` changed: {o} -> {v}")),
+            None => out.push(format!("param `{k}` is new: {v}")),
+        }
+    }
+    for k in a.keys().filter(|k| !b.contains_key(*k)) {
+        out.push(format!("param `{k}` was removed"));
+    }
+    if out.is_empty() {
+        out.push("params changed".into());
+    }
+    out
+}

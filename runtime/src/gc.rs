@@ -1,0 +1,132 @@
+//! `gc`: drop task records and blobs that no recent run used.
+//!
+//! Reachable = the task keys listed by the newest `keep_runs` runs (all pipelines sharing the
+//! store); with a size budget, older runs among those are dropped until the blobs they reach
+//! fit. Records are compacted into one new segment (written and fsynced before the old ones are
+//! removed, so a crash leaves duplicates at worst), then unreachable blobs are deleted. Needs
+//! the store alone: it waits for no run and refuses while one holds the store.
+
+use crate::digest::{Digest, DigestMap};
+use crate::record::TaskRecord;
+use crate::runs::{keys_path, list_runs};
+use crate::segment::{segment_paths, SegmentWriter};
+use crate::store::{Access, Store};
+use anyhow::{Context, Result};
+use std::collections::HashSet;
+use std::path::Path;
+
+#[derive(Debug, Default, PartialEq)]
+pub struct GcReport {
+    pub runs_kept: usize,
+    pub runs_dropped: usize,
+    pub records_kept: usize,
+    pub records_dropped: usize,
+    pub blobs_kept: usize,
+    pub blobs_dropped: usize,
+    pub bytes_freed: u64,
+    pub bytes_kept: u64,
+}
+
+pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcReport> {
+    let store = Store::open(root, Access::Exclusive)?;
+    let mut runs = list_runs(&store.runs_dir())?;
+    runs.reverse(); // newest first
+    let mut report = GcReport::default();
+
+    // Latest record per key, with the blobs it references.
+    let mut records: DigestMap<Vec<u8>> = DigestMap::default();
+    for (_, payload) in store.all_records() {
+        if let Some(k) = TaskRecord::key_of(payload) {
+            records.insert(k, payload.to_vec());
+        }
+    }
+    let blob_size = |d: &Digest| std::fs::metadata(store.blob_path(d)).map(|m| m.len()).unwrap_or(0);
+    let refs = |payload: &[u8]| -> Vec<Digest> {
+        TaskRecord::decode(payload)
+            .map(|r| r.outputs.iter().filter(|o| o.inline.is_none()).map(|o| o.digest).chain([r.params]).collect())
+            .unwrap_or_default()
+    };
+
+    // Choose the runs to keep: newest first, within the count and (if any) the size budget.
+    let mut keys: HashSet<Digest> = HashSet::new();
+    let mut blobs: HashSet<Digest> = HashSet::new();
+    let mut bytes = 0u64;
+    let mut kept_runs = Vec::new();
+    for (i, run) in runs.iter().enumerate() {
+        if i >= keep_runs {
+            break;
+        }
+        let run_keys = read_keys(&keys_path(&store, &run.id))?;
+        let mut new_blobs = Vec::new();
+        let mut new_bytes = 0;
+        for k in &run_keys {
+            if let Some(payload) = records.get(k) {
+                for b in refs(payload) {
+                    if !blobs.contains(&b) && !new_blobs.contains(&b) {
+                        new_bytes += blob_size(&b);
+                        new_blobs.push(b);
+                    }
+                }
+            }
+        }
+        if i > 0 && max_bytes.is_some_and(|m| bytes + new_bytes > m) {
+            break;
+        }
+        bytes += new_bytes;
+        blobs.extend(new_blobs);
+        keys.extend(run_keys);
+        kept_runs.push(run.id.clone());
+    }
+    report.runs_kept = kept_runs.len();
+    for run in runs.iter().filter(|r| !kept_runs.contains(&r.id)) {
+        let _ = std::fs::remove_file(store.runs_dir().join(format!("{}.json", run.id)));
+        let _ = std::fs::remove_file(keys_path(&store, &run.id));
+        report.runs_dropped += 1;
+    }
+
+    // Compact records: the kept ones go to a fresh segment, then the old segments go.
+    let old_segments = segment_paths(&root.join("ac"))?;
+    let mut writer = SegmentWriter::create(&root.join("ac"), &format!("gc-{}", store.writer_id()))?;
+    for (k, payload) in &records {
+        if keys.contains(k) {
+            writer.append(payload)?;
+            report.records_kept += 1;
+        } else {
+            report.records_dropped += 1;
+        }
+    }
+    writer.sync()?;
+    for seg in old_segments {
+        std::fs::remove_file(&seg).with_context(|| format!("removing {}", seg.display()))?;
+    }
+
+    // Delete unreachable blobs.
+    let cas = root.join("cas");
+    for dir in std::fs::read_dir(&cas).with_context(|| format!("listing {}", cas.display()))? {
+        let dir = dir?.path();
+        let Some(prefix) = dir.file_name().and_then(|n| n.to_str()).map(String::from) else { continue };
+        for f in std::fs::read_dir(&dir)? {
+            let f = f?.path();
+            let name = f.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            let digest = Digest::from_hex(&format!("{prefix}{name}"));
+            let len = std::fs::metadata(&f).map(|m| m.len()).unwrap_or(0);
+            if digest.is_some_and(|d| blobs.contains(&d)) {
+                report.blobs_kept += 1;
+                report.bytes_kept += len;
+            } else {
+                std::fs::remove_file(&f).with_context(|| format!("removing {}", f.display()))?;
+                report.blobs_dropped += 1;
+                report.bytes_freed += len;
+            }
+        }
+    }
+    Ok(report)
+}
+
+fn read_keys(path: &Path) -> Result<Vec<Digest>> {
+    match std::fs::read(path) {
+        Ok(b) => Ok(b.chunks_exact(32).map(|c| Digest(c.try_into().unwrap())).collect()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Vec::new()),
+        Err(e) => Err(e).with_context(|| format!("reading {}", path.display())),
+    }
+}

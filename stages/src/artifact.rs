@@ -1,0 +1,234 @@
+//! Artifact types and their byte encodings (what travels between tasks and sits in the cache).
+//!
+//! Each encoding starts with a 4-byte tag and is little-endian; decoding checks sizes and never
+//! panics on bad bytes.
+
+use crate::geometry::Se3;
+use anyhow::{bail, ensure, Context, Result};
+
+/// A type that can be a port's artifact.
+pub trait Artifact: Sized {
+    const TYPE: &'static str;
+    fn encode(&self) -> Vec<u8>;
+    fn decode(bytes: &[u8]) -> Result<Self>;
+}
+
+struct Reader<'a>(&'a [u8], &'static str);
+
+impl<'a> Reader<'a> {
+    fn new(bytes: &'a [u8], tag: &[u8; 4], ty: &'static str) -> Result<Self> {
+        ensure!(bytes.len() >= 4 && &bytes[..4] == tag, "not a {ty} artifact");
+        Ok(Reader(&bytes[4..], ty))
+    }
+    fn take(&mut self, n: usize) -> Result<&'a [u8]> {
+        if self.0.len() < n {
+            bail!("{} artifact is truncated", self.1);
+        }
+        let (a, b) = self.0.split_at(n);
+        self.0 = b;
+        Ok(a)
+    }
+    fn u32(&mut self) -> Result<u32> {
+        Ok(u32::from_le_bytes(self.take(4)?.try_into()?))
+    }
+    fn f64(&mut self) -> Result<f64> {
+        Ok(f64::from_le_bytes(self.take(8)?.try_into()?))
+    }
+    fn i64(&mut self) -> Result<i64> {
+        Ok(i64::from_le_bytes(self.take(8)?.try_into()?))
+    }
+    fn f32s(&mut self, n: usize) -> Result<Vec<f32>> {
+        let b = self.take(n.checked_mul(4).context("size overflow")?)?;
+        Ok(b.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect())
+    }
+}
+
+fn put_f32s(out: &mut Vec<u8>, xs: &[f32]) {
+    out.reserve(xs.len() * 4);
+    for x in xs {
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+}
+
+/// Points with xyz and intensity, in the frame of the sensor that measured them.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct PointCloud {
+    /// x, y, z, intensity per point.
+    pub points: Vec<[f32; 4]>,
+}
+
+impl Artifact for PointCloud {
+    const TYPE: &'static str = "PointCloud";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"PCL1".to_vec();
+        out.extend_from_slice(&(self.points.len() as u32).to_le_bytes());
+        put_f32s(&mut out, self.points.as_flattened());
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"PCL1", Self::TYPE)?;
+        let n = r.u32()? as usize;
+        let flat = r.f32s(n * 4)?;
+        Ok(PointCloud { points: flat.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect() })
+    }
+}
+
+/// A dense or sparse metric depth map: f32 metres along the optical axis, 0 = no depth.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthMap {
+    pub width: u32,
+    pub height: u32,
+    pub data: Vec<f32>,
+}
+
+impl DepthMap {
+    pub fn new(width: u32, height: u32) -> DepthMap {
+        DepthMap { width, height, data: vec![0.0; width as usize * height as usize] }
+    }
+}
+
+impl Artifact for DepthMap {
+    const TYPE: &'static str = "DepthMap";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"DEP1".to_vec();
+        out.extend_from_slice(&self.width.to_le_bytes());
+        out.extend_from_slice(&self.height.to_le_bytes());
+        put_f32s(&mut out, &self.data);
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"DEP1", Self::TYPE)?;
+        let (width, height) = (r.u32()?, r.u32()?);
+        let data = r.f32s(width as usize * height as usize)?;
+        Ok(DepthMap { width, height, data })
+    }
+}
+
+/// Points projected into an image: (u, v, depth) rows in the order of the source points.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct ProjectedPoints {
+    pub rows: Vec<[f32; 3]>,
+}
+
+impl Artifact for ProjectedPoints {
+    const TYPE: &'static str = "ProjectedPoints";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"UVZ1".to_vec();
+        out.extend_from_slice(&(self.rows.len() as u32).to_le_bytes());
+        put_f32s(&mut out, self.rows.as_flattened());
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"UVZ1", Self::TYPE)?;
+        let n = r.u32()? as usize;
+        let flat = r.f32s(n * 3)?;
+        Ok(ProjectedPoints { rows: flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect() })
+    }
+}
+
+/// A sensor's mounting on the ego vehicle, and for cameras the pinhole intrinsics and image size.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Calibration {
+    pub sensor_to_ego: Se3,
+    /// Row-major 3x3 camera matrix; `None` for non-camera sensors.
+    pub intrinsics: Option<[[f64; 3]; 3]>,
+    pub width: u32,
+    pub height: u32,
+}
+
+impl Artifact for Calibration {
+    const TYPE: &'static str = "Calibration";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"CAL1".to_vec();
+        self.sensor_to_ego.encode_into(&mut out);
+        match &self.intrinsics {
+            Some(k) => {
+                out.push(1);
+                for x in k.as_flattened() {
+                    out.extend_from_slice(&x.to_le_bytes());
+                }
+            }
+            None => out.push(0),
+        }
+        out.extend_from_slice(&self.width.to_le_bytes());
+        out.extend_from_slice(&self.height.to_le_bytes());
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"CAL1", Self::TYPE)?;
+        let sensor_to_ego = Se3::decode_from(&mut |n| r.take(n))?;
+        let intrinsics = match r.take(1)?[0] {
+            0 => None,
+            _ => {
+                let mut k = [[0.0; 3]; 3];
+                for row in k.iter_mut() {
+                    for x in row.iter_mut() {
+                        *x = r.f64()?;
+                    }
+                }
+                Some(k)
+            }
+        };
+        Ok(Calibration { sensor_to_ego, intrinsics, width: r.u32()?, height: r.u32()? })
+    }
+}
+
+/// The ego vehicle's pose in the world at a sensor's timestamp.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Pose {
+    pub ego_to_world: Se3,
+    /// Microseconds.
+    pub timestamp_us: i64,
+}
+
+impl Artifact for Pose {
+    const TYPE: &'static str = "Pose";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"POS1".to_vec();
+        self.ego_to_world.encode_into(&mut out);
+        out.extend_from_slice(&self.timestamp_us.to_le_bytes());
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"POS1", Self::TYPE)?;
+        let ego_to_world = Se3::decode_from(&mut |n| r.take(n))?;
+        Ok(Pose { ego_to_world, timestamp_us: r.i64()? })
+    }
+}
+
+/// An encoded file (EXR, PNG, NPY ...), written out by `export` as it is.
+pub struct File(pub Vec<u8>);
+
+impl Artifact for File {
+    const TYPE: &'static str = "File";
+    fn encode(&self) -> Vec<u8> {
+        self.0.clone()
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        Ok(File(bytes.to_vec()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn artifacts_round_trip_and_reject_bad_bytes() {
+        let pc = PointCloud { points: vec![[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]] };
+        assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
+        let d = DepthMap { width: 2, height: 1, data: vec![0.0, 3.5] };
+        assert_eq!(DepthMap::decode(&d.encode()).unwrap(), d);
+        let c = Calibration {
+            sensor_to_ego: Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [1.0, 2.0, 3.0]),
+            intrinsics: Some([[1.0, 0.0, 2.0], [0.0, 1.0, 3.0], [0.0, 0.0, 1.0]]),
+            width: 4,
+            height: 3,
+        };
+        assert_eq!(Calibration::decode(&c.encode()).unwrap(), c);
+        let p = Pose { ego_to_world: c.sensor_to_ego, timestamp_us: -5 };
+        assert_eq!(Pose::decode(&p.encode()).unwrap(), p);
+        assert!(DepthMap::decode(&d.encode()[..10]).is_err());
+        assert!(DepthMap::decode(b"PCL1....").is_err());
+    }
+}

@@ -1,0 +1,42 @@
+//! Rigid transforms (SE(3)) in f64, as the nuScenes devkit computes them.
+
+use anyhow::Result;
+use glam::{DMat3, DQuat, DVec3};
+
+/// A rigid transform `p -> R p + t`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Se3 {
+    pub rotation: DQuat,
+    pub translation: DVec3,
+}
+
+impl Se3 {
+    /// From a nuScenes-style quaternion `[w, x, y, z]` and translation. The quaternion is
+    /// normalised, as pyquaternion does.
+    pub fn from_wxyz_t(q: [f64; 4], t: [f64; 3]) -> Se3 {
+        Se3 { rotation: DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize(), translation: DVec3::from_array(t) }
+    }
+
+    pub fn matrix(&self) -> DMat3 {
+        DMat3::from_quat(self.rotation)
+    }
+
+    pub fn apply(&self, p: DVec3) -> DVec3 {
+        self.matrix() * p + self.translation
+    }
+
+    pub fn encode_into(&self, out: &mut Vec<u8>) {
+        let q = self.rotation;
+        for x in [q.w, q.x, q.y, q.z, self.translation.x, self.translation.y, self.translation.z] {
+            out.extend_from_slice(&x.to_le_bytes());
+        }
+    }
+
+    pub fn decode_from<'a>(take: &mut dyn FnMut(usize) -> Result<&'a [u8]>) -> Result<Se3> {
+        let mut v = [0.0f64; 7];
+        for x in v.iter_mut() {
+            *x = f64::from_le_bytes(take(8)?.try_into()?);
+        }
+        Ok(Se3 { rotation: DQuat::from_xyzw(v[1], v[2], v[3], v[0]), translation: DVec3::new(v[4], v[5], v[6]) })
+    }
+}

@@ -1,0 +1,109 @@
+//! The shape every stage module shares: a [`StageDef`] (schema + how to build its operator from
+//! canonical params) and helpers to decode typed inputs.
+
+use crate::artifact::Artifact;
+use anyhow::{anyhow, Context, Result};
+use dist4d_graph::{ParamsSpec, PortSpec, StageSchema};
+use dist4d_runtime::{Operator, TaskContext};
+use serde::{de::DeserializeOwned, Serialize};
+
+/// A stage's work on decoded params; the context is rarely needed, so it is left out.
+pub trait TypedOp: Send + Sync {
+    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>>;
+}
+
+struct OpAdapter(Box<dyn TypedOp>);
+
+impl Operator for OpAdapter {
+    fn run(&self, _ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+        self.0.run(inputs)
+    }
+}
+
+type BuildFn = Box<dyn Fn(&str) -> Result<Box<dyn Operator>> + Send + Sync>;
+
+pub struct StageDef {
+    pub kind: &'static str,
+    pub version: u32,
+    pub summary: &'static str,
+    pub inputs: Vec<PortSpec>,
+    pub outputs: Vec<PortSpec>,
+    pub grains: Vec<&'static str>,
+    pub params: ParamsSpec,
+    build: BuildFn,
+}
+
+impl StageDef {
+    #[allow(clippy::too_many_arguments)]
+    pub fn new<P: DeserializeOwned + Serialize + Default + 'static>(
+        kind: &'static str,
+        version: u32,
+        summary: &'static str,
+        inputs: Vec<PortSpec>,
+        outputs: Vec<PortSpec>,
+        grains: Vec<&'static str>,
+        build: fn(P) -> Result<Box<dyn TypedOp>>,
+    ) -> StageDef {
+        StageDef {
+            kind,
+            version,
+            summary,
+            inputs,
+            outputs,
+            grains,
+            params: ParamsSpec::of::<P>(),
+            build: Box::new(move |canonical| {
+                let params: P = parse_canonical(canonical).with_context(|| format!("params of {kind}"))?;
+                Ok(Box::new(OpAdapter(build(params)?)) as Box<dyn Operator>)
+            }),
+        }
+    }
+
+    /// The operator for canonical params (as the graph produced them).
+    pub fn build(&self, canonical: &str) -> Result<Box<dyn Operator>> {
+        (self.build)(canonical)
+    }
+}
+
+impl StageSchema for StageDef {
+    fn kind(&self) -> &'static str {
+        self.kind
+    }
+    fn version(&self) -> u32 {
+        self.version
+    }
+    fn summary(&self) -> &'static str {
+        self.summary
+    }
+    fn inputs(&self) -> &[PortSpec] {
+        &self.inputs
+    }
+    fn outputs(&self) -> &[PortSpec] {
+        &self.outputs
+    }
+    fn grains(&self) -> &[&'static str] {
+        &self.grains
+    }
+    fn params(&self) -> &ParamsSpec {
+        &self.params
+    }
+}
+
+/// Reads a params struct back from its canonical RON text.
+pub fn parse_canonical<P: DeserializeOwned>(text: &str) -> Result<P> {
+    let mut sources = dist4d_graph::source::Sources::default();
+    let id = sources.add("params", text);
+    let v = dist4d_graph::syntax::parse(text, id).map_err(|d| anyhow!("{}", d.message))?;
+    dist4d_graph::de::from_value(&v).map_err(|e| anyhow!("{e}"))
+}
+
+/// An input port of artifact type `A` taking one artifact.
+pub fn input<A: Artifact>(name: &'static str, doc: &'static str) -> PortSpec {
+    PortSpec::one(name, A::TYPE, doc)
+}
+
+/// Decodes the single artifact of input `i`.
+pub fn one<A: Artifact>(inputs: &[Vec<dist4d_runtime::Artifact>], i: usize) -> Result<A> {
+    let a = inputs.get(i).and_then(|v| v.first()).ok_or_else(|| anyhow!("input {i} is missing"))?;
+    A::decode(&a.bytes).with_context(|| format!("decoding input {i} as {}", A::TYPE))
+}
