@@ -1,1 +1,313 @@
-fn main() {}
+//! The `dist4d` command line: argument parsing and wiring only.
+
+use anyhow::{Context, Result};
+use clap::{Args, Parser, Subcommand};
+use dist4d_graph::{load_file, Pipeline};
+use dist4d_runtime::{exec::Engine, Access, ProgressMode, RunOptions, RunStatus, Store};
+use dist4d_stages::Registry;
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::atomic::Ordering;
+
+#[derive(Parser)]
+#[command(
+    name = "dist4d",
+    version,
+    about = "Declared, reproducible, incremental data pipelines for 4D driving-scene generation"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Args, Clone)]
+struct PipelineArgs {
+    /// The pipeline file (RON).
+    pipeline: PathBuf,
+    /// Override a param or dataset field: `stage.param=value`, `dataset.root=PATH` (repeatable).
+    #[arg(long = "set", value_name = "TARGET.FIELD=VALUE")]
+    sets: Vec<String>,
+    /// The store (cache) directory [default: .dist4d/ beside the pipeline file].
+    #[arg(long)]
+    cache: Option<PathBuf>,
+    /// Only these scenes, by name (comma-separated).
+    #[arg(long, value_delimiter = ',')]
+    scenes: Option<Vec<String>>,
+    /// Only the first N frames of each scene.
+    #[arg(long, value_name = "N")]
+    limit: Option<u32>,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a pipeline: only tasks whose inputs, params or stage version changed are executed.
+    ///
+    /// Rerunning the same command after a crash or Ctrl-C continues where it stopped. Exit code: 0 when
+    /// every task finished, 1 when some failed (listed at the end), 2 for a bad pipeline, 130 when interrupted.
+    ///
+    /// Example: dist4d run pipelines/lidar_depth.ron --set dataset.root=/data/nuscenes --jobs 8
+    Run {
+        #[command(flatten)]
+        p: PipelineArgs,
+        /// Worker threads [default: the number of cores].
+        #[arg(long, short)]
+        jobs: Option<usize>,
+        /// Stop at the first failing task.
+        #[arg(long)]
+        fail_fast: bool,
+        /// Where exported files go [default: out/<pipeline name>/ beside the pipeline file].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Progress: auto (bars on a terminal, lines otherwise), lines, off.
+        #[arg(long, default_value = "auto")]
+        progress: String,
+    },
+    /// Check a pipeline file without running it: every problem, with file:line:column.
+    ///
+    /// Example: dist4d check pipelines/lidar_depth.ron --set project.min_depth=2
+    Check {
+        #[command(flatten)]
+        p: PipelineArgs,
+    },
+    /// Say, per stage, how many tasks are cached, will run or failed, and why each would run.
+    ///
+    /// Example: dist4d explain pipelines/lidar_depth.ron --set project.min_depth=2
+    Explain {
+        #[command(flatten)]
+        p: PipelineArgs,
+    },
+    /// Print the stage DAG as Graphviz DOT.
+    ///
+    /// Example: dist4d graph pipelines/lidar_depth.ron | dot -Tsvg > dag.svg
+    Graph {
+        #[command(flatten)]
+        p: PipelineArgs,
+    },
+    /// List the runs recorded in a store.
+    ///
+    /// Example: dist4d runs --cache pipelines/.dist4d --json
+    Runs {
+        /// The store directory.
+        #[arg(long, default_value = ".dist4d")]
+        cache: PathBuf,
+        /// Print the run records as JSON (newest last).
+        #[arg(long)]
+        json: bool,
+    },
+    /// Remove cached records and blobs that the last N runs did not use.
+    ///
+    /// Needs the store alone (no run in progress). Example: dist4d gc --cache pipelines/.dist4d --keep-runs 3 --max-size 50G
+    Gc {
+        /// The store directory.
+        #[arg(long, default_value = ".dist4d")]
+        cache: PathBuf,
+        /// Keep what the newest N runs used.
+        #[arg(long, default_value_t = 5)]
+        keep_runs: usize,
+        /// Keep at most this many bytes of blobs (suffixes K, M, G), dropping older runs first.
+        #[arg(long, value_parser = parse_size)]
+        max_size: Option<u64>,
+    },
+}
+
+fn parse_size(s: &str) -> Result<u64, String> {
+    let s = s.trim();
+    let (num, mult) = match s.chars().last() {
+        Some('K' | 'k') => (&s[..s.len() - 1], 1u64 << 10),
+        Some('M' | 'm') => (&s[..s.len() - 1], 1 << 20),
+        Some('G' | 'g') => (&s[..s.len() - 1], 1 << 30),
+        Some('T' | 't') => (&s[..s.len() - 1], 1 << 40),
+        _ => (s, 1),
+    };
+    num.trim()
+        .parse::<f64>()
+        .map(|n| (n * mult as f64) as u64)
+        .map_err(|_| format!("`{s}` is not a size like 500M or 20G"))
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    match run(cli) {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(1)
+        }
+    }
+}
+
+/// Loads and checks a pipeline; a bad one prints every problem and exits 2.
+fn load(args: &PipelineArgs, registry: &Registry) -> Result<Result<Pipeline, ExitCode>> {
+    let cwd = std::env::current_dir()?;
+    Ok(match load_file(&args.pipeline, &args.sets, &cwd, registry) {
+        Ok(p) => Ok(p),
+        Err(e) => {
+            eprint!("{}", e.render());
+            Err(ExitCode::from(2))
+        }
+    })
+}
+
+fn beside(pipeline: &Path, rel: &str) -> PathBuf {
+    pipeline.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).join(rel)
+}
+
+fn run(cli: Cli) -> Result<ExitCode> {
+    let registry = Registry::default();
+    match cli.command {
+        Command::Check { p } => {
+            let pipeline = match load(&p, &registry)? {
+                Ok(x) => x,
+                Err(code) => return Ok(code),
+            };
+            let stages = pipeline.stage_order().count();
+            println!(
+                "{}: ok ({} stages, {} dataset ports, {} exports)",
+                p.pipeline.display(),
+                stages,
+                pipeline.nodes.len() - stages,
+                pipeline.exports.len()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Graph { p } => {
+            let pipeline = match load(&p, &registry)? {
+                Ok(x) => x,
+                Err(code) => return Ok(code),
+            };
+            print!("{}", pipeline.to_dot());
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Explain { p } => {
+            let pipeline = match load(&p, &registry)? {
+                Ok(x) => x,
+                Err(code) => return Ok(code),
+            };
+            let dataset = registry.open_dataset(&pipeline)?;
+            let ops = registry.operators(&pipeline)?;
+            let store =
+                Store::open(&p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d")), Access::Shared)?;
+            let engine = Engine { pipeline: &pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
+            let report = dist4d_runtime::explain::explain(&engine, p.scenes.as_deref(), p.limit)?;
+            for s in &report {
+                let failed = if s.failed_last_run > 0 {
+                    format!(", {} failed last run", s.failed_last_run)
+                } else {
+                    String::new()
+                };
+                println!("{} ({}): {} cached, {} will run{failed}", s.stage, s.kind, s.cached, s.will_run);
+                for (reason, (n, example)) in &s.reasons {
+                    println!("    {n} x {reason}  (e.g. {example})");
+                }
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Run { p, jobs, fail_fast, out, progress } => {
+            let pipeline = match load(&p, &registry)? {
+                Ok(x) => x,
+                Err(code) => return Ok(code),
+            };
+            let dataset = registry.open_dataset(&pipeline)?;
+            let ops = registry.operators(&pipeline)?;
+            let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
+            let store = Store::open(&cache, Access::Shared)
+                .with_context(|| format!("opening the store {}", cache.display()))?;
+            let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+            let mut opts = RunOptions {
+                fail_fast,
+                scenes: p.scenes.clone(),
+                frame_limit: p.limit,
+                out_dir: Some(out_dir.clone()),
+                ..Default::default()
+            };
+            if let Some(j) = jobs {
+                opts.jobs = j.max(1);
+            }
+            opts.progress = match progress.as_str() {
+                "off" => ProgressMode::Off,
+                "lines" => ProgressMode::Lines(
+                    std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10),
+                ),
+                _ => ProgressMode::Auto,
+            };
+            let cancel = opts.cancel.clone();
+            let _ = ctrlc::set_handler(move || {
+                if cancel.swap(true, Ordering::SeqCst) {
+                    // Second Ctrl-C: leave now. Every file is written atomically, so nothing is half-written.
+                    std::process::exit(130);
+                }
+                eprintln!("\nstopping: running tasks finish, nothing new starts (Ctrl-C again to quit at once)");
+            });
+            let engine = Engine { pipeline: &pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
+            let rec = engine.run(&opts)?.record;
+            println!(
+                "{:<16} {:<14} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
+                "stage", "kind", "total", "executed", "cached", "failed", "skipped", "seconds"
+            );
+            for s in &rec.stages {
+                println!(
+                    "{:<16} {:<14} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.2}",
+                    s.stage, s.kind, s.total, s.executed, s.cached, s.failed, s.skipped, s.seconds
+                );
+            }
+            for f in &rec.failures {
+                eprintln!("failed: {} {}: {}", f.stage, f.item, f.error);
+            }
+            println!(
+                "run {} {:?} in {:.2}s: {} executed, {} cached, {} failed; {} files in {}",
+                rec.id,
+                rec.status,
+                rec.seconds,
+                rec.executed(),
+                rec.cached(),
+                rec.failures.len(),
+                rec.exported,
+                out_dir.display()
+            );
+            Ok(match rec.status {
+                RunStatus::Complete => ExitCode::SUCCESS,
+                RunStatus::Interrupted => ExitCode::from(130),
+                RunStatus::Failed | RunStatus::Stopped => ExitCode::from(1),
+            })
+        }
+        Command::Runs { cache, json } => {
+            let runs = dist4d_runtime::runs::list_runs(&cache.join("runs"))?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&runs)?);
+                return Ok(ExitCode::SUCCESS);
+            }
+            if runs.is_empty() {
+                println!("no runs recorded in {}", cache.display());
+            }
+            for r in &runs {
+                println!(
+                    "{}  {}  {:<14} {:?}  {} executed, {} cached, {} failed, {:.1}s",
+                    dist4d_runtime::runs::format_utc(r.started),
+                    r.id,
+                    r.pipeline,
+                    r.status,
+                    r.executed(),
+                    r.cached(),
+                    r.failed(),
+                    r.seconds
+                );
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Gc { cache, keep_runs, max_size } => {
+            let r = dist4d_runtime::gc::gc(&cache, keep_runs, max_size)?;
+            println!(
+                "kept {} runs, {} records, {} blobs ({} bytes); removed {} runs, {} records, {} blobs ({} bytes)",
+                r.runs_kept,
+                r.records_kept,
+                r.blobs_kept,
+                r.bytes_kept,
+                r.runs_dropped,
+                r.records_dropped,
+                r.blobs_dropped,
+                r.bytes_freed
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+    }
+}

@@ -261,6 +261,14 @@ impl Store {
     }
 }
 
+impl Drop for Store {
+    fn drop(&mut self) {
+        let _ = self.sync();
+        // Our lock file goes while we still hold the lock, so no one mistakes it for a dead writer's.
+        let _ = fs::remove_file(self.root.join("tmp").join(format!("{}.lock", self.writer_id)));
+    }
+}
+
 /// Writes `bytes` to `tmp`, fsyncs, and renames it to `dest` (creating `dest`'s directory).
 pub fn write_atomic_via(tmp: &Path, dest: &Path, bytes: &[u8]) -> Result<()> {
     if let Some(dir) = dest.parent() {

@@ -1,0 +1,279 @@
+//! End-to-end tests: the real CLI on real nuScenes data (the shared keyframe, and a multi-frame
+//! dataset made from it).
+
+mod common;
+
+use common::*;
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+fn pipeline() -> String {
+    repo().join("pipelines/lidar_depth.ron").display().to_string()
+}
+
+fn run_args<'a>(root: &'a str, cache: &'a str, out: &'a str) -> Vec<&'a str> {
+    vec!["run", "--progress", "off", "--cache", cache, "--out", out, "--set"]
+        .into_iter()
+        .chain(std::iter::once(Box::leak(format!("dataset.root={root}").into_boxed_str()) as &str))
+        .collect()
+}
+
+/// Reads an NPY float32 (N, 3) file written by EncodePoints.
+fn read_npy_rows(path: &Path) -> Vec<[f32; 3]> {
+    let b = std::fs::read(path).unwrap();
+    let hlen = u16::from_le_bytes([b[8], b[9]]) as usize;
+    b[10 + hlen..]
+        .chunks_exact(12)
+        .map(|c| [0, 4, 8].map(|o| f32::from_le_bytes(c[o..o + 4].try_into().unwrap())))
+        .collect()
+}
+
+#[test]
+fn projected_point_counts_equal_the_nuscenes_devkit() {
+    let Some(data) = shared_nuscenes() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let (cache, out) = (tmp.path().join("c"), tmp.path().join("o"));
+    let o = Command::new(bin())
+        .args(["run", &pipeline(), "--progress", "off", "--set", &format!("dataset.root={}", data.display())])
+        .args(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let front = read_npy_rows(&out.join("scene-0061/CAM_FRONT/000_uvz.npy"));
+    assert_eq!(front.len(), 3053, "the devkit's count for CAM_FRONT");
+    for f in ["000_depth.exr", "000_depth.png", "000_preview.png"] {
+        assert!(out.join("scene-0061/CAM_FRONT").join(f).exists(), "{f}");
+    }
+
+    let Some(python) = peers_python() else { return };
+    let peer_out = tmp.path().join("peer");
+    let script = repo().join("../shared/bench/peers/nusc_project.py");
+    let o = Command::new(python)
+        .args([
+            script.to_str().unwrap(),
+            data.to_str().unwrap(),
+            "v1.0-mini",
+            "--out-dir",
+            peer_out.to_str().unwrap(),
+            "--repeat",
+            "1",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let mut checked = 0;
+    for line in String::from_utf8_lossy(&o.stdout).lines() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        let (cam, sample, n) =
+            (v["camera"].as_str().unwrap(), v["sample"].as_str().unwrap(), v["points"].as_u64().unwrap());
+        let ours = read_npy_rows(&out.join(format!("scene-0061/{cam}/000_uvz.npy")));
+        let theirs = read_npy_rows(&peer_out.join(format!("{sample}_{cam}.npy")));
+        assert_eq!(ours.len() as u64, n, "{cam}: point count");
+        // The devkit keeps intermediate world coordinates in float32; we compute in f64.
+        let worst =
+            ours.iter().zip(&theirs).flat_map(|(a, b)| (0..3).map(move |i| (a[i] - b[i]).abs())).fold(0f32, f32::max);
+        assert!(worst < 0.05, "{cam}: coordinates differ by {worst}");
+        checked += 1;
+    }
+    assert_eq!(checked, 6);
+}
+
+#[test]
+fn a_second_run_executes_nothing_and_explain_says_all_cached() {
+    let Some(data) = shared_nuscenes() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let (cache, out) = (tmp.path().join("c"), tmp.path().join("o"));
+    let root = data.display().to_string();
+    let args = run_args(&root, cache.to_str().unwrap(), out.to_str().unwrap());
+    let mut first = vec![args[0]];
+    first.push(Box::leak(pipeline().into_boxed_str()));
+    first.extend(&args[1..]);
+    assert!(dist4d(&first).status.success());
+    let o = dist4d(&first);
+    assert!(o.status.success());
+    assert!(text(&o).contains("0 executed, 18 cached, 0 failed"), "{}", text(&o));
+    let run = last_run(&cache);
+    assert!(executed(&run).values().all(|&n| n == 0));
+    let set = format!("dataset.root={root}");
+    let o = dist4d(&["explain", &pipeline(), "--cache", cache.to_str().unwrap(), "--set", &set]);
+    let t = text(&o);
+    assert!(t.contains("project (ProjectLidar): 6 cached, 0 will run"), "{t}");
+    assert!(t.contains("encode (EncodeDepth): 6 cached, 0 will run"), "{t}");
+}
+
+#[test]
+fn a_bad_pipeline_exits_2_with_every_problem() {
+    let tmp = tempfile::tempdir().unwrap();
+    let bad = tmp.path().join("bad.ron");
+    let text_in = std::fs::read_to_string(repo().join("pipelines/lidar_depth.ron"))
+        .unwrap()
+        .replace("min_depth: 1.0", "min_dept: 1.0")
+        .replace("\"project.depth\"", "\"project.uvz\"");
+    std::fs::write(&bad, text_in).unwrap();
+    let o = dist4d(&["check", bad.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+    let t = text(&o);
+    assert!(t.contains("unknown param `min_dept`"), "{t}");
+    assert!(t.contains("takes DepthMap but `project.uvz` gives ProjectedPoints"), "{t}");
+    assert!(t.contains("bad.ron:"), "{t}");
+    let o = dist4d(&["run", bad.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(2));
+}
+
+struct Setup {
+    _tmp: tempfile::TempDir,
+    root: String,
+    base: std::path::PathBuf,
+}
+
+fn multi_frame(frames: usize) -> Option<Setup> {
+    shared_nuscenes()?;
+    let tmp = tempfile::tempdir().unwrap();
+    let root = multi_frame_nuscenes(&tmp.path().join("nuscenes"), frames).display().to_string();
+    let base = tmp.path().to_path_buf();
+    Some(Setup { _tmp: tmp, root, base })
+}
+
+fn run_cmd(s: &Setup, cache: &str, out: &str, extra: &[&str]) -> Command {
+    let mut c = Command::new(bin());
+    c.args(["run", &pipeline(), "--progress", "off"]);
+    if !extra.contains(&"--jobs") {
+        c.args(["--jobs", "2"]);
+    }
+    c.args(["--cache", s.base.join(cache).to_str().unwrap(), "--out", s.base.join(out).to_str().unwrap()])
+        .args(["--set", &format!("dataset.root={}", s.root)])
+        .args(extra);
+    c
+}
+
+fn run_ok(s: &Setup, cache: &str, out: &str, extra: &[&str]) -> serde_json::Value {
+    let o = run_cmd(s, cache, out, extra).output().unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    last_run(&s.base.join(cache))
+}
+
+fn counts(pairs: &[(&str, u64)]) -> BTreeMap<String, u64> {
+    pairs.iter().map(|(s, n)| (s.to_string(), *n)).collect()
+}
+
+/// No temp file is left in the store or the output directory.
+fn assert_no_partial_files(s: &Setup, cache: &str, out: &str) {
+    let leftovers: Vec<String> = std::fs::read_dir(s.base.join(cache).join("tmp"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(leftovers.is_empty(), "store temp files left: {leftovers:?}");
+    let out_tmp = s.base.join(out).join(".dist4d-tmp");
+    let leftovers: Vec<_> =
+        std::fs::read_dir(&out_tmp).map(|d| d.map(|e| e.unwrap().file_name()).collect()).unwrap_or_default();
+    assert!(leftovers.is_empty(), "output temp files left: {leftovers:?}");
+}
+
+#[test]
+fn killed_runs_resume_to_byte_identical_outputs() {
+    let Some(s) = multi_frame(10) else { return };
+    let t0 = Instant::now();
+    run_ok(&s, "ref-cache", "ref-out", &[]);
+    let full = t0.elapsed();
+    let reference = tree(&s.base.join("ref-out"));
+
+    // Kill with SIGKILL at pseudo-random moments within the run's length, then finish it.
+    let mut seed = (std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64) | 1;
+    let mut kills = Vec::new();
+    for _ in 0..5 {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        let at = Duration::from_micros(seed % (full.as_micros() as u64).max(1));
+        let mut child = run_cmd(&s, "cache", "out", &[]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+        std::thread::sleep(at);
+        child.kill().unwrap(); // SIGKILL
+        child.wait().unwrap();
+        kills.push(at);
+    }
+    let last = run_ok(&s, "cache", "out", &[]);
+    assert_eq!(last["status"], "complete");
+    assert_eq!(
+        tree(&s.base.join("out")),
+        reference,
+        "outputs after kills at {kills:?} differ from an uninterrupted run"
+    );
+    assert_no_partial_files(&s, "cache", "out");
+    // And nothing is left to do.
+    let again = run_ok(&s, "cache", "out", &[]);
+    assert!(executed(&again).values().all(|&n| n == 0));
+}
+
+#[test]
+fn two_processes_on_one_store_both_finish() {
+    let Some(s) = multi_frame(6) else { return };
+    run_ok(&s, "ref-cache", "ref-out", &[]);
+    let children: Vec<_> = (0..2)
+        .map(|_| run_cmd(&s, "cache", "out", &[]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap())
+        .collect();
+    for c in children {
+        let o = c.wait_with_output().unwrap();
+        assert!(o.status.success(), "{}", text(&o));
+    }
+    assert_eq!(tree(&s.base.join("out")), tree(&s.base.join("ref-out")));
+    assert_no_partial_files(&s, "cache", "out");
+}
+
+#[test]
+fn one_param_or_one_input_file_reruns_exactly_what_depends_on_it() {
+    let Some(s) = multi_frame(4) else { return };
+    let first = run_ok(&s, "cache", "out", &[]);
+    assert_eq!(executed(&first), counts(&[("project", 24), ("points", 24), ("encode", 24)]));
+
+    let r = run_ok(&s, "cache", "out", &["--set", "encode.preview_max_depth=50"]);
+    assert_eq!(executed(&r), counts(&[("project", 0), ("points", 0), ("encode", 24)]));
+
+    // A touch that does not change content reruns nothing (files are fingerprinted by content).
+    let f = Path::new(&s.root).join("samples/LIDAR_TOP/frame002.pcd.bin");
+    let bytes = std::fs::read(&f).unwrap();
+    std::fs::write(&f, &bytes).unwrap();
+    let r = run_ok(&s, "cache", "out", &["--set", "encode.preview_max_depth=50"]);
+    assert_eq!(executed(&r), counts(&[("project", 0), ("points", 0), ("encode", 0)]));
+
+    // Changing one frame's sweep reruns that frame's six projections, and only those. Moving a
+    // point that no camera sees changes no projection: downstream work is cut off there.
+    let mut changed = bytes.clone();
+    changed[8..12].copy_from_slice(&(-50.0f32).to_le_bytes()); // point 0 far below the ground
+    std::fs::write(&f, &changed).unwrap();
+    let r = run_ok(&s, "cache", "out", &["--set", "encode.preview_max_depth=50"]);
+    assert_eq!(executed(&r), counts(&[("project", 6), ("points", 0), ("encode", 0)]));
+    // Lifting every point by 10 cm changes every camera of that frame.
+    for p in changed.chunks_exact_mut(20) {
+        let z = f32::from_le_bytes(p[8..12].try_into().unwrap());
+        p[8..12].copy_from_slice(&(z + 0.1).to_le_bytes());
+    }
+    std::fs::write(&f, &changed).unwrap();
+    let r = run_ok(&s, "cache", "out", &["--set", "encode.preview_max_depth=50"]);
+    assert_eq!(executed(&r), counts(&[("project", 6), ("points", 6), ("encode", 6)]));
+}
+
+#[test]
+fn outputs_are_byte_identical_for_one_and_several_jobs() {
+    let Some(s) = multi_frame(3) else { return };
+    run_ok(&s, "c1", "o1", &["--jobs", "1"]);
+    run_ok(&s, "c2", "o2", &["--jobs", "4"]);
+    assert_eq!(tree(&s.base.join("o1")), tree(&s.base.join("o2")));
+}
+
+#[test]
+fn a_truncated_sweep_fails_its_frame_only() {
+    let Some(s) = multi_frame(3) else { return };
+    let f = Path::new(&s.root).join("samples/LIDAR_TOP/frame001.pcd.bin");
+    let bytes = std::fs::read(&f).unwrap();
+    std::fs::write(&f, &bytes[..bytes.len() - 7]).unwrap();
+    let o = run_cmd(&s, "cache", "out", &[]).output().unwrap();
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    let t = text(&o);
+    assert!(t.contains("failed: project scene-0061/001/CAM_FRONT"), "{t}");
+    assert!(t.contains("frame001.pcd.bin is truncated"), "{t}");
+    let run = last_run(&s.base.join("cache"));
+    assert_eq!(executed(&run), counts(&[("project", 12), ("points", 12), ("encode", 12)]));
+    assert_eq!(run["failures"].as_array().unwrap().len(), 6);
+}

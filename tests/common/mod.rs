@@ -1,0 +1,170 @@
+//! Helpers for end-to-end tests: the built binary, the shared data, and a multi-frame nuScenes
+//! dataset made from the shared keyframe (tests copy what they modify; the shared data is read-only).
+
+#![allow(dead_code)]
+
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+pub fn bin() -> PathBuf {
+    PathBuf::from(env!("CARGO_BIN_EXE_dist4d"))
+}
+
+pub fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+pub fn shared_nuscenes() -> Option<PathBuf> {
+    let p = repo().join("../shared/data/nuscenes-scene0061-kf0");
+    if p.is_dir() {
+        Some(p)
+    } else {
+        eprintln!("SKIPPED: the shared nuScenes data is not at {} (CI always has it)", p.display());
+        None
+    }
+}
+
+pub fn peers_python() -> Option<PathBuf> {
+    let p = std::env::var_os("DIST4D_PEERS_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join(".venv-peers/bin/python"));
+    if p.exists() {
+        Some(p)
+    } else {
+        eprintln!("SKIPPED: no peer venv at {} (make it with ../shared/bench/peers/setup.sh .venv-peers)", p.display());
+        None
+    }
+}
+
+pub fn dist4d(args: &[&str]) -> Output {
+    Command::new(bin()).args(args).output().expect("dist4d runs")
+}
+
+pub fn text(o: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+fn read_json(p: &Path) -> Value {
+    serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
+}
+
+fn write_json(p: &Path, v: &Value) {
+    std::fs::write(p, serde_json::to_vec(v).unwrap()).unwrap();
+}
+
+/// A nuScenes dataset with `frames` keyframes in one scene, made from the shared keyframe: each
+/// frame's LiDAR sweep is the shared one with its points turned a little (so that every frame has
+/// its own content) and the ego a little further along.
+pub fn multi_frame_nuscenes(dest: &Path, frames: usize) -> PathBuf {
+    let src = shared_nuscenes().expect("caller checks");
+    let tables = dest.join("v1.0-mini");
+    std::fs::create_dir_all(&tables).unwrap();
+    for t in [
+        "scene",
+        "sample",
+        "sample_data",
+        "ego_pose",
+        "calibrated_sensor",
+        "sensor",
+        "log",
+        "category",
+        "attribute",
+        "visibility",
+        "instance",
+        "sample_annotation",
+        "map",
+    ] {
+        std::fs::copy(src.join("v1.0-mini").join(format!("{t}.json")), tables.join(format!("{t}.json"))).unwrap();
+    }
+    let lidar_src = std::fs::read_dir(src.join("samples/LIDAR_TOP")).unwrap().next().unwrap().unwrap().path();
+    let lidar = std::fs::read(&lidar_src).unwrap();
+    std::fs::create_dir_all(dest.join("samples/LIDAR_TOP")).unwrap();
+
+    let sample0 = read_json(&tables.join("sample.json"))[0].clone();
+    let sd0: Vec<Value> = read_json(&tables.join("sample_data.json")).as_array().unwrap().clone();
+    let poses0: Vec<Value> = read_json(&tables.join("ego_pose.json")).as_array().unwrap().clone();
+    let mut samples = Vec::new();
+    let mut sds = Vec::new();
+    let mut poses = Vec::new();
+    let tok = |f: usize, base: &str| if f == 0 { base.to_string() } else { format!("{base}_{f}") };
+    for f in 0..frames {
+        let s_tok = tok(f, sample0["token"].as_str().unwrap());
+        let mut s = sample0.clone();
+        s["token"] = json!(s_tok);
+        s["timestamp"] = json!(sample0["timestamp"].as_i64().unwrap() + 500_000 * f as i64);
+        s["prev"] = json!(if f == 0 { String::new() } else { tok(f - 1, sample0["token"].as_str().unwrap()) });
+        s["next"] = json!(if f + 1 == frames { String::new() } else { tok(f + 1, sample0["token"].as_str().unwrap()) });
+        samples.push(s);
+        for sd in &sd0 {
+            let mut d = sd.clone();
+            d["token"] = json!(tok(f, sd["token"].as_str().unwrap()));
+            d["sample_token"] = json!(s_tok);
+            d["ego_pose_token"] = json!(tok(f, sd["ego_pose_token"].as_str().unwrap()));
+            if sd["filename"].as_str().unwrap().contains("LIDAR_TOP") {
+                let name = format!("samples/LIDAR_TOP/frame{f:03}.pcd.bin");
+                d["filename"] = json!(name);
+                // Turn the sweep by f * 0.3 degrees about z so that each frame differs.
+                let a = (f as f32) * 0.3f32.to_radians();
+                let mut bytes = lidar.clone();
+                for p in bytes.chunks_exact_mut(20) {
+                    let x = f32::from_le_bytes(p[0..4].try_into().unwrap());
+                    let y = f32::from_le_bytes(p[4..8].try_into().unwrap());
+                    p[0..4].copy_from_slice(&(x * a.cos() - y * a.sin()).to_le_bytes());
+                    p[4..8].copy_from_slice(&(x * a.sin() + y * a.cos()).to_le_bytes());
+                }
+                std::fs::write(dest.join(&name), bytes).unwrap();
+            }
+            sds.push(d);
+        }
+        for pose in &poses0 {
+            let mut p = pose.clone();
+            p["token"] = json!(tok(f, pose["token"].as_str().unwrap()));
+            p["translation"][0] = json!(pose["translation"][0].as_f64().unwrap() + 0.5 * f as f64);
+            poses.push(p);
+        }
+    }
+    write_json(&tables.join("sample.json"), &Value::Array(samples));
+    write_json(&tables.join("sample_data.json"), &Value::Array(sds));
+    write_json(&tables.join("ego_pose.json"), &Value::Array(poses));
+    let mut scenes = read_json(&tables.join("scene.json"));
+    scenes[0]["nbr_samples"] = json!(frames);
+    scenes[0]["last_sample_token"] = json!(tok(frames - 1, sample0["token"].as_str().unwrap()));
+    write_json(&tables.join("scene.json"), &scenes);
+    dest.to_path_buf()
+}
+
+/// Every file under `dir` (relative path -> bytes), skipping nothing.
+pub fn tree(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut out = Vec::new();
+    fn walk(base: &Path, d: &Path, out: &mut Vec<(String, Vec<u8>)>) {
+        let mut entries: Vec<_> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().path()).collect();
+        entries.sort();
+        for p in entries {
+            if p.is_dir() {
+                walk(base, &p, out);
+            } else {
+                out.push((p.strip_prefix(base).unwrap().display().to_string(), std::fs::read(&p).unwrap()));
+            }
+        }
+    }
+    walk(dir, dir, &mut out);
+    out
+}
+
+/// The last run record of a store, as JSON.
+pub fn last_run(cache: &Path) -> Value {
+    let o = dist4d(&["runs", "--cache", cache.to_str().unwrap(), "--json"]);
+    let runs: Value = serde_json::from_slice(&o.stdout).unwrap();
+    runs.as_array().unwrap().last().unwrap().clone()
+}
+
+/// stage -> executed count of a run record.
+pub fn executed(run: &Value) -> std::collections::BTreeMap<String, u64> {
+    run["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| (s["stage"].as_str().unwrap().to_string(), s["executed"].as_u64().unwrap()))
+        .collect()
+}
