@@ -138,7 +138,10 @@ fn multi_frame(frames: usize) -> Option<Setup> {
 
 fn run_cmd(s: &Setup, cache: &str, out: &str, extra: &[&str]) -> Command {
     let mut c = Command::new(bin());
-    c.args(["run", &pipeline(), "--progress", "off"]);
+    c.args(["run", &pipeline()]);
+    if !extra.contains(&"--progress") {
+        c.args(["--progress", "off"]);
+    }
     if !extra.contains(&"--jobs") {
         c.args(["--jobs", "2"]);
     }
@@ -276,4 +279,27 @@ fn a_truncated_sweep_fails_its_frame_only() {
     let run = last_run(&s.base.join("cache"));
     assert_eq!(executed(&run), counts(&[("project", 12), ("points", 12), ("encode", 12)]));
     assert_eq!(run["failures"].as_array().unwrap().len(), 6);
+}
+
+#[test]
+fn ctrl_c_stops_cleanly_and_a_rerun_completes() {
+    let Some(s) = multi_frame(10) else { return };
+    let mut child =
+        run_cmd(&s, "cache", "out", &["--jobs", "1"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    std::thread::sleep(Duration::from_millis(400));
+    let _ = Command::new("kill").args(["-INT", &child.id().to_string()]).status();
+    let o = child.wait_with_output().unwrap();
+    let t = text(&o);
+    // Either the run ended before the signal, or it stopped cleanly with 130.
+    if o.status.code() == Some(130) {
+        assert!(t.contains("Interrupted"), "{t}");
+        assert_no_partial_files(&s, "cache", "out");
+    } else {
+        assert!(o.status.success(), "{t}");
+    }
+    let o = run_cmd(&s, "cache", "out", &["--progress", "lines"]).env("DIST4D_PROGRESS_SECS", "1").output().unwrap();
+    assert!(o.status.success());
+    let full = run_ok(&s, "ref-cache", "ref-out", &[]);
+    assert_eq!(full["status"], "complete");
+    assert_eq!(tree(&s.base.join("out")), tree(&s.base.join("ref-out")));
 }

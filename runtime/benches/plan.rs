@@ -32,7 +32,10 @@ fn run(p: &dist4d_graph::Pipeline, store: &std::path::Path) -> (f64, u64, u64) {
     let t = Instant::now();
     let s = Store::open(store, Access::Shared).unwrap();
     let open = t.elapsed().as_secs_f64();
-    let r = Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }.run(&RunOptions { jobs: 2, ..Default::default() }).unwrap().record;
+    let r = Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }
+        .run(&RunOptions { jobs: 2, ..Default::default() })
+        .unwrap()
+        .record;
     drop(s);
     let _ = open;
     (t.elapsed().as_secs_f64(), r.executed(), r.cached())
@@ -41,7 +44,9 @@ fn run(p: &dist4d_graph::Pipeline, store: &std::path::Path) -> (f64, u64, u64) {
 fn peak_rss_kib() -> u64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
-        .and_then(|s| s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)?.parse().ok()))
+        .and_then(|s| {
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| l.split_whitespace().nth(1)?.parse().ok())
+        })
         .unwrap_or(0)
 }
 
@@ -52,7 +57,12 @@ fn main() {
         let scenes = (items / 240).max(1) as u32;
         let dir = tempfile::tempdir().unwrap();
         let (secs, executed, _) = run(&pipeline(scenes), dir.path());
-        println!("rss: {} items ({} tasks executed) in {secs:.2}s, peak RSS {} MiB", scenes as u64 * 240, executed, peak_rss_kib() / 1024);
+        println!(
+            "rss: {} items ({} tasks executed) in {secs:.2}s, peak RSS {} MiB",
+            scenes as u64 * 240,
+            executed,
+            peak_rss_kib() / 1024
+        );
         return;
     }
     let scenes = 1389; // 1389 x 240 items x 3 stages = 1,000,080 tasks
@@ -61,7 +71,10 @@ fn main() {
     let (cold, executed, _) = run(&p, dir.path());
     println!("cold run:   {executed} tasks executed in {cold:.2}s ({:.2} us/task)", cold * 1e6 / executed as f64);
     let (warm, _, cached) = run(&p, dir.path());
-    println!("cached run: {cached} tasks planned and found cached in {warm:.2}s ({:.2} us/task), store open included", warm * 1e6 / cached as f64);
+    println!(
+        "cached run: {cached} tasks planned and found cached in {warm:.2}s ({:.2} us/task), store open included",
+        warm * 1e6 / cached as f64
+    );
     for items in [10_000u64, 100_000] {
         let exe = std::env::current_exe().unwrap();
         let out = std::process::Command::new(exe).args(["rss", &items.to_string()]).output().unwrap();
