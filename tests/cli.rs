@@ -284,7 +284,7 @@ fn a_truncated_sweep_fails_its_frame_only() {
 #[test]
 fn ctrl_c_stops_cleanly_and_a_rerun_completes() {
     let Some(s) = multi_frame(10) else { return };
-    let mut child =
+    let child =
         run_cmd(&s, "cache", "out", &["--jobs", "1"]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
     std::thread::sleep(Duration::from_millis(400));
     let _ = Command::new("kill").args(["-INT", &child.id().to_string()]).status();

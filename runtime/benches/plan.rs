@@ -31,13 +31,11 @@ fn run(p: &dist4d_graph::Pipeline, store: &std::path::Path) -> (f64, u64, u64) {
     let ops = testkit::operators(p);
     let t = Instant::now();
     let s = Store::open(store, Access::Shared).unwrap();
-    let open = t.elapsed().as_secs_f64();
     let r = Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }
         .run(&RunOptions { jobs: 2, ..Default::default() })
         .unwrap()
         .record;
     drop(s);
-    let _ = open;
     (t.elapsed().as_secs_f64(), r.executed(), r.cached())
 }
 

@@ -203,7 +203,10 @@ impl<'a> Engine<'a> {
         let started = Instant::now();
         let started_unix = runs::now_secs();
         let p = self.pipeline;
-        let run_id = format!("{}-{}", started_unix, &self.store.writer_id()[..]);
+        // Millisecond prefix: ids of runs started in the same second still sort in start order.
+        let millis =
+            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis()).unwrap_or(0);
+        let run_id = format!("{millis:013}-{}", self.store.writer_id());
         let scenes = select_scenes(self.dataset, opts.scenes.as_deref())?;
         let view = View { space: self.dataset, frame_limit: opts.frame_limit };
 

@@ -239,10 +239,7 @@ impl Operator for EchoOp {
 
 /// The grid dataset a pipeline names, with its config.
 pub fn grid_of(p: &Pipeline) -> Grid {
-    let mut sources = dist4d_graph::source::Sources::default();
-    let id = sources.add("config", p.dataset.config.clone());
-    let v = dist4d_graph::syntax::parse(&p.dataset.config, id).expect("canonical config parses");
-    Grid::new(dist4d_graph::de::from_value(&v).expect("canonical config reads"))
+    Grid::new(dist4d_graph::de::from_canonical(&p.dataset.config).expect("canonical config reads"))
 }
 
 /// Operators for a pipeline of test stages.
@@ -251,10 +248,7 @@ pub fn operators(p: &Pipeline) -> Vec<Option<Box<dyn Operator>>> {
         .iter()
         .map(|n| {
             n.stage().map(|s| {
-                let mut sources = dist4d_graph::source::Sources::default();
-                let id = sources.add("params", s.params.clone());
-                let v = dist4d_graph::syntax::parse(&s.params, id).expect("canonical params parse");
-                let params: EchoParams = dist4d_graph::de::from_value(&v).expect("canonical params read");
+                let params: EchoParams = dist4d_graph::de::from_canonical(&s.params).expect("canonical params read");
                 Box::new(EchoOp(params)) as Box<dyn Operator>
             })
         })

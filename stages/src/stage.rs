@@ -91,10 +91,7 @@ impl StageSchema for StageDef {
 
 /// Reads a params struct back from its canonical RON text.
 pub fn parse_canonical<P: DeserializeOwned>(text: &str) -> Result<P> {
-    let mut sources = dist4d_graph::source::Sources::default();
-    let id = sources.add("params", text);
-    let v = dist4d_graph::syntax::parse(text, id).map_err(|d| anyhow!("{}", d.message))?;
-    dist4d_graph::de::from_value(&v).map_err(|e| anyhow!("{e}"))
+    dist4d_graph::de::from_canonical(text).map_err(|e| anyhow!("{e}"))
 }
 
 /// An input port of artifact type `A` taking one artifact.
