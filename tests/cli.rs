@@ -299,6 +299,12 @@ fn ctrl_c_stops_cleanly_and_a_rerun_completes() {
     }
     let o = run_cmd(&s, "cache", "out", &["--progress", "lines"]).env("DIST4D_PROGRESS_SECS", "1").output().unwrap();
     assert!(o.status.success());
+    // Lines mode always ends with a line that shows every stage complete.
+    let err = String::from_utf8_lossy(&o.stderr);
+    let last = err.lines().filter(|l| l.starts_with("progress [")).last().unwrap_or_else(|| panic!("{err}"));
+    for stage in ["project", "encode"] {
+        assert!(last.contains(&format!("{stage} 60/60")), "{last}");
+    }
     let full = run_ok(&s, "ref-cache", "ref-out", &[]);
     assert_eq!(full["status"], "complete");
     assert_eq!(tree(&s.base.join("out")), tree(&s.base.join("ref-out")));

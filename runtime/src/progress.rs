@@ -68,8 +68,11 @@ fn bars(c: &Counters, stop: &AtomicBool) {
     let multi = MultiProgress::with_draw_target(ProgressDrawTarget::stderr_with_hz(10));
     let width = c.names.iter().map(|n| n.len()).max().unwrap_or(8);
     let style = ProgressStyle::with_template(&format!(
-        "{{prefix:>{width}}} [{{bar:30}}] {{pos}}/{{len}} {{per_sec}} ETA {{eta}} {{msg}}"
+        "{{prefix:>{width}}} [{{bar:30}}] {{pos}}/{{len}} {{rate}} ETA {{eta}} {{msg}}"
     ))
+    .map(|s| s.with_key("rate", |st: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+        let _ = write!(w, "{:.1}/s", st.per_sec());
+    }))
     .unwrap_or_else(|_| ProgressStyle::default_bar())
     .progress_chars("=> ");
     let bars: Vec<ProgressBar> = c
@@ -103,29 +106,77 @@ fn bars(c: &Counters, stop: &AtomicBool) {
 fn lines(c: &Counters, stop: &AtomicBool, secs: u64) {
     let start = Instant::now();
     let mut last = Instant::now();
-    let prev: Vec<u64> = vec![0; c.names.len()];
-    let mut prev = prev;
-    while !stop.load(Ordering::Relaxed) {
-        std::thread::sleep(Duration::from_millis(50));
-        if last.elapsed() < Duration::from_secs(secs) {
-            continue;
+    let mut prev: Vec<u64> = vec![0; c.names.len()];
+    loop {
+        let stopping = stop.load(Ordering::Relaxed);
+        // A final line at the end, so a log always shows where each stage ended even for short runs.
+        if stopping || last.elapsed() >= Duration::from_secs(secs) {
+            let dt = last.elapsed().as_secs_f64();
+            last = Instant::now();
+            let snapshot: Vec<StageCount> = (0..c.names.len())
+                .map(|i| StageCount {
+                    name: &c.names[i],
+                    done: c.done[i].load(Ordering::Relaxed),
+                    total: c.total[i].load(Ordering::Relaxed),
+                    failed: c.failed[i].load(Ordering::Relaxed),
+                })
+                .collect();
+            eprintln!("{}", progress_line(start.elapsed(), &snapshot, &prev, dt));
+            prev = snapshot.iter().map(|s| s.done).collect();
         }
-        let dt = last.elapsed().as_secs_f64();
-        last = Instant::now();
-        let mut parts = Vec::new();
-        for i in 0..c.names.len() {
-            let (done, total) = (c.done[i].load(Ordering::Relaxed), c.total[i].load(Ordering::Relaxed));
-            let rate = (done - prev[i]) as f64 / dt;
-            prev[i] = done;
-            let eta = if rate > 0.0 && total > done {
-                format!(", ETA {:.0}s", (total - done) as f64 / rate)
+        if stopping {
+            return;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+struct StageCount<'a> {
+    name: &'a str,
+    done: u64,
+    total: u64,
+    failed: u64,
+}
+
+/// One log line: `progress [12s]: project 40/120 (3.3/s, ETA 24s); encode 12/120 (1.0/s, ETA 108s, 2 failed)`.
+fn progress_line(elapsed: Duration, stages: &[StageCount], prev_done: &[u64], dt: f64) -> String {
+    let parts: Vec<String> = stages
+        .iter()
+        .zip(prev_done)
+        .map(|(s, &prev)| {
+            let rate = if dt > 0.0 { s.done.saturating_sub(prev) as f64 / dt } else { 0.0 };
+            let eta = if rate > 0.0 && s.total > s.done {
+                format!(", ETA {:.0}s", (s.total - s.done) as f64 / rate)
             } else {
                 String::new()
             };
-            let failed = c.failed[i].load(Ordering::Relaxed);
-            let failed = if failed > 0 { format!(", {failed} failed") } else { String::new() };
-            parts.push(format!("{} {done}/{total} ({rate:.1}/s{eta}{failed})", c.names[i]));
-        }
-        eprintln!("progress [{:.0}s]: {}", start.elapsed().as_secs_f64(), parts.join("; "));
+            let failed = if s.failed > 0 { format!(", {} failed", s.failed) } else { String::new() };
+            format!("{} {}/{} ({rate:.1}/s{eta}{failed})", s.name, s.done, s.total)
+        })
+        .collect();
+    format!("progress [{:.0}s]: {}", elapsed.as_secs_f64(), parts.join("; "))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_line_names_every_stage_with_rate_eta_and_failures() {
+        let stages = [
+            StageCount { name: "project", done: 40, total: 120, failed: 0 },
+            StageCount { name: "encode", done: 12, total: 120, failed: 2 },
+        ];
+        let line = progress_line(Duration::from_secs(12), &stages, &[10, 2], 10.0);
+        assert_eq!(
+            line,
+            "progress [12s]: project 40/120 (3.0/s, ETA 27s); encode 12/120 (1.0/s, ETA 108s, 2 failed)"
+        );
+    }
+
+    #[test]
+    fn a_finished_stage_has_no_eta() {
+        let stages = [StageCount { name: "s", done: 5, total: 5, failed: 0 }];
+        assert_eq!(progress_line(Duration::from_secs(1), &stages, &[5], 1.0), "progress [1s]: s 5/5 (0.0/s)");
     }
 }
