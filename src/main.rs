@@ -94,6 +94,36 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Synthesize a nuScenes-format dataset of a procedural street, with exact ground truth.
+    ///
+    /// Deterministic per seed. Writes v1.0-mini/ tables, samples/, sweeps/, lidarseg/, maps/ and
+    /// groundtruth/ (dense depth EXR and semantic PNG per camera image). Example:
+    /// dist4d synth --out data/synth --keyframes 10 --width 800 --height 450
+    Synth {
+        /// The dataset folder to create (must not exist, or hold the same synthetic dataset).
+        #[arg(long)]
+        out: PathBuf,
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        #[arg(long, default_value_t = 1)]
+        scenes: u32,
+        /// Keyframes (2 Hz samples) per scene.
+        #[arg(long, default_value_t = 40)]
+        keyframes: u32,
+        #[arg(long, default_value_t = 1600)]
+        width: u32,
+        #[arg(long, default_value_t = 900)]
+        height: u32,
+        /// Also write the 12 Hz camera sweeps between keyframes.
+        #[arg(long)]
+        camera_sweeps: bool,
+        /// Write LiDAR keyframes only (no 20 Hz sweeps in between).
+        #[arg(long)]
+        no_lidar_sweeps: bool,
+        /// Skip the ground-truth depth and semantic images.
+        #[arg(long)]
+        no_ground_truth: bool,
+    },
     /// Remove cached records and blobs that the last N runs did not use.
     ///
     /// Needs the store alone (no run in progress). Example: dist4d gc --cache pipelines/.dist4d --keep-runs 3 --max-size 50G
@@ -146,6 +176,24 @@ fn load(args: &PipelineArgs, registry: &Registry) -> Result<Result<Pipeline, Exi
             Err(ExitCode::from(2))
         }
     })
+}
+
+/// Writes a synthetic dataset (or finds it already there) and says so.
+fn synthesize(config: &dist4d_stages::synth::SynthConfig, out: &Path) -> Result<()> {
+    match dist4d_stages::synth::write_dataset(config, out, &|m| eprintln!("synth: {m}"))? {
+        None => println!("{}: the synthetic dataset is already there", out.display()),
+        Some(s) => println!(
+            "{}: {} scenes, {} samples, {} LiDAR sweeps, {} camera images, {} annotations in {:.1}s",
+            out.display(),
+            s.scenes,
+            s.samples,
+            s.lidar_sweeps,
+            s.camera_images,
+            s.annotations,
+            s.seconds
+        ),
+    }
+    Ok(())
 }
 
 fn beside(pipeline: &Path, rel: &str) -> PathBuf {
@@ -292,6 +340,21 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     r.seconds
                 );
             }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Synth { out, seed, scenes, keyframes, width, height, camera_sweeps, no_lidar_sweeps, no_ground_truth } => {
+            let config = dist4d_stages::synth::SynthConfig {
+                seed,
+                scenes,
+                keyframes,
+                width,
+                height,
+                camera_sweeps,
+                lidar_sweeps: !no_lidar_sweeps,
+                ground_truth: !no_ground_truth,
+                ..Default::default()
+            };
+            synthesize(&config, &out)?;
             Ok(ExitCode::SUCCESS)
         }
         Command::Gc { cache, keep_runs, max_size } => {

@@ -17,6 +17,27 @@ impl Se3 {
         Se3 { rotation: DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize(), translation: DVec3::from_array(t) }
     }
 
+    /// A rotation about z by `yaw` radians, then a translation.
+    pub fn from_yaw(yaw: f64, t: DVec3) -> Se3 {
+        Se3 { rotation: DQuat::from_rotation_z(yaw), translation: t }
+    }
+
+    /// The quaternion as nuScenes writes it, `[w, x, y, z]`.
+    pub fn wxyz(&self) -> [f64; 4] {
+        let q = self.rotation;
+        [q.w, q.x, q.y, q.z]
+    }
+
+    pub fn inverse(&self) -> Se3 {
+        let r = self.rotation.inverse();
+        Se3 { rotation: r, translation: -(r * self.translation) }
+    }
+
+    /// `self * other`: apply `other` first, then `self`.
+    pub fn then_from(&self, other: &Se3) -> Se3 {
+        Se3 { rotation: (self.rotation * other.rotation).normalize(), translation: self.apply(other.translation) }
+    }
+
     pub fn matrix(&self) -> DMat3 {
         DMat3::from_quat(self.rotation)
     }

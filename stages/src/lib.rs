@@ -5,6 +5,7 @@ pub mod artifact;
 pub mod geometry;
 pub mod nuscenes;
 pub mod stage;
+pub mod synth;
 pub mod stages {
     pub mod encode;
     pub mod project_lidar;

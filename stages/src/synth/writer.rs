@@ -1,0 +1,653 @@
+//! Writes a synthetic world as a nuScenes v1.0 dataset: the 13 tables plus `lidarseg`, keyframe
+//! and sweep files under `samples/` and `sweeps/`, lidarseg labels, map masks, and the ground
+//! truth sidecar under `groundtruth/`.
+//!
+//! The dataset is written into a hidden sibling folder and renamed into place at the end, so a
+//! killed run never leaves something that looks like a finished dataset.
+
+use super::render::{static_grid, PinholeCamera, Snapshot};
+use super::world::{class, AgentKind, World, ROAD_HALF_WIDTH};
+use super::{SynthConfig, CAMERA_RIG, GENERATOR_VERSION, GROUND_TRUTH_DIR, LIDAR_TOP};
+use crate::artifact::DepthMap;
+use crate::geometry::Se3;
+use crate::stages::encode::depth_exr;
+use anyhow::{bail, Context, Result};
+use glam::DVec3;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+use std::collections::HashMap;
+use std::path::Path;
+
+/// The record of how a synthetic dataset was made (`groundtruth/synth.json`).
+#[derive(Serialize, Deserialize)]
+pub(super) struct SynthFile {
+    pub generator_version: u32,
+    pub config: SynthConfig,
+}
+
+const KEYFRAME_US: i64 = 500_000;
+const LIDAR_US: i64 = 50_000;
+const CAMERA_SWEEPS_PER_KEYFRAME: i64 = 6; // 12 Hz
+const ANNOTATION_RANGE: f64 = 60.0;
+const MAP_RESOLUTION: f64 = 0.1;
+
+/// First timestamp of scene `i` (2025-01-01 00:00 UTC plus an hour per scene).
+pub fn scene_start_us(scene: u32) -> i64 {
+    1_735_689_600_000_000 + scene as i64 * 3_600_000_000
+}
+
+/// The nuScenes-lidarseg classes, by index.
+const LIDARSEG_CATEGORIES: [&str; 32] = [
+    "noise",
+    "animal",
+    "human.pedestrian.adult",
+    "human.pedestrian.child",
+    "human.pedestrian.construction_worker",
+    "human.pedestrian.personal_mobility",
+    "human.pedestrian.police_officer",
+    "human.pedestrian.stroller",
+    "human.pedestrian.wheelchair",
+    "movable_object.barrier",
+    "movable_object.debris",
+    "movable_object.pushable_pullable",
+    "movable_object.trafficcone",
+    "static_object.bicycle_rack",
+    "vehicle.bicycle",
+    "vehicle.bus.bendy",
+    "vehicle.bus.rigid",
+    "vehicle.car",
+    "vehicle.construction",
+    "vehicle.emergency.ambulance",
+    "vehicle.emergency.police",
+    "vehicle.motorcycle",
+    "vehicle.trailer",
+    "vehicle.truck",
+    "flat.driveable_surface",
+    "flat.other",
+    "flat.sidewalk",
+    "flat.terrain",
+    "static.manmade",
+    "static.other",
+    "static.vegetation",
+    "vehicle.ego",
+];
+
+const ATTRIBUTES: [&str; 8] = [
+    "vehicle.moving",
+    "vehicle.stopped",
+    "vehicle.parked",
+    "cycle.with_rider",
+    "cycle.without_rider",
+    "pedestrian.sitting_lying_down",
+    "pedestrian.standing",
+    "pedestrian.moving",
+];
+
+/// Cityscapes id (what the renderer labels) -> nuScenes-lidarseg index.
+pub fn lidarseg_index(cityscapes: u8) -> u8 {
+    match cityscapes {
+        class::ROAD => 24,
+        class::SIDEWALK => 26,
+        class::TERRAIN => 27,
+        class::BUILDING | class::POLE => 28,
+        class::VEGETATION => 30,
+        class::PERSON => 2,
+        class::CAR => 17,
+        class::EGO => 31,
+        _ => 0,
+    }
+}
+
+/// A 32-hex-digit token, stable for a seed and a name.
+fn token(seed: u64, what: &str) -> String {
+    let h = blake3::hash(format!("{seed}/{what}").as_bytes());
+    h.to_hex()[..32].to_string()
+}
+
+fn global_token(what: &str) -> String {
+    token(0, what)
+}
+
+/// What `write_dataset` made.
+#[derive(Debug, Default)]
+pub struct Summary {
+    pub scenes: usize,
+    pub samples: usize,
+    pub lidar_sweeps: usize,
+    pub camera_images: usize,
+    pub annotations: usize,
+    pub seconds: f64,
+}
+
+/// Tables being built for the whole dataset.
+#[derive(Default)]
+struct Tables {
+    rows: HashMap<&'static str, Vec<Value>>,
+}
+
+impl Tables {
+    fn push(&mut self, table: &'static str, row: Value) {
+        self.rows.entry(table).or_default().push(row);
+    }
+}
+
+/// Writes the dataset of `config` to `root`. If `root` already holds the dataset of the same
+/// config, nothing is done; if it holds anything else, that is an error (nothing is overwritten).
+pub fn write_dataset(config: &SynthConfig, root: &Path, log: &(dyn Fn(&str) + Sync)) -> Result<Option<Summary>> {
+    let record = root.join(GROUND_TRUTH_DIR).join("synth.json");
+    if root.exists() {
+        if let Ok(text) = std::fs::read_to_string(&record) {
+            if let Ok(file) = serde_json::from_str::<SynthFile>(&text) {
+                if file.generator_version == GENERATOR_VERSION && &file.config == config {
+                    return Ok(None);
+                }
+                bail!(
+                    "{} holds a synthetic dataset made with other settings (see {}); delete it or choose another folder",
+                    root.display(),
+                    record.display()
+                );
+            }
+        }
+        if std::fs::read_dir(root).map(|mut d| d.next().is_some()).unwrap_or(true) {
+            bail!("{} exists and is not a dist4d synthetic dataset; choose another folder", root.display());
+        }
+    }
+    anyhow::ensure!(config.width >= 16 && config.height >= 16, "image size {}x{} is too small", config.width, config.height);
+    anyhow::ensure!(config.keyframes >= 1 && config.scenes >= 1, "need at least one scene and one keyframe");
+    let start = std::time::Instant::now();
+    let name = root.file_name().context("the output folder needs a name")?.to_string_lossy().to_string();
+    let partial = root.with_file_name(format!(".{name}.partial"));
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).with_context(|| format!("removing the leftover {}", partial.display()))?;
+    }
+    std::fs::create_dir_all(&partial).with_context(|| format!("creating {}", partial.display()))?;
+
+    let mut tables = Tables::default();
+    global_tables(&mut tables);
+    let mut summary = Summary::default();
+    for scene in 0..config.scenes {
+        log(&format!("scene {} of {}", scene + 1, config.scenes));
+        write_scene(config, scene, &partial, &mut tables, &mut summary)
+            .with_context(|| format!("synthesizing scene {scene}"))?;
+    }
+    let version_dir = partial.join("v1.0-mini");
+    std::fs::create_dir_all(&version_dir)?;
+    for (table, rows) in &tables.rows {
+        let path = version_dir.join(format!("{table}.json"));
+        std::fs::write(&path, serde_json::to_vec_pretty(rows)?).with_context(|| format!("writing {}", path.display()))?;
+    }
+    let gt = partial.join(GROUND_TRUTH_DIR);
+    std::fs::create_dir_all(&gt)?;
+    let file = SynthFile { generator_version: GENERATOR_VERSION, config: config.clone() };
+    std::fs::write(gt.join("synth.json"), serde_json::to_vec_pretty(&file)?)?;
+    std::fs::write(gt.join("README.md"), GROUND_TRUTH_README)?;
+    if root.exists() {
+        std::fs::remove_dir(root).with_context(|| format!("replacing the empty folder {}", root.display()))?;
+    }
+    if let Some(parent) = root.parent() {
+        std::fs::create_dir_all(parent)?;
+    }
+    std::fs::rename(&partial, root).with_context(|| format!("moving {} to {}", partial.display(), root.display()))?;
+    summary.scenes = config.scenes as usize;
+    summary.seconds = start.elapsed().as_secs_f64();
+    Ok(Some(summary))
+}
+
+const GROUND_TRUTH_README: &str = "\
+# Ground truth of a dist4d synthetic dataset
+
+- `depth/<CHANNEL>/<image name>.exr`: dense metric depth of every camera image, OpenEXR, one
+  float32 channel `Z`: distance along the optical axis in metres (what the nuScenes devkit calls
+  depth). Sky (no surface within 1000 m) is +inf. Pixel (col, row) is the ray through image point
+  (col + 0.5, row + 0.5).
+- `semantic/<CHANNEL>/<image name>.png`: 8-bit Cityscapes ids: road 7, sidewalk 8, building 11,
+  pole 17, vegetation 21, terrain 22, sky 23, person 24, car 26.
+- `synth.json`: the generator version and settings. `dist4d_stages::synth::Renderer::open(root)`
+  rebuilds the world from it and renders exact RGB, depth and semantics for any camera pose at any
+  timestamp.
+";
+
+fn global_tables(t: &mut Tables) {
+    for (i, name) in LIDARSEG_CATEGORIES.iter().enumerate() {
+        t.push(
+            "category",
+            json!({"token": global_token(&format!("category/{name}")), "name": name, "description": "", "index": i}),
+        );
+    }
+    for name in ATTRIBUTES {
+        t.push("attribute", json!({"token": global_token(&format!("attribute/{name}")), "name": name, "description": ""}));
+    }
+    for (i, level) in ["v0-40", "v40-60", "v60-80", "v80-100"].iter().enumerate() {
+        t.push(
+            "visibility",
+            json!({"token": (i + 1).to_string(), "level": level,
+                   "description": format!("visibility of whole object is between {level}% in the six images")}),
+        );
+    }
+    for s in CAMERA_RIG.iter().chain([&LIDAR_TOP]) {
+        let modality = if s.channel.starts_with("CAM") { "camera" } else { "lidar" };
+        t.push("sensor", json!({"token": global_token(&format!("sensor/{}", s.channel)), "channel": s.channel, "modality": modality}));
+    }
+    for name in ["sample", "sample_data", "ego_pose", "calibrated_sensor", "instance", "sample_annotation", "scene", "log", "map", "lidarseg"] {
+        t.rows.entry(name).or_default();
+    }
+}
+
+/// One sensor reading to produce.
+struct Reading {
+    token: String,
+    channel: &'static str,
+    timestamp: i64,
+    key: bool,
+    /// Keyframe index this reading's `sample_token` names (the next keyframe for sweeps).
+    sample: usize,
+    filename: String,
+}
+
+fn camera_offset_us(rig: &super::RigSensor) -> i64 {
+    // Cameras fire as the LiDAR sweeps across their field of view: offset by the camera's yaw.
+    let axis = rig.sensor_to_ego().rotation * DVec3::Z;
+    let frac = (axis.y.atan2(axis.x) / std::f64::consts::TAU).rem_euclid(1.0);
+    (frac * LIDAR_US as f64).round() as i64
+}
+
+fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, summary: &mut Summary) -> Result<()> {
+    let seed = config.scene_seed(scene);
+    let world = config.world(scene);
+    let grid = static_grid(&world);
+    let t0 = scene_start_us(scene);
+    let k = config.keyframes as i64;
+    let hour = t0.div_euclid(3_600_000_000).rem_euclid(24);
+    let logfile = format!("n000-{}-{hour:02}-00-00+0000", date_of(t0));
+    let tok = |what: &str| token(seed, what);
+
+    // Readings: LiDAR at 20 Hz, cameras at 12 Hz, both from keyframe 0 to keyframe K-1.
+    let mut lidar = Vec::new();
+    let lidar_every = if config.lidar_sweeps { 1 } else { KEYFRAME_US / LIDAR_US };
+    let mut n = 0;
+    while n * LIDAR_US <= (k - 1) * KEYFRAME_US {
+        let ts = t0 + n * LIDAR_US;
+        let key = (n * LIDAR_US) % KEYFRAME_US == 0;
+        let folder = if key { "samples" } else { "sweeps" };
+        lidar.push(Reading {
+            token: tok(&format!("sd/LIDAR_TOP/{n}")),
+            channel: "LIDAR_TOP",
+            timestamp: ts,
+            key,
+            sample: ((n * LIDAR_US + KEYFRAME_US - 1) / KEYFRAME_US) as usize,
+            filename: format!("{folder}/LIDAR_TOP/{logfile}__LIDAR_TOP__{ts}.pcd.bin"),
+        });
+        n += lidar_every;
+    }
+    let mut cameras: Vec<Vec<Reading>> = Vec::new();
+    for rig in &CAMERA_RIG {
+        let off = camera_offset_us(rig);
+        let mut v = Vec::new();
+        for kf in 0..k {
+            let sweeps = if config.camera_sweeps && kf + 1 < k { CAMERA_SWEEPS_PER_KEYFRAME } else { 1 };
+            for j in 0..sweeps {
+                let ts = t0 + kf * KEYFRAME_US + (j * KEYFRAME_US) / CAMERA_SWEEPS_PER_KEYFRAME + off;
+                let key = j == 0;
+                let folder = if key { "samples" } else { "sweeps" };
+                v.push(Reading {
+                    token: tok(&format!("sd/{}/{kf}/{j}", rig.channel)),
+                    channel: rig.channel,
+                    timestamp: ts,
+                    key,
+                    sample: (kf + (j > 0) as i64) as usize,
+                    filename: format!("{folder}/{0}/{logfile}__{0}__{ts}.jpg", rig.channel),
+                });
+            }
+        }
+        cameras.push(v);
+    }
+    for r in lidar.iter().chain(cameras.iter().flatten()) {
+        let dir = root.join(&r.filename);
+        std::fs::create_dir_all(dir.parent().unwrap_or(root))?;
+    }
+
+    let secs = |ts: i64| (ts - t0) as f64 * 1e-6;
+    let ego = |ts: i64| {
+        let (p, yaw) = world.ego_pose(secs(ts));
+        Se3::from_yaw(yaw, p)
+    };
+    let lidar_to_ego = LIDAR_TOP.sensor_to_ego();
+
+    // LiDAR sweeps (the keyframes' class/instance labels are kept for lidarseg and box counts).
+    let keyframe_labels: Vec<Option<(Vec<u8>, Vec<u32>)>> = lidar
+        .par_iter()
+        .enumerate()
+        .map(|(i, r)| -> Result<Option<(Vec<u8>, Vec<u32>)>> {
+            let snap = Snapshot::new(&world, &grid, secs(r.timestamp));
+            let sensor_to_world = ego(r.timestamp).then_from(&lidar_to_ego);
+            let sweep = snap.scan(&config.lidar, &sensor_to_world, &lidar_to_ego, seed ^ ((i as u64) << 20));
+            let mut bytes = Vec::with_capacity(sweep.points.len() * 20);
+            for p in &sweep.points {
+                for x in p {
+                    bytes.extend_from_slice(&x.to_le_bytes());
+                }
+            }
+            let path = root.join(&r.filename);
+            std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+            Ok(r.key.then_some((sweep.class, sweep.instance)))
+        })
+        .collect::<Result<_>>()?;
+    let keyframe_labels: Vec<(Vec<u8>, Vec<u32>)> = keyframe_labels.into_iter().flatten().collect();
+
+    // Camera images with their ground truth.
+    let gt = root.join(GROUND_TRUTH_DIR);
+    let jobs: Vec<(usize, &Reading)> =
+        cameras.iter().enumerate().flat_map(|(c, v)| v.iter().map(move |r| (c, r))).collect();
+    jobs.par_iter().try_for_each(|&(c, r)| -> Result<()> {
+        let cam = pinhole(config, c, &ego(r.timestamp));
+        let image = Snapshot::new(&world, &grid, secs(r.timestamp)).render(&cam);
+        let path = root.join(&r.filename);
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, config.jpeg_quality)
+            .encode(&image.rgb, image.width, image.height, image::ExtendedColorType::Rgb8)
+            .context("encoding JPEG")?;
+        std::fs::write(&path, jpeg).with_context(|| format!("writing {}", path.display()))?;
+        if config.ground_truth {
+            let stem = Path::new(&r.filename).file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+            let dir = gt.join("depth").join(r.channel);
+            std::fs::create_dir_all(&dir)?;
+            let depth = DepthMap { width: image.width, height: image.height, data: image.depth };
+            std::fs::write(dir.join(format!("{stem}.exr")), depth_exr(&depth)?)?;
+            let dir = gt.join("semantic").join(r.channel);
+            std::fs::create_dir_all(&dir)?;
+            let mut png = std::io::Cursor::new(Vec::new());
+            image::GrayImage::from_raw(image.width, image.height, image.semantic)
+                .context("semantic image size")?
+                .write_to(&mut png, image::ImageFormat::Png)?;
+            std::fs::write(dir.join(format!("{stem}.png")), png.into_inner())?;
+        }
+        Ok(())
+    })?;
+
+    // Tables.
+    let scene_token = tok("scene");
+    let log_token = tok("log");
+    let sample_tokens: Vec<String> = (0..k).map(|i| tok(&format!("sample/{i}"))).collect();
+    for i in 0..k as usize {
+        t.push(
+            "sample",
+            json!({
+                "token": sample_tokens[i],
+                "timestamp": t0 + i as i64 * KEYFRAME_US,
+                "prev": if i > 0 { sample_tokens[i - 1].clone() } else { String::new() },
+                "next": sample_tokens.get(i + 1).cloned().unwrap_or_default(),
+                "scene_token": scene_token,
+            }),
+        );
+    }
+    t.push(
+        "scene",
+        json!({
+            "token": scene_token,
+            "log_token": log_token,
+            "nbr_samples": k,
+            "first_sample_token": sample_tokens[0],
+            "last_sample_token": sample_tokens[k as usize - 1],
+            "name": format!("synth-{scene:04}"),
+            "description": format!("dist4d synthetic street, seed {}, scene {scene}", config.seed),
+        }),
+    );
+    t.push(
+        "log",
+        json!({"token": log_token, "logfile": logfile, "vehicle": "synth",
+               "date_captured": date_of(t0), "location": "dist4d-synthetic"}),
+    );
+    for s in CAMERA_RIG.iter().chain([&LIDAR_TOP]) {
+        let intrinsic: Value = if s.focal > 0.0 {
+            json!(s.intrinsics(config.width, config.height))
+        } else {
+            json!([])
+        };
+        t.push(
+            "calibrated_sensor",
+            json!({
+                "token": tok(&format!("cs/{}", s.channel)),
+                "sensor_token": global_token(&format!("sensor/{}", s.channel)),
+                "translation": s.translation,
+                "rotation": s.rotation,
+                "camera_intrinsic": intrinsic,
+            }),
+        );
+    }
+    let mut push_chain = |readings: &[Reading], is_camera: bool| {
+        for (i, r) in readings.iter().enumerate() {
+            let pose = ego(r.timestamp);
+            let pose_token = tok(&format!("ego/{}/{}", r.channel, r.timestamp));
+            t.push(
+                "ego_pose",
+                json!({"token": pose_token, "timestamp": r.timestamp,
+                       "rotation": pose.wxyz(), "translation": pose.translation.to_array()}),
+            );
+            let (w, h) = if is_camera { (config.width, config.height) } else { (0, 0) };
+            t.push(
+                "sample_data",
+                json!({
+                    "token": r.token,
+                    "sample_token": sample_tokens[r.sample.min(k as usize - 1)],
+                    "ego_pose_token": pose_token,
+                    "calibrated_sensor_token": tok(&format!("cs/{}", r.channel)),
+                    "timestamp": r.timestamp,
+                    "fileformat": if is_camera { "jpg" } else { "pcd" },
+                    "is_key_frame": r.key,
+                    "height": h,
+                    "width": w,
+                    "filename": r.filename,
+                    "prev": if i > 0 { readings[i - 1].token.clone() } else { String::new() },
+                    "next": readings.get(i + 1).map(|r| r.token.clone()).unwrap_or_default(),
+                }),
+            );
+        }
+    };
+    push_chain(&lidar, false);
+    for v in &cameras {
+        push_chain(v, true);
+    }
+
+    // lidarseg labels of the keyframes.
+    let seg_dir = root.join("lidarseg").join("v1.0-mini");
+    std::fs::create_dir_all(&seg_dir)?;
+    let key_lidar: Vec<&Reading> = lidar.iter().filter(|r| r.key).collect();
+    for (r, (classes, _)) in key_lidar.iter().zip(&keyframe_labels) {
+        let labels: Vec<u8> = classes.iter().map(|&c| lidarseg_index(c)).collect();
+        let filename = format!("lidarseg/v1.0-mini/{}_lidarseg.bin", r.token);
+        std::fs::write(root.join(&filename), labels)?;
+        t.push("lidarseg", json!({"token": r.token, "sample_data_token": r.token, "filename": filename}));
+    }
+
+    // Annotations: every car and pedestrian within range of the ego at a keyframe, as one
+    // contiguous track per agent.
+    let key_cams: Vec<Vec<&Reading>> = cameras.iter().map(|v| v.iter().filter(|r| r.key).collect()).collect();
+    for agent in &world.agents {
+        let in_range = |kf: usize| {
+            let ts = t0 + kf as i64 * KEYFRAME_US;
+            agent.state(&world.path, secs(ts)).is_some_and(|(c, _, _)| (c - ego(ts).translation).truncate().length() <= ANNOTATION_RANGE)
+        };
+        let Some(first) = (0..k as usize).find(|&i| in_range(i)) else { continue };
+        let last = (0..k as usize).rev().find(|&i| in_range(i)).unwrap_or(first);
+        let instance_token = tok(&format!("instance/{}", agent.instance));
+        let ann = |kf: usize| tok(&format!("ann/{}/{kf}", agent.instance));
+        let (category, attribute) = match agent.kind {
+            AgentKind::Car => ("vehicle.car", if agent.moving() { "vehicle.moving" } else { "vehicle.parked" }),
+            AgentKind::Pedestrian => {
+                ("human.pedestrian.adult", if agent.moving() { "pedestrian.moving" } else { "pedestrian.standing" })
+            }
+        };
+        for kf in first..=last {
+            let ts = t0 + kf as i64 * KEYFRAME_US;
+            let Some((centre, yaw, _)) = agent.state(&world.path, secs(ts)) else { continue };
+            let lidar_pts = keyframe_labels.get(kf).map_or(0, |(_, inst)| inst.iter().filter(|&&i| i == agent.instance).count());
+            let vis = visibility(config, &world, &grid, agent, secs(ts), &key_cams, kf, &ego);
+            let [l, w, h] = agent.size;
+            t.push(
+                "sample_annotation",
+                json!({
+                    "token": ann(kf),
+                    "sample_token": sample_tokens[kf],
+                    "instance_token": instance_token,
+                    "visibility_token": vis,
+                    "attribute_tokens": [global_token(&format!("attribute/{attribute}"))],
+                    "translation": centre.to_array(),
+                    "size": [w, l, h],
+                    "rotation": Se3::from_yaw(yaw, centre).wxyz(),
+                    "prev": if kf > first { ann(kf - 1) } else { String::new() },
+                    "next": if kf < last { ann(kf + 1) } else { String::new() },
+                    "num_lidar_pts": lidar_pts,
+                    "num_radar_pts": 0,
+                }),
+            );
+            summary.annotations += 1;
+        }
+        t.push(
+            "instance",
+            json!({
+                "token": instance_token,
+                "category_token": global_token(&format!("category/{category}")),
+                "nbr_annotations": last - first + 1,
+                "first_annotation_token": ann(first),
+                "last_annotation_token": ann(last),
+            }),
+        );
+    }
+
+    // Map mask: the drivable surface at 0.1 m per pixel, as the devkit's MapMask expects.
+    let map_token = tok("map");
+    let map_file = format!("maps/{map_token}.png");
+    std::fs::create_dir_all(root.join("maps"))?;
+    std::fs::write(root.join(&map_file), map_mask(&world)?)?;
+    t.push("map", json!({"token": map_token, "log_tokens": [log_token], "category": "semantic_prior", "filename": map_file}));
+
+    summary.samples += k as usize;
+    summary.lidar_sweeps += lidar.len();
+    summary.camera_images += jobs.len();
+    Ok(())
+}
+
+fn pinhole(config: &SynthConfig, camera: usize, ego_to_world: &Se3) -> PinholeCamera {
+    let rig = &CAMERA_RIG[camera];
+    PinholeCamera {
+        k: rig.intrinsics(config.width, config.height),
+        width: config.width,
+        height: config.height,
+        camera_to_world: ego_to_world.then_from(&rig.sensor_to_ego()),
+    }
+}
+
+/// nuScenes visibility token ("1".."4" for 0-40, 40-60, 60-80, 80-100 %): the fraction of sample
+/// points of the box (centre and shrunken corners) that the keyframe cameras see unoccluded,
+/// among those inside some camera's image.
+#[allow(clippy::too_many_arguments)]
+fn visibility(
+    config: &SynthConfig,
+    world: &World,
+    grid: &super::shapes::Grid,
+    agent: &super::world::Agent,
+    t: f64,
+    key_cams: &[Vec<&Reading>],
+    kf: usize,
+    ego: &dyn Fn(i64) -> Se3,
+) -> &'static str {
+    let Some((c, yaw, _)) = agent.state(&world.path, t) else { return "1" };
+    let snap = Snapshot::new(world, grid, t);
+    let [l, w, h] = agent.size;
+    let mut samples = vec![c];
+    for (a, b, z) in [(1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, 1.0, 1.0), (-1.0, -1.0, 1.0), (1.0, 1.0, -1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, -1.0)] {
+        let local = DVec3::new(a * l * 0.35, b * w * 0.35, z * h * 0.35);
+        samples.push(c + Se3::from_yaw(yaw, DVec3::ZERO).apply(local));
+    }
+    let (mut seen, mut visible) = (0, 0);
+    for p in samples {
+        let mut in_view = false;
+        let mut unoccluded = false;
+        for (cam, readings) in key_cams.iter().enumerate() {
+            let Some(r) = readings.get(kf) else { continue };
+            let pin = pinhole(config, cam, &ego(r.timestamp));
+            let pc = pin.camera_to_world.inverse().apply(p);
+            if pc.z <= 0.1 {
+                continue;
+            }
+            let (u, v) = (pin.k[0][0] * pc.x / pc.z + pin.k[0][2], pin.k[1][1] * pc.y / pc.z + pin.k[1][2]);
+            if u < 0.0 || v < 0.0 || u >= pin.width as f64 || v >= pin.height as f64 {
+                continue;
+            }
+            in_view = true;
+            let o = pin.camera_to_world.translation;
+            let dist = (p - o).length();
+            let d = (p - o) / dist;
+            match snap.cast(o, d, dist + 0.5) {
+                Some(hit) if hit.instance != agent.instance && hit.t < dist - 0.05 => {}
+                _ => unoccluded = true,
+            }
+        }
+        seen += in_view as u32;
+        visible += (in_view && unoccluded) as u32;
+    }
+    let frac = if seen == 0 { 0.0 } else { visible as f64 / seen as f64 };
+    match frac {
+        f if f < 0.4 => "1",
+        f if f < 0.6 => "2",
+        f if f < 0.8 => "3",
+        _ => "4",
+    }
+}
+
+/// The drivable area as an 8-bit PNG over x, y >= 0 (row 0 at the largest y).
+fn map_mask(world: &World) -> Result<Vec<u8>> {
+    // Extent of the street, with room for the sidewalks.
+    let (mut max_x, mut max_y) = (0.0f64, 0.0f64);
+    let len = world.path.length();
+    let mut s = -200.0;
+    while s < len {
+        let (x, y, _) = world.path.at(s);
+        (max_x, max_y) = (max_x.max(x), max_y.max(y));
+        s += 2.0;
+    }
+    let (w, h) = (((max_x + 40.0) / MAP_RESOLUTION) as usize, ((max_y + 40.0) / MAP_RESOLUTION) as usize);
+    // Coarse blocks first (2 m), so only blocks near the road test every pixel.
+    let block = 20;
+    let mut px = vec![0u8; w * h];
+    px.par_chunks_mut(w * block).enumerate().for_each(|(bj, rows)| {
+        let nrows = rows.len() / w;
+        for bi in 0..w.div_ceil(block) {
+            let cx = ((bi * block) as f64 + block as f64 / 2.0) * MAP_RESOLUTION;
+            let cy = ((h - bj * block) as f64 - block as f64 / 2.0) * MAP_RESOLUTION;
+            let near = world.path.station(cx, cy).is_some_and(|(_, d)| d.abs() < ROAD_HALF_WIDTH + 2.0);
+            if !near {
+                continue;
+            }
+            for r in 0..nrows {
+                let y = (h - (bj * block + r)) as f64 * MAP_RESOLUTION - MAP_RESOLUTION / 2.0;
+                for col in bi * block..((bi + 1) * block).min(w) {
+                    let x = (col as f64 + 0.5) * MAP_RESOLUTION;
+                    if world.path.station(x, y).is_some_and(|(_, d)| d.abs() <= ROAD_HALF_WIDTH) {
+                        rows[r * w + col] = 255;
+                    }
+                }
+            }
+        }
+    });
+    let mut out = std::io::Cursor::new(Vec::new());
+    image::GrayImage::from_raw(w as u32, h as u32, px).context("map size")?.write_to(&mut out, image::ImageFormat::Png)?;
+    Ok(out.into_inner())
+}
+
+/// `YYYY-MM-DD` of a Unix timestamp in microseconds.
+pub(super) fn date_of(us: i64) -> String {
+    let days = us.div_euclid(86_400_000_000);
+    // Civil-from-days (Howard Hinnant).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + (m <= 2) as i64;
+    format!("{y:04}-{m:02}-{d:02}")
+}
