@@ -342,7 +342,17 @@ fn run(cli: Cli) -> Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
-        Command::Synth { out, seed, scenes, keyframes, width, height, camera_sweeps, no_lidar_sweeps, no_ground_truth } => {
+        Command::Synth {
+            out,
+            seed,
+            scenes,
+            keyframes,
+            width,
+            height,
+            camera_sweeps,
+            no_lidar_sweeps,
+            no_ground_truth,
+        } => {
             let config = dist4d_stages::synth::SynthConfig {
                 seed,
                 scenes,

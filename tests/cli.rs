@@ -20,16 +20,6 @@ fn run_args<'a>(root: &'a str, cache: &'a str, out: &'a str) -> Vec<&'a str> {
         .collect()
 }
 
-/// Reads an NPY float32 (N, 3) file written by EncodePoints.
-fn read_npy_rows(path: &Path) -> Vec<[f32; 3]> {
-    let b = std::fs::read(path).unwrap();
-    let hlen = u16::from_le_bytes([b[8], b[9]]) as usize;
-    b[10 + hlen..]
-        .chunks_exact(12)
-        .map(|c| [0, 4, 8].map(|o| f32::from_le_bytes(c[o..o + 4].try_into().unwrap())))
-        .collect()
-}
-
 #[test]
 fn projected_point_counts_equal_the_nuscenes_devkit() {
     let Some(data) = shared_nuscenes() else { return };

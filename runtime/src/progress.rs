@@ -70,9 +70,11 @@ fn bars(c: &Counters, stop: &AtomicBool) {
     let style = ProgressStyle::with_template(&format!(
         "{{prefix:>{width}}} [{{bar:30}}] {{pos}}/{{len}} {{rate}} ETA {{eta}} {{msg}}"
     ))
-    .map(|s| s.with_key("rate", |st: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
-        let _ = write!(w, "{:.1}/s", st.per_sec());
-    }))
+    .map(|s| {
+        s.with_key("rate", |st: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+            let _ = write!(w, "{:.1}/s", st.per_sec());
+        })
+    })
     .unwrap_or_else(|_| ProgressStyle::default_bar())
     .progress_chars("=> ");
     let bars: Vec<ProgressBar> = c
@@ -168,10 +170,7 @@ mod tests {
             StageCount { name: "encode", done: 12, total: 120, failed: 2 },
         ];
         let line = progress_line(Duration::from_secs(12), &stages, &[10, 2], 10.0);
-        assert_eq!(
-            line,
-            "progress [12s]: project 40/120 (3.0/s, ETA 27s); encode 12/120 (1.0/s, ETA 108s, 2 failed)"
-        );
+        assert_eq!(line, "progress [12s]: project 40/120 (3.0/s, ETA 27s); encode 12/120 (1.0/s, ETA 108s, 2 failed)");
     }
 
     #[test]

@@ -168,3 +168,13 @@ pub fn executed(run: &Value) -> std::collections::BTreeMap<String, u64> {
         .map(|s| (s["stage"].as_str().unwrap().to_string(), s["executed"].as_u64().unwrap()))
         .collect()
 }
+
+/// Reads an NPY float32 (N, 3) file written by EncodePoints.
+pub fn read_npy_rows(path: &Path) -> Vec<[f32; 3]> {
+    let b = std::fs::read(path).unwrap();
+    let hlen = u16::from_le_bytes([b[8], b[9]]) as usize;
+    b[10 + hlen..]
+        .chunks_exact(12)
+        .map(|c| [0, 4, 8].map(|o| f32::from_le_bytes(c[o..o + 4].try_into().unwrap())))
+        .collect()
+}

@@ -4,10 +4,10 @@
 //!
 //! Everything is a pure function of [`SynthConfig`]: the same config gives byte-identical files.
 
+pub mod render;
 pub mod rng;
 pub mod shapes;
 pub mod world;
-pub mod render;
 mod writer;
 
 pub use render::{CameraImage, LidarModel, LidarSweep, PinholeCamera, Snapshot};
@@ -160,18 +160,12 @@ impl RigSensor {
 /// evaluation compares against. Rebuilt from the dataset's `groundtruth/synth.json`.
 pub struct Renderer {
     pub config: SynthConfig,
-    worlds: Vec<(World, shapes::Grid)>,
+    worlds: Vec<World>,
 }
 
 impl Renderer {
     pub fn new(config: SynthConfig) -> Renderer {
-        let worlds = (0..config.scenes)
-            .map(|i| {
-                let w = config.world(i);
-                let g = render::static_grid(&w);
-                (w, g)
-            })
-            .collect();
+        let worlds = (0..config.scenes).map(|i| config.world(i)).collect();
         Renderer { config, worlds }
     }
 
@@ -193,14 +187,14 @@ impl Renderer {
     }
 
     pub fn world(&self, scene: u32) -> Option<&World> {
-        self.worlds.get(scene as usize).map(|w| &w.0)
+        self.worlds.get(scene as usize)
     }
 
     /// RGB, depth and semantics of `camera` in scene `scene` at `t` seconds from its start
     /// (timestamps: `(timestamp_us - scene_start_us) / 1e6`, see [`writer::scene_start_us`]).
     pub fn render(&self, scene: u32, t: f64, camera: &PinholeCamera) -> Result<CameraImage> {
-        let (w, g) = self.worlds.get(scene as usize).with_context(|| format!("no scene {scene}"))?;
-        Ok(Snapshot::new(w, g, t).render(camera))
+        let w = self.worlds.get(scene as usize).with_context(|| format!("no scene {scene}"))?;
+        Ok(Snapshot::new(w, t).render(camera))
     }
 
     /// Like [`Renderer::render`] with a nuScenes timestamp (microseconds).

@@ -11,11 +11,11 @@ use rayon::prelude::*;
 /// Camera rays go no further than this; the ground beyond is shown as sky (a haze horizon).
 pub const MAX_CAMERA_RANGE: f64 = 1000.0;
 
-/// The world frozen at one time.
+/// The world frozen at one time: static and moving primitives binned in one grid, so a ray
+/// walks the cells once.
 pub struct Snapshot<'w> {
     world: &'w World,
-    statics: &'w Grid,
-    dynamic: Grid,
+    grid: Grid,
 }
 
 /// What a ray met, resolved to what the sensors need.
@@ -54,28 +54,19 @@ pub struct PinholeCamera {
     pub camera_to_world: Se3,
 }
 
-/// Static primitives binned once per world; snapshots add the agents.
-pub fn static_grid(world: &World) -> Grid {
-    Grid::build(world.statics.clone(), 4.0)
-}
-
 impl<'w> Snapshot<'w> {
     /// The world at `t` seconds from the scene start.
-    pub fn new(world: &'w World, statics: &'w Grid, t: f64) -> Snapshot<'w> {
-        Snapshot { world, statics, dynamic: Grid::build(world.dynamic_prims(t), 4.0) }
+    pub fn new(world: &'w World, t: f64) -> Snapshot<'w> {
+        let mut prims = world.statics.clone();
+        prims.extend(world.dynamic_prims(t));
+        Snapshot { world, grid: Grid::build(prims, 4.0) }
     }
 
     pub fn cast(&self, o: DVec3, d: DVec3, t_max: f64) -> Option<SurfaceHit> {
         let t_ground = if d.z < 0.0 && o.z > 0.0 { -o.z / d.z } else { f64::INFINITY };
         let limit = t_max.min(t_ground);
-        let mut best: Option<(f64, DVec3, &Prim)> = None;
-        if let Some((t, n, k)) = self.statics.cast(o, d, 1e-6, limit) {
-            best = Some((t, n, &self.statics.prims[k as usize]));
-        }
-        if let Some((t, n, k)) = self.dynamic.cast(o, d, 1e-6, best.map_or(limit, |b| b.0)) {
-            best = Some((t, n, &self.dynamic.prims[k as usize]));
-        }
-        if let Some((t, n, p)) = best {
+        if let Some((t, n, k)) = self.grid.cast(o, d, 1e-6, limit) {
+            let p: &Prim = &self.grid.prims[k as usize];
             let normal = if n.dot(d) > 0.0 { -n } else { n };
             return Some(SurfaceHit {
                 t,
@@ -114,11 +105,8 @@ impl<'w> Snapshot<'w> {
         let r = cam.camera_to_world.matrix();
         let o = cam.camera_to_world.translation;
         let k = cam.k;
-        rgb.par_chunks_mut(w * 3)
-            .zip(depth.par_chunks_mut(w))
-            .zip(semantic.par_chunks_mut(w))
-            .enumerate()
-            .for_each(|(row, ((rgb, depth), semantic))| {
+        rgb.par_chunks_mut(w * 3).zip(depth.par_chunks_mut(w)).zip(semantic.par_chunks_mut(w)).enumerate().for_each(
+            |(row, ((rgb, depth), semantic))| {
                 let y = (row as f64 + 0.5 - k[1][2]) / k[1][1];
                 for col in 0..w {
                     let x = (col as f64 + 0.5 - k[0][2] - k[0][1] * y) / k[0][0];
@@ -133,7 +121,8 @@ impl<'w> Snapshot<'w> {
                     depth[col] = z;
                     semantic[col] = s;
                 }
-            });
+            },
+        );
         CameraImage { width: cam.width, height: cam.height, rgb, depth, semantic }
     }
 }
@@ -146,8 +135,8 @@ fn lane_marking(s: f64, d: f64) -> bool {
 
 /// Smooth value noise in [0, 1] on a 2D lattice of unit spacing.
 fn value_noise(x: f64, y: f64, seed: u64) -> f32 {
-    let (fx, fy) = (x.floor(), y.floor());
-    let (ix, iy) = (fx as i64, fy as i64);
+    let (ix, iy) = (fast_floor(x), fast_floor(y));
+    let (fx, fy) = (ix as f64, iy as f64);
     let (tx, ty) = (x - fx, y - fy);
     let (sx, sy) = (tx * tx * (3.0 - 2.0 * tx), ty * ty * (3.0 - 2.0 * ty));
     let h = |i: i64, j: i64| {
@@ -158,6 +147,17 @@ fn value_noise(x: f64, y: f64, seed: u64) -> f32 {
     let a = h(ix, iy) + (h(ix + 1, iy) - h(ix, iy)) * sx;
     let b = h(ix, iy + 1) + (h(ix + 1, iy + 1) - h(ix, iy + 1)) * sx;
     (a + (b - a) * sy) as f32
+}
+
+/// `floor` without the libm call it compiles to on baseline x86-64 (no SSE4.1).
+#[inline]
+fn fast_floor(x: f64) -> i64 {
+    let i = x as i64;
+    if (i as f64) > x {
+        i - 1
+    } else {
+        i
+    }
 }
 
 /// Texture coordinates on a surface: ground plane for horizontal faces, (along, up) for walls.
@@ -347,7 +347,8 @@ impl Snapshot<'_> {
                 ([p.x as f32, p.y as f32, p.z as f32, intensity as f32, beam as f32], class, instance)
             })
             .collect();
-        let mut sweep = LidarSweep { points: Vec::with_capacity(n), class: Vec::with_capacity(n), instance: Vec::with_capacity(n) };
+        let mut sweep =
+            LidarSweep { points: Vec::with_capacity(n), class: Vec::with_capacity(n), instance: Vec::with_capacity(n) };
         for (p, c, i) in rows {
             sweep.points.push(p);
             sweep.class.push(c);

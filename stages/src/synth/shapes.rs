@@ -10,10 +10,24 @@ use glam::DVec3;
 #[derive(Clone, Copy, Debug)]
 pub enum Shape {
     /// A box rotated about z only: centre, half extents (along its own x, y, z), cos/sin of yaw.
-    Box { c: DVec3, half: [f64; 3], cos: f64, sin: f64 },
+    Box {
+        c: DVec3,
+        half: [f64; 3],
+        cos: f64,
+        sin: f64,
+    },
     /// A vertical cylinder with flat caps.
-    Cylinder { x: f64, y: f64, r: f64, z0: f64, z1: f64 },
-    Sphere { c: DVec3, r: f64 },
+    Cylinder {
+        x: f64,
+        y: f64,
+        r: f64,
+        z0: f64,
+        z1: f64,
+    },
+    Sphere {
+        c: DVec3,
+        r: f64,
+    },
 }
 
 impl Shape {
@@ -36,6 +50,26 @@ impl Shape {
                 vec![(lo.x, lo.y), (hi.x, lo.y), (hi.x, hi.y), (lo.x, hi.y)]
             }
         }
+    }
+
+    /// Whether the footprint meets the axis-aligned rectangle (separating axes for boxes; the
+    /// bounding square, conservatively, for round shapes).
+    pub fn overlaps_rect(&self, x0: f64, y0: f64, x1: f64, y1: f64) -> bool {
+        let (lo, hi) = self.bounds();
+        if hi.x < x0 || lo.x > x1 || hi.y < y0 || lo.y > y1 {
+            return false;
+        }
+        let Shape::Box { c, half, cos, sin } = *self else { return true };
+        // The rectangle's corners projected on the box's own axes.
+        let corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)];
+        for (ax, ay, h) in [(cos, sin, half[0]), (-sin, cos, half[1])] {
+            let proj = corners.map(|(x, y)| (x - c.x) * ax + (y - c.y) * ay);
+            let (mn, mx) = proj.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+            if mn > h || mx < -h {
+                return false;
+            }
+        }
+        true
     }
 
     /// Axis-aligned bounds.
@@ -170,6 +204,8 @@ pub struct Grid {
     ny: usize,
     start: Vec<u32>,
     items: Vec<u32>,
+    /// Height range of each item, beside it, so a ray passing above or below skips it unread.
+    item_z: Vec<[f32; 2]>,
     top: Vec<f64>,
     z_max: f64,
 }
@@ -193,13 +229,21 @@ impl Grid {
             let i1 = (((b - o) / cell).floor().max(0.0) as usize).min(n - 1);
             i0..=i1
         };
+        // Long rotated boxes (sidewalks of a whole straight) touch far fewer cells than their
+        // bounding rectangle: bin them by exact footprint overlap.
+        let touches = |p: &Prim, i: usize, j: usize| {
+            let (cx0, cy0) = (lo.x + i as f64 * cell, lo.y + j as f64 * cell);
+            p.shape.overlaps_rect(cx0, cy0, cx0 + cell, cy0 + cell)
+        };
         let mut count = vec![0u32; nx * ny + 1];
         let mut top = vec![f64::NEG_INFINITY; nx * ny];
-        for (a, b) in &bounds {
+        for (p, (a, b)) in prims.iter().zip(&bounds) {
             for j in cell_range(a.y, b.y, lo.y, ny) {
                 for i in cell_range(a.x, b.x, lo.x, nx) {
-                    count[j * nx + i + 1] += 1;
-                    top[j * nx + i] = top[j * nx + i].max(b.z);
+                    if touches(p, i, j) {
+                        count[j * nx + i + 1] += 1;
+                        top[j * nx + i] = top[j * nx + i].max(b.z);
+                    }
                 }
             }
         }
@@ -209,16 +253,22 @@ impl Grid {
         let start = count.clone();
         let mut fill = count;
         let mut items = vec![0u32; *start.last().unwrap_or(&0) as usize];
+        let mut item_z = vec![[0f32; 2]; items.len()];
         for (p, (a, b)) in bounds.iter().enumerate() {
             for j in cell_range(a.y, b.y, lo.y, ny) {
                 for i in cell_range(a.x, b.x, lo.x, nx) {
+                    if !touches(&prims[p], i, j) {
+                        continue;
+                    }
                     let c = j * nx + i;
                     items[fill[c] as usize] = p as u32;
+                    // Rounded outward so the test stays conservative.
+                    item_z[fill[c] as usize] = [(a.z as f32).next_down(), (b.z as f32).next_up()];
                     fill[c] += 1;
                 }
             }
         }
-        Grid { prims, origin: [lo.x, lo.y], cell, nx, ny, start, items, top, z_max: hi.z }
+        Grid { prims, origin: [lo.x, lo.y], cell, nx, ny, start, items, item_z, top, z_max: hi.z }
     }
 
     /// Nearest primitive hit with t in (t_min, t_max).
@@ -258,23 +308,34 @@ impl Grid {
         let step_x: isize = if d.x >= 0.0 { 1 } else { -1 };
         let step_y: isize = if d.y >= 0.0 { 1 } else { -1 };
         let next_bound = |k: isize, step: isize, origin: f64| origin + (k + (step > 0) as isize) as f64 * self.cell;
-        let mut t_next_x =
-            if d.x.abs() < 1e-15 { f64::INFINITY } else { (next_bound(i, step_x, x0) - o.x) / d.x };
-        let mut t_next_y =
-            if d.y.abs() < 1e-15 { f64::INFINITY } else { (next_bound(j, step_y, y0) - o.y) / d.y };
+        let mut t_next_x = if d.x.abs() < 1e-15 { f64::INFINITY } else { (next_bound(i, step_x, x0) - o.x) / d.x };
+        let mut t_next_y = if d.y.abs() < 1e-15 { f64::INFINITY } else { (next_bound(j, step_y, y0) - o.y) / d.y };
         let dt_x = if d.x.abs() < 1e-15 { f64::INFINITY } else { self.cell / d.x.abs() };
         let dt_y = if d.y.abs() < 1e-15 { f64::INFINITY } else { self.cell / d.y.abs() };
         let mut best: Option<(f64, DVec3, u32)> = None;
         let mut t_cell = ta;
+        // Primitives spanning several cells are tested once per ray (a small recent-ids box).
+        let mut tested = [u32::MAX; 16];
+        let mut next_slot = 0;
         loop {
             let t_exit = t_next_x.min(t_next_y).min(tb);
             let c = j as usize * self.nx + i as usize;
             // The ray's lowest height inside this cell; skip cells whose contents are all below.
-            let z_low = (o.z + d.z * t_cell).min(o.z + d.z * t_exit);
+            let (za, zb) = (o.z + d.z * t_cell, o.z + d.z * t_exit);
+            let (z_low, z_high) = (za.min(zb), za.max(zb));
             if z_low <= self.top[c] {
                 let limit = best.map_or(tb, |b| b.0);
-                for &k in &self.items[self.start[c] as usize..self.start[c + 1] as usize] {
-                    if let Some((t, n)) = self.prims[k as usize].shape.intersect(o, d, t_min, best.map_or(limit, |b| b.0)) {
+                let (zl, zh) = (z_low as f32, z_high as f32);
+                let range = self.start[c] as usize..self.start[c + 1] as usize;
+                for (&k, z) in self.items[range.clone()].iter().zip(&self.item_z[range]) {
+                    if zl > z[1] || zh < z[0] || tested.contains(&k) {
+                        continue;
+                    }
+                    tested[next_slot] = k;
+                    next_slot = (next_slot + 1) % tested.len();
+                    if let Some((t, n)) =
+                        self.prims[k as usize].shape.intersect(o, d, t_min, best.map_or(limit, |b| b.0))
+                    {
                         best = Some((t, n, k));
                     }
                 }
@@ -346,7 +407,11 @@ mod tests {
         for _ in 0..300 {
             let c = DVec3::new(rng.range(-50.0, 50.0), rng.range(-50.0, 50.0), rng.range(0.0, 5.0));
             let shape = match rng.below(3) {
-                0 => Shape::oriented_box(c, [rng.range(0.2, 3.0), rng.range(0.2, 3.0), rng.range(0.2, 3.0)], rng.range(0.0, 6.0)),
+                0 => Shape::oriented_box(
+                    c,
+                    [rng.range(0.2, 3.0), rng.range(0.2, 3.0), rng.range(0.2, 3.0)],
+                    rng.range(0.0, 6.0),
+                ),
                 1 => Shape::Cylinder { x: c.x, y: c.y, r: rng.range(0.1, 1.0), z0: 0.0, z1: rng.range(1.0, 8.0) },
                 _ => Shape::Sphere { c, r: rng.range(0.2, 2.0) },
             };

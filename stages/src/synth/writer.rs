@@ -5,7 +5,7 @@
 //! The dataset is written into a hidden sibling folder and renamed into place at the end, so a
 //! killed run never leaves something that looks like a finished dataset.
 
-use super::render::{static_grid, PinholeCamera, Snapshot};
+use super::render::{PinholeCamera, Snapshot};
 use super::world::{class, AgentKind, World, ROAD_HALF_WIDTH};
 use super::{SynthConfig, CAMERA_RIG, GENERATOR_VERSION, GROUND_TRUTH_DIR, LIDAR_TOP};
 use crate::artifact::DepthMap;
@@ -153,7 +153,12 @@ pub fn write_dataset(config: &SynthConfig, root: &Path, log: &(dyn Fn(&str) + Sy
             bail!("{} exists and is not a dist4d synthetic dataset; choose another folder", root.display());
         }
     }
-    anyhow::ensure!(config.width >= 16 && config.height >= 16, "image size {}x{} is too small", config.width, config.height);
+    anyhow::ensure!(
+        config.width >= 16 && config.height >= 16,
+        "image size {}x{} is too small",
+        config.width,
+        config.height
+    );
     anyhow::ensure!(config.keyframes >= 1 && config.scenes >= 1, "need at least one scene and one keyframe");
     let start = std::time::Instant::now();
     let name = root.file_name().context("the output folder needs a name")?.to_string_lossy().to_string();
@@ -175,7 +180,8 @@ pub fn write_dataset(config: &SynthConfig, root: &Path, log: &(dyn Fn(&str) + Sy
     std::fs::create_dir_all(&version_dir)?;
     for (table, rows) in &tables.rows {
         let path = version_dir.join(format!("{table}.json"));
-        std::fs::write(&path, serde_json::to_vec_pretty(rows)?).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(&path, serde_json::to_vec_pretty(rows)?)
+            .with_context(|| format!("writing {}", path.display()))?;
     }
     let gt = partial.join(GROUND_TRUTH_DIR);
     std::fs::create_dir_all(&gt)?;
@@ -216,7 +222,10 @@ fn global_tables(t: &mut Tables) {
         );
     }
     for name in ATTRIBUTES {
-        t.push("attribute", json!({"token": global_token(&format!("attribute/{name}")), "name": name, "description": ""}));
+        t.push(
+            "attribute",
+            json!({"token": global_token(&format!("attribute/{name}")), "name": name, "description": ""}),
+        );
     }
     for (i, level) in ["v0-40", "v40-60", "v60-80", "v80-100"].iter().enumerate() {
         t.push(
@@ -229,7 +238,18 @@ fn global_tables(t: &mut Tables) {
         let modality = if s.channel.starts_with("CAM") { "camera" } else { "lidar" };
         t.push("sensor", json!({"token": global_token(&format!("sensor/{}", s.channel)), "channel": s.channel, "modality": modality}));
     }
-    for name in ["sample", "sample_data", "ego_pose", "calibrated_sensor", "instance", "sample_annotation", "scene", "log", "map", "lidarseg"] {
+    for name in [
+        "sample",
+        "sample_data",
+        "ego_pose",
+        "calibrated_sensor",
+        "instance",
+        "sample_annotation",
+        "scene",
+        "log",
+        "map",
+        "lidarseg",
+    ] {
         t.rows.entry(name).or_default();
     }
 }
@@ -255,7 +275,6 @@ fn camera_offset_us(rig: &super::RigSensor) -> i64 {
 fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, summary: &mut Summary) -> Result<()> {
     let seed = config.scene_seed(scene);
     let world = config.world(scene);
-    let grid = static_grid(&world);
     let t0 = scene_start_us(scene);
     let k = config.keyframes as i64;
     let hour = t0.div_euclid(3_600_000_000).rem_euclid(24);
@@ -319,7 +338,7 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
         .par_iter()
         .enumerate()
         .map(|(i, r)| -> Result<Option<(Vec<u8>, Vec<u32>)>> {
-            let snap = Snapshot::new(&world, &grid, secs(r.timestamp));
+            let snap = Snapshot::new(&world, secs(r.timestamp));
             let sensor_to_world = ego(r.timestamp).then_from(&lidar_to_ego);
             let sweep = snap.scan(&config.lidar, &sensor_to_world, &lidar_to_ego, seed ^ ((i as u64) << 20));
             let mut bytes = Vec::with_capacity(sweep.points.len() * 20);
@@ -341,7 +360,7 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
         cameras.iter().enumerate().flat_map(|(c, v)| v.iter().map(move |r| (c, r))).collect();
     jobs.par_iter().try_for_each(|&(c, r)| -> Result<()> {
         let cam = pinhole(config, c, &ego(r.timestamp));
-        let image = Snapshot::new(&world, &grid, secs(r.timestamp)).render(&cam);
+        let image = Snapshot::new(&world, secs(r.timestamp)).render(&cam);
         let path = root.join(&r.filename);
         let mut jpeg = Vec::new();
         image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, config.jpeg_quality)
@@ -356,11 +375,10 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
             std::fs::write(dir.join(format!("{stem}.exr")), depth_exr(&depth)?)?;
             let dir = gt.join("semantic").join(r.channel);
             std::fs::create_dir_all(&dir)?;
-            let mut png = std::io::Cursor::new(Vec::new());
-            image::GrayImage::from_raw(image.width, image.height, image.semantic)
-                .context("semantic image size")?
-                .write_to(&mut png, image::ImageFormat::Png)?;
-            std::fs::write(dir.join(format!("{stem}.png")), png.into_inner())?;
+            std::fs::write(
+                dir.join(format!("{stem}.png")),
+                fast_png_gray(&image.semantic, image.width, image.height)?,
+            )?;
         }
         Ok(())
     })?;
@@ -399,11 +417,7 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
                "date_captured": date_of(t0), "location": "dist4d-synthetic"}),
     );
     for s in CAMERA_RIG.iter().chain([&LIDAR_TOP]) {
-        let intrinsic: Value = if s.focal > 0.0 {
-            json!(s.intrinsics(config.width, config.height))
-        } else {
-            json!([])
-        };
+        let intrinsic: Value = if s.focal > 0.0 { json!(s.intrinsics(config.width, config.height)) } else { json!([]) };
         t.push(
             "calibrated_sensor",
             json!({
@@ -466,7 +480,9 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
     for agent in &world.agents {
         let in_range = |kf: usize| {
             let ts = t0 + kf as i64 * KEYFRAME_US;
-            agent.state(&world.path, secs(ts)).is_some_and(|(c, _, _)| (c - ego(ts).translation).truncate().length() <= ANNOTATION_RANGE)
+            agent
+                .state(&world.path, secs(ts))
+                .is_some_and(|(c, _, _)| (c - ego(ts).translation).truncate().length() <= ANNOTATION_RANGE)
         };
         let Some(first) = (0..k as usize).find(|&i| in_range(i)) else { continue };
         let last = (0..k as usize).rev().find(|&i| in_range(i)).unwrap_or(first);
@@ -481,8 +497,9 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
         for kf in first..=last {
             let ts = t0 + kf as i64 * KEYFRAME_US;
             let Some((centre, yaw, _)) = agent.state(&world.path, secs(ts)) else { continue };
-            let lidar_pts = keyframe_labels.get(kf).map_or(0, |(_, inst)| inst.iter().filter(|&&i| i == agent.instance).count());
-            let vis = visibility(config, &world, &grid, agent, secs(ts), &key_cams, kf, &ego);
+            let lidar_pts =
+                keyframe_labels.get(kf).map_or(0, |(_, inst)| inst.iter().filter(|&&i| i == agent.instance).count());
+            let vis = visibility(config, &world, agent, secs(ts), &key_cams, kf, &ego);
             let [l, w, h] = agent.size;
             t.push(
                 "sample_annotation",
@@ -520,7 +537,10 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
     let map_file = format!("maps/{map_token}.png");
     std::fs::create_dir_all(root.join("maps"))?;
     std::fs::write(root.join(&map_file), map_mask(&world)?)?;
-    t.push("map", json!({"token": map_token, "log_tokens": [log_token], "category": "semantic_prior", "filename": map_file}));
+    t.push(
+        "map",
+        json!({"token": map_token, "log_tokens": [log_token], "category": "semantic_prior", "filename": map_file}),
+    );
 
     summary.samples += k as usize;
     summary.lidar_sweeps += lidar.len();
@@ -545,7 +565,6 @@ fn pinhole(config: &SynthConfig, camera: usize, ego_to_world: &Se3) -> PinholeCa
 fn visibility(
     config: &SynthConfig,
     world: &World,
-    grid: &super::shapes::Grid,
     agent: &super::world::Agent,
     t: f64,
     key_cams: &[Vec<&Reading>],
@@ -553,10 +572,19 @@ fn visibility(
     ego: &dyn Fn(i64) -> Se3,
 ) -> &'static str {
     let Some((c, yaw, _)) = agent.state(&world.path, t) else { return "1" };
-    let snap = Snapshot::new(world, grid, t);
+    let snap = Snapshot::new(world, t);
     let [l, w, h] = agent.size;
     let mut samples = vec![c];
-    for (a, b, z) in [(1.0, 1.0, 1.0), (1.0, -1.0, 1.0), (-1.0, 1.0, 1.0), (-1.0, -1.0, 1.0), (1.0, 1.0, -1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, -1.0)] {
+    for (a, b, z) in [
+        (1.0, 1.0, 1.0),
+        (1.0, -1.0, 1.0),
+        (-1.0, 1.0, 1.0),
+        (-1.0, -1.0, 1.0),
+        (1.0, 1.0, -1.0),
+        (1.0, -1.0, -1.0),
+        (-1.0, 1.0, -1.0),
+        (-1.0, -1.0, -1.0),
+    ] {
         let local = DVec3::new(a * l * 0.35, b * w * 0.35, z * h * 0.35);
         samples.push(c + Se3::from_yaw(yaw, DVec3::ZERO).apply(local));
     }
@@ -631,9 +659,19 @@ fn map_mask(world: &World) -> Result<Vec<u8>> {
             }
         }
     });
-    let mut out = std::io::Cursor::new(Vec::new());
-    image::GrayImage::from_raw(w as u32, h as u32, px).context("map size")?.write_to(&mut out, image::ImageFormat::Png)?;
-    Ok(out.into_inner())
+    fast_png_gray(&px, w as u32, h as u32)
+}
+
+/// An 8-bit grey PNG with fast compression: label images and masks are flat regions that
+/// compress well even so, and the default level costs several times more.
+fn fast_png_gray(px: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+    use image::ImageEncoder;
+    let mut out = Vec::new();
+    PngEncoder::new_with_quality(&mut out, CompressionType::Fast, FilterType::Sub)
+        .write_image(px, width, height, image::ExtendedColorType::L8)
+        .context("encoding PNG")?;
+    Ok(out)
 }
 
 /// `YYYY-MM-DD` of a Unix timestamp in microseconds.
