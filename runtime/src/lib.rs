@@ -16,7 +16,7 @@ pub mod runs;
 pub mod segment;
 pub mod store;
 
-pub use digest::Digest;
+pub use digest::{Digest, DigestBuilder};
 pub use exec::{Engine, RunOptions, RunSummary};
 pub use item::{ItemKey, ItemSpace};
 pub use operator::{Artifact, Blob, Dataset, FileDigests, Operator, TaskContext};

@@ -50,26 +50,143 @@ fn put_f32s(out: &mut Vec<u8>, xs: &[f32]) {
     }
 }
 
-/// Points with xyz and intensity, in the frame of the sensor that measured them.
+/// Points with xyz and intensity, in the frame of the sensor that measured them, with optional
+/// per-point semantic labels (nuScenes-lidarseg indices) when the dataset has them.
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct PointCloud {
     /// x, y, z, intensity per point.
     pub points: Vec<[f32; 4]>,
+    /// One label per point, or empty.
+    pub labels: Vec<u8>,
 }
 
 impl Artifact for PointCloud {
     const TYPE: &'static str = "PointCloud";
     fn encode(&self) -> Vec<u8> {
-        let mut out = b"PCL1".to_vec();
+        let mut out = b"PCL2".to_vec();
         out.extend_from_slice(&(self.points.len() as u32).to_le_bytes());
         put_f32s(&mut out, self.points.as_flattened());
+        out.push(!self.labels.is_empty() as u8);
+        out.extend_from_slice(&self.labels);
         out
     }
     fn decode(bytes: &[u8]) -> Result<Self> {
-        let mut r = Reader::new(bytes, b"PCL1", Self::TYPE)?;
+        let mut r = Reader::new(bytes, b"PCL2", Self::TYPE)?;
         let n = r.u32()? as usize;
         let flat = r.f32s(n * 4)?;
-        Ok(PointCloud { points: flat.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect() })
+        let labels = if r.take(1)?[0] != 0 { r.take(n)?.to_vec() } else { Vec::new() };
+        Ok(PointCloud { points: flat.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect(), labels })
+    }
+}
+
+/// An RGB8 image, row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Image {
+    pub width: u32,
+    pub height: u32,
+    pub rgb: Vec<u8>,
+}
+
+impl Artifact for Image {
+    const TYPE: &'static str = "Image";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"IMG1".to_vec();
+        out.extend_from_slice(&self.width.to_le_bytes());
+        out.extend_from_slice(&self.height.to_le_bytes());
+        out.extend_from_slice(&self.rgb);
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"IMG1", Self::TYPE)?;
+        let (width, height) = (r.u32()?, r.u32()?);
+        let rgb = r.take((width as usize * height as usize).checked_mul(3).context("size overflow")?)?.to_vec();
+        Ok(Image { width, height, rgb })
+    }
+}
+
+/// One annotated 3D box, in the world frame (like nuScenes `sample_annotation`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Box3D {
+    pub center: [f64; 3],
+    /// Width, length, height (nuScenes order), metres.
+    pub size: [f64; 3],
+    /// `[w, x, y, z]`, box to world.
+    pub rotation: [f64; 4],
+    /// World-frame velocity, m/s; NaN components when unknown (a track of one annotation).
+    pub velocity: [f64; 3],
+    /// The track this box belongs to (nuScenes instance token, DGP instance id).
+    pub instance: String,
+    /// Category name in the dataset's own taxonomy (`vehicle.car`, `Car`).
+    pub category: String,
+    pub attributes: Vec<String>,
+    /// LiDAR points inside, as annotated (0 when interpolated or unknown).
+    pub num_lidar_pts: u32,
+    /// Whether the box was interpolated between two annotations (sweeps).
+    pub interpolated: bool,
+}
+
+impl Box3D {
+    /// Moving by attribute (`*.moving`), or faster than `min_speed` m/s.
+    pub fn is_moving(&self, min_speed: f64) -> bool {
+        self.attributes.iter().any(|a| a.ends_with(".moving")) || self.velocity[0].hypot(self.velocity[1]) > min_speed
+    }
+}
+
+/// The annotated boxes of one frame.
+#[derive(Clone, Debug, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct Boxes3D {
+    pub timestamp_us: i64,
+    pub boxes: Vec<Box3D>,
+}
+
+impl Artifact for Boxes3D {
+    const TYPE: &'static str = "Boxes3D";
+    fn encode(&self) -> Vec<u8> {
+        // JSON: boxes are few and small, and NaN velocities are written as null.
+        let mut out = b"BOX1".to_vec();
+        out.extend_from_slice(&serde_json::to_vec(&BoxesOnDisk::from(self)).unwrap_or_default());
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let r = Reader::new(bytes, b"BOX1", Self::TYPE)?;
+        let on_disk: BoxesOnDisk = serde_json::from_slice(r.0).context("Boxes3D artifact is malformed")?;
+        Ok(on_disk.into())
+    }
+}
+
+/// `Boxes3D` with NaN as `None`, since JSON has no NaN.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct BoxesOnDisk {
+    timestamp_us: i64,
+    boxes: Vec<(Box3D, [Option<f64>; 3])>,
+}
+
+impl From<&Boxes3D> for BoxesOnDisk {
+    fn from(b: &Boxes3D) -> Self {
+        BoxesOnDisk {
+            timestamp_us: b.timestamp_us,
+            boxes: b
+                .boxes
+                .iter()
+                .map(|x| {
+                    let v = x.velocity.map(|c| c.is_finite().then_some(c));
+                    (Box3D { velocity: [0.0; 3], ..x.clone() }, v)
+                })
+                .collect(),
+        }
+    }
+}
+
+impl From<BoxesOnDisk> for Boxes3D {
+    fn from(b: BoxesOnDisk) -> Self {
+        Boxes3D {
+            timestamp_us: b.timestamp_us,
+            boxes: b
+                .boxes
+                .into_iter()
+                .map(|(x, v)| Box3D { velocity: v.map(|c| c.unwrap_or(f64::NAN)), ..x })
+                .collect(),
+        }
     }
 }
 
@@ -215,8 +332,28 @@ mod tests {
 
     #[test]
     fn artifacts_round_trip_and_reject_bad_bytes() {
-        let pc = PointCloud { points: vec![[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]] };
+        let pc = PointCloud { points: vec![[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]], labels: vec![] };
         assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
+        let pc = PointCloud { labels: vec![24, 17], ..pc };
+        assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
+        let img = Image { width: 2, height: 1, rgb: vec![1, 2, 3, 4, 5, 6] };
+        assert_eq!(Image::decode(&img.encode()).unwrap(), img);
+        assert!(Image::decode(&img.encode()[..12]).is_err());
+        let b = Box3D {
+            center: [1.0, 2.0, 3.0],
+            size: [2.0, 4.5, 1.6],
+            rotation: [1.0, 0.0, 0.0, 0.0],
+            velocity: [f64::NAN, f64::NAN, f64::NAN],
+            instance: "i".into(),
+            category: "vehicle.car".into(),
+            attributes: vec!["vehicle.moving".into()],
+            num_lidar_pts: 3,
+            interpolated: false,
+        };
+        let boxes = Boxes3D { timestamp_us: 7, boxes: vec![b.clone(), Box3D { velocity: [1.0, 0.0, 0.0], ..b }] };
+        let back = Boxes3D::decode(&boxes.encode()).unwrap();
+        assert!(back.boxes[0].velocity[0].is_nan() && back.boxes[1].velocity == [1.0, 0.0, 0.0]);
+        assert!(back.boxes[0].is_moving(10.0) && back.boxes[1].center == [1.0, 2.0, 3.0]);
         let d = DepthMap { width: 2, height: 1, data: vec![0.0, 3.5] };
         assert_eq!(DepthMap::decode(&d.encode()).unwrap(), d);
         let c = Calibration {

@@ -2,6 +2,7 @@
 //! with its params, ports and a plain function that does the work.
 
 pub mod artifact;
+pub mod files;
 pub mod geometry;
 pub mod nuscenes;
 pub mod stage;
@@ -39,10 +40,14 @@ impl Registry {
     /// Opens the dataset a pipeline names.
     pub fn open_dataset(&self, p: &Pipeline) -> Result<Box<dyn Dataset>> {
         match p.dataset.kind.as_str() {
-            "NuScenes" => Ok(Box::new(
-                nuscenes::NuScenes::open(parse_canonical(&p.dataset.config)?)
-                    .context("opening the NuScenes dataset")?,
-            )),
+            "NuScenes" => {
+                let ds = nuscenes::NuScenes::open(parse_canonical(&p.dataset.config)?)
+                    .context("opening the NuScenes dataset")?;
+                for w in &ds.warnings {
+                    eprintln!("warning: {w}");
+                }
+                Ok(Box::new(ds))
+            }
             other => Err(anyhow!("unknown dataset kind {other}")),
         }
     }

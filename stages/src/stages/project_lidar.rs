@@ -139,6 +139,7 @@ mod tests {
                 [2.0, 0.0, 5.0, 0.0],  // u = 9: outside the 1 px border (u < 9 required)
                 [0.0, 0.0, -3.0, 0.0], // behind
             ],
+            labels: vec![],
         };
         let (d, uvz) = project(&Params::default(), &pts, &lidar, &pose, &cam, &pose).unwrap();
         assert_eq!(uvz.rows, vec![[5.0, 5.0, 4.0], [5.0, 5.0, 2.0]]);

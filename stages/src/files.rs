@@ -1,0 +1,148 @@
+//! Sensor file formats shared by the dataset readers: JPEG images and NumPy `.npy` / `.npz`.
+
+use crate::artifact::Image;
+use anyhow::{bail, ensure, Context, Result};
+use std::path::Path;
+
+/// Decodes a JPEG (or any image the `image` crate reads) to RGB8.
+pub fn read_jpeg(path: &Path) -> Result<Image> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let img = image::load_from_memory(&bytes).with_context(|| format!("{} is not a readable image", path.display()))?;
+    let rgb = img.into_rgb8();
+    Ok(Image { width: rgb.width(), height: rgb.height(), rgb: rgb.into_raw() })
+}
+
+/// A numeric array from an `.npy` file: shape and values as f64.
+#[derive(Debug, PartialEq)]
+pub struct NpyArray {
+    pub shape: Vec<usize>,
+    pub data: Vec<f64>,
+}
+
+/// Parses NPY v1/v2/v3 bytes of little-endian `<f4` or `<f8`, C order.
+pub fn parse_npy(bytes: &[u8]) -> Result<NpyArray> {
+    ensure!(bytes.len() >= 10 && &bytes[..6] == b"\x93NUMPY", "not an NPY array");
+    let (hlen, start) = match bytes[6] {
+        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
+        2 | 3 => {
+            ensure!(bytes.len() >= 12, "NPY header is truncated");
+            (u32::from_le_bytes(bytes[8..12].try_into()?) as usize, 12)
+        }
+        v => bail!("NPY version {v} is not supported"),
+    };
+    let header = std::str::from_utf8(bytes.get(start..start + hlen).context("NPY header is truncated")?)?;
+    let field = |name: &str| -> Result<&str> {
+        let i = header.find(&format!("'{name}'")).with_context(|| format!("NPY header lacks '{name}'"))?;
+        Ok(header[i + name.len() + 2..].trim_start().trim_start_matches(':').trim_start())
+    };
+    let descr = field("descr")?;
+    let width = if descr.starts_with("'<f8'") {
+        8
+    } else if descr.starts_with("'<f4'") {
+        4
+    } else {
+        bail!("NPY dtype {} is not supported (need <f4 or <f8)", descr.split(',').next().unwrap_or(""))
+    };
+    ensure!(field("fortran_order")?.starts_with("False"), "Fortran-ordered NPY arrays are not supported");
+    let shape_text = field("shape")?;
+    let shape_text = &shape_text[1..shape_text.find(')').context("NPY shape is malformed")?];
+    let shape: Vec<usize> = shape_text
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| s.parse::<usize>().with_context(|| format!("NPY shape entry `{s}`")))
+        .collect::<Result<_>>()?;
+    let n: usize = shape.iter().product();
+    let body = &bytes[start + hlen..];
+    ensure!(body.len() >= n * width, "NPY data is truncated: {} bytes for {n} values", body.len());
+    let data = if width == 8 {
+        body.chunks_exact(8).take(n).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect()
+    } else {
+        body.chunks_exact(4).take(n).map(|c| f32::from_le_bytes(c.try_into().unwrap()) as f64).collect()
+    };
+    Ok(NpyArray { shape, data })
+}
+
+/// Reads array `key` (e.g. `data`) from an `.npz` (a zip of `.npy` files, stored or deflated).
+pub fn read_npz(path: &Path, key: &str) -> Result<NpyArray> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let member = zip_member(&bytes, &format!("{key}.npy"))
+        .with_context(|| format!("{} is not a readable .npz", path.display()))?;
+    parse_npy(&member).with_context(|| format!("{}: array `{key}`", path.display()))
+}
+
+/// One member of a zip archive, found through the central directory.
+fn zip_member(zip: &[u8], name: &str) -> Result<Vec<u8>> {
+    let u16at = |i: usize| -> Result<usize> {
+        Ok(u16::from_le_bytes(zip.get(i..i + 2).context("zip is truncated")?.try_into()?) as usize)
+    };
+    let u32at = |i: usize| -> Result<usize> {
+        Ok(u32::from_le_bytes(zip.get(i..i + 4).context("zip is truncated")?.try_into()?) as usize)
+    };
+    // End of central directory: the last "PK\x05\x06" (a comment of up to 64 KiB may follow).
+    let eocd = (0..zip.len().saturating_sub(21))
+        .rev()
+        .take(65_558)
+        .find(|&i| zip[i..i + 4] == *b"PK\x05\x06")
+        .context("no zip end record")?;
+    let (entries, mut at) = (u16at(eocd + 10)?, u32at(eocd + 16)?);
+    for _ in 0..entries {
+        ensure!(zip.get(at..at + 4) == Some(b"PK\x01\x02"), "zip central directory is malformed");
+        let (method, csize, size) = (u16at(at + 10)?, u32at(at + 20)?, u32at(at + 24)?);
+        let (nlen, xlen, clen, local) = (u16at(at + 28)?, u16at(at + 30)?, u16at(at + 32)?, u32at(at + 42)?);
+        let entry = zip.get(at + 46..at + 46 + nlen).context("zip is truncated")?;
+        if entry == name.as_bytes() {
+            ensure!(zip.get(local..local + 4) == Some(b"PK\x03\x04"), "zip local header is malformed");
+            let data_at = local + 30 + u16at(local + 26)? + u16at(local + 28)?;
+            let raw = zip.get(data_at..data_at + csize).context("zip member is truncated")?;
+            return match method {
+                0 => Ok(raw.to_vec()),
+                8 => {
+                    let out = miniz_oxide::inflate::decompress_to_vec_with_limit(raw, size.max(1))
+                        .map_err(|e| anyhow::anyhow!("inflating {name}: {e:?}"))?;
+                    ensure!(out.len() == size, "{name}: inflated {} bytes, expected {size}", out.len());
+                    Ok(out)
+                }
+                m => bail!("{name}: zip compression method {m} is not supported"),
+            };
+        }
+        at += 46 + nlen + xlen + clen;
+    }
+    bail!("no member {name}")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn npy_headers_are_parsed_and_bad_ones_rejected() {
+        let mut b = b"\x93NUMPY\x01\x00".to_vec();
+        let header = "{'descr': '<f4', 'fortran_order': False, 'shape': (2, 2), }";
+        b.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        b.extend_from_slice(header.as_bytes());
+        for x in [1.0f32, 2.0, 3.0, 4.5] {
+            b.extend_from_slice(&x.to_le_bytes());
+        }
+        assert_eq!(parse_npy(&b).unwrap(), NpyArray { shape: vec![2, 2], data: vec![1.0, 2.0, 3.0, 4.5] });
+        assert!(parse_npy(&b[..b.len() - 2]).unwrap_err().to_string().contains("truncated"));
+        assert!(parse_npy(&b"\x93NUMPY\x01\x00\x05\x00{'a'}"[..]).is_err());
+    }
+
+    #[test]
+    fn reads_the_shared_dgp_npz() {
+        let dir =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/dgp-scene02/scene_02/point_cloud/LIDAR");
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            eprintln!("SKIPPED: shared DGP data not found at {}", dir.display());
+            return;
+        };
+        let mut files: Vec<_> = entries.map(|e| e.unwrap().path()).collect();
+        files.sort();
+        let a = read_npz(&files[0], "data").unwrap();
+        assert_eq!(a.shape.len(), 2);
+        assert_eq!(a.shape[1], 4);
+        assert!((40_000..48_000).contains(&a.shape[0]), "{:?}", a.shape);
+        assert!(read_npz(&files[0], "nope").is_err());
+    }
+}
