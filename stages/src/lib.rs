@@ -2,6 +2,7 @@
 //! with its params, ports and a plain function that does the work.
 
 pub mod artifact;
+pub mod dgp;
 pub mod files;
 pub mod geometry;
 pub mod nuscenes;
@@ -21,6 +22,7 @@ use stage::{parse_canonical, StageDef};
 pub struct Registry {
     stages: Vec<StageDef>,
     nuscenes: nuscenes::NuScenesSchema,
+    dgp: dgp::DgpSchema,
 }
 
 impl Default for Registry {
@@ -28,6 +30,7 @@ impl Default for Registry {
         Registry {
             stages: vec![stages::project_lidar::def(), stages::encode::encode_depth(), stages::encode::encode_points()],
             nuscenes: nuscenes::NuScenesSchema::default(),
+            dgp: dgp::DgpSchema::default(),
         }
     }
 }
@@ -47,6 +50,9 @@ impl Registry {
                     eprintln!("warning: {w}");
                 }
                 Ok(Box::new(ds))
+            }
+            "Dgp" => {
+                Ok(Box::new(dgp::Dgp::open(parse_canonical(&p.dataset.config)?).context("opening the DGP dataset")?))
             }
             other => Err(anyhow!("unknown dataset kind {other}")),
         }
@@ -79,10 +85,14 @@ impl Catalog for Registry {
         self.stages.iter().map(|s| s.kind).collect()
     }
     fn dataset(&self, kind: &str) -> Option<&dyn DatasetSchema> {
-        (kind == "NuScenes").then_some(&self.nuscenes as &dyn DatasetSchema)
+        match kind {
+            "NuScenes" => Some(&self.nuscenes),
+            "Dgp" => Some(&self.dgp),
+            _ => None,
+        }
     }
     fn dataset_kinds(&self) -> Vec<&'static str> {
-        vec!["NuScenes"]
+        vec!["NuScenes", "Dgp"]
     }
     fn exportable(&self, ty: &str) -> bool {
         ty == artifact::File::TYPE

@@ -654,12 +654,12 @@ impl Default for NuScenesSchema {
     }
 }
 
-const DIMS: [DimSpec; 3] = [
+pub(crate) const DIMS: [DimSpec; 3] = [
     DimSpec { name: "scene", ordered: false },
     DimSpec { name: "frame", ordered: true },
     DimSpec { name: "camera", ordered: false },
 ];
-const PORTS: [SourcePortSpec; 7] = [
+pub(crate) const PORTS: [SourcePortSpec; 7] = [
     SourcePortSpec {
         name: "lidar",
         ty: "PointCloud",

@@ -1,0 +1,500 @@
+//! TRI DGP reader (the DDAD format): scene dataset JSON -> scenes -> samples -> cameras.
+//!
+//! Gives the same items and artifact types as the nuScenes reader, so every pipeline runs on
+//! either. DGP stores each datum's pose as sensor -> world and the calibration as sensor ->
+//! vehicle; the ego pose of a datum is therefore `pose * extrinsics^-1`. Timestamps come from the
+//! file names (100 ns units; the ISO fields of the test data are not meaningful). Boxes are
+//! annotated in the LiDAR frame and returned in the world frame.
+
+use crate::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
+use crate::files::{read_jpeg, read_npz};
+use crate::geometry::Se3;
+use anyhow::{anyhow, bail, ensure, Context, Result};
+use dist4d_graph::{DatasetSchema, DimSpec, ParamsSpec, SourcePortSpec};
+use dist4d_runtime::{Dataset, Digest, FileDigests, ItemKey, ItemSpace};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+#[derive(Serialize, Deserialize, Clone, Debug)]
+#[serde(deny_unknown_fields, default)]
+pub struct DgpConfig {
+    /// The folder holding `scene_dataset*.json`.
+    pub root: String,
+    /// `train`, `val` or `test` (DGP split ids 0, 1, 2).
+    pub split: String,
+    /// Camera datum names, in item order (DDAD's six by default).
+    pub cameras: Vec<String>,
+    /// LiDAR datum name.
+    pub lidar: String,
+}
+
+impl Default for DgpConfig {
+    fn default() -> Self {
+        DgpConfig {
+            root: String::new(),
+            split: "train".into(),
+            cameras: ["CAMERA_01", "CAMERA_05", "CAMERA_06", "CAMERA_07", "CAMERA_08", "CAMERA_09"]
+                .map(String::from)
+                .to_vec(),
+            lidar: "LIDAR".into(),
+        }
+    }
+}
+
+/// One datum of a sample, resolved.
+#[derive(Clone, Debug)]
+struct Datum {
+    key: String,
+    file: PathBuf,
+    calib: Calibration,
+    pose: Pose,
+    /// LiDAR only: the 3D box annotation file.
+    boxes: Option<PathBuf>,
+}
+
+struct Frame {
+    lidar: Result<Datum, String>,
+    cameras: Vec<Result<Datum, String>>,
+}
+
+struct Scene {
+    name: String,
+    frames: Vec<Frame>,
+    ontology: HashMap<i64, String>,
+}
+
+pub struct Dgp {
+    pub config: DgpConfig,
+    scenes: Vec<Scene>,
+}
+
+fn read_json(path: &Path) -> Result<Value> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_slice(&bytes).with_context(|| format!("{} is not valid JSON", path.display()))
+}
+
+/// A field of a JSON object, or an error naming the file, the object and the field.
+fn field<'a>(v: &'a Value, name: &str, file: &Path, what: &str) -> Result<&'a Value> {
+    v.get(name).ok_or_else(|| anyhow!("{}: {what} has no field `{name}`", file.display()))
+}
+
+fn num(v: &Value, name: &str, file: &Path, what: &str) -> Result<f64> {
+    field(v, name, file, what)?
+        .as_f64()
+        .ok_or_else(|| anyhow!("{}: {what}: field `{name}` is not a number", file.display()))
+}
+
+/// A DGP pose `{rotation: {qw, qx, qy, qz}, translation: {x, y, z}}`.
+fn pose(v: &Value, file: &Path, what: &str) -> Result<Se3> {
+    let r = field(v, "rotation", file, what)?;
+    let t = field(v, "translation", file, what)?;
+    let what_r = format!("{what} rotation");
+    let what_t = format!("{what} translation");
+    Ok(Se3::from_wxyz_t(
+        [
+            num(r, "qw", file, &what_r)?,
+            num(r, "qx", file, &what_r)?,
+            num(r, "qy", file, &what_r)?,
+            num(r, "qz", file, &what_r)?,
+        ],
+        [num(t, "x", file, &what_t)?, num(t, "y", file, &what_t)?, num(t, "z", file, &what_t)?],
+    ))
+}
+
+/// Microseconds from a DGP file name in 100 ns units (`15616458250027900.npz`).
+fn timestamp_of(filename: &str) -> Option<i64> {
+    Path::new(filename).file_stem()?.to_str()?.parse::<i64>().ok().map(|t| t / 10)
+}
+
+impl Dgp {
+    pub fn open(config: DgpConfig) -> Result<Dgp> {
+        let root = PathBuf::from(&config.root);
+        let index = std::fs::read_dir(&root)
+            .with_context(|| format!("reading the DGP root {} (dataset.root)", root.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .find(|p| {
+                p.file_name()
+                    .and_then(|n| n.to_str())
+                    .is_some_and(|n| n.starts_with("scene_dataset") && n.ends_with(".json"))
+            })
+            .ok_or_else(|| anyhow!("{} has no scene_dataset*.json", root.display()))?;
+        let split = match config.split.as_str() {
+            "train" => "0",
+            "val" => "1",
+            "test" => "2",
+            other => bail!("dataset.split is {other:?}; DGP splits are train, val, test"),
+        };
+        let dataset = read_json(&index)?;
+        let files = field(&dataset, "scene_splits", &index, "the scene dataset")?
+            .get(split)
+            .and_then(|s| s.get("filenames"))
+            .and_then(|f| f.as_array())
+            .ok_or_else(|| anyhow!("{}: split {} ({split}) lists no scene files", index.display(), config.split))?;
+        let mut scenes = Vec::new();
+        for f in files {
+            let rel = f.as_str().ok_or_else(|| anyhow!("{}: a scene file name is not a string", index.display()))?;
+            scenes.push(Self::scene(&config, &root.join(rel))?);
+        }
+        Ok(Dgp { config, scenes })
+    }
+
+    fn scene(config: &DgpConfig, path: &Path) -> Result<Scene> {
+        let dir = path.parent().unwrap_or(Path::new("."));
+        let scene = read_json(path)?;
+        let name = dir.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+        let mut datums: HashMap<&str, &Value> = HashMap::new();
+        for d in field(&scene, "data", path, "the scene")?.as_array().context("`data` is not a list")? {
+            let key = d
+                .get("key")
+                .and_then(|k| k.as_str())
+                .ok_or_else(|| anyhow!("{}: a datum has no `key`", path.display()))?;
+            datums.insert(key, d);
+        }
+        // Ontology of the 3D boxes (annotation type 1).
+        let mut ontology = HashMap::new();
+        if let Some(key) = scene.get("ontologies").and_then(|o| o.get("1")).and_then(|k| k.as_str()) {
+            let file = dir.join("ontology").join(format!("{key}.json"));
+            let o = read_json(&file)?;
+            for item in o.get("items").and_then(|i| i.as_array()).into_iter().flatten() {
+                if let (Some(id), Some(n)) =
+                    (item.get("id").and_then(|i| i.as_i64()), item.get("name").and_then(|n| n.as_str()))
+                {
+                    ontology.insert(id, n.to_string());
+                }
+            }
+        }
+        let mut calibrations: HashMap<String, (Value, PathBuf)> = HashMap::new();
+        let mut frames = Vec::new();
+        let samples = field(&scene, "samples", path, "the scene")?.as_array().context("`samples` is not a list")?;
+        for (i, sample) in samples.iter().enumerate() {
+            let what = format!("sample {i}");
+            let calib_key = field(sample, "calibration_key", path, &what)?.as_str().unwrap_or("").to_string();
+            if !calibrations.contains_key(&calib_key) {
+                let file = dir.join("calibration").join(format!("{calib_key}.json"));
+                calibrations.insert(calib_key.clone(), (read_json(&file)?, file));
+            }
+            let (calib, calib_file) = &calibrations[&calib_key];
+            let keys: Vec<&str> = field(sample, "datum_keys", path, &what)?
+                .as_array()
+                .map(|a| a.iter().filter_map(|k| k.as_str()).collect())
+                .unwrap_or_default();
+            let resolve = |sensor: &str| -> Result<Datum, String> {
+                let d = keys
+                    .iter()
+                    .filter_map(|k| datums.get(k))
+                    .find(|d| d.pointer("/id/name").and_then(|n| n.as_str()) == Some(sensor))
+                    .ok_or_else(|| format!("{}: sample {i} has no datum named {sensor}", path.display()))?;
+                datum(d, sensor, dir, calib, calib_file, path).map_err(|e| format!("{e:#}"))
+            };
+            frames.push(Frame {
+                lidar: resolve(&config.lidar),
+                cameras: config.cameras.iter().map(|c| resolve(c)).collect(),
+            });
+        }
+        Ok(Scene { name, frames, ontology })
+    }
+
+    fn datum(&self, port: &str, item: &ItemKey) -> Result<&Datum> {
+        let frame = self
+            .scenes
+            .get(item.idx[0] as usize)
+            .and_then(|s| s.frames.get(item.idx[1] as usize))
+            .ok_or_else(|| anyhow!("no frame {:?}", item))?;
+        let d = match port {
+            "lidar" | "lidar_calib" | "lidar_pose" | "boxes" => &frame.lidar,
+            _ => frame.cameras.get(item.idx[2] as usize).ok_or_else(|| anyhow!("no camera {:?}", item))?,
+        };
+        d.as_ref().map_err(|e| anyhow!("{e}"))
+    }
+
+    /// Boxes of a LiDAR datum in the world frame, with velocities from the neighbouring samples'
+    /// boxes of the same instance (centre difference, like the nuScenes devkit).
+    fn boxes(&self, item: &ItemKey) -> Result<Boxes3D> {
+        let scene = &self.scenes[item.idx[0] as usize];
+        let f = item.idx[1] as usize;
+        let read = |frame: usize| -> Result<Option<(i64, Vec<Box3D>)>> {
+            let Some(Ok(d)) = scene.frames.get(frame).map(|fr| &fr.lidar) else { return Ok(None) };
+            let Some(file) = &d.boxes else { return Ok(Some((d.pose.timestamp_us, Vec::new()))) };
+            let sensor_to_world = d.pose.ego_to_world.then_from(&d.calib.sensor_to_ego);
+            Ok(Some((d.pose.timestamp_us, read_boxes(file, &sensor_to_world, &scene.ontology)?)))
+        };
+        let (t, mut boxes) = read(f)?.ok_or_else(|| anyhow!("frame {f} has no LiDAR datum"))?;
+        let prev = if f > 0 { read(f - 1)? } else { None };
+        let next = read(f + 1)?;
+        for b in &mut boxes {
+            let find = |n: &Option<(i64, Vec<Box3D>)>| {
+                n.as_ref().and_then(|(t, v)| v.iter().find(|x| x.instance == b.instance).map(|x| (*t, x.center)))
+            };
+            let (p, n) = (find(&prev), find(&next));
+            if p.is_none() && n.is_none() {
+                continue;
+            }
+            let (t0, c0) = p.unwrap_or((t, b.center));
+            let (t1, c1) = n.unwrap_or((t, b.center));
+            let dt = (t1 - t0) as f64 * 1e-6;
+            if dt > 0.0 {
+                b.velocity = [0, 1, 2].map(|i| (c1[i] - c0[i]) / dt);
+            }
+        }
+        Ok(Boxes3D { timestamp_us: t, boxes })
+    }
+}
+
+fn datum(d: &Value, sensor: &str, dir: &Path, calib: &Value, calib_file: &Path, scene_file: &Path) -> Result<Datum> {
+    let key = d.get("key").and_then(|k| k.as_str()).unwrap_or("?").to_string();
+    let what = format!("datum {key} ({sensor})");
+    let body = d
+        .pointer("/datum/image")
+        .or_else(|| d.pointer("/datum/point_cloud"))
+        .ok_or_else(|| anyhow!("{}: {what} is neither an image nor a point cloud", scene_file.display()))?;
+    let filename = field(body, "filename", scene_file, &what)?.as_str().unwrap_or("");
+    let timestamp = timestamp_of(filename)
+        .ok_or_else(|| anyhow!("{}: {what}: file name {filename} is not a timestamp", scene_file.display()))?;
+    let sensor_to_world = pose(field(body, "pose", scene_file, &what)?, scene_file, &what)?;
+    let names = calib.get("names").and_then(|n| n.as_array()).context("calibration has no `names`")?;
+    let idx = names
+        .iter()
+        .position(|n| n.as_str() == Some(sensor))
+        .ok_or_else(|| anyhow!("{}: no calibration for {sensor}", calib_file.display()))?;
+    let cwhat = format!("{sensor} calibration");
+    let ext = calib
+        .pointer(&format!("/extrinsics/{idx}"))
+        .ok_or_else(|| anyhow!("{}: {cwhat} has no extrinsics", calib_file.display()))?;
+    let sensor_to_ego = pose(ext, calib_file, &cwhat)?;
+    let intr = calib.pointer(&format!("/intrinsics/{idx}"));
+    let intrinsics = match intr {
+        Some(k) if num(k, "fx", calib_file, &cwhat)? > 0.0 => Some([
+            [
+                num(k, "fx", calib_file, &cwhat)?,
+                num(k, "skew", calib_file, &cwhat).unwrap_or(0.0),
+                num(k, "cx", calib_file, &cwhat)?,
+            ],
+            [0.0, num(k, "fy", calib_file, &cwhat)?, num(k, "cy", calib_file, &cwhat)?],
+            [0.0, 0.0, 1.0],
+        ]),
+        _ => None,
+    };
+    let dim = |n: &str| body.get(n).and_then(|v| v.as_u64()).unwrap_or(0) as u32;
+    Ok(Datum {
+        key,
+        file: dir.join(filename),
+        calib: Calibration { sensor_to_ego, intrinsics, width: dim("width"), height: dim("height") },
+        pose: Pose { ego_to_world: sensor_to_world.then_from(&sensor_to_ego.inverse()), timestamp_us: timestamp },
+        boxes: body.pointer("/annotations/1").and_then(|a| a.as_str()).map(|a| dir.join(a)),
+    })
+}
+
+/// A `bounding_box_3d` file, boxes moved from the sensor frame to the world.
+fn read_boxes(file: &Path, sensor_to_world: &Se3, ontology: &HashMap<i64, String>) -> Result<Vec<Box3D>> {
+    let v = read_json(file)?;
+    let list = field(&v, "annotations", file, "the box file")?.as_array().context("`annotations` is not a list")?;
+    list.iter()
+        .enumerate()
+        .map(|(i, a)| {
+            let what = format!("annotation {i}");
+            let b = field(a, "box", file, &what)?;
+            let local = pose(field(b, "pose", file, &what)?, file, &what)?;
+            let world = sensor_to_world.then_from(&local);
+            let class = field(a, "class_id", file, &what)?.as_i64().unwrap_or(-1);
+            Ok(Box3D {
+                center: world.translation.to_array(),
+                size: [num(b, "width", file, &what)?, num(b, "length", file, &what)?, num(b, "height", file, &what)?],
+                rotation: world.wxyz(),
+                velocity: [f64::NAN; 3],
+                instance: field(a, "instance_id", file, &what)?.to_string(),
+                category: ontology.get(&class).cloned().unwrap_or_else(|| format!("class {class}")),
+                attributes: Vec::new(),
+                num_lidar_pts: a.get("num_points").and_then(|n| n.as_u64()).unwrap_or(0) as u32,
+                interpolated: false,
+            })
+        })
+        .collect()
+}
+
+/// A DGP point cloud (`.npz`, key `data`, X, Y, Z, INTENSITY as float64) in the sensor frame.
+pub fn read_dgp_points(path: &Path) -> Result<PointCloud> {
+    let a = read_npz(path, "data")?;
+    ensure!(
+        a.shape.len() == 2 && a.shape[1] >= 3,
+        "{}: array `data` has shape {:?}, expected (N, 4)",
+        path.display(),
+        a.shape
+    );
+    let cols = a.shape[1];
+    Ok(PointCloud {
+        points: a
+            .data
+            .chunks_exact(cols)
+            .map(|r| [r[0] as f32, r[1] as f32, r[2] as f32, if cols > 3 { r[3] as f32 } else { 0.0 }])
+            .collect(),
+        labels: Vec::new(),
+    })
+}
+
+impl ItemSpace for Dgp {
+    fn count(&self, prefix: &ItemKey) -> u32 {
+        match prefix.depth {
+            0 => self.scenes.len() as u32,
+            1 => self.scenes.get(prefix.idx[0] as usize).map_or(0, |s| s.frames.len() as u32),
+            2 => self.config.cameras.len() as u32,
+            _ => 0,
+        }
+    }
+
+    fn label(&self, item: &ItemKey) -> String {
+        let i = item.idx[item.depth as usize - 1] as usize;
+        match item.depth {
+            1 => self.scenes.get(i).map_or_else(|| format!("scene{i}"), |s| s.name.clone()),
+            2 => format!("{i:03}"),
+            _ => self.config.cameras.get(i).cloned().unwrap_or_else(|| format!("camera{i}")),
+        }
+    }
+}
+
+impl Dataset for Dgp {
+    fn source_digest(&self, port: &str, item: &ItemKey, files: &dyn FileDigests) -> Result<Option<Digest>> {
+        Ok(match port {
+            "lidar" | "image" => {
+                let d = self.datum(port, item)?;
+                files.file_digest(&d.file).with_context(|| format!("datum {}", d.key))?
+            }
+            _ => Some(Digest::of(&self.load_source(port, item)?)),
+        })
+    }
+
+    fn load_source(&self, port: &str, item: &ItemKey) -> Result<Vec<u8>> {
+        let d = self.datum(port, item)?;
+        Ok(match port {
+            "lidar" => read_dgp_points(&d.file).with_context(|| format!("datum {}", d.key))?.encode(),
+            "image" => read_jpeg(&d.file).with_context(|| format!("datum {}", d.key))?.encode(),
+            "boxes" => self.boxes(item)?.encode(),
+            "lidar_calib" | "camera_calib" => d.calib.encode(),
+            "lidar_pose" | "camera_pose" => d.pose.encode(),
+            other => bail!("DGP has no source port `{other}`"),
+        })
+    }
+}
+
+pub struct DgpSchema {
+    config: ParamsSpec,
+}
+
+impl Default for DgpSchema {
+    fn default() -> Self {
+        DgpSchema { config: ParamsSpec::of::<DgpConfig>() }
+    }
+}
+
+impl DatasetSchema for DgpSchema {
+    fn kind(&self) -> &'static str {
+        "Dgp"
+    }
+    fn summary(&self) -> &'static str {
+        "TRI DGP scenes (DDAD): samples, six cameras, LiDAR, 3D boxes"
+    }
+    fn dims(&self) -> &[DimSpec] {
+        &crate::nuscenes::DIMS
+    }
+    fn ports(&self) -> &[SourcePortSpec] {
+        &crate::nuscenes::PORTS
+    }
+    fn config(&self) -> &ParamsSpec {
+        &self.config
+    }
+    fn path_fields(&self) -> &[&'static str] {
+        &["root"]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stages::project_lidar::{project, Params};
+
+    fn shared_dgp() -> Option<PathBuf> {
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/dgp-scene02");
+        if p.is_dir() {
+            Some(p)
+        } else {
+            eprintln!("SKIPPED: shared DGP data not found at {}", p.display());
+            None
+        }
+    }
+
+    fn open() -> Option<Dgp> {
+        let root = shared_dgp()?;
+        Some(Dgp::open(DgpConfig { root: root.display().to_string(), ..Default::default() }).unwrap())
+    }
+
+    #[test]
+    fn reads_the_shared_scene() {
+        let Some(ds) = open() else { return };
+        assert_eq!(ds.count(&ItemKey::new(&[])), 1);
+        assert_eq!(ds.count(&ItemKey::new(&[0])), 3);
+        assert_eq!(ds.path(&ItemKey::new(&[0, 2, 5])), "scene_02/002/CAMERA_09");
+        let pc = PointCloud::decode(&ds.load_source("lidar", &ItemKey::new(&[0, 0])).unwrap()).unwrap();
+        assert!((40_000..48_000).contains(&pc.points.len()));
+        let cal = Calibration::decode(&ds.load_source("camera_calib", &ItemKey::new(&[0, 0, 0])).unwrap()).unwrap();
+        assert_eq!((cal.width, cal.height), (1936, 1216));
+        let img = crate::artifact::Image::decode(&ds.load_source("image", &ItemKey::new(&[0, 0, 0])).unwrap()).unwrap();
+        assert_eq!((img.width, img.height), (1936, 1216));
+        // 10 Hz samples: about 100 ms apart.
+        let t = |f| Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, f])).unwrap()).unwrap().timestamp_us;
+        assert!((95_000..105_000).contains(&(t(1) - t(0))), "{}", t(1) - t(0));
+        // Boxes come in the world frame, with velocities from the neighbouring samples.
+        let boxes = Boxes3D::decode(&ds.load_source("boxes", &ItemKey::new(&[0, 1])).unwrap()).unwrap();
+        assert!(!boxes.boxes.is_empty());
+        assert!(boxes.boxes.iter().any(|b| b.category == "Car"));
+        assert!(boxes.boxes.iter().filter(|b| b.velocity[0].is_finite()).count() > boxes.boxes.len() / 2);
+    }
+
+    /// LiDAR projected into CAMERA_01 (front): hand-checked against the image. The road ahead is
+    /// the nearest surface low in the image, the sky rows get nothing, and the depths in the
+    /// lower middle (road a few metres ahead) are short and grow towards the horizon.
+    #[test]
+    fn projected_lidar_lands_on_plausible_geometry_in_every_camera() {
+        let Some(ds) = open() else { return };
+        let lidar = PointCloud::decode(&ds.load_source("lidar", &ItemKey::new(&[0, 0])).unwrap()).unwrap();
+        let lidar_calib = Calibration::decode(&ds.load_source("lidar_calib", &ItemKey::new(&[0, 0])).unwrap()).unwrap();
+        let lidar_pose = Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, 0])).unwrap()).unwrap();
+        for c in 0..6u32 {
+            let item = ItemKey::new(&[0, 0, c]);
+            let cal = Calibration::decode(&ds.load_source("camera_calib", &item).unwrap()).unwrap();
+            let pose = Pose::decode(&ds.load_source("camera_pose", &item).unwrap()).unwrap();
+            let (depth, uvz) = project(&Params::default(), &lidar, &lidar_calib, &lidar_pose, &cal, &pose).unwrap();
+            let h = depth.height as f32;
+            // Every camera sees a few thousand points, all in front of it and within LiDAR range.
+            assert!(uvz.rows.len() > 2000, "camera {c}: {} points", uvz.rows.len());
+            assert!(uvz.rows.iter().all(|r| r[2] > 1.0 && r[2] < 250.0));
+            // The top fifth of the image (sky, tree tops) gets almost nothing.
+            let top = uvz.rows.iter().filter(|r| r[1] < h * 0.2).count();
+            assert!(top * 20 < uvz.rows.len(), "camera {c}: {top} of {} points in the top fifth", uvz.rows.len());
+            // Lower rows are nearer than rows close to the horizon (ground seen at growing range).
+            let median = |lo: f32, hi: f32| {
+                let mut z: Vec<f32> =
+                    uvz.rows.iter().filter(|r| r[1] >= lo * h && r[1] < hi * h).map(|r| r[2]).collect();
+                z.sort_by(f32::total_cmp);
+                z.get(z.len() / 2).copied().unwrap_or(f32::NAN)
+            };
+            let (low, mid) = (median(0.8, 1.0), median(0.5, 0.6));
+            assert!(low < mid, "camera {c}: bottom rows median {low} m, middle rows {mid} m");
+            if c == 0 {
+                // Front camera, checked by hand on an overlay of the points on the image: the
+                // road at the bottom centre is 6.5 m away, the road near the horizon 29 m, the
+                // trees and grass at the left and right edges 15-16 m.
+                let near = |u: f32, v: f32| {
+                    uvz.rows
+                        .iter()
+                        .min_by(|a, b| (a[0] - u).hypot(a[1] - v).total_cmp(&(b[0] - u).hypot(b[1] - v)))
+                        .unwrap()[2]
+                };
+                assert!((5.5..7.5).contains(&near(968.0, 1100.0)), "{}", near(968.0, 1100.0));
+                assert!((25.0..33.0).contains(&near(968.0, 700.0)), "{}", near(968.0, 700.0));
+                assert!((13.0..19.0).contains(&near(300.0, 800.0)), "{}", near(300.0, 800.0));
+                assert!((13.0..19.0).contains(&near(1600.0, 800.0)), "{}", near(1600.0, 800.0));
+            }
+        }
+    }
+}
