@@ -124,6 +124,24 @@ enum Command {
         #[arg(long)]
         no_ground_truth: bool,
     },
+    /// The built-in default: synthesize a small dataset (if not there yet) and run the shipped
+    /// pipeline on it, then say where everything is.
+    ///
+    /// Example: dist4d demo --dir demo
+    Demo {
+        /// Where the data, the pipeline, the cache and the outputs go.
+        #[arg(long, default_value = "demo")]
+        dir: PathBuf,
+        #[arg(long, default_value_t = 6)]
+        keyframes: u32,
+        #[arg(long, default_value_t = 800)]
+        width: u32,
+        #[arg(long, default_value_t = 450)]
+        height: u32,
+        /// Progress: auto, lines, off.
+        #[arg(long, default_value = "auto")]
+        progress: String,
+    },
     /// Remove cached records and blobs that the last N runs did not use.
     ///
     /// Needs the store alone (no run in progress). Example: dist4d gc --cache pipelines/.dist4d --keep-runs 3 --max-size 50G
@@ -196,6 +214,93 @@ fn synthesize(config: &dist4d_stages::synth::SynthConfig, out: &Path) -> Result<
     Ok(())
 }
 
+fn progress_mode(name: &str) -> ProgressMode {
+    match name {
+        "off" => ProgressMode::Off,
+        "lines" => ProgressMode::Lines(std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10)),
+        _ => ProgressMode::Auto,
+    }
+}
+
+/// Runs a loaded pipeline and prints the per-stage table; the exit code says how it ended.
+fn execute(registry: &Registry, pipeline: &Pipeline, cache: &Path, out_dir: &Path, opts: RunOptions) -> Result<ExitCode> {
+    let dataset = registry.open_dataset(pipeline)?;
+    let ops = registry.operators(pipeline)?;
+    let store = Store::open(cache, Access::Shared).with_context(|| format!("opening the store {}", cache.display()))?;
+    let cancel = opts.cancel.clone();
+    let _ = ctrlc::set_handler(move || {
+        if cancel.swap(true, Ordering::SeqCst) {
+            // Second Ctrl-C: leave now. Every file is written atomically, so nothing is half-written.
+            std::process::exit(130);
+        }
+        eprintln!("\nstopping: running tasks finish, nothing new starts (Ctrl-C again to quit at once)");
+    });
+    let engine = Engine { pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
+    let rec = engine.run(&opts)?.record;
+    println!(
+        "{:<16} {:<14} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
+        "stage", "kind", "total", "executed", "cached", "failed", "skipped", "seconds"
+    );
+    for s in &rec.stages {
+        println!(
+            "{:<16} {:<14} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.2}",
+            s.stage, s.kind, s.total, s.executed, s.cached, s.failed, s.skipped, s.seconds
+        );
+    }
+    for f in &rec.failures {
+        eprintln!("failed: {} {}: {}", f.stage, f.item, f.error);
+    }
+    println!(
+        "run {} {:?} in {:.2}s: {} executed, {} cached, {} failed; {} files in {}",
+        rec.id,
+        rec.status,
+        rec.seconds,
+        rec.executed(),
+        rec.cached(),
+        rec.failures.len(),
+        rec.exported,
+        out_dir.display()
+    );
+    Ok(match rec.status {
+        RunStatus::Complete => ExitCode::SUCCESS,
+        RunStatus::Interrupted => ExitCode::from(130),
+        RunStatus::Failed | RunStatus::Stopped => ExitCode::from(1),
+    })
+}
+
+/// The shipped pipeline the demo runs, built into the binary so the demo works from anywhere.
+const DEMO_PIPELINE: &str = include_str!("../pipelines/lidar_depth.ron");
+
+/// `dist4d demo`: synthesize a small dataset (once), write the pipeline beside it, run it.
+fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> Result<ExitCode> {
+    let data = dir.join("data/synth");
+    let config = dist4d_stages::synth::SynthConfig { keyframes, width, height, ..Default::default() };
+    synthesize(&config, &data)?;
+    let pipeline_file = dir.join("lidar_depth.ron");
+    let text = DEMO_PIPELINE.replace("root: \"../data/nuscenes\",", "root: \"data/synth\",");
+    anyhow::ensure!(text != DEMO_PIPELINE, "the shipped pipeline no longer names ../data/nuscenes; update the demo");
+    if std::fs::read_to_string(&pipeline_file).ok().as_deref() != Some(text.as_str()) {
+        std::fs::write(&pipeline_file, &text).with_context(|| format!("writing {}", pipeline_file.display()))?;
+    }
+    let registry = Registry::default();
+    let args = PipelineArgs { pipeline: pipeline_file.clone(), sets: vec![], cache: None, scenes: None, limit: None };
+    let pipeline = match load(&args, &registry)? {
+        Ok(p) => p,
+        Err(code) => return Ok(code),
+    };
+    let out_dir = dir.join("out");
+    let opts = RunOptions { out_dir: Some(out_dir.clone()), progress: progress_mode(progress), ..Default::default() };
+    let code = execute(&registry, &pipeline, &dir.join(".dist4d"), &out_dir, opts)?;
+    println!();
+    println!("demo outputs:");
+    println!("  synthetic nuScenes dataset   {}", data.display());
+    println!("  its ground truth             {}", data.join("groundtruth").display());
+    println!("  LiDAR depth per camera       {}", out_dir.display());
+    println!("  e.g. open                    {}", out_dir.join("synth-0000/CAM_FRONT/000_preview.png").display());
+    println!("  rerun or edit the pipeline   dist4d run {}", pipeline_file.display());
+    Ok(code)
+}
+
 fn beside(pipeline: &Path, rel: &str) -> PathBuf {
     pipeline.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).join(rel)
 }
@@ -255,11 +360,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 Ok(x) => x,
                 Err(code) => return Ok(code),
             };
-            let dataset = registry.open_dataset(&pipeline)?;
-            let ops = registry.operators(&pipeline)?;
             let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
-            let store = Store::open(&cache, Access::Shared)
-                .with_context(|| format!("opening the store {}", cache.display()))?;
             let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
             let mut opts = RunOptions {
                 fail_fast,
@@ -271,52 +372,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             if let Some(j) = jobs {
                 opts.jobs = j.max(1);
             }
-            opts.progress = match progress.as_str() {
-                "off" => ProgressMode::Off,
-                "lines" => ProgressMode::Lines(
-                    std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10),
-                ),
-                _ => ProgressMode::Auto,
-            };
-            let cancel = opts.cancel.clone();
-            let _ = ctrlc::set_handler(move || {
-                if cancel.swap(true, Ordering::SeqCst) {
-                    // Second Ctrl-C: leave now. Every file is written atomically, so nothing is half-written.
-                    std::process::exit(130);
-                }
-                eprintln!("\nstopping: running tasks finish, nothing new starts (Ctrl-C again to quit at once)");
-            });
-            let engine = Engine { pipeline: &pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
-            let rec = engine.run(&opts)?.record;
-            println!(
-                "{:<16} {:<14} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
-                "stage", "kind", "total", "executed", "cached", "failed", "skipped", "seconds"
-            );
-            for s in &rec.stages {
-                println!(
-                    "{:<16} {:<14} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.2}",
-                    s.stage, s.kind, s.total, s.executed, s.cached, s.failed, s.skipped, s.seconds
-                );
-            }
-            for f in &rec.failures {
-                eprintln!("failed: {} {}: {}", f.stage, f.item, f.error);
-            }
-            println!(
-                "run {} {:?} in {:.2}s: {} executed, {} cached, {} failed; {} files in {}",
-                rec.id,
-                rec.status,
-                rec.seconds,
-                rec.executed(),
-                rec.cached(),
-                rec.failures.len(),
-                rec.exported,
-                out_dir.display()
-            );
-            Ok(match rec.status {
-                RunStatus::Complete => ExitCode::SUCCESS,
-                RunStatus::Interrupted => ExitCode::from(130),
-                RunStatus::Failed | RunStatus::Stopped => ExitCode::from(1),
-            })
+            opts.progress = progress_mode(&progress);
+            execute(&registry, &pipeline, &cache, &out_dir, opts)
         }
         Command::Runs { cache, json } => {
             let runs = dist4d_runtime::runs::list_runs(&cache.join("runs"))?;
@@ -342,6 +399,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
+        Command::Demo { dir, keyframes, width, height, progress } => demo(&dir, keyframes, width, height, &progress),
         Command::Synth {
             out,
             seed,

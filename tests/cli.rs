@@ -299,3 +299,24 @@ fn ctrl_c_stops_cleanly_and_a_rerun_completes() {
     assert_eq!(full["status"], "complete");
     assert_eq!(tree(&s.base.join("out")), tree(&s.base.join("ref-out")));
 }
+
+#[test]
+fn the_same_pipeline_runs_on_dgp_data() {
+    let dgp = repo().join("../shared/data/dgp-scene02");
+    if !dgp.is_dir() {
+        eprintln!("SKIPPED: the shared DGP data is not at {} (CI always has it)", dgp.display());
+        return;
+    }
+    let tmp = tempfile::tempdir().unwrap();
+    // Only the dataset line differs: both readers give the same items and artifact types.
+    let text_in = std::fs::read_to_string(repo().join("pipelines/lidar_depth.ron")).unwrap();
+    let (start, end) = (text_in.find("dataset: NuScenes(").unwrap(), text_in.find("stages:").unwrap());
+    let file = tmp.path().join("dgp.ron");
+    std::fs::write(&file, format!("{}dataset: Dgp(root: {:?}),\n    {}", &text_in[..start], dgp.display().to_string(), &text_in[end..])).unwrap();
+    let out = tmp.path().join("out");
+    let o = dist4d(&["run", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("54 executed"), "3 samples x 6 cameras x 3 stages: {}", text(&o));
+    let front = read_npy_rows(&out.join("scene_02/CAMERA_01/001_uvz.npy"));
+    assert!(front.len() > 2000, "{}", front.len());
+}

@@ -266,3 +266,23 @@ print(json.dumps(dict(points=pc.points.shape[1], sweeps=len(set(np.round(times[0
     }
     assert_eq!(checked, 18);
 }
+
+#[test]
+fn demo_synthesizes_once_runs_the_shipped_pipeline_and_says_where_outputs_are() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path().join("demo");
+    let args = ["demo", "--dir", dir.to_str().unwrap(), "--keyframes", "2", "--width", "160", "--height", "90", "--progress", "off"];
+    let o = dist4d(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    let t = text(&o);
+    assert!(t.contains("36 executed"), "2 frames x 6 cameras x 3 stages: {t}");
+    assert!(t.contains(&dir.join("out/synth-0000/CAM_FRONT/000_preview.png").display().to_string()), "{t}");
+    assert!(dir.join("out/synth-0000/CAM_FRONT/000_preview.png").is_file());
+    // Second time: the dataset is reused and everything is cached.
+    let o = dist4d(&args);
+    let t = text(&o);
+    assert!(o.status.success() && t.contains("already there") && t.contains("0 executed, 36 cached"), "{t}");
+    // The pipeline written beside the data runs on its own.
+    let o = dist4d(&["run", dir.join("lidar_depth.ron").to_str().unwrap(), "--progress", "off"]);
+    assert!(o.status.success() && text(&o).contains("0 executed"), "{}", text(&o));
+}
