@@ -217,13 +217,21 @@ fn synthesize(config: &dist4d_stages::synth::SynthConfig, out: &Path) -> Result<
 fn progress_mode(name: &str) -> ProgressMode {
     match name {
         "off" => ProgressMode::Off,
-        "lines" => ProgressMode::Lines(std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10)),
+        "lines" => {
+            ProgressMode::Lines(std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10))
+        }
         _ => ProgressMode::Auto,
     }
 }
 
 /// Runs a loaded pipeline and prints the per-stage table; the exit code says how it ended.
-fn execute(registry: &Registry, pipeline: &Pipeline, cache: &Path, out_dir: &Path, opts: RunOptions) -> Result<ExitCode> {
+fn execute(
+    registry: &Registry,
+    pipeline: &Pipeline,
+    cache: &Path,
+    out_dir: &Path,
+    opts: RunOptions,
+) -> Result<ExitCode> {
     let dataset = registry.open_dataset(pipeline)?;
     let ops = registry.operators(pipeline)?;
     let store = Store::open(cache, Access::Shared).with_context(|| format!("opening the store {}", cache.display()))?;

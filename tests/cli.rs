@@ -312,7 +312,11 @@ fn the_same_pipeline_runs_on_dgp_data() {
     let text_in = std::fs::read_to_string(repo().join("pipelines/lidar_depth.ron")).unwrap();
     let (start, end) = (text_in.find("dataset: NuScenes(").unwrap(), text_in.find("stages:").unwrap());
     let file = tmp.path().join("dgp.ron");
-    std::fs::write(&file, format!("{}dataset: Dgp(root: {:?}),\n    {}", &text_in[..start], dgp.display().to_string(), &text_in[end..])).unwrap();
+    std::fs::write(
+        &file,
+        format!("{}dataset: Dgp(root: {:?}),\n    {}", &text_in[..start], dgp.display().to_string(), &text_in[end..]),
+    )
+    .unwrap();
     let out = tmp.path().join("out");
     let o = dist4d(&["run", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
     assert!(o.status.success(), "{}", text(&o));
