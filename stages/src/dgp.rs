@@ -9,6 +9,7 @@
 use crate::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
 use crate::files::{read_jpeg, read_npz};
 use crate::geometry::Se3;
+use crate::nuscenes::{surround_count, surround_label};
 use anyhow::{anyhow, bail, ensure, Context, Result};
 use dist4d_graph::{DatasetSchema, DimSpec, ParamsSpec, SourcePortSpec};
 use dist4d_runtime::{Dataset, Digest, FileDigests, ItemKey, ItemSpace};
@@ -335,21 +336,16 @@ pub fn read_dgp_points(path: &Path) -> Result<PointCloud> {
 
 impl ItemSpace for Dgp {
     fn count(&self, prefix: &ItemKey) -> u32 {
-        match prefix.depth {
-            0 => self.scenes.len() as u32,
-            1 => self.scenes.get(prefix.idx[0] as usize).map_or(0, |s| s.frames.len() as u32),
-            2 => self.config.cameras.len() as u32,
-            _ => 0,
-        }
+        surround_count(
+            prefix,
+            self.scenes.len(),
+            |s| self.scenes.get(s).map(|s| s.frames.len()),
+            self.config.cameras.len(),
+        )
     }
 
     fn label(&self, item: &ItemKey) -> String {
-        let i = item.idx[item.depth as usize - 1] as usize;
-        match item.depth {
-            1 => self.scenes.get(i).map_or_else(|| format!("scene{i}"), |s| s.name.clone()),
-            2 => format!("{i:03}"),
-            _ => self.config.cameras.get(i).cloned().unwrap_or_else(|| format!("camera{i}")),
-        }
+        surround_label(item, |s| self.scenes.get(s).map(|s| s.name.clone()), &self.config.cameras)
     }
 }
 

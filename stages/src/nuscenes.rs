@@ -568,21 +568,16 @@ pub fn read_pcd_bin(path: &Path) -> Result<PointCloud> {
 
 impl ItemSpace for NuScenes {
     fn count(&self, prefix: &ItemKey) -> u32 {
-        match prefix.depth {
-            0 => self.scenes.len() as u32,
-            1 => self.scenes.get(prefix.idx[0] as usize).map_or(0, |s| s.frames.len() as u32),
-            2 => self.config.cameras.len() as u32,
-            _ => 0,
-        }
+        surround_count(
+            prefix,
+            self.scenes.len(),
+            |s| self.scenes.get(s).map(|s| s.frames.len()),
+            self.config.cameras.len(),
+        )
     }
 
     fn label(&self, item: &ItemKey) -> String {
-        let i = item.idx[item.depth as usize - 1] as usize;
-        match item.depth {
-            1 => self.scenes.get(i).map_or_else(|| format!("scene{i}"), |s| s.name.clone()),
-            2 => format!("{i:03}"),
-            _ => self.config.cameras.get(i).cloned().unwrap_or_else(|| format!("camera{i}")),
-        }
+        surround_label(item, |s| self.scenes.get(s).map(|s| s.name.clone()), &self.config.cameras)
     }
 }
 
@@ -641,6 +636,36 @@ impl Dataset for NuScenes {
             "lidar_pose" | "camera_pose" => r.pose.encode(),
             other => bail!("nuScenes has no source port `{other}`"),
         })
+    }
+}
+
+/// The scene / frame / camera item tree both readers share: `frames(i)` is scene i's frame count,
+/// `scene_name(i)` its name.
+pub(crate) fn surround_count(
+    prefix: &ItemKey,
+    scenes: usize,
+    frames: impl Fn(usize) -> Option<usize>,
+    cameras: usize,
+) -> u32 {
+    match prefix.depth {
+        0 => scenes as u32,
+        1 => frames(prefix.idx[0] as usize).unwrap_or(0) as u32,
+        2 => cameras as u32,
+        _ => 0,
+    }
+}
+
+/// Labels of the shared item tree: scene name, zero-padded frame index, camera channel.
+pub(crate) fn surround_label(
+    item: &ItemKey,
+    scene_name: impl Fn(usize) -> Option<String>,
+    cameras: &[String],
+) -> String {
+    let i = item.idx[item.depth as usize - 1] as usize;
+    match item.depth {
+        1 => scene_name(i).unwrap_or_else(|| format!("scene{i}")),
+        2 => format!("{i:03}"),
+        _ => cameras.get(i).cloned().unwrap_or_else(|| format!("camera{i}")),
     }
 }
 

@@ -674,18 +674,7 @@ fn fast_png_gray(px: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-/// `YYYY-MM-DD` of a Unix timestamp in microseconds.
+/// `YYYY-MM-DD` of a Unix timestamp in microseconds (synthetic timestamps are after 1970).
 pub(super) fn date_of(us: i64) -> String {
-    let days = us.div_euclid(86_400_000_000);
-    // Civil-from-days (Howard Hinnant).
-    let z = days + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    let y = yoe + era * 400 + (m <= 2) as i64;
-    format!("{y:04}-{m:02}-{d:02}")
+    dist4d_runtime::runs::format_utc((us.max(0) / 1_000_000) as u64)[..10].to_string()
 }
