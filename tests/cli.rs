@@ -38,35 +38,9 @@ fn projected_point_counts_equal_the_nuscenes_devkit() {
     }
 
     let Some(python) = peers_python() else { return };
-    let peer_out = tmp.path().join("peer");
-    let script = repo().join("../shared/bench/peers/nusc_project.py");
-    let o = Command::new(python)
-        .args([
-            script.to_str().unwrap(),
-            data.to_str().unwrap(),
-            "v1.0-mini",
-            "--out-dir",
-            peer_out.to_str().unwrap(),
-            "--repeat",
-            "1",
-        ])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", text(&o));
-    let mut checked = 0;
-    for line in String::from_utf8_lossy(&o.stdout).lines() {
-        let v: serde_json::Value = serde_json::from_str(line).unwrap();
-        let (cam, sample, n) =
-            (v["camera"].as_str().unwrap(), v["sample"].as_str().unwrap(), v["points"].as_u64().unwrap());
-        let ours = read_npy_rows(&out.join(format!("scene-0061/{cam}/000_uvz.npy")));
-        let theirs = read_npy_rows(&peer_out.join(format!("{sample}_{cam}.npy")));
-        assert_eq!(ours.len() as u64, n, "{cam}: point count");
-        // The devkit keeps intermediate world coordinates in float32; we compute in f64.
-        let worst =
-            ours.iter().zip(&theirs).flat_map(|(a, b)| (0..3).map(move |i| (a[i] - b[i]).abs())).fold(0f32, f32::max);
-        assert!(worst < 0.05, "{cam}: coordinates differ by {worst}");
-        checked += 1;
-    }
+    let checked = check_against_devkit(&python, &data, &tmp.path().join("peer"), |_, cam| {
+        out.join(format!("scene-0061/{cam}/000_uvz.npy"))
+    });
     assert_eq!(checked, 6);
 }
 

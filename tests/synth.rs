@@ -42,18 +42,7 @@ fn lidar_depth_runs_on_synthetic_data_and_lidar_agrees_with_ground_truth_depth()
     let o = synth(&data, &[]);
     assert!(o.status.success(), "{}", text(&o));
     let (cache, out) = (tmp.path().join("c"), tmp.path().join("o"));
-    let o = dist4d(&[
-        "run",
-        &repo().join("pipelines/lidar_depth.ron").display().to_string(),
-        "--progress",
-        "off",
-        "--cache",
-        cache.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--set",
-        &format!("dataset.root={}", data.display()),
-    ]);
+    let o = run_lidar_depth(&data, &cache, &out);
     assert!(o.status.success(), "{}", text(&o));
     assert!(text(&o).contains("54 executed"), "3 frames x 6 cameras x 3 stages: {}", text(&o));
 
@@ -218,52 +207,14 @@ print(json.dumps(dict(points=pc.points.shape[1], sweeps=len(set(np.round(times[0
 
     // map_pointcloud_to_image agrees with dist4d's projection on every keyframe and camera.
     let (cache, out) = (tmp.path().join("c"), tmp.path().join("o"));
-    let o = dist4d(&[
-        "run",
-        &repo().join("pipelines/lidar_depth.ron").display().to_string(),
-        "--progress",
-        "off",
-        "--cache",
-        cache.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--set",
-        &format!("dataset.root={}", data.display()),
-    ]);
-    assert!(o.status.success(), "{}", text(&o));
-    let peer_out = tmp.path().join("peer");
-    let o = Command::new(&python)
-        .args([
-            repo().join("../shared/bench/peers/nusc_project.py").to_str().unwrap(),
-            data.to_str().unwrap(),
-            "v1.0-mini",
-            "--out-dir",
-            peer_out.to_str().unwrap(),
-            "--repeat",
-            "1",
-        ])
-        .output()
-        .unwrap();
-    if !o.status.success() && !repo().join("../shared/bench/peers/nusc_project.py").exists() {
-        eprintln!("SKIPPED: ../shared/bench/peers/nusc_project.py is absent");
-        return;
-    }
+    let o = run_lidar_depth(&data, &cache, &out);
     assert!(o.status.success(), "{}", text(&o));
     let samples: Vec<serde_json::Value> =
         serde_json::from_slice(&std::fs::read(data.join("v1.0-mini/sample.json")).unwrap()).unwrap();
-    let mut checked = 0;
-    for line in String::from_utf8_lossy(&o.stdout).lines() {
-        let v: serde_json::Value = serde_json::from_str(line).unwrap();
-        let (cam, sample) = (v["camera"].as_str().unwrap(), v["sample"].as_str().unwrap());
+    let checked = check_against_devkit(&python, &data, &tmp.path().join("peer"), |sample, cam| {
         let frame = samples.iter().position(|s| s["token"] == sample).unwrap();
-        let ours = read_npy_rows(&out.join(format!("synth-0000/{cam}/{frame:03}_uvz.npy")));
-        let theirs = read_npy_rows(&peer_out.join(format!("{sample}_{cam}.npy")));
-        assert_eq!(ours.len() as u64, v["points"].as_u64().unwrap(), "{cam} frame {frame}: point count");
-        let worst =
-            ours.iter().zip(&theirs).flat_map(|(a, b)| (0..3).map(move |i| (a[i] - b[i]).abs())).fold(0f32, f32::max);
-        assert!(worst < 0.05, "{cam} frame {frame}: coordinates differ by {worst}");
-        checked += 1;
-    }
+        out.join(format!("synth-0000/{cam}/{frame:03}_uvz.npy"))
+    });
     assert_eq!(checked, 18);
 }
 

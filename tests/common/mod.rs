@@ -178,3 +178,58 @@ pub fn read_npy_rows(path: &Path) -> Vec<[f32; 3]> {
         .map(|c| [0, 4, 8].map(|o| f32::from_le_bytes(c[o..o + 4].try_into().unwrap())))
         .collect()
 }
+
+/// `dist4d run pipelines/lidar_depth.ron` on a nuScenes-format root, progress off.
+pub fn run_lidar_depth(root: &Path, cache: &Path, out: &Path) -> Output {
+    dist4d(&[
+        "run",
+        &repo().join("pipelines/lidar_depth.ron").display().to_string(),
+        "--progress",
+        "off",
+        "--cache",
+        cache.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--set",
+        &format!("dataset.root={}", root.display()),
+    ])
+}
+
+/// Runs the devkit peer (`nusc_project.py`) on `root`, writing its points to `peer_out`, and
+/// checks each of its (sample, camera) projections against ours at `ours(sample, camera)`: same
+/// point count, coordinates within 0.05 px / m (the devkit keeps intermediate world coordinates
+/// in float32, we compute in f64). Returns how many were checked.
+pub fn check_against_devkit(
+    python: &Path,
+    root: &Path,
+    peer_out: &Path,
+    ours: impl Fn(&str, &str) -> PathBuf,
+) -> usize {
+    let script = repo().join("../shared/bench/peers/nusc_project.py");
+    let o = Command::new(python)
+        .args([
+            script.to_str().unwrap(),
+            root.to_str().unwrap(),
+            "v1.0-mini",
+            "--out-dir",
+            peer_out.to_str().unwrap(),
+            "--repeat",
+            "1",
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let mut checked = 0;
+    for line in String::from_utf8_lossy(&o.stdout).lines() {
+        let v: Value = serde_json::from_str(line).unwrap();
+        let (cam, sample) = (v["camera"].as_str().unwrap(), v["sample"].as_str().unwrap());
+        let mine = read_npy_rows(&ours(sample, cam));
+        let theirs = read_npy_rows(&peer_out.join(format!("{sample}_{cam}.npy")));
+        assert_eq!(mine.len() as u64, v["points"].as_u64().unwrap(), "{sample} {cam}: point count");
+        let worst =
+            mine.iter().zip(&theirs).flat_map(|(a, b)| (0..3).map(move |i| (a[i] - b[i]).abs())).fold(0f32, f32::max);
+        assert!(worst < 0.05, "{sample} {cam}: coordinates differ by {worst}");
+        checked += 1;
+    }
+    checked
+}

@@ -477,6 +477,8 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
     // Annotations: every car and pedestrian within range of the ego at a keyframe, as one
     // contiguous track per agent.
     let key_cams: Vec<Vec<&Reading>> = cameras.iter().map(|v| v.iter().filter(|r| r.key).collect()).collect();
+    // One frozen world per keyframe, shared by every box's visibility rays.
+    let key_snapshots: Vec<Snapshot> = (0..k).map(|kf| Snapshot::new(&world, secs(t0 + kf * KEYFRAME_US))).collect();
     for agent in &world.agents {
         let in_range = |kf: usize| {
             let ts = t0 + kf as i64 * KEYFRAME_US;
@@ -499,7 +501,7 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
             let Some((centre, yaw, _)) = agent.state(&world.path, secs(ts)) else { continue };
             let lidar_pts =
                 keyframe_labels.get(kf).map_or(0, |(_, inst)| inst.iter().filter(|&&i| i == agent.instance).count());
-            let vis = visibility(config, &world, agent, secs(ts), &key_cams, kf, &ego);
+            let vis = visibility(config, &world, &key_snapshots[kf], agent, secs(ts), &key_cams, kf, &ego);
             let [l, w, h] = agent.size;
             t.push(
                 "sample_annotation",
@@ -565,6 +567,7 @@ fn pinhole(config: &SynthConfig, camera: usize, ego_to_world: &Se3) -> PinholeCa
 fn visibility(
     config: &SynthConfig,
     world: &World,
+    snap: &Snapshot,
     agent: &super::world::Agent,
     t: f64,
     key_cams: &[Vec<&Reading>],
@@ -572,7 +575,6 @@ fn visibility(
     ego: &dyn Fn(i64) -> Se3,
 ) -> &'static str {
     let Some((c, yaw, _)) = agent.state(&world.path, t) else { return "1" };
-    let snap = Snapshot::new(world, t);
     let [l, w, h] = agent.size;
     let mut samples = vec![c];
     for (a, b, z) in [
