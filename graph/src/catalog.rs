@@ -16,15 +16,20 @@ pub struct PortSpec {
     pub ty: &'static str,
     /// An input that takes several artifacts (a window, a gather) rather than one.
     pub many: bool,
+    /// An input that may be left unwired; the operator then gets no artifact for it.
+    pub optional: bool,
     pub doc: &'static str,
 }
 
 impl PortSpec {
     pub const fn one(name: &'static str, ty: &'static str, doc: &'static str) -> PortSpec {
-        PortSpec { name, ty, many: false, doc }
+        PortSpec { name, ty, many: false, optional: false, doc }
     }
     pub const fn many(name: &'static str, ty: &'static str, doc: &'static str) -> PortSpec {
-        PortSpec { name, ty, many: true, doc }
+        PortSpec { name, ty, many: true, optional: false, doc }
+    }
+    pub const fn optional(name: &'static str, ty: &'static str, doc: &'static str) -> PortSpec {
+        PortSpec { name, ty, many: false, optional: true, doc }
     }
 }
 

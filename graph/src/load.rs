@@ -658,7 +658,7 @@ impl<'c> Checker<'c> {
             }
         }
         for spec in &d.schema_inputs {
-            if !wired.contains(&spec.name) {
+            if !wired.contains(&spec.name) && !spec.optional {
                 let span = d.inputs.map(|v| v.span).unwrap_or(d.kind_span);
                 if d.inputs.is_some() {
                     self.err(
@@ -1010,7 +1010,18 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
 fn describe_ports(ports: &[crate::catalog::PortSpec]) -> String {
     ports
         .iter()
-        .map(|p| format!("{} ({}{})", p.name, p.ty, if p.many { ", several" } else { "" }))
+        .map(|p| format!(
+                "{} ({}{})",
+                p.name,
+                p.ty,
+                if p.many {
+                    ", several"
+                } else if p.optional {
+                    ", optional"
+                } else {
+                    ""
+                }
+            ))
         .collect::<Vec<_>>()
         .join(", ")
 }

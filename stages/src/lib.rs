@@ -2,6 +2,7 @@
 //! with its params, ports and a plain function that does the work.
 
 pub mod artifact;
+pub mod camera;
 pub mod dgp;
 pub mod files;
 pub mod geometry;
@@ -9,6 +10,7 @@ pub mod nuscenes;
 pub mod stage;
 pub mod synth;
 pub mod stages {
+    pub mod aggregate;
     pub mod encode;
     pub mod project_lidar;
 }
@@ -28,7 +30,9 @@ pub struct Registry {
 impl Default for Registry {
     fn default() -> Self {
         Registry {
-            stages: vec![stages::project_lidar::def(), stages::encode::encode_depth(), stages::encode::encode_points()],
+            stages: vec![
+                stages::aggregate::def(),
+                stages::project_lidar::def(), stages::encode::encode_depth(), stages::encode::encode_points()],
             nuscenes: nuscenes::NuScenesSchema::default(),
             dgp: dgp::DgpSchema::default(),
         }
@@ -70,7 +74,8 @@ impl Registry {
                         .iter()
                         .find(|d| d.kind == s.kind)
                         .ok_or_else(|| anyhow!("unknown stage kind {}", s.kind))?;
-                    def.build(&s.params).with_context(|| format!("stage `{}`", n.name)).map(Some)
+                    let wired: Vec<&str> = s.inputs.iter().map(|i| i.port.as_str()).collect();
+                    def.build(&s.params, &wired).with_context(|| format!("stage `{}`", n.name)).map(Some)
                 }
             })
             .collect()

@@ -12,15 +12,28 @@ pub trait TypedOp: Send + Sync {
     fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>>;
 }
 
-struct OpAdapter(Box<dyn TypedOp>);
+/// Runs a [`TypedOp`]. `slots[i]` is the schema position of the i-th wired input, so that an
+/// operator always sees its inputs in schema order, unwired optional ones as empty lists.
+struct OpAdapter {
+    op: Box<dyn TypedOp>,
+    slots: Vec<usize>,
+    schema_len: usize,
+}
 
 impl Operator for OpAdapter {
     fn run(&self, _ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        self.0.run(inputs)
+        if self.slots.len() == self.schema_len {
+            return self.op.run(inputs);
+        }
+        let mut full = vec![Vec::new(); self.schema_len];
+        for (slot, artifacts) in self.slots.iter().zip(inputs) {
+            full[*slot] = artifacts.clone();
+        }
+        self.op.run(&full)
     }
 }
 
-type BuildFn = Box<dyn Fn(&str) -> Result<Box<dyn Operator>> + Send + Sync>;
+type BuildFn = Box<dyn Fn(&str) -> Result<Box<dyn TypedOp>> + Send + Sync>;
 
 pub struct StageDef {
     pub kind: &'static str,
@@ -54,14 +67,19 @@ impl StageDef {
             params: ParamsSpec::of::<P>(),
             build: Box::new(move |canonical| {
                 let params: P = parse_canonical(canonical).with_context(|| format!("params of {kind}"))?;
-                Ok(Box::new(OpAdapter(build(params)?)) as Box<dyn Operator>)
+                build(params)
             }),
         }
     }
 
-    /// The operator for canonical params (as the graph produced them).
-    pub fn build(&self, canonical: &str) -> Result<Box<dyn Operator>> {
-        (self.build)(canonical)
+    /// The operator for canonical params (as the graph produced them) and the names of the
+    /// wired input ports, in schema order.
+    pub fn build(&self, canonical: &str, wired: &[&str]) -> Result<Box<dyn Operator>> {
+        let slots = wired
+            .iter()
+            .map(|w| self.inputs.iter().position(|p| p.name == *w).ok_or_else(|| anyhow!("{} has no input `{w}`", self.kind)))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Box::new(OpAdapter { op: (self.build)(canonical)?, slots, schema_len: self.inputs.len() }))
     }
 }
 
@@ -97,6 +115,31 @@ pub fn parse_canonical<P: DeserializeOwned>(text: &str) -> Result<P> {
 /// An input port of artifact type `A` taking one artifact.
 pub fn input<A: Artifact>(name: &'static str, doc: &'static str) -> PortSpec {
     PortSpec::one(name, A::TYPE, doc)
+}
+
+/// An optional input port of artifact type `A` (may be left unwired).
+pub fn optional_input<A: Artifact>(name: &'static str, doc: &'static str) -> PortSpec {
+    PortSpec::optional(name, A::TYPE, doc)
+}
+
+/// Decodes the artifact of optional input `i`, if it is wired.
+pub fn maybe_one<A: Artifact>(inputs: &[Vec<dist4d_runtime::Artifact>], i: usize) -> Result<Option<A>> {
+    match inputs.get(i).and_then(|v| v.first()) {
+        None => Ok(None),
+        Some(a) => A::decode(&a.bytes).with_context(|| format!("decoding input {i} as {}", A::TYPE)).map(Some),
+    }
+}
+
+/// Decodes every artifact of a several-artifact input `i`, with its position (window offset).
+pub fn each<A: Artifact>(inputs: &[Vec<dist4d_runtime::Artifact>], i: usize) -> Result<Vec<(i64, A)>> {
+    let list = inputs.get(i).ok_or_else(|| anyhow!("input {i} is missing"))?;
+    list.iter()
+        .map(|a| {
+            A::decode(&a.bytes)
+                .with_context(|| format!("decoding input {i} (position {}) as {}", a.pos, A::TYPE))
+                .map(|x| (a.pos, x))
+        })
+        .collect()
 }
 
 /// Decodes the single artifact of input `i`.

@@ -1,0 +1,312 @@
+//! `AggregateLidar`: the LiDAR sweeps of a window of frames moved into the target frame.
+//!
+//! DiST-4D (Sec. 3.2): "we aggregate the LiDAR of neighbouring frames, remove dynamic objects and
+//! the ego vehicle". Each sweep goes sensor -> ego -> world through its own calibration and ego
+//! pose, then world -> the target frame's LiDAR. In every sweep but the target's, points inside a
+//! moving box (moving attribute, or speed above `moving_speed`) are removed: a car that moved
+//! between sweeps would otherwise leave a smeared trail in the target frame. Boxes are those of
+//! the sweep's own frame, i.e. at its timestamp (the dataset readers interpolate boxes to sweep
+//! times). The box is grown by `box_margin` sideways and on top, and its bottom raised by
+//! `ground_clearance` so the road under a car stays. Points inside the ego vehicle's box and
+//! points nearer than `min_distance` to their LiDAR are removed from every sweep (including
+//! no-return points, which sit at the sensor origin).
+//!
+//! Hold-out evaluation: `holdout` > 0 takes a seeded fraction of the target sweep's (kept) points
+//! out of the aggregate and returns them separately, so a curated depth can be scored on LiDAR
+//! points it never saw (works on real data).
+
+use crate::artifact::{Boxes3D, Calibration, PointCloud, Pose};
+use crate::geometry::Se3;
+use crate::stage::{each, StageDef, TypedOp};
+use crate::synth::rng::mix;
+use anyhow::{anyhow, ensure, Result};
+use dist4d_graph::PortSpec;
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// A box is dynamic when its attributes say moving or its speed exceeds this (m/s).
+    pub moving_speed: f64,
+    /// Dynamic boxes grow by this much (m) on each side and on top.
+    pub box_margin: f64,
+    /// Points less than this (m) above a dynamic box's bottom are kept: the ground under it.
+    pub ground_clearance: f64,
+    /// Points nearer than this (m) to their LiDAR are removed.
+    pub min_distance: f64,
+    /// The ego vehicle's box in the ego frame (x forward, y left, z up; metres), min corner.
+    pub ego_box_min: [f64; 3],
+    /// ... and max corner. Default: a nuScenes Renault Zoe with a little room.
+    pub ego_box_max: [f64; 3],
+    /// Fraction of the target sweep's points held out for evaluation (0 = none).
+    pub holdout: f64,
+    /// Seed of the hold-out draw (mixed with the target timestamp and the point index).
+    pub holdout_seed: u64,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            moving_speed: 0.5,
+            box_margin: 0.2,
+            ground_clearance: 0.2,
+            min_distance: 1.0,
+            ego_box_min: [-1.0, -1.0, -1.0],
+            ego_box_max: [3.4, 1.0, 2.0],
+            holdout: 0.0,
+            holdout_seed: 0,
+        }
+    }
+}
+
+/// One sweep of the window: its points, LiDAR mounting, ego pose, the boxes of its frame, and its
+/// position relative to the target (0 = target).
+pub struct Sweep<'a> {
+    pub position: i64,
+    pub points: &'a PointCloud,
+    pub calib: &'a Calibration,
+    pub pose: &'a Pose,
+    pub boxes: &'a Boxes3D,
+}
+
+/// A dynamic box as a test in one sweep's LiDAR frame.
+struct BoxTest {
+    to_box: Se3,
+    half: DVec3,
+    z_min: f64,
+    radius2: f64,
+    center: DVec3,
+}
+
+impl BoxTest {
+    #[inline]
+    fn contains(&self, p: DVec3) -> bool {
+        if (p - self.center).length_squared() > self.radius2 {
+            return false;
+        }
+        let q = self.to_box.apply(p);
+        q.x.abs() <= self.half.x && q.y.abs() <= self.half.y && q.z >= self.z_min && q.z <= self.half.z
+    }
+}
+
+/// The aggregate (in the target LiDAR frame) and the held-out target points (same frame).
+pub fn aggregate(params: &Params, sweeps: &[Sweep]) -> Result<(PointCloud, PointCloud)> {
+    let target = sweeps
+        .iter()
+        .find(|s| s.position == 0)
+        .ok_or_else(|| anyhow!("the window has no sweep at position 0 (the target frame)"))?;
+    ensure!((0.0..=1.0).contains(&params.holdout), "holdout must be in [0, 1], not {}", params.holdout);
+    let world_from_target = target.pose.ego_to_world.then_from(&target.calib.sensor_to_ego);
+    let target_from_world = world_from_target.inverse();
+    let keep_labels = sweeps.iter().all(|s| s.points.labels.len() == s.points.points.len());
+    let (mut out, mut held) = (PointCloud::default(), PointCloud::default());
+    let threshold = (params.holdout * u64::MAX as f64) as u64;
+    let (emin, emax) = (DVec3::from_array(params.ego_box_min), DVec3::from_array(params.ego_box_max));
+    let min_d2 = params.min_distance * params.min_distance;
+    for s in sweeps {
+        let world_from_sweep = s.pose.ego_to_world.then_from(&s.calib.sensor_to_ego);
+        let to_target = target_from_world.then_from(&world_from_sweep);
+        let sweep_from_world = world_from_sweep.inverse();
+        let boxes: Vec<BoxTest> = if s.position == 0 {
+            Vec::new()
+        } else {
+            s.boxes
+                .boxes
+                .iter()
+                .filter(|b| b.is_moving(params.moving_speed))
+                .map(|b| {
+                    let box_to_world = Se3::from_wxyz_t(b.rotation, b.center);
+                    let box_to_sweep = sweep_from_world.then_from(&box_to_world);
+                    // nuScenes size is [width, length, height]; the box x axis runs along its length.
+                    let half = DVec3::new(b.size[1] / 2.0, b.size[0] / 2.0, b.size[2] / 2.0)
+                        + DVec3::splat(params.box_margin);
+                    BoxTest {
+                        to_box: box_to_sweep.inverse(),
+                        z_min: -b.size[2] / 2.0 + params.ground_clearance,
+                        radius2: half.length_squared(),
+                        center: box_to_sweep.translation,
+                        half,
+                    }
+                })
+                .collect()
+        };
+        let sensor_to_ego = &s.calib.sensor_to_ego;
+        let ego_rot = sensor_to_ego.matrix();
+        for (i, p) in s.points.points.iter().enumerate() {
+            let v = DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+            if v.length_squared() < min_d2 {
+                continue;
+            }
+            let e = ego_rot * v + sensor_to_ego.translation;
+            if e.cmpge(emin).all() && e.cmple(emax).all() {
+                continue;
+            }
+            if boxes.iter().any(|b| b.contains(v)) {
+                continue;
+            }
+            let t = to_target.apply(v);
+            let row = [t.x as f32, t.y as f32, t.z as f32, p[3]];
+            let dest = if s.position == 0
+                && threshold > 0
+                && mix(params.holdout_seed ^ mix(s.pose.timestamp_us as u64 ^ mix(i as u64))) < threshold
+            {
+                &mut held
+            } else {
+                &mut out
+            };
+            dest.points.push(row);
+            if keep_labels {
+                dest.labels.push(s.points.labels[i]);
+            }
+        }
+    }
+    Ok((out, held))
+}
+
+struct Op(Params);
+
+impl TypedOp for Op {
+    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+        let points = each::<PointCloud>(inputs, 0)?;
+        let calibs = each::<Calibration>(inputs, 1)?;
+        let poses = each::<Pose>(inputs, 2)?;
+        let boxes = each::<Boxes3D>(inputs, 3)?;
+        ensure!(
+            calibs.len() == points.len() && poses.len() == points.len() && boxes.len() == points.len(),
+            "the sweeps, calibrations, poses and boxes windows differ in length ({}, {}, {}, {}): wire them with the same Window",
+            points.len(),
+            calibs.len(),
+            poses.len(),
+            boxes.len()
+        );
+        let mut sweeps = Vec::with_capacity(points.len());
+        for i in 0..points.len() {
+            let position = points[i].0;
+            ensure!(
+                calibs[i].0 == position && poses[i].0 == position && boxes[i].0 == position,
+                "the windows of sweeps, calibrations, poses and boxes are not aligned"
+            );
+            sweeps.push(Sweep {
+                position,
+                points: &points[i].1,
+                calib: &calibs[i].1,
+                pose: &poses[i].1,
+                boxes: &boxes[i].1,
+            });
+        }
+        let (agg, held) = aggregate(&self.0, &sweeps)?;
+        use crate::artifact::Artifact;
+        Ok(vec![agg.encode(), held.encode()])
+    }
+}
+
+pub fn def() -> StageDef {
+    StageDef::new::<Params>(
+        "AggregateLidar",
+        1,
+        "LiDAR sweeps of a window of frames -> one static-scene cloud in the target frame's LiDAR frame",
+        vec![
+            PortSpec::many("sweeps", "PointCloud", "the window's sweeps: Window(\"dataset.lidar\", frame, -1, 1)"),
+            PortSpec::many("calibs", "Calibration", "their LiDAR mountings (same Window)"),
+            PortSpec::many("poses", "Pose", "their ego poses (same Window)"),
+            PortSpec::many("boxes", "Boxes3D", "their frames' boxes (same Window)"),
+        ],
+        vec![
+            PortSpec::one("points", "PointCloud", "the aggregate, in the target frame's LiDAR frame"),
+            PortSpec::one("holdout", "PointCloud", "held-out target points (empty unless holdout > 0)"),
+        ],
+        vec!["frame"],
+        |p: Params| Ok(Box::new(Op(p))),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::artifact::Box3D;
+
+    fn lidar() -> Calibration {
+        Calibration { sensor_to_ego: Se3::from_yaw(0.0, DVec3::new(0.0, 0.0, 2.0)), intrinsics: None, width: 0, height: 0 }
+    }
+    fn pose(x: f64, t: i64) -> Pose {
+        Pose { ego_to_world: Se3::from_yaw(0.0, DVec3::new(x, 0.0, 0.0)), timestamp_us: t }
+    }
+    fn car(x: f64, speed: f64) -> Box3D {
+        Box3D {
+            center: [x, 5.0, 1.0],
+            size: [2.0, 4.0, 2.0],
+            rotation: [1.0, 0.0, 0.0, 0.0],
+            velocity: [speed, 0.0, 0.0],
+            instance: "car".into(),
+            category: "vehicle.car".into(),
+            attributes: vec![],
+            num_lidar_pts: 0,
+            interpolated: false,
+        }
+    }
+
+    #[test]
+    fn moves_sweeps_into_the_target_frame_and_drops_dynamic_ego_and_close_points() {
+        let calib = lidar();
+        // World point (20, 0, 0) seen from ego at x = 0 and x = 10: LiDAR at z = 2 above ego.
+        let far_prev = PointCloud { points: vec![[20.0, 0.0, -2.0, 1.0]], labels: vec![] };
+        let prev = PointCloud {
+            points: vec![
+                [20.0, 0.0, -2.0, 1.0], // static: kept, lands at x = 10 in the target frame
+                [10.0, 5.0, -1.0, 2.0], // inside the moving car at world x = 10: dropped
+                [10.0, 5.0, -1.9, 3.0], // under the car's bottom + clearance: ground, kept
+                [0.5, 0.0, 0.0, 4.0],   // too close
+                [2.5, 0.5, -1.5, 5.0],  // inside the ego box (ego x = 2.5, z = 0.5)
+            ],
+            labels: vec![],
+        };
+        let target = PointCloud {
+            points: vec![[0.0, 5.0, -1.0, 6.0]], // the car, now at world x = 10 + ... but in the target: kept
+            labels: vec![],
+        };
+        let moving = Boxes3D { timestamp_us: 0, boxes: vec![car(10.0, 5.0)] };
+        let parked = Boxes3D { timestamp_us: 0, boxes: vec![car(20.0, 0.0)] };
+        let (p0, p1) = (pose(0.0, 0), pose(10.0, 500_000));
+        let sweeps = [
+            Sweep { position: -1, points: &prev, calib: &calib, pose: &p0, boxes: &moving },
+            Sweep { position: 0, points: &target, calib: &calib, pose: &p1, boxes: &moving },
+            Sweep { position: 1, points: &far_prev, calib: &calib, pose: &p0, boxes: &parked },
+        ];
+        let (agg, held) = aggregate(&Params::default(), &sweeps).unwrap();
+        assert!(held.points.is_empty());
+        let got: Vec<[f32; 4]> = agg.points.clone();
+        assert_eq!(got, vec![[10.0, 0.0, -2.0, 1.0], [0.0, 5.0, -1.9, 3.0], [0.0, 5.0, -1.0, 6.0], [10.0, 0.0, -2.0, 1.0]]);
+    }
+
+    #[test]
+    fn holds_out_a_seeded_fraction_of_the_target_sweep_only() {
+        let calib = lidar();
+        let pts = PointCloud { points: (0..10_000).map(|i| [5.0 + i as f32 * 1e-3, 3.0, 0.0, 0.0]).collect(), labels: vec![] };
+        let p = pose(0.0, 123);
+        let none = Boxes3D::default();
+        let sweeps = [
+            Sweep { position: 0, points: &pts, calib: &calib, pose: &p, boxes: &none },
+            Sweep { position: 1, points: &pts, calib: &calib, pose: &p, boxes: &none },
+        ];
+        let params = Params { holdout: 0.2, ..Params::default() };
+        let (agg, held) = aggregate(&params, &sweeps).unwrap();
+        let frac = held.points.len() as f64 / 10_000.0;
+        assert!((frac - 0.2).abs() < 0.02, "{frac}");
+        assert_eq!(agg.points.len() + held.points.len(), 20_000);
+        let (_, again) = aggregate(&params, &sweeps).unwrap();
+        assert_eq!(again, held);
+        let (_, other) = aggregate(&Params { holdout_seed: 7, ..params }, &sweeps).unwrap();
+        assert_ne!(other, held);
+    }
+
+    #[test]
+    fn a_window_without_its_target_is_an_error() {
+        let calib = lidar();
+        let p = pose(0.0, 0);
+        let none = Boxes3D::default();
+        let pts = PointCloud::default();
+        let sweeps = [Sweep { position: 1, points: &pts, calib: &calib, pose: &p, boxes: &none }];
+        assert!(aggregate(&Params::default(), &sweeps).unwrap_err().to_string().contains("position 0"));
+    }
+}
