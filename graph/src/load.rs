@@ -1010,7 +1010,8 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
 fn describe_ports(ports: &[crate::catalog::PortSpec]) -> String {
     ports
         .iter()
-        .map(|p| format!(
+        .map(|p| {
+            format!(
                 "{} ({}{})",
                 p.name,
                 p.ty,
@@ -1021,7 +1022,8 @@ fn describe_ports(ports: &[crate::catalog::PortSpec]) -> String {
                 } else {
                     ""
                 }
-            ))
+            )
+        })
         .collect::<Vec<_>>()
         .join(", ")
 }

@@ -25,7 +25,13 @@ impl CameraView {
         let world_from_cloud = cloud_pose.ego_to_world.then_from(&cloud.sensor_to_ego);
         let world_from_cam = camera_pose.ego_to_world.then_from(&camera.sensor_to_ego);
         let cam_from_cloud = world_from_cam.inverse().then_from(&world_from_cloud);
-        Ok(CameraView { rotation: cam_from_cloud.matrix(), cam_from_cloud, k, width: camera.width, height: camera.height })
+        Ok(CameraView {
+            rotation: cam_from_cloud.matrix(),
+            cam_from_cloud,
+            k,
+            width: camera.width,
+            height: camera.height,
+        })
     }
 
     /// A point of the cloud frame in the camera frame (z = depth along the optical axis).

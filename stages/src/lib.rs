@@ -6,12 +6,14 @@ pub mod camera;
 pub mod dgp;
 pub mod files;
 pub mod geometry;
+pub mod hull;
 pub mod nuscenes;
 pub mod stage;
 pub mod synth;
 pub mod stages {
     pub mod aggregate;
     pub mod encode;
+    pub mod hpr;
     pub mod project_lidar;
 }
 
@@ -32,7 +34,11 @@ impl Default for Registry {
         Registry {
             stages: vec![
                 stages::aggregate::def(),
-                stages::project_lidar::def(), stages::encode::encode_depth(), stages::encode::encode_points()],
+                stages::hpr::def(),
+                stages::project_lidar::def(),
+                stages::encode::encode_depth(),
+                stages::encode::encode_points(),
+            ],
             nuscenes: nuscenes::NuScenesSchema::default(),
             dgp: dgp::DgpSchema::default(),
         }

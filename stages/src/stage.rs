@@ -77,7 +77,9 @@ impl StageDef {
     pub fn build(&self, canonical: &str, wired: &[&str]) -> Result<Box<dyn Operator>> {
         let slots = wired
             .iter()
-            .map(|w| self.inputs.iter().position(|p| p.name == *w).ok_or_else(|| anyhow!("{} has no input `{w}`", self.kind)))
+            .map(|w| {
+                self.inputs.iter().position(|p| p.name == *w).ok_or_else(|| anyhow!("{} has no input `{w}`", self.kind))
+            })
             .collect::<Result<Vec<_>>>()?;
         Ok(Box::new(OpAdapter { op: (self.build)(canonical)?, slots, schema_len: self.inputs.len() }))
     }

@@ -119,8 +119,8 @@ pub fn aggregate(params: &Params, sweeps: &[Sweep]) -> Result<(PointCloud, Point
                     let box_to_world = Se3::from_wxyz_t(b.rotation, b.center);
                     let box_to_sweep = sweep_from_world.then_from(&box_to_world);
                     // nuScenes size is [width, length, height]; the box x axis runs along its length.
-                    let half = DVec3::new(b.size[1] / 2.0, b.size[0] / 2.0, b.size[2] / 2.0)
-                        + DVec3::splat(params.box_margin);
+                    let half =
+                        DVec3::new(b.size[1] / 2.0, b.size[0] / 2.0, b.size[2] / 2.0) + DVec3::splat(params.box_margin);
                     BoxTest {
                         to_box: box_to_sweep.inverse(),
                         z_min: -b.size[2] / 2.0 + params.ground_clearance,
@@ -227,7 +227,12 @@ mod tests {
     use crate::artifact::Box3D;
 
     fn lidar() -> Calibration {
-        Calibration { sensor_to_ego: Se3::from_yaw(0.0, DVec3::new(0.0, 0.0, 2.0)), intrinsics: None, width: 0, height: 0 }
+        Calibration {
+            sensor_to_ego: Se3::from_yaw(0.0, DVec3::new(0.0, 0.0, 2.0)),
+            intrinsics: None,
+            width: 0,
+            height: 0,
+        }
     }
     fn pose(x: f64, t: i64) -> Pose {
         Pose { ego_to_world: Se3::from_yaw(0.0, DVec3::new(x, 0.0, 0.0)), timestamp_us: t }
@@ -276,13 +281,19 @@ mod tests {
         let (agg, held) = aggregate(&Params::default(), &sweeps).unwrap();
         assert!(held.points.is_empty());
         let got: Vec<[f32; 4]> = agg.points.clone();
-        assert_eq!(got, vec![[10.0, 0.0, -2.0, 1.0], [0.0, 5.0, -1.9, 3.0], [0.0, 5.0, -1.0, 6.0], [10.0, 0.0, -2.0, 1.0]]);
+        assert_eq!(
+            got,
+            vec![[10.0, 0.0, -2.0, 1.0], [0.0, 5.0, -1.9, 3.0], [0.0, 5.0, -1.0, 6.0], [10.0, 0.0, -2.0, 1.0]]
+        );
     }
 
     #[test]
     fn holds_out_a_seeded_fraction_of_the_target_sweep_only() {
         let calib = lidar();
-        let pts = PointCloud { points: (0..10_000).map(|i| [5.0 + i as f32 * 1e-3, 3.0, 0.0, 0.0]).collect(), labels: vec![] };
+        let pts = PointCloud {
+            points: (0..10_000).map(|i| [5.0 + i as f32 * 1e-3, 3.0, 0.0, 0.0]).collect(),
+            labels: vec![],
+        };
         let p = pose(0.0, 123);
         let none = Boxes3D::default();
         let sweeps = [
