@@ -62,6 +62,24 @@ enum Command {
         #[arg(long, default_value = "auto")]
         progress: String,
     },
+    /// Run a pipeline (cached tasks are not redone) and tabulate the scores of its EvalDepth
+    /// stages: Abs Rel, Sq Rel, RMSE, RMSE log, delta < 1.25^k, raw and median-scaled, per camera
+    /// and averaged over cameras, for each reference (gt, gt_above_lidar, lidar, lidar_multi, holdout).
+    ///
+    /// Example: dist4d eval pipelines/curation.ron --set aggregate.holdout=0.2
+    Eval {
+        #[command(flatten)]
+        p: PipelineArgs,
+        /// Worker threads [default: the number of cores].
+        #[arg(long, short)]
+        jobs: Option<usize>,
+        /// Where exported files go [default: out/<pipeline name>/ beside the pipeline file].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Progress: auto, lines, off.
+        #[arg(long, default_value = "off")]
+        progress: String,
+    },
     /// Check a pipeline file without running it: every problem, with file:line:column.
     ///
     /// Example: dist4d check pipelines/lidar_depth.ron --set project.min_depth=2
@@ -246,12 +264,12 @@ fn execute(
     let engine = Engine { pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
     let rec = engine.run(&opts)?.record;
     println!(
-        "{:<16} {:<14} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
+        "{:<16} {:<18} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
         "stage", "kind", "total", "executed", "cached", "failed", "skipped", "seconds"
     );
     for s in &rec.stages {
         println!(
-            "{:<16} {:<14} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.2}",
+            "{:<16} {:<18} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.2}",
             s.stage, s.kind, s.total, s.executed, s.cached, s.failed, s.skipped, s.seconds
         );
     }
@@ -309,6 +327,43 @@ fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> 
     Ok(code)
 }
 
+/// The score tables of every EvalDepth stage of `pipeline`, read from the run's exported files.
+fn eval_tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
+    let eval_stages: Vec<&str> = pipeline
+        .nodes
+        .iter()
+        .filter(|n| n.stage().is_some_and(|s| s.kind == "EvalDepth"))
+        .map(|n| n.name.as_str())
+        .collect();
+    anyhow::ensure!(!eval_stages.is_empty(), "the pipeline has no EvalDepth stage to report");
+    let index_path = out_dir.join("index.json");
+    let index: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(&index_path).with_context(|| format!("reading {}", index_path.display()))?,
+    )
+    .with_context(|| format!("{} is not valid JSON", index_path.display()))?;
+    let mut text = String::new();
+    for stage in eval_stages {
+        let mut images = Vec::new();
+        for e in index["files"].as_array().into_iter().flatten().filter(|e| e["stage"] == stage) {
+            let rel = e["path"].as_str().unwrap_or_default();
+            let path = out_dir.join(rel);
+            let scores: dist4d_stages::stages::eval::ImageScores =
+                serde_json::from_slice(&std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
+                    .with_context(|| format!("{} is not an EvalDepth score file", path.display()))?;
+            let camera = e["item"].as_str().unwrap_or_default().rsplit('/').next().unwrap_or_default().to_string();
+            images.push((camera, scores));
+        }
+        anyhow::ensure!(
+            !images.is_empty(),
+            "stage `{stage}` exported no scores to {}: export its `json` port",
+            out_dir.display()
+        );
+        text.push_str(&format!("\n# {stage}: {} images, depth range 0.1-80 m\n", images.len()));
+        text.push_str(&dist4d_stages::stages::eval::tabulate(&images));
+    }
+    Ok(text)
+}
+
 fn beside(pipeline: &Path, rel: &str) -> PathBuf {
     pipeline.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).join(rel)
 }
@@ -362,6 +417,27 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 }
             }
             Ok(ExitCode::SUCCESS)
+        }
+        Command::Eval { p, jobs, out, progress } => {
+            let pipeline = match load(&p, &registry)? {
+                Ok(x) => x,
+                Err(code) => return Ok(code),
+            };
+            let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
+            let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+            let mut opts = RunOptions {
+                scenes: p.scenes.clone(),
+                frame_limit: p.limit,
+                out_dir: Some(out_dir.clone()),
+                progress: progress_mode(&progress),
+                ..Default::default()
+            };
+            if let Some(j) = jobs {
+                opts.jobs = j.max(1);
+            }
+            let code = execute(&registry, &pipeline, &cache, &out_dir, opts)?;
+            print!("{}", eval_tables(&pipeline, &out_dir)?);
+            Ok(code)
         }
         Command::Run { p, jobs, fail_fast, out, progress } => {
             let pipeline = match load(&p, &registry)? {

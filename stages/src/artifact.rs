@@ -221,6 +221,36 @@ impl Artifact for DepthMap {
     }
 }
 
+/// Per-pixel semantic class ids (Cityscapes ids, as any segmenter writes them), row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Segmentation {
+    pub width: u32,
+    pub height: u32,
+    pub ids: Vec<u8>,
+}
+
+impl Segmentation {
+    /// Cityscapes id of sky.
+    pub const SKY: u8 = 23;
+}
+
+impl Artifact for Segmentation {
+    const TYPE: &'static str = "Segmentation";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"SEG1".to_vec();
+        out.extend_from_slice(&self.width.to_le_bytes());
+        out.extend_from_slice(&self.height.to_le_bytes());
+        out.extend_from_slice(&self.ids);
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"SEG1", Self::TYPE)?;
+        let (width, height) = (r.u32()?, r.u32()?);
+        let ids = r.take(width as usize * height as usize)?.to_vec();
+        Ok(Segmentation { width, height, ids })
+    }
+}
+
 /// Points projected into an image: (u, v, depth) rows in the order of the source points.
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct ProjectedPoints {

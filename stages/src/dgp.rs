@@ -10,6 +10,7 @@ use crate::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
 use crate::files::{read_jpeg, read_npz};
 use crate::geometry::Se3;
 use crate::nuscenes::{surround_count, surround_label};
+use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, ensure, Context, Result};
 use dist4d_graph::{DatasetSchema, DimSpec, ParamsSpec, SourcePortSpec};
 use dist4d_runtime::{Dataset, Digest, FileDigests, ItemKey, ItemSpace};
@@ -29,6 +30,9 @@ pub struct DgpConfig {
     pub cameras: Vec<String>,
     /// LiDAR datum name.
     pub lidar: String,
+    /// Folder of semantic maps (`<CAMERA>/<image stem>.png`, Cityscapes ids), relative to the
+    /// root; none by default.
+    pub semantics: Option<String>,
 }
 
 impl Default for DgpConfig {
@@ -40,6 +44,7 @@ impl Default for DgpConfig {
                 .map(String::from)
                 .to_vec(),
             lidar: "LIDAR".into(),
+            semantics: None,
         }
     }
 }
@@ -69,6 +74,7 @@ struct Scene {
 pub struct Dgp {
     pub config: DgpConfig,
     scenes: Vec<Scene>,
+    sidecars: Sidecars,
 }
 
 fn read_json(path: &Path) -> Result<Value> {
@@ -138,7 +144,8 @@ impl Dgp {
             let rel = f.as_str().ok_or_else(|| anyhow!("{}: a scene file name is not a string", index.display()))?;
             scenes.push(Self::scene(&config, &root.join(rel))?);
         }
-        Ok(Dgp { config, scenes })
+        let sidecars = Sidecars::new(&root, config.semantics.as_deref());
+        Ok(Dgp { config, scenes, sidecars })
     }
 
     fn scene(config: &DgpConfig, path: &Path) -> Result<Scene> {
@@ -356,6 +363,11 @@ impl Dataset for Dgp {
                 let d = self.datum(port, item)?;
                 files.file_digest(&d.file).with_context(|| format!("datum {}", d.key))?
             }
+            "gt_depth" | "semantic" => {
+                let d = self.datum("image", item)?;
+                let camera = &self.config.cameras[item.idx[2] as usize];
+                crate::nuscenes::sidecar_digest(&self.sidecars, port, camera, &d.file, files)?
+            }
             _ => Some(Digest::of(&self.load_source(port, item)?)),
         })
     }
@@ -366,6 +378,8 @@ impl Dataset for Dgp {
             "lidar" => read_dgp_points(&d.file).with_context(|| format!("datum {}", d.key))?.encode(),
             "image" => read_jpeg(&d.file).with_context(|| format!("datum {}", d.key))?.encode(),
             "boxes" => self.boxes(item)?.encode(),
+            "gt_depth" => self.sidecars.gt_depth(&self.config.cameras[item.idx[2] as usize], &d.file)?.encode(),
+            "semantic" => self.sidecars.semantic(&self.config.cameras[item.idx[2] as usize], &d.file)?.encode(),
             "lidar_calib" | "camera_calib" => d.calib.encode(),
             "lidar_pose" | "camera_pose" => d.pose.encode(),
             other => bail!("DGP has no source port `{other}`"),

@@ -8,13 +8,17 @@ pub mod files;
 pub mod geometry;
 pub mod hull;
 pub mod nuscenes;
+pub mod sidecar;
 pub mod stage;
 pub mod synth;
 pub mod stages {
     pub mod aggregate;
+    pub mod complete;
     pub mod encode;
+    pub mod eval;
     pub mod hpr;
     pub mod project_lidar;
+    pub mod prompt;
 }
 
 use anyhow::{anyhow, Context, Result};
@@ -34,10 +38,14 @@ impl Default for Registry {
         Registry {
             stages: vec![
                 stages::aggregate::def(),
+                stages::complete::def(),
+                stages::eval::def(),
                 stages::hpr::def(),
+                stages::prompt::def(),
                 stages::project_lidar::def(),
                 stages::encode::encode_depth(),
                 stages::encode::encode_points(),
+                stages::encode::depth_sheet_def(),
             ],
             nuscenes: nuscenes::NuScenesSchema::default(),
             dgp: dgp::DgpSchema::default(),

@@ -8,6 +8,7 @@
 use crate::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
 use crate::files::read_jpeg;
 use crate::geometry::Se3;
+use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{DatasetSchema, DimSpec, ParamsSpec, SourcePortSpec};
 use dist4d_runtime::{Dataset, Digest, DigestBuilder, FileDigests, ItemKey, ItemSpace};
@@ -41,6 +42,9 @@ pub struct NuScenesConfig {
     pub lidar: String,
     /// Keyframes or Sweeps.
     pub frames: FrameMode,
+    /// Folder of semantic maps (`<CAMERA>/<image stem>.png`, Cityscapes ids), relative to the
+    /// root; none by default (the `semantic` port then gives empty maps).
+    pub semantics: Option<String>,
 }
 
 impl Default for NuScenesConfig {
@@ -51,6 +55,7 @@ impl Default for NuScenesConfig {
             cameras: CAMERAS.iter().map(|s| s.to_string()).collect(),
             lidar: "LIDAR_TOP".into(),
             frames: FrameMode::Keyframes,
+            semantics: None,
         }
     }
 }
@@ -189,6 +194,7 @@ pub struct NuScenes {
     sample_time: HashMap<String, i64>,
     /// What was missing but optional (printed when the dataset is opened).
     pub warnings: Vec<String>,
+    sidecars: Sidecars,
 }
 
 /// Reads a table; a malformed row is reported with its index, token and the field at fault.
@@ -460,7 +466,8 @@ impl NuScenes {
         }
         let annotation_by_token = annotations.iter().enumerate().map(|(i, a)| (a.row.token.clone(), i)).collect();
         let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
-        Ok(NuScenes { config, scenes: out, annotations, annotation_by_token, sample_time, warnings })
+        let sidecars = Sidecars::new(&root, config.semantics.as_deref());
+        Ok(NuScenes { config, scenes: out, annotations, annotation_by_token, sample_time, warnings, sidecars })
     }
 
     fn scene_frame(&self, item: &ItemKey) -> Result<(&Scene, &Frame)> {
@@ -602,6 +609,11 @@ impl Dataset for NuScenes {
                 let r = self.reading(port, item)?;
                 file_digest(&r.file, &r.token)?
             }
+            "gt_depth" | "semantic" => {
+                let r = self.reading("image", item)?;
+                let camera = &self.config.cameras[item.idx[2] as usize];
+                sidecar_digest(&self.sidecars, port, camera, &r.file, files)?
+            }
             _ => Some(Digest::of(&self.load_source(port, item)?)),
         })
     }
@@ -632,11 +644,36 @@ impl Dataset for NuScenes {
                 pc.encode()
             }
             "image" => read_jpeg(&r.file).with_context(|| format!("sample_data {}", r.token))?.encode(),
+            "gt_depth" => self.sidecars.gt_depth(&self.config.cameras[item.idx[2] as usize], &r.file)?.encode(),
+            "semantic" => self.sidecars.semantic(&self.config.cameras[item.idx[2] as usize], &r.file)?.encode(),
             "lidar_calib" | "camera_calib" => r.calib.encode(),
             "lidar_pose" | "camera_pose" => r.pose.encode(),
             other => bail!("nuScenes has no source port `{other}`"),
         })
     }
+}
+
+/// Digest of a sidecar port: its file's content digest, or a fixed "none" when there is no file.
+pub(crate) fn sidecar_digest(
+    sidecars: &Sidecars,
+    port: &str,
+    camera: &str,
+    image: &Path,
+    files: &dyn FileDigests,
+) -> Result<Option<Digest>> {
+    let mut b = DigestBuilder::new(port);
+    match sidecars.path(port, camera, image) {
+        None => {
+            b.str("none");
+        }
+        Some(p) => {
+            let Some(d) = files.file_digest(&p).with_context(|| format!("{port} of {}", image.display()))? else {
+                return Ok(None);
+            };
+            b.digest(&d);
+        }
+    }
+    Ok(Some(b.finish()))
 }
 
 /// The scene / frame / camera item tree both readers share: `frames(i)` is scene i's frame count,
@@ -684,7 +721,7 @@ pub(crate) const DIMS: [DimSpec; 3] = [
     DimSpec { name: "frame", ordered: true },
     DimSpec { name: "camera", ordered: false },
 ];
-pub(crate) const PORTS: [SourcePortSpec; 7] = [
+pub(crate) const PORTS: [SourcePortSpec; 9] = [
     SourcePortSpec {
         name: "lidar",
         ty: "PointCloud",
@@ -707,6 +744,18 @@ pub(crate) const PORTS: [SourcePortSpec; 7] = [
         doc: "camera mounting, intrinsics and image size",
     },
     SourcePortSpec { name: "camera_pose", ty: "Pose", grain: "camera", doc: "ego pose at the camera timestamp" },
+    SourcePortSpec {
+        name: "gt_depth",
+        ty: "DepthMap",
+        grain: "camera",
+        doc: "dense ground-truth depth (groundtruth/depth/, synthetic data); empty when the dataset has none",
+    },
+    SourcePortSpec {
+        name: "semantic",
+        ty: "Segmentation",
+        grain: "camera",
+        doc: "Cityscapes-id segmentation from the `semantics` folder; empty when none is configured",
+    },
 ];
 
 impl DatasetSchema for NuScenesSchema {

@@ -1,0 +1,357 @@
+//! `CompleteDepth`: dense metric depth from an image and a sparse depth (DiST-4D's last curation
+//! step; the paper uses a learned completer, DepthLab, and sets sky to a fixed far depth).
+//!
+//! The built-in completer ([`ScanlineCompleter`]) interpolates *inverse* depth, which is linear
+//! in image coordinates on any plane (road, facades), so between two samples of one surface it is
+//! exact. First along rows (gaps up to `row_gap` px), then along columns (up to `column_gap`).
+//! Where the two ends of a gap disagree by more than `tolerance` (relative), the gap spans a depth
+//! edge: it is split at the strongest luminance edge of the image inside the gap, each side taking
+//! its end's depth (the image guides where the object ends). Below a column's lowest sample the
+//! ground continues (inverse depth extrapolated from the last two samples when they agree); above
+//! its highest sample a vertical surface continues (constant depth) unless the pixel is sky. Sky
+//! is read from a semantic map when one is wired (Cityscapes id 23); otherwise a built-in estimate
+//! takes, per column, the run of smooth, bright, not-reddish pixels from the top of the image that
+//! lies above every depth sample (a baseline: it fails on sky-coloured flat walls with no depth
+//! above them). Sky pixels get `sky_depth` (paper: 100 m). Columns with no sample take their
+//! nearest filled column.
+//!
+//! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
+
+use crate::artifact::{DepthMap, Image, Segmentation};
+use crate::stage::{input, maybe_one, one, optional_input, StageDef, TypedOp};
+use anyhow::{ensure, Result};
+use dist4d_graph::PortSpec;
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Longest horizontal gap (px) bridged between two samples of a row.
+    pub row_gap: u32,
+    /// Longest vertical gap (px) interpolated between two samples of a column.
+    pub column_gap: u32,
+    /// Two samples belong to one surface when their depths differ by less than this fraction.
+    pub tolerance: f32,
+    /// Depth given to sky pixels (m); the paper uses 100 m.
+    pub sky_depth: f32,
+    /// Whether to estimate sky when no semantic map is wired.
+    pub detect_sky: bool,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, detect_sky: true }
+    }
+}
+
+/// A depth completer: image + sparse metric depth (0 = unknown) -> dense metric depth.
+pub trait DepthCompleter {
+    fn complete(&self, image: &Image, sparse: &DepthMap, semantic: Option<&Segmentation>) -> Result<DepthMap>;
+}
+
+/// The built-in, image-guided inverse-depth interpolation described in the module docs.
+pub struct ScanlineCompleter(pub Params);
+
+impl DepthCompleter for ScanlineCompleter {
+    fn complete(&self, image: &Image, sparse: &DepthMap, semantic: Option<&Segmentation>) -> Result<DepthMap> {
+        ensure!(
+            image.width == sparse.width && image.height == sparse.height,
+            "the image is {}x{} but the sparse depth is {}x{}",
+            image.width,
+            image.height,
+            sparse.width,
+            sparse.height
+        );
+        if let Some(s) = semantic {
+            ensure!(
+                s.width == image.width && s.height == image.height,
+                "the semantic map is {}x{} but the image is {}x{}",
+                s.width,
+                s.height,
+                image.width,
+                image.height
+            );
+        }
+        Ok(complete(&self.0, image, sparse, semantic))
+    }
+}
+
+fn luminance(image: &Image) -> Vec<f32> {
+    image.rgb.chunks_exact(3).map(|p| 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32).collect()
+}
+
+/// Row pass: bridge short gaps between samples of each row, in inverse depth.
+fn fill_rows(p: &Params, w: usize, h: usize, inv: &mut [f32], lum: &[f32]) {
+    for y in 0..h {
+        let row = &mut inv[y * w..(y + 1) * w];
+        let lrow = &lum[y * w..(y + 1) * w];
+        let mut last: Option<usize> = None;
+        for x in 0..w {
+            if row[x] <= 0.0 {
+                continue;
+            }
+            if let Some(x0) = last {
+                if x - x0 > 1 && x - x0 <= p.row_gap as usize {
+                    bridge(row, 1, x0, x, p.tolerance, lrow);
+                }
+            }
+            last = Some(x);
+        }
+    }
+}
+
+/// Fills `v[a+1..b]` (stride `s`) between the samples at `a` and `b`: linear when they agree,
+/// otherwise split at the strongest edge of `guide` between them.
+#[inline]
+fn bridge(v: &mut [f32], s: usize, a: usize, b: usize, tol: f32, guide: &[f32]) {
+    let (ia, ib) = (v[a * s], v[b * s]);
+    let agree = (ia - ib).abs() <= tol * ia.min(ib);
+    if agree {
+        let n = (b - a) as f32;
+        for k in a + 1..b {
+            let t = (k - a) as f32 / n;
+            v[k * s] = ia + (ib - ia) * t;
+        }
+    } else {
+        let mut split = (a + b).div_ceil(2);
+        let mut best = -1.0f32;
+        for k in a + 1..=b {
+            let g = (guide[k * s] - guide[(k - 1) * s]).abs();
+            if g > best {
+                best = g;
+                split = k;
+            }
+        }
+        for k in a + 1..b {
+            v[k * s] = if k < split { ia } else { ib };
+        }
+    }
+}
+
+/// Whether the inverse-depth slope over samples `j..j+1` matches the slope of the interval
+/// before or after it: a plane seen at a grazing angle (the road) changes depth fast but keeps
+/// its inverse-depth slope.
+fn continues_a_plane(c: &[f32], samples: &[usize], j: usize, tol: f32) -> bool {
+    let slope = |k: usize| (c[samples[k + 1]] - c[samples[k]]) / (samples[k + 1] - samples[k]) as f32;
+    let s = slope(j);
+    let close = |t: f32| (t - s).abs() <= tol * s.abs().max(t.abs()) && t * s > 0.0;
+    (j > 0 && close(slope(j - 1))) || (j + 2 < samples.len() && close(slope(j + 1)))
+}
+
+/// The built-in sky estimate: per column, the smooth bright not-reddish run from the top that
+/// stays above `top[x]` (the column's highest sample; `h` when none).
+fn estimate_sky(image: &Image, lum: &[f32], top: &[usize], w: usize) -> Vec<bool> {
+    let mut sky = vec![false; lum.len()];
+    for x in 0..w {
+        for y in 0..top[x] {
+            let i = y * w + x;
+            let px = &image.rgb[3 * i..3 * i + 3];
+            let smooth = y == 0 || (lum[i] - lum[i - w]).abs() < 6.0;
+            let skyish = lum[i] > 90.0 && px[2] as i32 + 12 >= px[0] as i32;
+            if !(smooth && skyish) {
+                break;
+            }
+            sky[i] = true;
+        }
+    }
+    sky
+}
+
+pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, semantic: Option<&Segmentation>) -> DepthMap {
+    let (w, h) = (sparse.width as usize, sparse.height as usize);
+    let lum = luminance(image);
+    let mut inv: Vec<f32> = sparse.data.iter().map(|&z| if z > 0.0 && z.is_finite() { 1.0 / z } else { 0.0 }).collect();
+    fill_rows(p, w, h, &mut inv, &lum);
+    // Column pass, on a transposed copy so that columns are contiguous.
+    let mut col = vec![0f32; w * h];
+    let mut lcol = vec![0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            col[x * h + y] = inv[y * w + x];
+            lcol[x * h + y] = lum[y * w + x];
+        }
+    }
+    let mut top = vec![h; w];
+    let mut has = vec![false; w];
+    for x in 0..w {
+        let c = &mut col[x * h..(x + 1) * h];
+        let g = &lcol[x * h..(x + 1) * h];
+        let samples: Vec<usize> = (0..h).filter(|&y| c[y] > 0.0).collect();
+        let (Some(&first), Some(&last)) = (samples.first(), samples.last()) else { continue };
+        has[x] = true;
+        top[x] = first;
+        for (j, pair) in samples.windows(2).enumerate() {
+            let (a, b) = (pair[0], pair[1]);
+            if b - a <= 1 {
+                continue;
+            }
+            let tol = if b - a > p.column_gap as usize {
+                -1.0
+            } else if continues_a_plane(c, &samples, j, p.tolerance) {
+                f32::INFINITY
+            } else {
+                p.tolerance
+            };
+            bridge(c, 1, a, b, tol, g);
+        }
+        // Below the lowest sample: the ground continues.
+        let mut slope = 0.0;
+        if let Some(&prev) = samples.iter().rev().nth(1) {
+            let (ia, ib) = (c[prev], c[last]);
+            if ib > ia && (ib - ia) <= p.tolerance * ia * (last - prev) as f32 {
+                slope = (ib - ia) / (last - prev) as f32;
+            }
+        }
+        for y in last + 1..h {
+            c[y] = (c[last] + slope * (y - last) as f32).min(c[last] * 5.0);
+        }
+        // Above the highest sample: a vertical surface continues (sky is decided below).
+        for y in 0..first {
+            c[y] = c[first];
+        }
+    }
+    let mut depth = vec![0f32; w * h];
+    for x in 0..w {
+        for y in 0..h {
+            let v = col[x * h + y];
+            depth[y * w + x] = if v > 0.0 { 1.0 / v } else { 0.0 };
+        }
+    }
+    // Columns with no sample take their nearest filled column.
+    if has.iter().any(|&b| b) {
+        let filled: Vec<usize> = (0..w).filter(|&x| has[x]).collect();
+        for x in (0..w).filter(|&x| !has[x]) {
+            let j = filled.partition_point(|&f| f < x);
+            let near = match (j.checked_sub(1).map(|k| filled[k]), filled.get(j)) {
+                (Some(a), Some(&b)) => {
+                    if x - a <= b - x {
+                        a
+                    } else {
+                        b
+                    }
+                }
+                (Some(a), None) => a,
+                (None, Some(&b)) => b,
+                (None, None) => unreachable!(),
+            };
+            for y in 0..h {
+                depth[y * w + x] = depth[y * w + near];
+            }
+            top[x] = top[near];
+        }
+    }
+    let sky: Option<Vec<bool>> = match semantic {
+        Some(s) => Some(s.ids.iter().map(|&id| id == Segmentation::SKY).collect()),
+        None if p.detect_sky => Some(estimate_sky(image, &lum, &top, w)),
+        None => None,
+    };
+    if let Some(sky) = sky {
+        for (d, s) in depth.iter_mut().zip(sky) {
+            if s {
+                *d = p.sky_depth;
+            }
+        }
+    }
+    // Without any sample, only sky is known.
+    DepthMap { width: sparse.width, height: sparse.height, data: depth }
+}
+
+struct Op(Params);
+
+impl TypedOp for Op {
+    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+        let image = one::<Image>(inputs, 0)?;
+        let sparse = one::<DepthMap>(inputs, 1)?;
+        // An empty map is a dataset without segmentations.
+        let semantic = maybe_one::<Segmentation>(inputs, 2)?.filter(|s| s.width > 0 && s.height > 0);
+        let dense = ScanlineCompleter(self.0.clone()).complete(&image, &sparse, semantic.as_ref())?;
+        use crate::artifact::Artifact;
+        Ok(vec![dense.encode()])
+    }
+}
+
+pub fn def() -> StageDef {
+    StageDef::new::<Params>(
+        "CompleteDepth",
+        1,
+        "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)",
+        vec![
+            input::<Image>("image", "the camera image"),
+            input::<DepthMap>("sparse", "sparse metric depth (the z-buffered prompt)"),
+            optional_input::<Segmentation>("semantic", "Cityscapes-id segmentation; sky = 23"),
+        ],
+        vec![PortSpec::one("depth", "DepthMap", "dense metric depth, sky at sky_depth")],
+        vec!["camera"],
+        |p: Params| Ok(Box::new(Op(p))),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn grey(w: u32, h: u32, f: impl Fn(usize, usize) -> [u8; 3]) -> Image {
+        let mut rgb = Vec::new();
+        for y in 0..h as usize {
+            for x in 0..w as usize {
+                rgb.extend_from_slice(&f(x, y));
+            }
+        }
+        Image { width: w, height: h, rgb }
+    }
+
+    #[test]
+    fn a_ground_plane_sampled_on_sparse_rows_is_recovered_exactly() {
+        // Camera 1.5 m above a flat road, f = 100, horizon at row 20: z = 150 / (v - 20).
+        let (w, h) = (40u32, 60u32);
+        let truth = |y: usize| 150.0 / (y as f32 + 0.5 - 20.0);
+        let mut sparse = DepthMap::new(w, h);
+        for y in (24..h as usize).step_by(7) {
+            for x in (0..w as usize).step_by(5) {
+                sparse.data[y * w as usize + x] = truth(y);
+            }
+        }
+        let image = grey(w, h, |_, _| [90, 90, 90]);
+        let d = complete(&Params { detect_sky: false, ..Params::default() }, &image, &sparse, None);
+        for y in 24..h as usize {
+            for x in 0..w as usize {
+                let z = d.data[y * w as usize + x];
+                assert!((z - truth(y)).abs() / truth(y) < 1e-4, "({x}, {y}): {z} vs {}", truth(y));
+            }
+        }
+    }
+
+    #[test]
+    fn a_depth_edge_follows_the_image_edge_and_sky_gets_its_depth() {
+        // A wall 5 m away covers rows 0..30 of columns 10..20 and sits on a road 20 m away;
+        // LiDAR samples rows 25 and 40 only. The image is dark on the wall, mid-grey elsewhere;
+        // the top rows outside the wall are bright blue sky.
+        let (w, h) = (30u32, 50u32);
+        let mut sparse = DepthMap::new(w, h);
+        for x in 0..w as usize {
+            let wall = (10..20).contains(&x);
+            sparse.data[25 * w as usize + x] = if wall { 5.0 } else { 20.0 };
+            sparse.data[40 * w as usize + x] = 20.0;
+        }
+        let image = grey(w, h, |x, y| {
+            if (10..20).contains(&x) && y < 33 {
+                [30, 30, 30]
+            } else if y < 10 {
+                [150, 190, 240]
+            } else {
+                [120, 110, 100]
+            }
+        });
+        let d = complete(&Params::default(), &image, &sparse, None);
+        let at = |x: usize, y: usize| d.data[y * w as usize + x];
+        assert_eq!(at(15, 32), 5.0);
+        assert_eq!(at(15, 33), 20.0);
+        assert_eq!(at(15, 5), 5.0, "the wall continues up");
+        assert_eq!(at(3, 5), 100.0, "sky");
+        assert_eq!(at(3, 15), 20.0, "not sky: below the sky colour");
+        // With a segmentation, sky comes from it.
+        let seg = Segmentation { width: w, height: h, ids: vec![0; (w * h) as usize] };
+        let d = complete(&Params::default(), &image, &sparse, Some(&seg));
+        assert_eq!(d.data[5 * w as usize + 3], 20.0);
+    }
+}
