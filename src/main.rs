@@ -295,14 +295,14 @@ fn execute(
 }
 
 /// The shipped pipeline the demo runs, built into the binary so the demo works from anywhere.
-const DEMO_PIPELINE: &str = include_str!("../pipelines/lidar_depth.ron");
+const DEMO_PIPELINE: &str = include_str!("../pipelines/curation.ron");
 
 /// `dist4d demo`: synthesize a small dataset (once), write the pipeline beside it, run it.
 fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> Result<ExitCode> {
     let data = dir.join("data/synth");
     let config = dist4d_stages::synth::SynthConfig { keyframes, width, height, ..Default::default() };
     synthesize(&config, &data)?;
-    let pipeline_file = dir.join("lidar_depth.ron");
+    let pipeline_file = dir.join("curation.ron");
     let text = DEMO_PIPELINE.replace("root: \"../data/nuscenes\",", "root: \"data/synth\",");
     anyhow::ensure!(text != DEMO_PIPELINE, "the shipped pipeline no longer names ../data/nuscenes; update the demo");
     if std::fs::read_to_string(&pipeline_file).ok().as_deref() != Some(text.as_str()) {
@@ -317,12 +317,13 @@ fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> 
     let out_dir = dir.join("out");
     let opts = RunOptions { out_dir: Some(out_dir.clone()), progress: progress_mode(progress), ..Default::default() };
     let code = execute(&registry, &pipeline, &dir.join(".dist4d"), &out_dir, opts)?;
+    print!("{}", eval_tables(&pipeline, &out_dir)?);
     println!();
     println!("demo outputs:");
     println!("  synthetic nuScenes dataset   {}", data.display());
     println!("  its ground truth             {}", data.join("groundtruth").display());
-    println!("  LiDAR depth per camera       {}", out_dir.display());
-    println!("  e.g. open                    {}", out_dir.join("synth-0000/CAM_FRONT/000_preview.png").display());
+    println!("  dense depth per camera       {}", out_dir.display());
+    println!("  e.g. open                    {}", out_dir.join("synth-0000/sheets/001.png").display());
     println!("  rerun or edit the pipeline   dist4d run {}", pipeline_file.display());
     Ok(code)
 }

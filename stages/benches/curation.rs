@@ -3,7 +3,7 @@
 //!   cargo bench -p dist4d-stages --bench curation -- [hpr] [complete] [stereo]
 //!
 //! Peers run from the venv made by ../shared/bench/peers/setup.sh (`.venv-peers/` in the
-//! workspace, or DIST4D_PEER_PYTHON); without it only dist4d's figures are printed.
+//! workspace, or DIST4D_PEERS_PYTHON); without it only dist4d's figures are printed.
 
 use dist4d_stages::stages::encode::npy_f32;
 use dist4d_stages::stages::hpr::hidden_point_removal;
@@ -18,7 +18,7 @@ fn workspace() -> PathBuf {
 }
 
 fn peer_python() -> Option<PathBuf> {
-    let p = std::env::var_os("DIST4D_PEER_PYTHON")
+    let p = std::env::var_os("DIST4D_PEERS_PYTHON")
         .map(PathBuf::from)
         .unwrap_or_else(|| workspace().join(".venv-peers/bin/python"));
     p.exists().then_some(p)

@@ -1,0 +1,130 @@
+//! End-to-end: pipelines/curation.ron through the CLI on synthetic data (scored against exact
+//! ground truth) and on the shared real recordings.
+
+mod common;
+use common::*;
+use std::path::Path;
+
+fn curation(data: &Path, dir: &Path, dataset_kind: Option<&str>, extra: &[&str]) -> std::process::Output {
+    let pipeline = repo().join("pipelines/curation.ron");
+    let (cache, out) = (dir.join("cache"), dir.join("out"));
+    let root = format!("dataset.root={}", data.display());
+    let mut args = vec!["eval", pipeline.to_str().unwrap(), "--set", &root];
+    let kind_file;
+    if let Some(kind) = dataset_kind {
+        // Swap the dataset (same ports) by writing a copy of the pipeline with another dataset.
+        let text = std::fs::read_to_string(&pipeline).unwrap();
+        let start = text.find("    dataset: NuScenes(").unwrap();
+        let end = start + text[start..].find("    ),\n").unwrap() + 7;
+        let text = format!("{}    dataset: {kind}(root: \"\"),\n{}", &text[..start], &text[end..]);
+        kind_file = dir.join("curation.ron");
+        std::fs::write(&kind_file, text).unwrap();
+        args[1] = kind_file.to_str().unwrap();
+    }
+    args.extend(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    args.extend(extra);
+    dist4d(&args)
+}
+
+/// The value of column `col` (0 = abs_rel) in the `mean` row of table `title`.
+fn mean_of(report: &str, title: &str, col: usize) -> f64 {
+    let at = report.find(&format!("\n{title}\n")).unwrap_or_else(|| panic!("no table {title} in\n{report}"));
+    let row = report[at..].lines().find(|l| l.starts_with("| mean |")).unwrap();
+    row.split('|').map(str::trim).filter(|s| !s.is_empty()).nth(2 + col).unwrap().parse().unwrap()
+}
+
+/// Executed count of `stage` in the run table.
+fn executed(report: &str, stage: &str) -> u64 {
+    let line = report.lines().find(|l| l.split_whitespace().next() == Some(stage)).unwrap();
+    line.split_whitespace().nth(3).unwrap().parse().unwrap()
+}
+
+#[test]
+fn curation_on_synthetic_data_is_scored_against_ground_truth_and_reruns_only_what_a_param_touches() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("synth");
+    let o = dist4d(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--keyframes",
+        "3",
+        "--width",
+        "640",
+        "--height",
+        "360",
+        "--no-lidar-sweeps",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = curation(&data, tmp.path(), None, &[]);
+    let report = text(&o);
+    assert!(o.status.success(), "{report}");
+    assert_eq!(executed(&report, "complete"), 18, "{report}");
+    // Dense depth close to the exact ground truth; the loose bounds catch breakage, the
+    // full-size figures are in docs/BENCHMARKS.md.
+    let abs_rel = mean_of(&report, "gt (raw)", 0);
+    let a1 = mean_of(&report, "gt (raw)", 4);
+    assert!(abs_rel < 0.12 && a1 > 0.8, "abs_rel {abs_rel}, a1 {a1}\n{report}");
+    assert!(report.contains("gt_above_lidar (raw)") && report.contains("lidar_multi (median-scaled)"));
+    assert!(!report.contains("holdout ("), "no hold-out unless asked");
+    let out = tmp.path().join("out/synth-0000");
+    for f in
+        ["CAM_FRONT/001_depth.exr", "CAM_FRONT/001_depth.png", "CAM_FRONT/001_depth.npy", "CAM_BACK/002_preview.png"]
+    {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    let sheet = image::open(out.join("sheets/001.png")).unwrap();
+    assert_eq!((sheet.width(), sheet.height()), (3 * 320, 6 * 180));
+
+    // A completion parameter reruns completion and what reads it, nothing upstream.
+    let o = curation(&data, tmp.path(), None, &["--set", "complete.sky_depth=90"]);
+    let report = text(&o);
+    assert!(o.status.success(), "{report}");
+    for (stage, n) in [
+        ("aggregate", 0),
+        ("visible", 0),
+        ("prompt", 0),
+        ("lidar", 0),
+        ("complete", 18),
+        ("encode", 18),
+        ("eval", 18),
+        ("sheet", 3),
+    ] {
+        assert_eq!(executed(&report, stage), n, "{stage}\n{report}");
+    }
+
+    // Hold-out: a seeded 20% of each target sweep is left out of curation and scored on.
+    let o = curation(&data, tmp.path(), None, &["--set", "aggregate.holdout=0.2"]);
+    let report = text(&o);
+    assert!(o.status.success(), "{report}");
+    let held = mean_of(&report, "holdout (raw)", 0);
+    assert!(held > 0.0 && held < 0.15, "{held}\n{report}");
+}
+
+#[test]
+fn curation_runs_on_the_shared_nuscenes_keyframe_and_dgp_scene() {
+    let tmp = tempfile::tempdir().unwrap();
+    if let Some(nus) = shared_nuscenes() {
+        let dir = tmp.path().join("nus");
+        let o = curation(&nus, &dir, None, &["--set", "aggregate.holdout=0.2"]);
+        let report = text(&o);
+        assert!(o.status.success(), "{report}");
+        assert!(!report.contains("gt ("), "real data has no dense ground truth");
+        let held = mean_of(&report, "holdout (raw)", 0);
+        assert!(held > 0.0 && held < 0.5, "{held}\n{report}");
+        assert!(dir.join("out/scene-0061/CAM_FRONT/000_depth.exr").is_file());
+    }
+    let dgp = repo().join("../shared/data/dgp-scene02");
+    if !dgp.is_dir() {
+        eprintln!("SKIPPED: the shared DGP scene is not at {}", dgp.display());
+        return;
+    }
+    let dir = tmp.path().join("dgp");
+    std::fs::create_dir_all(&dir).unwrap();
+    let o = curation(&dgp, &dir, Some("Dgp"), &["--set", "aggregate.holdout=0.2"]);
+    let report = text(&o);
+    assert!(o.status.success(), "{report}");
+    assert_eq!(executed(&report, "complete"), 18, "3 samples x 6 cameras\n{report}");
+    let held = mean_of(&report, "holdout (raw)", 0);
+    assert!(held > 0.0 && held < 0.5, "{held}\n{report}");
+}
