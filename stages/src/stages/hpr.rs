@@ -12,10 +12,10 @@
 //! go into the hull: the others never reach the image, and leaving them out makes the hull 5-6x
 //! smaller for a surround rig.
 
-use crate::artifact::{Calibration, PointCloud, Pose};
+use crate::artifact::PointCloud;
 use crate::camera::CameraView;
 use crate::hull::hull_vertices;
-use crate::stage::{input, one, StageDef, TypedOp};
+use crate::stage::{one, StageDef, TypedOp};
 use anyhow::Result;
 use dist4d_graph::PortSpec;
 use glam::DVec3;
@@ -99,12 +99,7 @@ struct Op(Params);
 impl TypedOp for Op {
     fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
         let points = one::<PointCloud>(inputs, 0)?;
-        let view = CameraView::new(
-            &one::<Calibration>(inputs, 1)?,
-            &one::<Pose>(inputs, 2)?,
-            &one::<Calibration>(inputs, 3)?,
-            &one::<Pose>(inputs, 4)?,
-        )?;
+        let view = CameraView::from_inputs(inputs)?;
         use crate::artifact::Artifact;
         Ok(vec![visible_points(&self.0, &points, &view).encode()])
     }
@@ -115,13 +110,7 @@ pub fn def() -> StageDef {
         "HiddenPointRemoval",
         1,
         "Point cloud -> the points one camera can see (Katz et al. 2007 spherical flip + convex hull)",
-        vec![
-            input::<PointCloud>("points", "the cloud, in the frame of `cloud_calib` at `cloud_pose`"),
-            input::<Calibration>("cloud_calib", "the sensor the cloud is in (the target frame's LiDAR)"),
-            input::<Pose>("cloud_pose", "ego pose of that sensor's frame"),
-            input::<Calibration>("camera_calib", "camera mounting and intrinsics"),
-            input::<Pose>("camera_pose", "ego pose at the camera time"),
-        ],
+        crate::camera::cloud_and_camera_ports("the cloud, in the frame of `cloud_calib` at `cloud_pose`"),
         vec![PortSpec::one("points", "PointCloud", "the visible points, same frame, in input order")],
         vec!["camera"],
         |p: Params| Ok(Box::new(Op(p))),

@@ -5,9 +5,9 @@
 //! pixel, from a linear-time distance transform (Felzenszwalb and Huttenlocher 2012) that carries
 //! the nearest seed along; ties go to the seed found first (smaller row, then column).
 
-use crate::artifact::{Calibration, DepthMap, PointCloud, Pose};
+use crate::artifact::{DepthMap, PointCloud};
 use crate::camera::{CameraView, ZBuffer};
-use crate::stage::{input, one, StageDef, TypedOp};
+use crate::stage::{one, StageDef, TypedOp};
 use anyhow::Result;
 use dist4d_graph::PortSpec;
 use glam::DVec3;
@@ -131,12 +131,7 @@ struct Op(Params);
 
 impl TypedOp for Op {
     fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let view = CameraView::new(
-            &one::<Calibration>(inputs, 1)?,
-            &one::<Pose>(inputs, 2)?,
-            &one::<Calibration>(inputs, 3)?,
-            &one::<Pose>(inputs, 4)?,
-        )?;
+        let view = CameraView::from_inputs(inputs)?;
         let sparse = project_points(&self.0, &one::<PointCloud>(inputs, 0)?, &view);
         let filled = nearest_fill(&sparse);
         use crate::artifact::Artifact;
@@ -149,13 +144,7 @@ pub fn def() -> StageDef {
         "DepthPrompt",
         1,
         "Points -> sparse z-buffered depth of one camera and its nearest-neighbour fill (the depth prompt)",
-        vec![
-            input::<PointCloud>("points", "the cloud, in the frame of `cloud_calib` at `cloud_pose`"),
-            input::<Calibration>("cloud_calib", "the sensor the cloud is in"),
-            input::<Pose>("cloud_pose", "ego pose of that sensor's frame"),
-            input::<Calibration>("camera_calib", "camera mounting and intrinsics"),
-            input::<Pose>("camera_pose", "ego pose at the camera time"),
-        ],
+        crate::camera::cloud_and_camera_ports("the cloud, in the frame of `cloud_calib` at `cloud_pose`"),
         vec![
             PortSpec::one("sparse", "DepthMap", "z-buffered projection, 0 = no point"),
             PortSpec::one("prompt", "DepthMap", "nearest-neighbour fill of `sparse`"),
