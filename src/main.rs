@@ -328,6 +328,37 @@ fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> 
     Ok(code)
 }
 
+/// `run` and `eval`: loads the pipeline, runs it, returns it with its output folder and exit code
+/// (or the exit code of a pipeline that did not load).
+fn run_pipeline(
+    registry: &Registry,
+    p: &PipelineArgs,
+    jobs: Option<usize>,
+    fail_fast: bool,
+    out: Option<PathBuf>,
+    progress: &str,
+) -> Result<Result<(Pipeline, PathBuf, ExitCode), ExitCode>> {
+    let pipeline = match load(p, registry)? {
+        Ok(x) => x,
+        Err(code) => return Ok(Err(code)),
+    };
+    let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
+    let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+    let mut opts = RunOptions {
+        fail_fast,
+        scenes: p.scenes.clone(),
+        frame_limit: p.limit,
+        out_dir: Some(out_dir.clone()),
+        progress: progress_mode(progress),
+        ..Default::default()
+    };
+    if let Some(j) = jobs {
+        opts.jobs = j.max(1);
+    }
+    let code = execute(registry, &pipeline, &cache, &out_dir, opts)?;
+    Ok(Ok((pipeline, out_dir, code)))
+}
+
 /// The score tables of every EvalDepth stage of `pipeline`, read from the run's exported files.
 fn eval_tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
     let eval_stages: Vec<&str> = pipeline
@@ -420,45 +451,16 @@ fn run(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Eval { p, jobs, out, progress } => {
-            let pipeline = match load(&p, &registry)? {
+            let (pipeline, out_dir, code) = match run_pipeline(&registry, &p, jobs, false, out, &progress)? {
                 Ok(x) => x,
                 Err(code) => return Ok(code),
             };
-            let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
-            let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
-            let mut opts = RunOptions {
-                scenes: p.scenes.clone(),
-                frame_limit: p.limit,
-                out_dir: Some(out_dir.clone()),
-                progress: progress_mode(&progress),
-                ..Default::default()
-            };
-            if let Some(j) = jobs {
-                opts.jobs = j.max(1);
-            }
-            let code = execute(&registry, &pipeline, &cache, &out_dir, opts)?;
             print!("{}", eval_tables(&pipeline, &out_dir)?);
             Ok(code)
         }
         Command::Run { p, jobs, fail_fast, out, progress } => {
-            let pipeline = match load(&p, &registry)? {
-                Ok(x) => x,
-                Err(code) => return Ok(code),
-            };
-            let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
-            let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
-            let mut opts = RunOptions {
-                fail_fast,
-                scenes: p.scenes.clone(),
-                frame_limit: p.limit,
-                out_dir: Some(out_dir.clone()),
-                ..Default::default()
-            };
-            if let Some(j) = jobs {
-                opts.jobs = j.max(1);
-            }
-            opts.progress = progress_mode(&progress);
-            execute(&registry, &pipeline, &cache, &out_dir, opts)
+            Ok(run_pipeline(&registry, &p, jobs, fail_fast, out, &progress)?
+                .map_or_else(|code| code, |(_, _, code)| code))
         }
         Command::Runs { cache, json } => {
             let runs = dist4d_runtime::runs::list_runs(&cache.join("runs"))?;
