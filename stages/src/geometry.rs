@@ -61,3 +61,38 @@ impl Se3 {
         Ok(Se3 { rotation: DQuat::from_xyzw(v[1], v[2], v[3], v[0]), translation: DVec3::new(v[4], v[5], v[6]) })
     }
 }
+
+/// A 3D box as a point test in some sensor frame: grown by `margin` sideways and on top, its
+/// bottom raised by `ground_clearance` (so the ground under a car is not inside it).
+pub struct BoxTest {
+    to_box: Se3,
+    half: DVec3,
+    z_min: f64,
+    radius2: f64,
+    center: DVec3,
+}
+
+impl BoxTest {
+    /// `frame_from_world`: the frame the tested points are in.
+    pub fn new(b: &crate::artifact::Box3D, frame_from_world: &Se3, margin: f64, ground_clearance: f64) -> BoxTest {
+        let box_to_frame = frame_from_world.then_from(&Se3::from_wxyz_t(b.rotation, b.center));
+        // nuScenes size is [width, length, height]; the box x axis runs along its length.
+        let half = DVec3::new(b.size[1] / 2.0, b.size[0] / 2.0, b.size[2] / 2.0) + DVec3::splat(margin);
+        BoxTest {
+            to_box: box_to_frame.inverse(),
+            z_min: -b.size[2] / 2.0 + ground_clearance,
+            radius2: half.length_squared(),
+            center: box_to_frame.translation,
+            half,
+        }
+    }
+
+    #[inline]
+    pub fn contains(&self, p: DVec3) -> bool {
+        if (p - self.center).length_squared() > self.radius2 {
+            return false;
+        }
+        let q = self.to_box.apply(p);
+        q.x.abs() <= self.half.x && q.y.abs() <= self.half.y && q.z >= self.z_min && q.z <= self.half.z
+    }
+}

@@ -7,9 +7,11 @@ pub mod dgp;
 pub mod files;
 pub mod geometry;
 pub mod hull;
+pub mod middlebury;
 pub mod nuscenes;
 pub mod sidecar;
 pub mod stage;
+pub mod stereo;
 pub mod synth;
 pub mod stages {
     pub mod aggregate;
@@ -17,6 +19,8 @@ pub mod stages {
     pub mod encode;
     pub mod eval;
     pub mod hpr;
+    pub mod mvs;
+    pub mod mvs_points;
     pub mod project_lidar;
     pub mod prompt;
 }
@@ -41,6 +45,8 @@ impl Default for Registry {
                 stages::complete::def(),
                 stages::eval::def(),
                 stages::hpr::def(),
+                stages::mvs::def(),
+                stages::mvs_points::def(),
                 stages::prompt::def(),
                 stages::project_lidar::def(),
                 stages::encode::encode_depth(),

@@ -16,7 +16,7 @@
 //! points it never saw (works on real data).
 
 use crate::artifact::{Boxes3D, Calibration, PointCloud, Pose};
-use crate::geometry::Se3;
+use crate::geometry::BoxTest;
 use crate::stage::{each, StageDef, TypedOp};
 use crate::synth::rng::mix;
 use anyhow::{anyhow, ensure, Result};
@@ -70,26 +70,6 @@ pub struct Sweep<'a> {
     pub boxes: &'a Boxes3D,
 }
 
-/// A dynamic box as a test in one sweep's LiDAR frame.
-struct BoxTest {
-    to_box: Se3,
-    half: DVec3,
-    z_min: f64,
-    radius2: f64,
-    center: DVec3,
-}
-
-impl BoxTest {
-    #[inline]
-    fn contains(&self, p: DVec3) -> bool {
-        if (p - self.center).length_squared() > self.radius2 {
-            return false;
-        }
-        let q = self.to_box.apply(p);
-        q.x.abs() <= self.half.x && q.y.abs() <= self.half.y && q.z >= self.z_min && q.z <= self.half.z
-    }
-}
-
 /// The aggregate (in the target LiDAR frame) and the held-out target points (same frame).
 pub fn aggregate(params: &Params, sweeps: &[Sweep]) -> Result<(PointCloud, PointCloud)> {
     let target = sweeps
@@ -115,20 +95,7 @@ pub fn aggregate(params: &Params, sweeps: &[Sweep]) -> Result<(PointCloud, Point
                 .boxes
                 .iter()
                 .filter(|b| b.is_moving(params.moving_speed))
-                .map(|b| {
-                    let box_to_world = Se3::from_wxyz_t(b.rotation, b.center);
-                    let box_to_sweep = sweep_from_world.then_from(&box_to_world);
-                    // nuScenes size is [width, length, height]; the box x axis runs along its length.
-                    let half =
-                        DVec3::new(b.size[1] / 2.0, b.size[0] / 2.0, b.size[2] / 2.0) + DVec3::splat(params.box_margin);
-                    BoxTest {
-                        to_box: box_to_sweep.inverse(),
-                        z_min: -b.size[2] / 2.0 + params.ground_clearance,
-                        radius2: half.length_squared(),
-                        center: box_to_sweep.translation,
-                        half,
-                    }
-                })
+                .map(|b| BoxTest::new(b, &sweep_from_world, params.box_margin, params.ground_clearance))
                 .collect()
         };
         let sensor_to_ego = &s.calib.sensor_to_ego;
@@ -225,6 +192,7 @@ pub fn def() -> StageDef {
 mod tests {
     use super::*;
     use crate::artifact::Box3D;
+    use crate::geometry::Se3;
 
     fn lidar() -> Calibration {
         Calibration {

@@ -157,6 +157,13 @@ fn estimate_sky(image: &Image, lum: &[f32], top: &[usize], w: usize) -> Vec<bool
     sky
 }
 
+/// The built-in sky estimate with no depth samples to bound it (every column may be sky down to
+/// the bottom): what `StaticMvsPoints` uses when the dataset has no segmentation.
+pub fn estimate_sky_from_top(image: &Image) -> Vec<bool> {
+    let (w, h) = (image.width as usize, image.height as usize);
+    estimate_sky(image, &luminance(image), &vec![h; w], w)
+}
+
 pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, semantic: Option<&Segmentation>) -> DepthMap {
     let (w, h) = (sparse.width as usize, sparse.height as usize);
     let lum = luminance(image);

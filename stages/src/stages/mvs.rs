@@ -1,0 +1,282 @@
+//! `MultiViewStereo`: depth of one camera image from the same camera's neighbouring frames.
+//!
+//! DiST-4D (Sec. 3.2, supp. A): LiDAR does not reach above its upper field of view (about +10
+//! degrees on nuScenes), so building facades, tree crowns and the far street end get no prompt.
+//! The paper fills them with multi-view stereo on calibrated neighbouring frames, up to 100 m.
+//! Here: plane sweep over inverse depth in the target camera, 7x7 census costs against frames
+//! t-1 and t+1 (the window's other images, placed by their ego poses), 8-path semi-global
+//! aggregation, a uniqueness test and sub-plane refinement (see [`crate::stereo`]). A geometric
+//! consistency check then keeps only depths that the neighbour with the longer baseline, matched
+//! back against the target image, confirms within `consistency_px` and `consistency_depth`.
+//!
+//! Work happens at 1/`downscale` of the image size (default 1/4, 400x225 for nuScenes): the
+//! baselines between keyframes are metres long, so at full size a side camera's epipolar lines
+//! are thousands of pixels; the outputs keep that size (scale K by width / calibration width).
+//! Near the epipole (ahead of a forward-moving front camera) depth is unobservable; those pixels
+//! fail the uniqueness or consistency test and get no depth rather than a wrong one.
+//! A frame without neighbours (a one-frame scene) gets no depth.
+
+use crate::artifact::{Artifact, Calibration, DepthMap, Image, Pose};
+use crate::stage::{each, StageDef, TypedOp};
+use crate::stereo::{keep_consistent, sweep_depth, StereoView, SweepParams};
+use anyhow::{anyhow, ensure, Result};
+use dist4d_graph::PortSpec;
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Working resolution is 1/downscale of the image's (integer, >= 1).
+    pub downscale: u32,
+    /// Nearest depth swept (m).
+    pub min_depth: f64,
+    /// Farthest depth swept (m; the paper's MVS maximum is 100 m).
+    pub max_depth: f64,
+    /// Cap on the number of depth planes.
+    pub max_planes: u32,
+    /// Planes are spaced to move the sample about this far (working-resolution px) along the
+    /// longest epipolar line.
+    pub plane_step_px: f64,
+    /// SGM penalty for a one-plane change between neighbouring pixels (census-bit units).
+    pub p1: u16,
+    /// SGM penalty for a larger depth jump.
+    pub p2: u16,
+    /// The best aggregated cost must beat the second best by this fraction.
+    pub uniqueness: f64,
+    /// Geometric consistency: reprojection error allowed (working-resolution px).
+    pub consistency_px: f64,
+    /// Geometric consistency: relative depth difference allowed.
+    pub consistency_depth: f64,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            downscale: 4,
+            min_depth: 3.0,
+            max_depth: 100.0,
+            max_planes: 256,
+            plane_step_px: 1.0,
+            p1: 8,
+            p2: 48,
+            uniqueness: 0.05,
+            consistency_px: 1.0,
+            consistency_depth: 0.03,
+        }
+    }
+}
+
+impl Params {
+    pub fn sweep(&self) -> SweepParams {
+        SweepParams {
+            min_depth: self.min_depth,
+            max_depth: self.max_depth,
+            max_planes: self.max_planes as usize,
+            plane_step_px: self.plane_step_px,
+            p1: self.p1,
+            p2: self.p2,
+            uniqueness: self.uniqueness,
+        }
+    }
+
+    fn check(&self) -> Result<()> {
+        ensure!(self.downscale >= 1, "downscale must be at least 1");
+        ensure!(
+            self.min_depth > 0.0 && self.max_depth > self.min_depth,
+            "need 0 < min_depth < max_depth, not {} and {}",
+            self.min_depth,
+            self.max_depth
+        );
+        ensure!(self.max_planes >= 8, "max_planes must be at least 8");
+        ensure!(self.p2 >= self.p1, "p2 ({}) must not be below p1 ({})", self.p2, self.p1);
+        ensure!((0.0..1.0).contains(&self.uniqueness), "uniqueness must be in [0, 1)");
+        Ok(())
+    }
+}
+
+/// One frame of the window: the camera image, its calibration and the ego pose at its time.
+pub struct Frame<'a> {
+    pub position: i64,
+    pub image: &'a Image,
+    pub calib: &'a Calibration,
+    pub pose: &'a Pose,
+}
+
+fn view(frame: &Frame, downscale: u32) -> Result<StereoView> {
+    let k = frame
+        .calib
+        .intrinsics
+        .ok_or_else(|| anyhow!("camera calibration at position {} has no intrinsics", frame.position))?;
+    let img = frame.image;
+    ensure!(
+        (img.width, img.height) == (frame.calib.width, frame.calib.height),
+        "image at position {} is {}x{} but its calibration says {}x{}",
+        frame.position,
+        img.width,
+        img.height,
+        frame.calib.width,
+        frame.calib.height
+    );
+    let grey: Vec<u8> = img
+        .rgb
+        .chunks_exact(3)
+        .map(|p| ((p[0] as u32 * 77 + p[1] as u32 * 150 + p[2] as u32 * 29) >> 8) as u8)
+        .collect();
+    let world_from_cam = frame.pose.ego_to_world.then_from(&frame.calib.sensor_to_ego);
+    Ok(StereoView::downscaled(img.width as usize, img.height as usize, &grey, k, world_from_cam, downscale as usize))
+}
+
+/// Depth and confidence of the frame at position 0, at working resolution.
+pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap, DepthMap)> {
+    params.check()?;
+    let target = frames
+        .iter()
+        .find(|f| f.position == 0)
+        .ok_or_else(|| anyhow!("the window has no image at position 0 (the target frame)"))?;
+    let reference = view(target, params.downscale)?;
+    let sources =
+        frames.iter().filter(|f| f.position != 0).map(|f| view(f, params.downscale)).collect::<Result<Vec<_>>>()?;
+    let sweep = params.sweep();
+    let refs: Vec<&StereoView> = sources.iter().collect();
+    let mut depth = sweep_depth(&reference, &refs, &sweep);
+    // The check view: the neighbour with the longest baseline, matched against the target alone.
+    let centre = reference.world_from_cam.translation;
+    if let Some(check) = sources.iter().max_by(|a, b| {
+        let (da, db) = (a.world_from_cam.translation.distance(centre), b.world_from_cam.translation.distance(centre));
+        da.total_cmp(&db)
+    }) {
+        let back = sweep_depth(check, &[&reference], &sweep);
+        keep_consistent(&reference, &mut depth, check, &back, params.consistency_px, params.consistency_depth);
+    }
+    let (w, h) = (depth.width as u32, depth.height as u32);
+    Ok((DepthMap { width: w, height: h, data: depth.depth }, DepthMap { width: w, height: h, data: depth.confidence }))
+}
+
+struct Op(Params);
+
+impl TypedOp for Op {
+    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+        let images = each::<Image>(inputs, 0)?;
+        let calibs = each::<Calibration>(inputs, 1)?;
+        let poses = each::<Pose>(inputs, 2)?;
+        let mut frames = Vec::new();
+        for (pos, image) in &images {
+            let calib =
+                calibs.iter().find(|(p, _)| p == pos).ok_or_else(|| anyhow!("no camera_calib at position {pos}"))?;
+            let pose =
+                poses.iter().find(|(p, _)| p == pos).ok_or_else(|| anyhow!("no camera_pose at position {pos}"))?;
+            frames.push(Frame { position: *pos, image, calib: &calib.1, pose: &pose.1 });
+        }
+        let (depth, confidence) = multi_view_stereo(&self.0, &frames)?;
+        Ok(vec![depth.encode(), confidence.encode()])
+    }
+}
+
+pub fn def() -> StageDef {
+    StageDef::new::<Params>(
+        "MultiViewStereo",
+        1,
+        "Camera images of a window of frames -> depth of the target image by plane-sweep stereo + SGM",
+        vec![
+            PortSpec::many("images", "Image", "the camera's images: Window(\"dataset.image\", frame, -1, 1)"),
+            PortSpec::many("calibs", "Calibration", "their calibrations (same Window)"),
+            PortSpec::many("poses", "Pose", "their ego poses (same Window)"),
+        ],
+        vec![
+            PortSpec::one("depth", "DepthMap", "depth of the target image at 1/downscale size, 0 = none"),
+            PortSpec::one("confidence", "DepthMap", "per-pixel confidence in [0, 1] (same size), 0 = no depth"),
+        ],
+        vec!["camera"],
+        |p: Params| {
+            p.check()?;
+            Ok(Box::new(Op(p)))
+        },
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::Se3;
+    use glam::DVec3;
+
+    /// A camera looking left (ego +y), so driving along ego +x is a sideways baseline, at a
+    /// textured wall 20 m to the left.
+    fn frame_data(x: f64) -> (Image, Calibration, Pose) {
+        let (w, h) = (320u32, 180u32);
+        let f = 200.0;
+        // Camera x (right) = ego +x, y (down) = ego -z, z (optical axis) = ego +y: -90 deg about x.
+        let calib = Calibration {
+            sensor_to_ego: Se3::from_wxyz_t(
+                [std::f64::consts::FRAC_1_SQRT_2, -std::f64::consts::FRAC_1_SQRT_2, 0.0, 0.0],
+                [0.0, 0.0, 1.5],
+            ),
+            intrinsics: Some([[f, 0.0, w as f64 / 2.0], [0.0, f, h as f64 / 2.0], [0.0, 0.0, 1.0]]),
+            width: w,
+            height: h,
+        };
+        let pose = Pose { ego_to_world: Se3::from_yaw(0.0, DVec3::new(x, 0.0, 0.0)), timestamp_us: (x * 1e5) as i64 };
+        let world_from_cam = pose.ego_to_world.then_from(&calib.sensor_to_ego);
+        let mut rgb = vec![0u8; (w * h * 3) as usize];
+        for v in 0..h {
+            for u in 0..w {
+                let ray = DVec3::new((u as f64 + 0.5 - w as f64 / 2.0) / f, (v as f64 + 0.5 - h as f64 / 2.0) / f, 1.0);
+                let o = world_from_cam.translation;
+                let d = world_from_cam.matrix() * ray;
+                // The wall is the plane world y = 20.
+                let t = (20.0 - o.y) / d.y;
+                let p = o + d * t;
+                let g = wall_texture(p.x, p.z);
+                let i = ((v * w + u) * 3) as usize;
+                rgb[i..i + 3].copy_from_slice(&[g, g, g]);
+            }
+        }
+        (Image { width: w, height: h, rgb }, calib, pose)
+    }
+
+    fn wall_texture(a: f64, b: f64) -> u8 {
+        let hash = |i: i64, j: i64| {
+            let mut x = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (j as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
+            x ^= x >> 29;
+            x = x.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            x ^= x >> 32;
+            (x & 0xFF) as f64
+        };
+        let (s, t) = (a / 0.25, b / 0.25);
+        let (i, j) = (s.floor() as i64, t.floor() as i64);
+        let (fs, ft) = (s - i as f64, t - j as f64);
+        (hash(i, j) * (1.0 - fs) * (1.0 - ft)
+            + hash(i + 1, j) * fs * (1.0 - ft)
+            + hash(i, j + 1) * (1.0 - fs) * ft
+            + hash(i + 1, j + 1) * fs * ft) as u8
+    }
+
+    #[test]
+    fn a_side_wall_seen_while_driving_past_it_gets_its_depth() {
+        let data: Vec<(i64, (Image, Calibration, Pose))> =
+            vec![(-1, frame_data(-3.0)), (0, frame_data(0.0)), (1, frame_data(3.0))];
+        let frames: Vec<Frame> =
+            data.iter().map(|(p, (i, c, q))| Frame { position: *p, image: i, calib: c, pose: q }).collect();
+        let params = Params { downscale: 2, ..Params::default() };
+        let (depth, conf) = multi_view_stereo(&params, &frames).unwrap();
+        assert_eq!((depth.width, depth.height), (160, 90));
+        // The camera looks straight at the wall: depth 20 m everywhere.
+        let valid: Vec<f32> = depth.data.iter().copied().filter(|&z| z > 0.0).collect();
+        assert!(valid.len() > depth.data.len() / 2, "{} of {}", valid.len(), depth.data.len());
+        let good = valid.iter().filter(|&&z| (z - 20.0).abs() < 0.6).count();
+        assert!(good as f64 > 0.97 * valid.len() as f64, "{good} of {}", valid.len());
+        assert!(conf.data.iter().zip(&depth.data).all(|(c, z)| (*c > 0.0) == (*z > 0.0)));
+    }
+
+    #[test]
+    fn one_frame_gives_no_depth_and_bad_params_are_refused() {
+        let (i, c, q) = frame_data(0.0);
+        let frames = [Frame { position: 0, image: &i, calib: &c, pose: &q }];
+        let (depth, _) = multi_view_stereo(&Params::default(), &frames).unwrap();
+        assert!(depth.data.iter().all(|&z| z == 0.0));
+        let bad = Params { min_depth: 50.0, max_depth: 10.0, ..Params::default() };
+        assert!(multi_view_stereo(&bad, &frames).unwrap_err().to_string().contains("min_depth"));
+        let none = [Frame { position: 1, image: &i, calib: &c, pose: &q }];
+        assert!(multi_view_stereo(&Params::default(), &none).is_err());
+    }
+}

@@ -1,0 +1,305 @@
+//! `StaticMvsPoints`: multi-view-stereo depth -> the static points it adds above the LiDAR.
+//!
+//! DiST-4D (supp. A) uses MVS only for what LiDAR cannot give: static structure above the ego
+//! LiDAR. Each MVS pixel with depth (and confidence at least `min_confidence`) is back-projected
+//! into the target frame's LiDAR frame, then dropped when it is
+//! - inside a box of the target frame that is moving (attribute or speed above `moving_speed`;
+//!   grown by `box_margin`): moving objects break the multi-view constraint;
+//! - sky: a Cityscapes-id segmentation (`semantic`, id 23) when the dataset has one, otherwise
+//!   the built-in estimate of `CompleteDepth` (the bright, smooth, not reddish run of each column
+//!   from the top of the image);
+//! - not more than `min_height` above the LiDAR (z in the LiDAR frame): "we only keep MVS points
+//!   above the ego LiDAR", where LiDAR has no returns.
+//!
+//! The rest is downsampled on a `voxel` grid, one mean point per occupied voxel (Open3D's
+//! `voxel_down_sample`: voxels anchored at the cloud's minimum corner less half a voxel), in voxel
+//! order so the output does not depend on thread count.
+
+use crate::artifact::{Artifact, Boxes3D, Calibration, DepthMap, Image, PointCloud, Pose, Segmentation};
+use crate::camera::CameraView;
+use crate::geometry::BoxTest;
+use crate::stage::{input, maybe_one, one, optional_input, StageDef, TypedOp};
+use anyhow::{ensure, Result};
+use dist4d_graph::PortSpec;
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Pixels with a lower MVS confidence are not used.
+    pub min_confidence: f32,
+    /// A box is dynamic when its attributes say moving or its speed exceeds this (m/s).
+    pub moving_speed: f64,
+    /// Dynamic boxes grow by this much (m) on each side and on top.
+    pub box_margin: f64,
+    /// Points must be higher than this above the LiDAR origin (m, LiDAR z).
+    pub min_height: f64,
+    /// Voxel edge (m) of the downsampling; 0 keeps every point.
+    pub voxel: f64,
+    /// Without a segmentation, estimate sky from the image.
+    pub detect_sky: bool,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            min_confidence: 0.0,
+            moving_speed: 0.5,
+            box_margin: 0.2,
+            min_height: 0.0,
+            voxel: 0.1,
+            detect_sky: true,
+        }
+    }
+}
+
+/// Mean point per occupied voxel of edge `voxel`, with Open3D's anchoring; in voxel order.
+/// Intensity is averaged like the coordinates; labels are dropped.
+pub fn voxel_mean(points: &[[f32; 4]], voxel: f64) -> Vec<[f32; 4]> {
+    if points.is_empty() || voxel <= 0.0 {
+        return points.to_vec();
+    }
+    let mut min = DVec3::splat(f64::INFINITY);
+    for p in points {
+        min = min.min(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64));
+    }
+    let origin = min - DVec3::splat(voxel * 0.5);
+    let mut keyed: Vec<([i64; 3], u32)> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let r = (DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64) - origin) / voxel;
+            ([r.x.floor() as i64, r.y.floor() as i64, r.z.floor() as i64], i as u32)
+        })
+        .collect();
+    keyed.sort_unstable();
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < keyed.len() {
+        let mut j = i;
+        let mut sum = [0f64; 4];
+        while j < keyed.len() && keyed[j].0 == keyed[i].0 {
+            let p = points[keyed[j].1 as usize];
+            for k in 0..4 {
+                sum[k] += p[k] as f64;
+            }
+            j += 1;
+        }
+        let n = (j - i) as f64;
+        out.push([(sum[0] / n) as f32, (sum[1] / n) as f32, (sum[2] / n) as f32, (sum[3] / n) as f32]);
+        i = j;
+    }
+    out
+}
+
+/// The inputs of [`static_points`].
+pub struct MvsInputs<'a> {
+    pub depth: &'a DepthMap,
+    pub confidence: &'a DepthMap,
+    pub image: &'a Image,
+    pub semantic: Option<&'a Segmentation>,
+    /// Target LiDAR frame -> camera (the camera at full image size).
+    pub view: &'a CameraView,
+    /// World -> target LiDAR frame.
+    pub cloud_from_world: crate::geometry::Se3,
+    pub boxes: &'a Boxes3D,
+}
+
+/// The static MVS points above the LiDAR, in the target LiDAR frame.
+pub fn static_points(params: &Params, m: &MvsInputs) -> Result<PointCloud> {
+    let (w, h) = (m.depth.width as usize, m.depth.height as usize);
+    ensure!(
+        (m.confidence.width, m.confidence.height) == (m.depth.width, m.depth.height),
+        "confidence is {}x{} but depth is {w}x{h}",
+        m.confidence.width,
+        m.confidence.height
+    );
+    ensure!(
+        (m.image.width, m.image.height) == (m.view.width, m.view.height),
+        "image is {}x{} but the camera calibration says {}x{}",
+        m.image.width,
+        m.image.height,
+        m.view.width,
+        m.view.height
+    );
+    let (iw, ih) = (m.view.width as usize, m.view.height as usize);
+    let semantic = m.semantic.filter(|s| s.width > 0 && s.height > 0);
+    if let Some(s) = semantic {
+        ensure!(
+            (s.width as usize, s.height as usize) == (iw, ih),
+            "semantic map is {}x{} but the image is {iw}x{ih}",
+            s.width,
+            s.height
+        );
+    }
+    let sky: Vec<bool> = match semantic {
+        Some(s) => s.ids.iter().map(|&id| id == Segmentation::SKY).collect(),
+        None if params.detect_sky => crate::stages::complete::estimate_sky_from_top(m.image),
+        None => vec![false; iw * ih],
+    };
+    let boxes: Vec<BoxTest> = m
+        .boxes
+        .boxes
+        .iter()
+        .filter(|b| b.is_moving(params.moving_speed))
+        .map(|b| BoxTest::new(b, &m.cloud_from_world, params.box_margin, 0.0))
+        .collect();
+    // Depth pixels are 1/downscale of image pixels.
+    let (sx, sy) = (iw as f64 / w.max(1) as f64, ih as f64 / h.max(1) as f64);
+    let cloud_from_cam = m.view.cloud_from_cam();
+    let mut kept = Vec::new();
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            let z = m.depth.data[i];
+            if !(z > 0.0 && z.is_finite()) || m.confidence.data[i] < params.min_confidence {
+                continue;
+            }
+            let (u, v) = ((x as f64 + 0.5) * sx, (y as f64 + 0.5) * sy);
+            if sky[(v as usize).min(ih - 1) * iw + (u as usize).min(iw - 1)] {
+                continue;
+            }
+            let p = cloud_from_cam.apply(m.view.unproject(u, v, z as f64));
+            if p.z <= params.min_height || boxes.iter().any(|b| b.contains(p)) {
+                continue;
+            }
+            kept.push([p.x as f32, p.y as f32, p.z as f32, 0.0]);
+        }
+    }
+    Ok(PointCloud { points: voxel_mean(&kept, params.voxel), labels: Vec::new() })
+}
+
+struct Op(Params);
+
+impl TypedOp for Op {
+    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+        let depth = one::<DepthMap>(inputs, 0)?;
+        let confidence = one::<DepthMap>(inputs, 1)?;
+        let image = one::<Image>(inputs, 2)?;
+        let cloud_calib = one::<Calibration>(inputs, 3)?;
+        let cloud_pose = one::<Pose>(inputs, 4)?;
+        let camera_calib = one::<Calibration>(inputs, 5)?;
+        let camera_pose = one::<Pose>(inputs, 6)?;
+        let boxes = one::<Boxes3D>(inputs, 7)?;
+        let semantic = maybe_one::<Segmentation>(inputs, 8)?;
+        let view = CameraView::new(&cloud_calib, &cloud_pose, &camera_calib, &camera_pose)?;
+        let cloud_from_world = cloud_pose.ego_to_world.then_from(&cloud_calib.sensor_to_ego).inverse();
+        let m = MvsInputs {
+            depth: &depth,
+            confidence: &confidence,
+            image: &image,
+            semantic: semantic.as_ref(),
+            view: &view,
+            cloud_from_world,
+            boxes: &boxes,
+        };
+        Ok(vec![static_points(&self.0, &m)?.encode()])
+    }
+}
+
+pub fn def() -> StageDef {
+    StageDef::new::<Params>(
+        "StaticMvsPoints",
+        1,
+        "MVS depth -> static points above the LiDAR (no moving boxes, no sky), voxel-downsampled",
+        vec![
+            input::<DepthMap>("depth", "MultiViewStereo depth (any size; pixels scale to the image)"),
+            input::<DepthMap>("confidence", "MultiViewStereo confidence (same size)"),
+            input::<Image>("image", "the camera image (for the built-in sky estimate)"),
+            input::<Calibration>("cloud_calib", "the sensor of the output frame (the target frame's LiDAR)"),
+            input::<Pose>("cloud_pose", "ego pose of that sensor's frame"),
+            input::<Calibration>("camera_calib", "camera mounting and intrinsics"),
+            input::<Pose>("camera_pose", "ego pose at the camera time"),
+            input::<Boxes3D>("boxes", "the target frame's boxes"),
+            optional_input::<Segmentation>("semantic", "Cityscapes ids (sky = 23); empty or unwired: built-in sky"),
+        ],
+        vec![PortSpec::one("points", "PointCloud", "static MVS points in the target LiDAR frame")],
+        vec!["camera"],
+        |p: Params| Ok(Box::new(Op(p))),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::artifact::Box3D;
+    use crate::geometry::Se3;
+
+    #[test]
+    fn voxel_mean_averages_each_voxel_with_open3d_anchoring() {
+        // Anchored at min - v/2 = -0.05: 0.0 and 0.04 share voxel 0; 0.06 is in voxel 1.
+        let pts = [[0.0, 0.0, 0.0, 1.0], [0.04, 0.0, 0.0, 3.0], [0.06, 0.0, 0.0, 5.0], [1.0, 1.0, 1.0, 0.0]];
+        let out = voxel_mean(&pts, 0.1);
+        assert_eq!(out.len(), 3);
+        assert!((out[0][0] - 0.02).abs() < 1e-6 && out[0][3] == 2.0);
+        assert_eq!(out[1], [0.06, 0.0, 0.0, 5.0]);
+        assert_eq!(voxel_mean(&pts, 0.0).len(), 4);
+    }
+
+    /// A forward camera at the LiDAR's position; depth 20 m everywhere at 1/2 size.
+    fn setup() -> (Calibration, Pose, Calibration, Image, DepthMap) {
+        let lidar = Calibration {
+            sensor_to_ego: Se3::from_yaw(0.0, DVec3::new(0.0, 0.0, 1.8)),
+            intrinsics: None,
+            width: 0,
+            height: 0,
+        };
+        let pose = Pose { ego_to_world: Se3::from_yaw(0.0, DVec3::ZERO), timestamp_us: 0 };
+        // Camera z = ego x, camera x = ego -y, camera y = ego -z.
+        let cam = Calibration {
+            sensor_to_ego: Se3::from_wxyz_t([0.5, -0.5, 0.5, -0.5], [0.0, 0.0, 1.8]),
+            intrinsics: Some([[100.0, 0.0, 40.0], [0.0, 100.0, 30.0], [0.0, 0.0, 1.0]]),
+            width: 80,
+            height: 60,
+        };
+        // Dark, textured image: no sky.
+        let image = Image { width: 80, height: 60, rgb: (0..80 * 60 * 3).map(|i| (i * 7 % 50) as u8).collect() };
+        let depth = DepthMap { width: 40, height: 30, data: vec![20.0; 1200] };
+        (lidar, pose, cam, image, depth)
+    }
+
+    #[test]
+    fn keeps_only_static_points_above_the_lidar_outside_sky() {
+        let (lidar, pose, cam, image, depth) = setup();
+        let conf = DepthMap { width: 40, height: 30, data: vec![0.5; 1200] };
+        let view = CameraView::new(&lidar, &pose, &cam, &pose).unwrap();
+        let cloud_from_world = pose.ego_to_world.then_from(&lidar.sensor_to_ego).inverse();
+        let car = |speed: f64| Box3D {
+            center: [20.0, -5.0, 3.0],
+            size: [4.0, 1.0, 6.0],
+            rotation: [1.0, 0.0, 0.0, 0.0],
+            velocity: [speed, 0.0, 0.0],
+            instance: "a".into(),
+            category: "vehicle.car".into(),
+            attributes: vec![],
+            num_lidar_pts: 0,
+            interpolated: false,
+        };
+        let boxes = Boxes3D { timestamp_us: 0, boxes: vec![car(5.0)] };
+        let mut sky = Segmentation { width: 80, height: 60, ids: vec![0; 4800] };
+        sky.ids[..80 * 4].fill(Segmentation::SKY);
+        let m = MvsInputs {
+            depth: &depth,
+            confidence: &conf,
+            image: &image,
+            semantic: Some(&sky),
+            view: &view,
+            cloud_from_world,
+            boxes: &boxes,
+        };
+        let params = Params { voxel: 0.0, ..Params::default() };
+        let out = static_points(&params, &m).unwrap();
+        // Upper half of the image is above the LiDAR (z > 0): 15 rows, less the 2 sky rows,
+        // less the moving box's pixels.
+        assert!(!out.points.is_empty());
+        for p in &out.points {
+            assert!(p[2] > 0.0, "{p:?}");
+            assert!(p[2] < 20.0 * 0.3 - 4.0 * 20.0 / 100.0 + 0.05, "sky rows must go: {p:?}");
+            assert!(!(p[1] < -4.3 && p[1] > -5.7 && p[2] < 4.3), "inside the moving box: {p:?}");
+        }
+        let parked = Boxes3D { timestamp_us: 0, boxes: vec![car(0.0)] };
+        let all = static_points(&params, &MvsInputs { boxes: &parked, ..m }).unwrap();
+        assert!(all.points.len() > out.points.len(), "a parked car's points stay");
+    }
+}

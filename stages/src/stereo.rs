@@ -1,0 +1,513 @@
+//! Plane-sweep stereo with census costs and semi-global aggregation, for any number of calibrated
+//! views (a rectified pair is the special case of one source shifted along x).
+//!
+//! Why this design: driving logs give calibrated neighbouring frames of one camera, not rectified
+//! pairs, so the cost volume is built by sweeping fronto-parallel planes of the reference camera,
+//! uniform in inverse depth, and sampling each source along its epipolar line. Census costs
+//! survive exposure changes between frames; semi-global matching (Hirschmüller 2008, 8 paths)
+//! regularises textureless stretches without smoothing across depth edges; a geometric
+//! consistency check against the depth of a source view (the multi-view form of the left-right
+//! check) removes occlusions and mismatches.
+//!
+//! The number of planes follows the geometry: planes are spaced so that the sample moves about
+//! `plane_step_px` pixels along the longest epipolar line, capped at `max_planes`.
+
+use crate::geometry::Se3;
+use glam::{DMat3, DVec3};
+use rayon::prelude::*;
+
+/// A grey image with its pinhole intrinsics and pose.
+pub struct StereoView {
+    pub width: usize,
+    pub height: usize,
+    pub grey: Vec<u8>,
+    /// Intrinsics for continuous pixel coordinates (pixel (i, j) covers [i, i+1) x [j, j+1)).
+    pub k: [[f64; 3]; 3],
+    /// Camera frame -> world (any common frame).
+    pub world_from_cam: Se3,
+}
+
+impl StereoView {
+    /// The view at 1/`factor` of the resolution: grey levels averaged over factor x factor blocks
+    /// (partial blocks at the right and bottom edges dropped), intrinsics scaled to match.
+    pub fn downscaled(
+        width: usize,
+        height: usize,
+        grey: &[u8],
+        k: [[f64; 3]; 3],
+        world_from_cam: Se3,
+        factor: usize,
+    ) -> StereoView {
+        let f = factor.max(1);
+        let (w, h) = (width / f, height / f);
+        let mut out = vec![0u8; w * h];
+        let area = (f * f) as u32;
+        for y in 0..h {
+            for x in 0..w {
+                let mut sum = 0u32;
+                for yy in y * f..(y + 1) * f {
+                    for xx in x * f..(x + 1) * f {
+                        sum += grey[yy * width + xx] as u32;
+                    }
+                }
+                out[y * w + x] = ((sum + area / 2) / area) as u8;
+            }
+        }
+        let s = 1.0 / f as f64;
+        let mut ks = k;
+        for row in ks.iter_mut().take(2) {
+            for v in row.iter_mut() {
+                *v *= s;
+            }
+        }
+        StereoView { width: w, height: h, grey: out, k: ks, world_from_cam }
+    }
+
+    fn k_inv(&self) -> DMat3 {
+        k_matrix(&self.k).inverse()
+    }
+}
+
+fn k_matrix(k: &[[f64; 3]; 3]) -> DMat3 {
+    DMat3::from_cols_array_2d(k).transpose()
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct SweepParams {
+    pub min_depth: f64,
+    pub max_depth: f64,
+    pub max_planes: usize,
+    pub plane_step_px: f64,
+    /// SGM penalty for a one-plane change between neighbours (cost units: census bits, x2).
+    pub p1: u16,
+    /// SGM penalty for a larger jump.
+    pub p2: u16,
+    /// The best aggregated cost must beat the second best (outside +-1 plane) by this fraction.
+    pub uniqueness: f64,
+}
+
+/// Depth (0 = none) and confidence in [0, 1] per pixel of the reference view.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StereoDepth {
+    pub width: usize,
+    pub height: usize,
+    pub depth: Vec<f32>,
+    pub confidence: Vec<f32>,
+}
+
+/// Census bits per source; two sources' costs are summed, one source's is doubled.
+const CENSUS_BITS: u32 = 48;
+const COST_MAX: u8 = (2 * CENSUS_BITS) as u8;
+
+/// 7x7 census transform (48 bits: neighbour darker than the centre), edges clamped.
+pub fn census(grey: &[u8], w: usize, h: usize) -> Vec<u64> {
+    let mut out = vec![0u64; w * h];
+    out.par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
+        for (x, o) in row.iter_mut().enumerate() {
+            let c = grey[y * w + x];
+            let mut bits = 0u64;
+            for dy in -3i32..=3 {
+                let yy = (y as i32 + dy).clamp(0, h as i32 - 1) as usize;
+                for dx in -3i32..=3 {
+                    if dx == 0 && dy == 0 {
+                        continue;
+                    }
+                    let xx = (x as i32 + dx).clamp(0, w as i32 - 1) as usize;
+                    bits = (bits << 1) | (grey[yy * w + xx] < c) as u64;
+                }
+            }
+            *o = bits;
+        }
+    });
+    out
+}
+
+/// How a reference pixel moves in one source as inverse depth changes: source pixel =
+/// (a + b rho).xy / (a + b rho).z with a = K_s R K_r^-1 [u v 1], b = K_s t.
+struct Warp {
+    m: DMat3,
+    b: DVec3,
+}
+
+impl Warp {
+    fn new(reference: &StereoView, source: &StereoView) -> Warp {
+        let src_from_ref = source.world_from_cam.inverse().then_from(&reference.world_from_cam);
+        let ks = k_matrix(&source.k);
+        Warp { m: ks * src_from_ref.matrix() * reference.k_inv(), b: ks * src_from_ref.translation }
+    }
+
+    #[inline]
+    fn at(&self, a: DVec3, rho: f64) -> Option<(f64, f64)> {
+        let p = a + self.b * rho;
+        (p.z > 1e-9).then(|| (p.x / p.z, p.y / p.z))
+    }
+}
+
+/// Inverse depths of the planes, far to near: the spacing moves the sample by about
+/// `plane_step_px` along the longest epipolar line of a grid of reference pixels.
+fn plane_inverse_depths(reference: &StereoView, warps: &[Warp], p: &SweepParams) -> Vec<f64> {
+    let (rho_far, rho_near) = (1.0 / p.max_depth, 1.0 / p.min_depth);
+    const SAMPLES: usize = 64;
+    let mut longest: f64 = 0.0;
+    for gy in 0..=8 {
+        for gx in 0..=8 {
+            let u = reference.width as f64 * gx as f64 / 8.0;
+            let v = reference.height as f64 * gy as f64 / 8.0;
+            for warp in warps {
+                let a = warp.m * DVec3::new(u, v, 1.0);
+                let mut length = 0.0;
+                let mut last: Option<(f64, f64)> = None;
+                for i in 0..=SAMPLES {
+                    let rho = rho_far + (rho_near - rho_far) * i as f64 / SAMPLES as f64;
+                    let now = warp.at(a, rho);
+                    if let (Some(l), Some(n)) = (last, now) {
+                        length += ((n.0 - l.0).powi(2) + (n.1 - l.1).powi(2)).sqrt();
+                    }
+                    last = now;
+                }
+                longest = longest.max(length);
+            }
+        }
+    }
+    let n = ((longest / p.plane_step_px.max(1e-3)).ceil() as usize + 1).clamp(8, p.max_planes.max(8));
+    (0..n).map(|i| rho_far + (rho_near - rho_far) * i as f64 / (n - 1) as f64).collect()
+}
+
+/// Depth of `reference` from `sources` by plane sweep, census and 8-path SGM, with uniqueness
+/// and sub-plane (parabola) refinement. No source: no depth.
+pub fn sweep_depth(reference: &StereoView, sources: &[&StereoView], p: &SweepParams) -> StereoDepth {
+    let (w, h) = (reference.width, reference.height);
+    let mut out = StereoDepth { width: w, height: h, depth: vec![0.0; w * h], confidence: vec![0.0; w * h] };
+    if sources.is_empty() || w == 0 || h == 0 {
+        return out;
+    }
+    let warps: Vec<Warp> = sources.iter().map(|s| Warp::new(reference, s)).collect();
+    let rhos = plane_inverse_depths(reference, &warps, p);
+    let planes = rhos.len();
+    let ref_census = census(&reference.grey, w, h);
+    let src_census: Vec<Vec<u64>> = sources.iter().map(|s| census(&s.grey, s.width, s.height)).collect();
+
+    // Cost volume, [pixel][plane]. `seen[pixel][plane]`: some source saw the sample.
+    let mut cost = vec![COST_MAX; w * h * planes];
+    let mut seen = vec![false; w * h * planes];
+    cost.par_chunks_mut(w * planes).zip(seen.par_chunks_mut(w * planes)).enumerate().for_each(
+        |(y, (row, seen_row))| {
+            for x in 0..w {
+                let c0 = ref_census[y * w + x];
+                let px = DVec3::new(x as f64 + 0.5, y as f64 + 0.5, 1.0);
+                let a: Vec<DVec3> = warps.iter().map(|wp| wp.m * px).collect();
+                for (d, &rho) in rhos.iter().enumerate() {
+                    let (mut sum, mut count) = (0u32, 0u32);
+                    for (s, src) in sources.iter().enumerate() {
+                        if let Some((u, v)) = warps[s].at(a[s], rho) {
+                            if u >= 0.0 && v >= 0.0 && u < src.width as f64 && v < src.height as f64 {
+                                let i = v as usize * src.width + u as usize;
+                                sum += (c0 ^ src_census[s][i]).count_ones();
+                                count += 1;
+                            }
+                        }
+                    }
+                    if count > 0 {
+                        row[x * planes + d] = (2 * sum / count) as u8;
+                        seen_row[x * planes + d] = true;
+                    }
+                }
+            }
+        },
+    );
+    let total = aggregate(&cost, w, h, planes, p.p1, p.p2);
+    drop(cost);
+
+    let step = rhos[1] - rhos[0];
+    out.depth.par_iter_mut().zip(out.confidence.par_iter_mut()).enumerate().for_each(|(i, (depth, conf))| {
+        let s = &total[i * planes..(i + 1) * planes];
+        let (best, &sb) = s.iter().enumerate().min_by_key(|(_, &v)| v).expect("planes >= 8");
+        if !seen[i * planes + best] {
+            return;
+        }
+        let second =
+            s.iter().enumerate().filter(|(d, _)| d.abs_diff(best) > 1).map(|(_, &v)| v).min().unwrap_or(u16::MAX);
+        if (sb as f64) >= (1.0 - p.uniqueness) * second as f64 {
+            return;
+        }
+        // At the ends of the range the minimum may lie beyond it: no depth.
+        if best == 0 || best == planes - 1 {
+            return;
+        }
+        let (l, c, r) = (s[best - 1] as f64, sb as f64, s[best + 1] as f64);
+        let curvature = l - 2.0 * c + r;
+        let offset = if curvature > 0.0 { ((l - r) / (2.0 * curvature)).clamp(-0.5, 0.5) } else { 0.0 };
+        let rho = rhos[best] + offset * step;
+        if rho > 0.0 {
+            *depth = (1.0 / rho) as f32;
+            *conf = (1.0 - sb as f64 / second.max(1) as f64) as f32;
+        }
+    });
+    out
+}
+
+/// Semi-global aggregation over 8 paths (Hirschmüller 2008): the summed path costs per pixel
+/// and plane. Two scanline passes (forward: paths from the left, top-left, top, top-right;
+/// backward: their mirrors), each keeping one row of path costs per direction.
+fn aggregate(cost: &[u8], w: usize, h: usize, n: usize, p1: u16, p2: u16) -> Vec<u16> {
+    let mut total = vec![0u16; w * h * n];
+    for backward in [false, true] {
+        // Directions by neighbour offset in iteration order: left, up-left, up, up-right.
+        let mut prev_rows = vec![vec![0u16; w * n]; 3];
+        let mut cur_rows = vec![vec![0u16; w * n]; 3];
+        let mut prev_mins = vec![vec![0u16; w]; 3];
+        let mut cur_mins = vec![vec![0u16; w]; 3];
+        let mut left = vec![0u16; n];
+        let mut here = vec![0u16; n];
+        for yi in 0..h {
+            let y = if backward { h - 1 - yi } else { yi };
+            let mut left_min = 0u16;
+            for xi in 0..w {
+                let x = if backward { w - 1 - xi } else { xi };
+                let pixel = y * w + x;
+                let c = &cost[pixel * n..(pixel + 1) * n];
+                let t = &mut total[pixel * n..(pixel + 1) * n];
+                // From the left (in iteration order).
+                let m = if xi == 0 { start(c, &mut here) } else { step(c, &left, left_min, p1, p2, &mut here) };
+                add(t, &here);
+                std::mem::swap(&mut left, &mut here);
+                left_min = m;
+                // From the previous row: up-left (dx = -1), up (0), up-right (+1).
+                for (dir, dx) in [-1i64, 0, 1].into_iter().enumerate() {
+                    let nx = xi as i64 + dx;
+                    let out = &mut cur_rows[dir][xi * n..(xi + 1) * n];
+                    let m = if yi == 0 || nx < 0 || nx >= w as i64 {
+                        start(c, out)
+                    } else {
+                        let nx = nx as usize;
+                        step(c, &prev_rows[dir][nx * n..(nx + 1) * n], prev_mins[dir][nx], p1, p2, out)
+                    };
+                    cur_mins[dir][xi] = m;
+                    add(t, out);
+                }
+            }
+            std::mem::swap(&mut prev_rows, &mut cur_rows);
+            std::mem::swap(&mut prev_mins, &mut cur_mins);
+        }
+    }
+    total
+}
+
+#[inline]
+fn start(c: &[u8], out: &mut [u16]) -> u16 {
+    let mut m = u16::MAX;
+    for (o, &v) in out.iter_mut().zip(c) {
+        *o = v as u16;
+        m = m.min(*o);
+    }
+    m
+}
+
+/// One SGM path step: L(p, d) = C(p, d) + min(L(q, d), L(q, d +- 1) + P1, min L(q) + P2) - min L(q).
+#[inline]
+fn step(c: &[u8], prev: &[u16], prev_min: u16, p1: u16, p2: u16, out: &mut [u16]) -> u16 {
+    let n = c.len();
+    let jump = prev_min + p2;
+    let mut m = u16::MAX;
+    let edge = |v: u16, nb: u16, c: u8| (v.min(nb + p1).min(jump) - prev_min) + c as u16;
+    out[0] = edge(prev[0], prev[1], c[0]);
+    out[n - 1] = edge(prev[n - 1], prev[n - 2], c[n - 1]);
+    let (lo, mid, hi) = (&prev[..n - 2], &prev[1..n - 1], &prev[2..]);
+    for (((o, &cv), (&a, &b)), &d) in out[1..n - 1].iter_mut().zip(&c[1..n - 1]).zip(lo.iter().zip(mid)).zip(hi) {
+        let v = b.min(a.min(d) + p1).min(jump);
+        *o = v - prev_min + cv as u16;
+    }
+    for &o in out.iter() {
+        m = m.min(o);
+    }
+    m
+}
+
+#[inline]
+fn add(t: &mut [u16], v: &[u16]) {
+    for (a, &b) in t.iter_mut().zip(v) {
+        *a += b;
+    }
+}
+
+/// Keeps the depths of `reference` that `other`'s depth map confirms: the point goes to `other`,
+/// takes the depth found there, comes back within `max_px` pixels and `max_rel` relative depth.
+/// Failing pixels lose depth and confidence.
+pub fn keep_consistent(
+    reference: &StereoView,
+    depth: &mut StereoDepth,
+    other: &StereoView,
+    other_depth: &StereoDepth,
+    max_px: f64,
+    max_rel: f64,
+) {
+    let other_from_ref = other.world_from_cam.inverse().then_from(&reference.world_from_cam);
+    let ref_from_other = other_from_ref.inverse();
+    let (kr, kr_inv, ko, ko_inv) = (k_matrix(&reference.k), reference.k_inv(), k_matrix(&other.k), other.k_inv());
+    let w = depth.width;
+    let project = |k: &DMat3, p: DVec3| {
+        let q = *k * p;
+        (q.x / q.z, q.y / q.z)
+    };
+    let (dref, cref) = (&mut depth.depth, &mut depth.confidence);
+    dref.par_iter_mut().zip(cref.par_iter_mut()).enumerate().for_each(|(i, (z, conf))| {
+        if *z <= 0.0 {
+            return;
+        }
+        let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+        let p = other_from_ref.apply(kr_inv * DVec3::new(x, y, 1.0) * *z as f64);
+        let ok = p.z > 0.0 && {
+            let (u, v) = project(&ko, p);
+            if u >= 0.0 && v >= 0.0 && u < other.width as f64 && v < other.height as f64 {
+                let (ou, ov) = (u.floor() + 0.5, v.floor() + 0.5);
+                let zo = other_depth.depth[v as usize * other_depth.width + u as usize] as f64;
+                zo > 0.0 && {
+                    let back = ref_from_other.apply(ko_inv * DVec3::new(ou, ov, 1.0) * zo);
+                    let (bu, bv) = project(&kr, back);
+                    back.z > 0.0
+                        && (bu - x).hypot(bv - y) <= max_px
+                        && (back.z - *z as f64).abs() <= max_rel * *z as f64
+                }
+            } else {
+                false
+            }
+        };
+        if !ok {
+            *z = 0.0;
+            *conf = 0.0;
+        }
+    });
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+
+    /// Value noise texture in [0, 255] on a surface parameterised by (s, t) metres.
+    fn texture(s: f64, t: f64) -> u8 {
+        let h = |i: i64, j: i64| {
+            let mut x = (i as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (j as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F);
+            x ^= x >> 31;
+            x = x.wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            x ^= x >> 29;
+            (x & 0xFFFF) as f64 / 65535.0
+        };
+        let mut v = 0.0;
+        for (scale, weight) in [(0.08, 0.6), (0.3, 0.4)] {
+            let (a, b) = (s / scale, t / scale);
+            let (i, j) = (a.floor() as i64, b.floor() as i64);
+            let (fa, fb) = (a - i as f64, b - j as f64);
+            let n = h(i, j) * (1.0 - fa) * (1.0 - fb)
+                + h(i + 1, j) * fa * (1.0 - fb)
+                + h(i, j + 1) * (1.0 - fa) * fb
+                + h(i + 1, j + 1) * fa * fb;
+            v += n * weight;
+        }
+        (v * 255.0) as u8
+    }
+
+    /// A scene of a back wall at z = 30 and a box face at z = 12 (|x| < 3, |y| < 2), seen from
+    /// camera centres along x; rendered exactly by ray casting. Returns the view and the true depth.
+    fn render(cx: f64, w: usize, h: usize) -> (StereoView, Vec<f32>) {
+        let k = [[300.0, 0.0, w as f64 / 2.0], [0.0, 300.0, h as f64 / 2.0], [0.0, 0.0, 1.0]];
+        let mut grey = vec![0u8; w * h];
+        let mut depth = vec![0f32; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let rx = (x as f64 + 0.5 - k[0][2]) / 300.0;
+                let ry = (y as f64 + 0.5 - k[1][2]) / 300.0;
+                let (z, s, t) = {
+                    let (bx, by) = (cx + rx * 12.0, ry * 12.0);
+                    if bx.abs() < 3.0 && by.abs() < 2.0 {
+                        (12.0, bx + 100.0, by)
+                    } else {
+                        (30.0, cx + rx * 30.0, ry * 30.0)
+                    }
+                };
+                grey[y * w + x] = texture(s, t);
+                depth[y * w + x] = z as f32;
+            }
+        }
+        (
+            StereoView { width: w, height: h, grey, k, world_from_cam: Se3::from_yaw(0.0, DVec3::new(cx, 0.0, 0.0)) },
+            depth,
+        )
+    }
+
+    pub(crate) fn params() -> SweepParams {
+        SweepParams {
+            min_depth: 5.0,
+            max_depth: 100.0,
+            max_planes: 256,
+            plane_step_px: 1.0,
+            p1: 8,
+            p2: 48,
+            uniqueness: 0.05,
+        }
+    }
+
+    #[test]
+    fn recovers_a_box_in_front_of_a_wall_from_two_neighbours() {
+        let (w, h) = (160, 120);
+        let (reference, truth) = render(0.0, w, h);
+        let (left, _) = render(-1.0, w, h);
+        let (right, _) = render(1.0, w, h);
+        let mut depth = sweep_depth(&reference, &[&left, &right], &params());
+        let right_depth = sweep_depth(&right, &[&reference], &params());
+        keep_consistent(&reference, &mut depth, &right, &right_depth, 1.0, 0.02);
+        let (mut valid, mut good) = (0, 0);
+        for (z, t) in depth.depth.iter().zip(&truth) {
+            if *z > 0.0 {
+                valid += 1;
+                if ((z - t) / t).abs() < 0.03 {
+                    good += 1;
+                }
+            }
+        }
+        assert!(valid as f64 > 0.7 * (w * h) as f64, "valid {valid} of {}", w * h);
+        assert!(good as f64 > 0.97 * valid as f64, "good {good} of {valid}");
+        assert!(depth
+            .confidence
+            .iter()
+            .zip(&depth.depth)
+            .all(|(c, z)| (*z > 0.0) == (*c > 0.0) && (0.0..=1.0).contains(c)));
+    }
+
+    #[test]
+    fn without_sources_there_is_no_depth() {
+        let (reference, _) = render(0.0, 40, 30);
+        let d = sweep_depth(&reference, &[], &params());
+        assert!(d.depth.iter().all(|&z| z == 0.0));
+    }
+
+    #[test]
+    fn a_mismatched_depth_fails_the_consistency_check() {
+        let (w, h) = (80, 60);
+        let (reference, truth) = render(0.0, w, h);
+        let (right, right_truth) = render(1.0, w, h);
+        let mut depth = StereoDepth { width: w, height: h, depth: truth.clone(), confidence: vec![1.0; w * h] };
+        let mut wrong = depth.clone();
+        for z in wrong.depth.iter_mut() {
+            *z *= 1.2;
+        }
+        let other = StereoDepth { width: w, height: h, depth: right_truth, confidence: vec![1.0; w * h] };
+        keep_consistent(&reference, &mut depth, &right, &other, 1.0, 0.02);
+        keep_consistent(&reference, &mut wrong, &right, &other, 1.0, 0.02);
+        let kept = depth.depth.iter().filter(|&&z| z > 0.0).count();
+        // Pixels that leave the other image (a 1 m shift moves the wall 10 px, the box 25 px) cannot be checked.
+        assert!(kept as f64 > 0.6 * (w * h) as f64, "{kept}");
+        assert!(wrong.depth.iter().all(|&z| z == 0.0) || wrong.depth.iter().filter(|&&z| z > 0.0).count() < w * h / 20);
+    }
+
+    #[test]
+    fn downscaling_averages_blocks_and_scales_intrinsics() {
+        let grey: Vec<u8> = (0..16).map(|i| i as u8 * 10).collect();
+        let k = [[100.0, 0.0, 2.0], [0.0, 100.0, 2.0], [0.0, 0.0, 1.0]];
+        let v = StereoView::downscaled(4, 4, &grey, k, Se3::from_yaw(0.0, DVec3::ZERO), 2);
+        assert_eq!((v.width, v.height), (2, 2));
+        assert_eq!(v.grey[0], ((0 + 10 + 40 + 50) as f32 / 4.0).round() as u8);
+        assert_eq!(v.k[0][0], 50.0);
+        assert_eq!(v.k[1][2], 1.0);
+        assert_eq!(v.k[2][2], 1.0);
+    }
+}
