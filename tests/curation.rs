@@ -82,6 +82,9 @@ fn curation_on_synthetic_data_is_scored_against_ground_truth_and_reruns_only_wha
     assert!(o.status.success(), "{report}");
     for (stage, n) in [
         ("aggregate", 0),
+        ("mvs", 0),
+        ("mvs_points", 0),
+        ("fuse", 0),
         ("visible", 0),
         ("prompt", 0),
         ("lidar", 0),
@@ -92,6 +95,16 @@ fn curation_on_synthetic_data_is_scored_against_ground_truth_and_reruns_only_wha
     ] {
         assert_eq!(executed(&report, stage), n, "{stage}\n{report}");
     }
+
+    // Multi-view stereo fills what the LiDAR cannot see: without its points (a confidence no
+    // pixel reaches), the error above the LiDAR's reach grows. Only mvs_points onwards rerun.
+    let with_mvs = mean_of(&text(&curation(&data, tmp.path(), None, &[])), "gt_above_lidar (raw)", 0);
+    let o = curation(&data, tmp.path(), None, &["--set", "mvs_points.min_confidence=2"]);
+    let report = text(&o);
+    assert!(o.status.success(), "{report}");
+    assert_eq!(executed(&report, "mvs"), 0, "{report}");
+    let lidar_only = mean_of(&report, "gt_above_lidar (raw)", 0);
+    assert!(with_mvs < 0.95 * lidar_only, "above the LiDAR: with MVS {with_mvs}, LiDAR only {lidar_only}\n{report}");
 
     // Hold-out: a seeded 20% of each target sweep is left out of curation and scored on.
     let o = curation(&data, tmp.path(), None, &["--set", "aggregate.holdout=0.2"]);

@@ -18,6 +18,7 @@ pub mod stages {
     pub mod complete;
     pub mod encode;
     pub mod eval;
+    pub mod fuse;
     pub mod hpr;
     pub mod mvs;
     pub mod mvs_points;
@@ -44,6 +45,7 @@ impl Default for Registry {
                 stages::aggregate::def(),
                 stages::complete::def(),
                 stages::eval::def(),
+                stages::fuse::def(),
                 stages::hpr::def(),
                 stages::mvs::def(),
                 stages::mvs_points::def(),

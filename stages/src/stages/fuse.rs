@@ -1,0 +1,133 @@
+//! `FusePoints`: LiDAR first, MVS points only where the LiDAR gives nothing.
+//!
+//! DiST-4D (Sec. 3.2): "LiDAR points have priority; MVS points are used where LiDAR is missing".
+//! Missing is decided per image region, because LiDAR is sparse per pixel everywhere: the image
+//! is cut into square cells of `cell_px` pixels; an MVS point is kept only when its cell and the
+//! 8 cells around it hold no LiDAR point (so MVS never lands between two LiDAR scan lines, and
+//! stays at least one cell away from the LiDAR's coverage). Both clouds are in the same frame
+//! (the target LiDAR's); the output is the whole LiDAR cloud followed by the kept MVS points.
+
+use crate::artifact::{Artifact, PointCloud};
+use crate::camera::CameraView;
+use crate::stage::{input, one, StageDef, TypedOp};
+use anyhow::{ensure, Result};
+use dist4d_graph::PortSpec;
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Edge of the coverage cells (image pixels).
+    pub cell_px: u32,
+    /// Points must be this far in front of the camera (m) to count.
+    pub min_depth: f64,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { cell_px: 16, min_depth: 0.1 }
+    }
+}
+
+/// The LiDAR cloud plus the MVS points that fall where, seen from `view`, no LiDAR is near.
+pub fn fuse(params: &Params, lidar: &PointCloud, mvs: &PointCloud, view: &CameraView) -> Result<PointCloud> {
+    ensure!(params.cell_px >= 1, "cell_px must be at least 1");
+    let cell = params.cell_px as f64;
+    let (cw, ch) = ((view.width as f64 / cell).ceil() as usize, (view.height as f64 / cell).ceil() as usize);
+    // Covered cells, with a one-cell border so that neighbours never go out of range.
+    let stride = cw + 2;
+    let mut covered = vec![false; stride * (ch + 2)];
+    let cell_of = |p: &[f32; 4]| -> Option<usize> {
+        let c = view.to_camera(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64));
+        if c.z <= params.min_depth {
+            return None;
+        }
+        let (u, v) = view.pixel(c);
+        (u >= 0.0 && v >= 0.0 && u < view.width as f64 && v < view.height as f64)
+            .then(|| ((v / cell) as usize + 1) * stride + (u / cell) as usize + 1)
+    };
+    for p in &lidar.points {
+        if let Some(i) = cell_of(p) {
+            covered[i] = true;
+        }
+    }
+    let mut out = lidar.clone();
+    let labelled = lidar.labels.len() == lidar.points.len() && !lidar.points.is_empty();
+    for p in &mvs.points {
+        let Some(i) = cell_of(p) else { continue };
+        let near =
+            [i - stride - 1, i - stride, i - stride + 1, i - 1, i, i + 1, i + stride - 1, i + stride, i + stride + 1];
+        if near.iter().all(|&j| !covered[j]) {
+            out.points.push(*p);
+            if labelled {
+                // lidarseg 0 = noise / unlabelled.
+                out.labels.push(0);
+            }
+        }
+    }
+    Ok(out)
+}
+
+struct Op(Params);
+
+impl TypedOp for Op {
+    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+        let lidar = one::<PointCloud>(inputs, 0)?;
+        let mvs = one::<PointCloud>(inputs, 5)?;
+        let view = CameraView::from_inputs(inputs)?;
+        Ok(vec![fuse(&self.0, &lidar, &mvs, &view)?.encode()])
+    }
+}
+
+pub fn def() -> StageDef {
+    let mut inputs = crate::camera::cloud_and_camera_ports("the LiDAR cloud (has priority), e.g. aggregate.points");
+    inputs.push(input::<PointCloud>("mvs", "static MVS points in the same frame, e.g. StaticMvsPoints"));
+    StageDef::new::<Params>(
+        "FusePoints",
+        1,
+        "LiDAR cloud + MVS points -> one cloud: MVS only in image regions without LiDAR",
+        inputs,
+        vec![PortSpec::one("points", "PointCloud", "the LiDAR points, then the kept MVS points (same frame)")],
+        vec!["camera"],
+        |p: Params| Ok(Box::new(Op(p))),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::artifact::{Calibration, Pose};
+    use crate::geometry::Se3;
+
+    #[test]
+    fn mvs_points_fill_only_regions_without_lidar() {
+        // Camera at the origin looking along +z of the cloud frame, 160x120, f = 100.
+        let cam = Calibration {
+            sensor_to_ego: Se3::from_yaw(0.0, DVec3::ZERO),
+            intrinsics: Some([[100.0, 0.0, 80.0], [0.0, 100.0, 60.0], [0.0, 0.0, 1.0]]),
+            width: 160,
+            height: 120,
+        };
+        let cloud = Calibration { intrinsics: None, width: 0, height: 0, ..cam.clone() };
+        let pose = Pose { ego_to_world: Se3::from_yaw(0.0, DVec3::ZERO), timestamp_us: 0 };
+        let view = CameraView::new(&cloud, &pose, &cam, &pose).unwrap();
+        // A point at pixel (u, v), depth 10.
+        let at = |u: f64, v: f64| [((u - 80.0) / 100.0 * 10.0) as f32, ((v - 60.0) / 100.0 * 10.0) as f32, 10.0, 0.0];
+        let lidar = PointCloud { points: vec![at(20.0, 100.0), at(24.0, 100.0)], labels: vec![7, 7] };
+        let mvs = PointCloud {
+            points: vec![
+                at(22.0, 101.0),       // same cell as LiDAR
+                at(40.0, 100.0),       // neighbouring cell
+                at(60.0, 100.0),       // two cells away
+                at(140.0, 10.0),       // far from any LiDAR
+                [0.0, 0.0, -5.0, 0.0], // behind the camera
+            ],
+            labels: vec![],
+        };
+        let out = fuse(&Params::default(), &lidar, &mvs, &view).unwrap();
+        assert_eq!(&out.points[..2], &lidar.points[..]);
+        assert_eq!(&out.points[2..], &[at(60.0, 100.0), at(140.0, 10.0)]);
+        assert_eq!(out.labels, vec![7, 7, 0, 0]);
+    }
+}
