@@ -89,12 +89,14 @@ fn curation_on_synthetic_data_is_scored_against_ground_truth_and_reruns_only_wha
         ("prompt", 0),
         ("lidar", 0),
         ("complete", 18),
-        ("encode", 18),
-        ("eval", 18),
-        ("sheet", 3),
     ] {
         assert_eq!(executed(&report, stage), n, "{stage}\n{report}");
     }
+    // Readers of the depth rerun where it changed: an image without sky gives the same bytes,
+    // and early cutoff keeps its readers cached.
+    let changed = executed(&report, "encode");
+    assert!(changed >= 12 && executed(&report, "eval") == changed, "{report}");
+    assert!(executed(&report, "sheet") >= 1, "{report}");
 
     // Multi-view stereo fills what the LiDAR cannot see: without its points (a confidence no
     // pixel reaches), the error above the LiDAR's reach grows. Only mvs_points onwards rerun.

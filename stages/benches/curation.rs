@@ -1,6 +1,6 @@
 //! Curation stages against their peer programs, on the same inputs, in the same run.
 //!
-//!   cargo bench -p dist4d-stages --bench curation -- [hpr] [complete] [stereo]
+//!   cargo bench -p dist4d-stages --bench curation -- [hpr] [stereo] [voxel]
 //!
 //! Peers run from the venv made by ../shared/bench/peers/setup.sh (`.venv-peers/` in the
 //! workspace, or DIST4D_PEERS_PYTHON); without it only dist4d's figures are printed.
@@ -105,11 +105,150 @@ fn bench_hpr(tmp: &Path) {
     }
 }
 
+/// Our plane-sweep stereo (both directions + consistency, as the MVS stage runs it) and OpenCV
+/// StereoSGBM on the shared Middlebury Motorcycle pair: bad-pixel rate (> 2 px) and time.
+fn bench_stereo(tmp: &Path) {
+    use dist4d_stages::middlebury::{bad_pixels, read_motorcycle, PairCalibration};
+    use dist4d_stages::stereo::{keep_consistent, sweep_depth};
+    let dir = workspace().join("../shared/data/middlebury-motorcycle");
+    if !dir.is_dir() {
+        println!("(stereo: {} is absent, skipped)", dir.display());
+        return;
+    }
+    let ((left, right), truth) = read_motorcycle(&dir).unwrap();
+    let calib = PairCalibration::MOTORCYCLE;
+    let mvs = dist4d_stages::stages::mvs::Params::default();
+    let p = calib.sweep(80.0, &mvs.sweep());
+    // One thread, as OpenCV runs below.
+    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    let (ours, depth) = one.install(|| {
+        best_of(3, || {
+            let mut d = sweep_depth(&left, &[&right], &p);
+            let back = sweep_depth(&right, &[&left], &p);
+            keep_consistent(&left, &mut d, &right, &back, mvs.consistency_px, mvs.consistency_depth);
+            d
+        })
+    });
+    let disparity: Vec<Option<f64>> =
+        depth.depth.iter().map(|&z| (z > 0.0).then(|| calib.disparity(z as f64))).collect();
+    let score = bad_pixels(&disparity, &truth, 2.0);
+    println!("## Stereo on Middlebury Motorcycle (741x500, disparities 0-80 px), bad pixels > 2 px");
+    println!("| method | bad (estimates) | density | bad (missing = bad) | time |");
+    println!("| --- | ---: | ---: | ---: | ---: |");
+    println!(
+        "| dist4d plane sweep, census 7x7, SGM 8 paths, consistency check, 1 thread | {:.2}% | {:.1}% | {:.2}% | {:.0} ms |",
+        score.valid * 100.0,
+        score.density * 100.0,
+        score.all * 100.0,
+        ours * 1e3
+    );
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/peers/sgbm_cv2.py");
+    for mode in ["sgbm", "hh"] {
+        let out = tmp.join(format!("sgbm_{mode}.npy"));
+        let Some(py) = peer_python() else {
+            println!("| OpenCV StereoSGBM | (no peer venv) | | | |");
+            return;
+        };
+        let o = Command::new(py)
+            .arg(&script)
+            .arg(dir.join("motorcycle_left.png"))
+            .arg(dir.join("motorcycle_right.png"))
+            .args(["--num-disp", "80", "--mode", mode, "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        if !o.status.success() {
+            println!("| OpenCV StereoSGBM {mode} | failed: {} | | | |", String::from_utf8_lossy(&o.stderr).trim());
+            continue;
+        }
+        let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let theirs = j["best_seconds"].as_f64().unwrap();
+        let disp = dist4d_stages::files::parse_npy(&std::fs::read(&out).unwrap()).unwrap().data;
+        let est: Vec<Option<f64>> = disp.iter().map(|&d| d.is_finite().then_some(d)).collect();
+        let s = bad_pixels(&est, &truth, 2.0);
+        println!(
+            "| OpenCV StereoSGBM ({}, block 5, LR check, speckle filter), 1 thread | {:.2}% | {:.1}% | {:.2}% | {:.0} ms ({:.2}x ours) |",
+            if mode == "hh" { "8 paths" } else { "5 paths" },
+            s.valid * 100.0,
+            s.density * 100.0,
+            s.all * 100.0,
+            theirs * 1e3,
+            theirs / ours
+        );
+    }
+}
+
+/// Voxel-mean downsampling at 0.1 m against Open3D's `voxel_down_sample` on the same points.
+fn bench_voxel(tmp: &Path) {
+    use dist4d_stages::stages::mvs_points::voxel_mean;
+    println!("## Voxel downsampling (0.1 m, mean per voxel) vs Open3D");
+    println!("| points | kept (dist4d / Open3D) | dist4d | Open3D | speed-up | max coordinate difference |");
+    println!("| ---: | ---: | ---: | ---: | ---: | ---: |");
+    let n = 300_000usize;
+    let mut rng = Rng::new(7);
+    // A 20 x 20 x 5 m block: about 1 point per 0.1 m voxel on average, many shared.
+    let pts: Vec<[f32; 4]> = (0..n)
+        .map(|_| [rng.range(0.0, 20.0) as f32, rng.range(0.0, 20.0) as f32, rng.range(0.0, 5.0) as f32, 0.0])
+        .collect();
+    let (ours, kept) = best_of(5, || voxel_mean(&pts, 0.1));
+    let input = tmp.join("voxel.npy");
+    let output = tmp.join("voxel_out.npy");
+    let flat: Vec<f32> = pts.iter().flat_map(|p| [p[0], p[1], p[2]]).collect();
+    std::fs::write(&input, npy_f32(&[n, 3], &flat)).unwrap();
+    let args = vec![input.display().to_string(), "0.1".into(), "--out".into(), output.display().to_string()];
+    match peer("voxel_open3d.py", &args) {
+        Some(j) => {
+            let theirs = j["best_seconds"].as_f64().unwrap();
+            let mut peer_pts: Vec<[f64; 3]> = dist4d_stages::files::parse_npy(&std::fs::read(&output).unwrap())
+                .unwrap()
+                .data
+                .chunks_exact(3)
+                .map(|c| [c[0], c[1], c[2]])
+                .collect();
+            // A voxel's mean lies inside it: compare the two outputs voxel by voxel.
+            let origin = pts
+                .iter()
+                .fold([f64::INFINITY; 3], |m, p| [m[0].min(p[0] as f64), m[1].min(p[1] as f64), m[2].min(p[2] as f64)]);
+            let key = |p: &[f64; 3]| -> [i64; 3] {
+                std::array::from_fn(|k| ((p[k] - origin[k] + 0.05) / 0.1).floor() as i64)
+            };
+            let mut mine: Vec<[f64; 3]> = kept.iter().map(|p| [p[0] as f64, p[1] as f64, p[2] as f64]).collect();
+            peer_pts.sort_by_key(key);
+            mine.sort_by_key(key);
+            let diff = if mine.len() == peer_pts.len() && mine.iter().zip(&peer_pts).all(|(a, b)| key(a) == key(b)) {
+                let d = mine
+                    .iter()
+                    .zip(&peer_pts)
+                    .map(|(a, b)| (a[0] - b[0]).abs().max((a[1] - b[1]).abs()).max((a[2] - b[2]).abs()))
+                    .fold(0.0, f64::max);
+                format!("{d:.1e} m")
+            } else {
+                "voxels differ".into()
+            };
+            println!(
+                "| {n} | {} / {} | {:.1} ms | {:.1} ms | {:.2}x | {diff} |",
+                kept.len(),
+                peer_pts.len(),
+                ours * 1e3,
+                theirs * 1e3,
+                theirs / ours
+            );
+        }
+        None => println!("| {n} | {} | {:.1} ms | (no peer venv) | | |", kept.len(), ours * 1e3),
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).filter(|a| !a.starts_with("--")).collect();
     let all = args.is_empty();
     let tmp = tempfile::tempdir().unwrap();
     if all || args.iter().any(|a| a == "hpr") {
         bench_hpr(tmp.path());
+    }
+    if all || args.iter().any(|a| a == "stereo") {
+        bench_stereo(tmp.path());
+    }
+    if all || args.iter().any(|a| a == "voxel") {
+        bench_voxel(tmp.path());
     }
 }

@@ -190,26 +190,42 @@ pub fn sweep_depth(reference: &StereoView, sources: &[&StereoView], p: &SweepPar
     // Cost volume, [pixel][plane]. `seen[pixel][plane]`: some source saw the sample.
     let mut cost = vec![COST_MAX; w * h * planes];
     let mut seen = vec![false; w * h * planes];
+    let rhos32: Vec<f32> = rhos.iter().map(|&r| r as f32).collect();
     cost.par_chunks_mut(w * planes).zip(seen.par_chunks_mut(w * planes)).enumerate().for_each(
         |(y, (row, seen_row))| {
+            // Per plane: summed Hamming distance and number of sources that saw the sample.
+            let mut sum = vec![0u16; planes];
+            let mut count = vec![0u8; planes];
             for x in 0..w {
                 let c0 = ref_census[y * w + x];
                 let px = DVec3::new(x as f64 + 0.5, y as f64 + 0.5, 1.0);
-                let a: Vec<DVec3> = warps.iter().map(|wp| wp.m * px).collect();
-                for (d, &rho) in rhos.iter().enumerate() {
-                    let (mut sum, mut count) = (0u32, 0u32);
-                    for (s, src) in sources.iter().enumerate() {
-                        if let Some((u, v)) = warps[s].at(a[s], rho) {
-                            if u >= 0.0 && v >= 0.0 && u < src.width as f64 && v < src.height as f64 {
-                                let i = v as usize * src.width + u as usize;
-                                sum += (c0 ^ src_census[s][i]).count_ones();
-                                count += 1;
-                            }
+                sum.fill(0);
+                count.fill(0);
+                for (s, src) in sources.iter().enumerate() {
+                    // f32 is ample for pixel coordinates and keeps the loop cheap.
+                    let a = (warps[s].m * px).as_vec3();
+                    let b = warps[s].b.as_vec3();
+                    let (sw, sh) = (src.width as f32, src.height as f32);
+                    let census = &src_census[s];
+                    for ((&rho, sm), cn) in rhos32.iter().zip(sum.iter_mut()).zip(count.iter_mut()) {
+                        let z = a.z + b.z * rho;
+                        if z <= 1e-9 {
+                            continue;
+                        }
+                        let inv = 1.0 / z;
+                        let (u, v) = ((a.x + b.x * rho) * inv, (a.y + b.y * rho) * inv);
+                        if u >= 0.0 && v >= 0.0 && u < sw && v < sh {
+                            *sm += (c0 ^ census[v as usize * src.width + u as usize]).count_ones() as u16;
+                            *cn += 1;
                         }
                     }
-                    if count > 0 {
-                        row[x * planes + d] = (2 * sum / count) as u8;
-                        seen_row[x * planes + d] = true;
+                }
+                let (cost_px, seen_px) =
+                    (&mut row[x * planes..(x + 1) * planes], &mut seen_row[x * planes..(x + 1) * planes]);
+                for d in 0..planes {
+                    if count[d] > 0 {
+                        cost_px[d] = (2 * sum[d] / count[d] as u16) as u8;
+                        seen_px[d] = true;
                     }
                 }
             }

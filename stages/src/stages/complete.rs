@@ -36,11 +36,14 @@ pub struct Params {
     pub sky_depth: f32,
     /// Whether to estimate sky when no semantic map is wired.
     pub detect_sky: bool,
+    /// Empty pixels within this many pixels (square window) of samples first take the nearest
+    /// depth among them, so that 1-px LiDAR rings become bands the row pass can follow.
+    pub grow: u32,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, detect_sky: true }
+        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, detect_sky: true, grow: 3 }
     }
 }
 
@@ -164,10 +167,37 @@ pub fn estimate_sky_from_top(image: &Image) -> Vec<bool> {
     estimate_sky(image, &luminance(image), &vec![h; w], w)
 }
 
+/// Fills empty pixels (0) with the largest inverse depth (the nearest sample) within a square
+/// window of radius `r`; samples stay. Max is separable, so rows then columns.
+fn grow_samples(inv: &mut [f32], w: usize, h: usize, r: usize) {
+    if r == 0 {
+        return;
+    }
+    let mut rows = vec![0f32; w * h];
+    for y in 0..h {
+        let src = &inv[y * w..(y + 1) * w];
+        for x in 0..w {
+            rows[y * w + x] = src[x.saturating_sub(r)..(x + r + 1).min(w)].iter().fold(0f32, |m, &v| m.max(v));
+        }
+    }
+    for x in 0..w {
+        for y in 0..h {
+            if inv[y * w + x] == 0.0 {
+                let mut m = 0f32;
+                for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                    m = m.max(rows[yy * w + x]);
+                }
+                inv[y * w + x] = m;
+            }
+        }
+    }
+}
+
 pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, semantic: Option<&Segmentation>) -> DepthMap {
     let (w, h) = (sparse.width as usize, sparse.height as usize);
     let lum = luminance(image);
     let mut inv: Vec<f32> = sparse.data.iter().map(|&z| if z > 0.0 && z.is_finite() { 1.0 / z } else { 0.0 }).collect();
+    grow_samples(&mut inv, w, h, p.grow as usize);
     fill_rows(p, w, h, &mut inv, &lum);
     // Column pass, on a transposed copy so that columns are contiguous.
     let mut col = vec![0f32; w * h];
@@ -360,5 +390,21 @@ mod tests {
         let seg = Segmentation { width: w, height: h, ids: vec![0; (w * h) as usize] };
         let d = complete(&Params::default(), &image, &sparse, Some(&seg));
         assert_eq!(d.data[5 * w as usize + 3], 20.0);
+    }
+    #[test]
+    fn growing_fills_near_empty_pixels_with_the_nearest_sample_only() {
+        let (w, h) = (9, 7);
+        let mut inv = vec![0f32; w * h];
+        inv[3 * w + 4] = 1.0 / 10.0;
+        inv[3 * w + 5] = 1.0 / 5.0;
+        grow_samples(&mut inv, w, h, 1);
+        // Samples stay; their 1-px neighbourhood takes the nearer (larger inverse) depth.
+        assert_eq!(inv[3 * w + 4], 0.1);
+        assert_eq!(inv[2 * w + 3], 0.1);
+        assert_eq!(inv[4 * w + 4], 0.2);
+        assert_eq!(inv[3 * w + 6], 0.2);
+        assert_eq!(inv[3 * w + 2], 0.0);
+        assert_eq!(inv[5 * w + 4], 0.0);
+        assert_eq!(inv.iter().filter(|&&v| v > 0.0).count(), 3 * 4);
     }
 }

@@ -27,7 +27,7 @@ use serde::{Deserialize, Serialize};
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct Params {
-    /// Pixels with a lower MVS confidence are not used.
+    /// Pixels with a lower MVS confidence (1 - best / second-best aggregated cost) are not used.
     pub min_confidence: f32,
     /// A box is dynamic when its attributes say moving or its speed exceeds this (m/s).
     pub moving_speed: f64,
@@ -44,7 +44,7 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params {
-            min_confidence: 0.0,
+            min_confidence: 0.5,
             moving_speed: 0.5,
             box_margin: 0.2,
             min_height: 0.0,

@@ -1,0 +1,301 @@
+"""End-to-end curation benchmark: accuracy, ablations, speed per stage, the completion against
+IP-Basic, the whole chain against the peer programs, and LiDAR hold-out scores on the shared real
+data. Prints Markdown for docs/BENCHMARKS.md.
+
+    .venv-peers/bin/python bench/curation.py [--data DIR] [--keyframes 40] [--only SECTION ...]
+
+Sections: accuracy (full pipeline + ablations on synthetic data), completion (vs ipbasic_cv2.py),
+chain (vs nuscenes-devkit + Open3D HPR + IP-Basic), holdout (shared nuScenes and DGP).
+Needs the peer venv of ../shared/bench/peers/setup.sh (numpy, OpenCV, Open3D, nuscenes-devkit);
+dist4d itself is built with cargo. Everything is written under a temporary folder except the
+synthetic dataset (--data, created once and reused).
+"""
+import argparse, json, os, re, resource, shutil, subprocess, sys, tempfile, time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+PEERS = REPO.parent / "shared" / "bench" / "peers"
+SHARED = REPO.parent / "shared" / "data"
+DIST4D = REPO / "target" / "release" / "dist4d"
+CAMERAS = ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT"]
+
+
+def run(args, **kw):
+    """Runs dist4d; returns (stdout+stderr text, wall seconds, child CPU seconds)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    p = subprocess.run([str(DIST4D)] + [str(a) for a in args], capture_output=True, text=True, **kw)
+    wall = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    out = p.stdout + p.stderr
+    if p.returncode != 0:
+        sys.exit(f"dist4d {' '.join(map(str, args))} failed:\n{out}")
+    return out, wall, cpu
+
+
+def mean_row(report, title):
+    """The `mean` row of table `title` as a dict of floats."""
+    at = report.find(f"\n{title}\n")
+    if at < 0:
+        return None
+    for line in report[at:].splitlines():
+        if line.startswith("| mean |"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            keys = ["images", "abs_rel", "sq_rel", "rmse", "rmse_log", "d1", "d2", "d3"]
+            return dict(zip(keys, map(float, cells[1:])))
+    return None
+
+
+def stage_table(report):
+    """stage -> (executed, seconds) from the run table."""
+    rows = {}
+    for line in report.splitlines():
+        f = line.split()
+        if len(f) == 8 and f[2].isdigit() and re.match(r"^[0-9.]+$", f[7]):
+            rows[f[0]] = (int(f[3]), float(f[7]))
+    return rows
+
+
+def edit(text, old, new):
+    assert old in text, f"pipeline text changed: {old!r} not found"
+    return text.replace(old, new)
+
+
+def variant(base, name, tmp, prompt_points=None, visible_points=None, semantic=True):
+    t = base
+    if visible_points:
+        t = edit(t, '"visible": HiddenPointRemoval(\n            inputs: {\n                "points": "fuse.points",',
+                 f'"visible": HiddenPointRemoval(\n            inputs: {{\n                "points": "{visible_points}",')
+    if prompt_points:
+        t = edit(t, '"prompt": DepthPrompt(\n            inputs: {\n                "points": "visible.points",',
+                 f'"prompt": DepthPrompt(\n            inputs: {{\n                "points": "{prompt_points}",')
+    if not semantic:
+        t = edit(t, ', "semantic": "dataset.semantic"}', "}")
+    path = tmp / f"{name}.ron"
+    path.write_text(t)
+    return path
+
+
+def fmt(m):
+    return f"{m['abs_rel']:.4f} | {m['rmse']:.2f} m | {m['d1']:.3f}"
+
+
+def section_accuracy(data, tmp, base):
+    cache = tmp / "cache-accuracy"
+    print("## Curation vs synthetic ground truth, and ablations\n")
+    print(f"Data: `dist4d synth` scene at {data} (1600x900, six cameras). Each row is one "
+          "`dist4d eval` of a variant of pipelines/curation.ron sharing one cache, so only the "
+          "stages a variant changes rerun. Scores: mean over cameras of the per-camera means, "
+          "valid range 0.1-80 m, no median scaling.\n")
+    print("| variant | all pixels: Abs Rel / RMSE / d<1.25 | above the LiDAR: Abs Rel / RMSE / d<1.25 | wall |")
+    print("| --- | --- | --- | ---: |")
+    rows = [
+        ("LiDAR only (aggregate -> prompt -> completion, no sky)",
+         dict(prompt_points="aggregate.points", semantic=False), ["--set", "complete.detect_sky=false"]),
+        ("+ MVS (fused points -> prompt, no sky)",
+         dict(prompt_points="fuse.points", semantic=False), ["--set", "complete.detect_sky=false"]),
+        ("+ HPR (no sky)", dict(semantic=False), ["--set", "complete.detect_sky=false"]),
+        ("+ sky, built-in estimate (no segmentation)", dict(semantic=False), []),
+        ("+ sky from the segmentation (the shipped pipeline)", dict(), []),
+        ("shipped pipeline without MVS (HPR + sky)", dict(visible_points="aggregate.points"), []),
+    ]
+    results = {}
+    full_report = None
+    for i, (label, edits, extra) in enumerate(rows):
+        ron = variant(base, f"ablation{i}", tmp, **edits)
+        report, wall, _ = run(["eval", ron, "--set", f"dataset.root={data}", "--cache", cache,
+                               "--out", tmp / f"out-ablation{i}", "--progress", "off"] + extra)
+        a, b = mean_row(report, "gt (raw)"), mean_row(report, "gt_above_lidar (raw)")
+        results[label] = (a, b)
+        print(f"| {label} | {fmt(a)} | {fmt(b)} | {wall:.1f} s |")
+        if i == 4:
+            full_report = report
+    lidar_only, mvs = results[rows[0][0]][1], results[rows[1][0]][1]
+    print(f"\nMVS changes the error above the LiDAR by {100 * (mvs['abs_rel'] / lidar_only['abs_rel'] - 1):+.1f}% "
+          f"(Abs Rel) and {100 * (mvs['rmse'] / lidar_only['rmse'] - 1):+.1f}% (RMSE) against LiDAR only.")
+    shipped, no_mvs = results[rows[4][0]][1], results[rows[5][0]][1]
+    print(f"In the shipped pipeline, MVS changes it by {100 * (shipped['abs_rel'] / no_mvs['abs_rel'] - 1):+.1f}% "
+          f"(Abs Rel) and {100 * (shipped['rmse'] / no_mvs['rmse'] - 1):+.1f}% (RMSE).\n")
+
+    # Per-stage CPU time of the shipped pipeline from a cold cache.
+    report, wall, cpu = run(["run", variant(base, "shipped", tmp), "--set", f"dataset.root={data}",
+                             "--cache", tmp / "cache-cold", "--out", tmp / "out-cold", "--progress", "off"])
+    stages = stage_table(report)
+    frames = stages["aggregate"][0]
+    print(f"### Time per stage (shipped pipeline, cold cache, {frames} keyframes x 6 cameras)\n")
+    print(f"`dist4d run pipelines/curation.ron --set dataset.root={data}`: {wall:.1f} s wall, "
+          f"{cpu:.1f} s CPU on 2 cores.\n")
+    print("| stage | tasks | CPU seconds | per task |")
+    print("| --- | ---: | ---: | ---: |")
+    for name, (n, s) in sorted(stages.items(), key=lambda kv: -kv[1][1]):
+        if n:
+            print(f"| {name} | {n} | {s:.1f} | {1000 * s / n:.0f} ms |")
+    curation = ["aggregate", "visible", "prompt", "complete"]
+    per_kf = sum(stages[s][1] for s in curation) / frames
+    mvs_kf = sum(stages[s][1] for s in ["mvs", "mvs_points", "fuse"]) / frames
+    print(f"\nOne keyframe of six cameras: {per_kf:.2f} s of CPU without MVS ({' + '.join(curation)}); "
+          f"MVS adds {mvs_kf:.2f} s ({1000 * stages['mvs'][1] / stages['mvs'][0]:.0f} ms per camera image "
+          f"for MultiViewStereo).\n")
+    return 1000 * stages["complete"][1] / stages["complete"][0]
+
+
+def section_completion(data, tmp, base, frames, ours_ms):
+    """CompleteDepth and IP-Basic on the same sparse prompts, scored against the ground truth."""
+    print("## Depth completion vs IP-Basic (same sparse input)\n")
+    t = edit(base, '"encode": EncodeDepth(inputs: {"depth": "complete.depth"}),',
+             '"encode": EncodeDepth(inputs: {"depth": "complete.depth"}),\n'
+             '        "encode_sparse": EncodeDepth(inputs: {"depth": "prompt.sparse"}),\n'
+             '        "encode_gt": EncodeDepth(inputs: {"depth": "dataset.gt_depth"}),')
+    t = edit(t, '"eval.json":', '"encode_sparse.npy": "{scene}/{camera}/{frame}_sparse.npy",\n'
+             '        "encode_gt.npy": "{scene}/{camera}/{frame}_gt.npy",\n        "eval.json":')
+    ron = tmp / "completion.ron"
+    ron.write_text(t)
+    out = tmp / "out-completion"
+    report, _, _ = run(["run", ron, "--set", f"dataset.root={data}", "--cache", tmp / "cache-accuracy",
+                        "--out", out, "--progress", "off"])
+    stages = stage_table(report)
+    scene = next(p for p in out.iterdir() if p.is_dir())
+
+    def score(d, g):
+        v = (g > 0.1) & (g < 80)
+        d, g = d[v], g[v]
+        ok = d > 0
+        dd = np.where(ok, d, 1e-3)
+        ratio = np.maximum(dd / g, g / dd)
+        return np.mean(np.abs(dd - g) / g), np.sqrt(np.mean((dd - g) ** 2)), np.mean(ratio < 1.25)
+
+    scores = {"dist4d CompleteDepth": [], "IP-Basic fill_in_fast (bilateral)": [],
+              "IP-Basic fill_in_fast (extrapolate, bilateral)": []}
+    times = {k: [] for k in scores}
+    py = sys.executable
+    for f in frames:
+        for cam in CAMERAS:
+            sparse = scene / cam / f"{f:03d}_sparse.npy"
+            gt = np.load(scene / cam / f"{f:03d}_gt.npy")
+            scores["dist4d CompleteDepth"].append(score(np.load(scene / cam / f"{f:03d}_depth.npy"), gt))
+            for label, extra in [("IP-Basic fill_in_fast (bilateral)", []),
+                                 ("IP-Basic fill_in_fast (extrapolate, bilateral)", ["--extrapolate"])]:
+                dense = tmp / "ipbasic.npy"
+                p = subprocess.run([py, PEERS / "ipbasic_cv2.py", sparse, "--out", dense, "--repeat", "3"] + extra,
+                                   capture_output=True, text=True, check=True)
+                times[label].append(json.loads(p.stdout.splitlines()[0])["best_seconds"])
+                scores[label].append(score(np.load(dense), gt))
+    if ours_ms is None:
+        n, s = stages["complete"]
+        ours_ms = 1000 * s / max(n, 1)
+    print(f"{len(frames) * 6} camera images (keyframes {frames[0]}-{frames[-1]}, 1600x900) of the synthetic "
+          "scene; the sparse input is the pipeline's prompt (`prompt.sparse`: aggregated LiDAR + MVS after "
+          "hidden point removal). IP-Basic times are best of 3 per image (one thread); CompleteDepth's is its "
+          "mean task time over all images of a cold run (two tasks at a time).\n")
+    print("| method | Abs Rel | RMSE | d<1.25 | time per image |")
+    print("| --- | ---: | ---: | ---: | ---: |")
+    for label, rows in scores.items():
+        a = np.array(rows).mean(axis=0)
+        ms = ours_ms if label.startswith("dist4d") else 1000 * np.mean(times[label])
+        print(f"| {label} | {a[0]:.4f} | {a[1]:.2f} m | {a[2]:.3f} | {ms:.0f} ms |")
+    print()
+
+
+def section_chain(data, tmp, base):
+    """The chain projection -> HPR -> completion: dist4d vs the peer programs, same frames."""
+    print("## End to end vs the peer programs (projection + HPR + completion)\n")
+    # dist4d: the shipped pipeline without MVS, evaluation, encoding or sheets.
+    t = variant(base, "chain", tmp, visible_points="aggregate.points").read_text()
+    keep = ["aggregate", "visible", "prompt", "complete"]
+    lines, out, skip = t.splitlines(), [], None
+    for line in lines:
+        m = re.match(r'^        "(\w+)": (\w+)\(', line)
+        if m:
+            skip = m.group(1) not in keep
+        if line.startswith("    },") or line.startswith("    export:"):
+            skip = None
+        if line.startswith("    export:"):
+            out.append("    export: {},\n)")
+            break
+        if not skip:
+            out.append(line)
+    ron = tmp / "chain_only.ron"
+    ron.write_text("\n".join(out) + "\n")
+    report, wall, cpu = run(["run", ron, "--set", f"dataset.root={data}", "--cache", tmp / "cache-chain",
+                             "--out", tmp / "out-chain", "--progress", "off"])
+    frames = stage_table(report)["aggregate"][0]
+    p = subprocess.run([sys.executable, REPO / "bench" / "peer_chain.py", data, "v1.0-mini"],
+                       capture_output=True, text=True)
+    if p.returncode != 0:
+        print(f"(peer chain failed: {p.stderr.strip()[-500:]})\n")
+        return
+    peer = json.loads(p.stdout.strip().splitlines()[-1])
+    print(f"{frames} keyframes x 6 cameras of the synthetic scene (1600x900). dist4d: aggregation of 3 LiDAR "
+          "sweeps, HPR, z-buffered prompt with nearest fill, CompleteDepth (`dist4d run` of curation.ron "
+          "without MVS, evaluation and exports; cold cache, dataset reading included). Peers "
+          "(bench/peer_chain.py): nuscenes-devkit `map_pointcloud_to_image` of the keyframe sweep, Open3D "
+          "`hidden_point_removal` (same radius rule), a z-buffered sparse image, IP-Basic `fill_in_fast` "
+          "(extrapolate); one Python process, NuScenes table loading excluded.\n")
+    print("| | wall | CPU |")
+    print("| --- | ---: | ---: |")
+    print(f"| dist4d (2 worker threads) | {wall:.1f} s | {cpu:.1f} s |")
+    print(f"| peers: projection {peer['project']:.1f} s + HPR {peer['hpr']:.1f} s + sparse image "
+          f"{peer['splat']:.1f} s + IP-Basic {peer['complete']:.1f} s | {peer['total']:.1f} s | {peer['total']:.1f} s |")
+    print(f"\nRatio: {peer['total'] / wall:.1f}x by wall time, {peer['total'] / cpu:.1f}x by CPU time.\n")
+
+
+def section_holdout(tmp, base):
+    print("## LiDAR hold-out on the shared real data\n")
+    print("A seeded 20% of the target frame's LiDAR points is left out of curation "
+          "(`--set aggregate.holdout=0.2`) and the dense depth is scored on exactly those points "
+          "(valid range 0.1-80 m).\n")
+    print("| data | images | Abs Rel | Sq Rel | RMSE | RMSE log | d<1.25 | d<1.25^2 | d<1.25^3 | Abs Rel, median-scaled |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    dgp_text = re.sub(r"    dataset: NuScenes\((.|\n)*?\n    \),\n", '    dataset: Dgp(root: ""),\n', base, count=1)
+    (tmp / "holdout_dgp.ron").write_text(dgp_text)
+    (tmp / "holdout_nus.ron").write_text(base)
+    for label, ron, root in [
+        ("nuScenes scene-0061, 1 keyframe (no neighbours: no MVS)", tmp / "holdout_nus.ron",
+         SHARED / "nuscenes-scene0061-kf0"),
+        ("DGP/DDAD scene 02, 3 frames", tmp / "holdout_dgp.ron", SHARED / "dgp-scene02"),
+    ]:
+        if not root.is_dir():
+            print(f"| {label} | (absent: {root}) |")
+            continue
+        report, _, _ = run(["eval", ron, "--set", f"dataset.root={root}", "--set", "aggregate.holdout=0.2",
+                            "--cache", tmp / f"cache-{ron.stem}", "--out", tmp / f"out-{ron.stem}",
+                            "--progress", "off"])
+        m, s = mean_row(report, "holdout (raw)"), mean_row(report, "holdout (median-scaled)")
+        print(f"| {label} | {m['images']:.0f} | {m['abs_rel']:.4f} | {m['sq_rel']:.4f} | {m['rmse']:.3f} m | "
+              f"{m['rmse_log']:.4f} | {m['d1']:.4f} | {m['d2']:.4f} | {m['d3']:.4f} | {s['abs_rel']:.4f} |")
+    print()
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--data", default="/tmp/dist4d-bench-synth")
+    ap.add_argument("--keyframes", type=int, default=40)
+    ap.add_argument("--only", nargs="*", default=["accuracy", "completion", "chain", "holdout"])
+    a = ap.parse_args()
+    subprocess.run(["cargo", "build", "--release", "-q"], cwd=REPO, check=True)
+    data = Path(a.data)
+    if set(a.only) != {"holdout"}:
+        if not (data / "v1.0-mini").is_dir():
+            run(["synth", "--out", data, "--keyframes", a.keyframes])
+    base = (REPO / "pipelines" / "curation.ron").read_text()
+    tmp = Path(tempfile.mkdtemp(prefix="dist4d-bench-"))
+    try:
+        print(f"Machine: {os.cpu_count()} cores; command: `{' '.join(sys.argv)}`; {time.strftime('%Y-%m-%d')}\n")
+        complete_ms = None
+        if "accuracy" in a.only:
+            complete_ms = section_accuracy(data, tmp, base)
+        if "completion" in a.only:
+            section_completion(data, tmp, base, list(range(5, 8)), complete_ms)
+        if "chain" in a.only:
+            section_chain(data, tmp, base)
+        if "holdout" in a.only:
+            section_holdout(tmp, base)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
