@@ -64,8 +64,30 @@ def edit(text, old, new):
     return text.replace(old, new)
 
 
-def variant(base, name, tmp, prompt_points=None, visible_points=None, semantic=True):
-    t = base
+def drop_stages(text, names):
+    """The pipeline text without the stage blocks `names`."""
+    out, skip = [], False
+    for line in text.splitlines():
+        m = re.match(r'^        "(\w+)": (\w+)\(', line)
+        if m:
+            skip = m.group(1) in names
+        elif line.startswith("    },"):
+            skip = False
+        if not skip:
+            out.append(line)
+    return "\n".join(out) + "\n"
+
+
+def lean(text):
+    """Only what evaluation needs: no encoding, no sheets, only the metrics exported (a full run of
+    40 keyframes stores ~12 GB of depth maps and images per variant otherwise)."""
+    text = drop_stages(text, {"encode", "sheet"})
+    at = text.index("    export: {")
+    return text[:at] + '    export: {\n        "eval.json": "{scene}/{camera}/{frame}_metrics.json",\n    },\n)\n'
+
+
+def variant(base, name, tmp, prompt_points=None, visible_points=None, semantic=True, slim=True):
+    t = lean(base) if slim else base
     if visible_points:
         t = edit(t, '"visible": HiddenPointRemoval(\n            inputs: {\n                "points": "fuse.points",',
                  f'"visible": HiddenPointRemoval(\n            inputs: {{\n                "points": "{visible_points}",')
@@ -98,12 +120,11 @@ def section_accuracy(data, tmp, base):
         ("+ MVS (fused points -> prompt, no sky)",
          dict(prompt_points="fuse.points", semantic=False), ["--set", "complete.detect_sky=false"]),
         ("+ HPR (no sky)", dict(semantic=False), ["--set", "complete.detect_sky=false"]),
-        ("+ sky, built-in estimate (no segmentation)", dict(semantic=False), []),
-        ("+ sky from the segmentation (the shipped pipeline)", dict(), []),
-        ("shipped pipeline without MVS (HPR + sky)", dict(visible_points="aggregate.points"), []),
+        ("+ sky, built-in estimate (the shipped pipeline on data without segmentations)", dict(), []),
+        ("+ sky from the ground-truth segmentation", dict(), ["--set", 'dataset.semantics="groundtruth/semantic"']),
+        ("shipped pipeline without MVS (HPR + built-in sky)", dict(visible_points="aggregate.points"), []),
     ]
     results = {}
-    full_report = None
     for i, (label, edits, extra) in enumerate(rows):
         ron = variant(base, f"ablation{i}", tmp, **edits)
         report, wall, _ = run(["eval", ron, "--set", f"dataset.root={data}", "--cache", cache,
@@ -111,18 +132,18 @@ def section_accuracy(data, tmp, base):
         a, b = mean_row(report, "gt (raw)"), mean_row(report, "gt_above_lidar (raw)")
         results[label] = (a, b)
         print(f"| {label} | {fmt(a)} | {fmt(b)} | {wall:.1f} s |")
-        if i == 4:
-            full_report = report
     lidar_only, mvs = results[rows[0][0]][1], results[rows[1][0]][1]
     print(f"\nMVS changes the error above the LiDAR by {100 * (mvs['abs_rel'] / lidar_only['abs_rel'] - 1):+.1f}% "
           f"(Abs Rel) and {100 * (mvs['rmse'] / lidar_only['rmse'] - 1):+.1f}% (RMSE) against LiDAR only.")
-    shipped, no_mvs = results[rows[4][0]][1], results[rows[5][0]][1]
+    shipped, no_mvs = results[rows[3][0]][1], results[rows[5][0]][1]
     print(f"In the shipped pipeline, MVS changes it by {100 * (shipped['abs_rel'] / no_mvs['abs_rel'] - 1):+.1f}% "
           f"(Abs Rel) and {100 * (shipped['rmse'] / no_mvs['rmse'] - 1):+.1f}% (RMSE).\n")
 
     # Per-stage CPU time of the shipped pipeline from a cold cache.
-    report, wall, cpu = run(["run", variant(base, "shipped", tmp), "--set", f"dataset.root={data}",
+    report, wall, cpu = run(["run", variant(base, "shipped", tmp, slim=False), "--set", f"dataset.root={data}",
                              "--cache", tmp / "cache-cold", "--out", tmp / "out-cold", "--progress", "off"])
+    shutil.rmtree(tmp / "cache-cold")
+    shutil.rmtree(tmp / "out-cold")
     stages = stage_table(report)
     frames = stages["aggregate"][0]
     print(f"### Time per stage (shipped pipeline, cold cache, {frames} keyframes x 6 cameras)\n")
@@ -142,15 +163,24 @@ def section_accuracy(data, tmp, base):
     return 1000 * stages["complete"][1] / stages["complete"][0]
 
 
-def section_completion(data, tmp, base, frames, ours_ms):
+def section_completion(data, tmp, base, ours_ms):
     """CompleteDepth and IP-Basic on the same sparse prompts, scored against the ground truth."""
     print("## Depth completion vs IP-Basic (same sparse input)\n")
-    t = edit(base, '"encode": EncodeDepth(inputs: {"depth": "complete.depth"}),',
-             '"encode": EncodeDepth(inputs: {"depth": "complete.depth"}),\n'
-             '        "encode_sparse": EncodeDepth(inputs: {"depth": "prompt.sparse"}),\n'
-             '        "encode_gt": EncodeDepth(inputs: {"depth": "dataset.gt_depth"}),')
-    t = edit(t, '"eval.json":', '"encode_sparse.npy": "{scene}/{camera}/{frame}_sparse.npy",\n'
-             '        "encode_gt.npy": "{scene}/{camera}/{frame}_gt.npy",\n        "eval.json":')
+    t = drop_stages(base, {"encode", "sheet", "eval", "lidar", "lidar_multi", "holdout"})
+    at = t.index("    export: {")
+    t = t[:at] + """        "encode_depth": EncodeDepth(inputs: {"depth": "complete.depth"}),
+        "encode_sparse": EncodeDepth(inputs: {"depth": "prompt.sparse"}),
+        "encode_gt": EncodeDepth(inputs: {"depth": "dataset.gt_depth"}),
+    },
+    export: {
+        "encode_depth.npy": "{scene}/{camera}/{frame}_depth.npy",
+        "encode_sparse.npy": "{scene}/{camera}/{frame}_sparse.npy",
+        "encode_gt.npy": "{scene}/{camera}/{frame}_gt.npy",
+    },
+)
+"""
+    # The stages map closes before the added stages: reopen it.
+    t = t.replace("    },\n        \"encode_depth\"", "        \"encode_depth\"", 1)
     ron = tmp / "completion.ron"
     ron.write_text(t)
     out = tmp / "out-completion"
@@ -158,6 +188,9 @@ def section_completion(data, tmp, base, frames, ours_ms):
                         "--out", out, "--progress", "off"])
     stages = stage_table(report)
     scene = next(p for p in out.iterdir() if p.is_dir())
+    # Three keyframes from the middle of the scene (the whole scene when it is shorter).
+    count = len(list((scene / "CAM_FRONT").glob("*_gt.npy")))
+    frames = list(range(max(0, count // 2 - 1), min(count, count // 2 + 2)))
 
     def score(d, g):
         v = (g > 0.1) & (g < 80)
@@ -204,21 +237,11 @@ def section_chain(data, tmp, base):
     print("## End to end vs the peer programs (projection + HPR + completion)\n")
     # dist4d: the shipped pipeline without MVS, evaluation, encoding or sheets.
     t = variant(base, "chain", tmp, visible_points="aggregate.points").read_text()
-    keep = ["aggregate", "visible", "prompt", "complete"]
-    lines, out, skip = t.splitlines(), [], None
-    for line in lines:
-        m = re.match(r'^        "(\w+)": (\w+)\(', line)
-        if m:
-            skip = m.group(1) not in keep
-        if line.startswith("    },") or line.startswith("    export:"):
-            skip = None
-        if line.startswith("    export:"):
-            out.append("    export: {},\n)")
-            break
-        if not skip:
-            out.append(line)
+    names = set(re.findall(r'^        "(\w+)": \w+\(', t, re.M))
+    t = drop_stages(t, names - {"aggregate", "visible", "prompt", "complete"})
+    t = t[:t.index("    export: {")] + "    export: {},\n)\n"
     ron = tmp / "chain_only.ron"
-    ron.write_text("\n".join(out) + "\n")
+    ron.write_text(t)
     report, wall, cpu = run(["run", ron, "--set", f"dataset.root={data}", "--cache", tmp / "cache-chain",
                              "--out", tmp / "out-chain", "--progress", "off"])
     frames = stage_table(report)["aggregate"][0]
@@ -288,7 +311,7 @@ def main():
         if "accuracy" in a.only:
             complete_ms = section_accuracy(data, tmp, base)
         if "completion" in a.only:
-            section_completion(data, tmp, base, list(range(5, 8)), complete_ms)
+            section_completion(data, tmp, base, complete_ms)
         if "chain" in a.only:
             section_chain(data, tmp, base)
         if "holdout" in a.only:

@@ -22,6 +22,7 @@ pub mod stages {
     pub mod hpr;
     pub mod mvs;
     pub mod mvs_points;
+    pub mod nearest_fill;
     pub mod project_lidar;
     pub mod prompt;
 }
@@ -49,6 +50,7 @@ impl Default for Registry {
                 stages::hpr::def(),
                 stages::mvs::def(),
                 stages::mvs_points::def(),
+                stages::nearest_fill::def(),
                 stages::prompt::def(),
                 stages::project_lidar::def(),
                 stages::encode::encode_depth(),
