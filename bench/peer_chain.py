@@ -4,7 +4,7 @@
 
 For every keyframe and camera: nuscenes-devkit `map_pointcloud_to_image` (LiDAR keyframe sweep ->
 image), the points back to camera coordinates, Open3D `hidden_point_removal` from the camera
-centre (radius 100 x the farthest point, as dist4d's default), a z-buffered sparse depth image, and
+centre (radius 400 x the farthest point, as dist4d's default), a z-buffered sparse depth image, and
 IP-Basic `fill_in_fast` (extrapolate, bilateral) from ../shared/bench/peers/ipbasic_cv2.py.
 Prints one JSON line with the seconds spent in each step, summed over all images. Loading the
 NuScenes tables is not counted.
@@ -35,7 +35,7 @@ for s in nusc.sample:
         u, v = pts[0], pts[1]
         xyz = np.stack([(u - k[0, 2]) / k[0, 0] * depth, (v - k[1, 2]) / k[1, 1] * depth, depth], axis=1)
         pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(xyz.astype(np.float64)))
-        radius = 100.0 * float(np.linalg.norm(xyz, axis=1).max())
+        radius = 400.0 * float(np.linalg.norm(xyz, axis=1).max())
         _, idx = pc.hidden_point_removal([0.0, 0.0, 0.0], radius)
         idx = np.asarray(idx, dtype=np.int64)
         t2 = time.perf_counter()

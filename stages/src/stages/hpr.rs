@@ -34,7 +34,7 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        Params { radius_factor: 100.0, min_depth: 0.1, frustum_margin: 0.05 }
+        Params { radius_factor: 400.0, min_depth: 0.1, frustum_margin: 0.05 }
     }
 }
 
