@@ -59,20 +59,21 @@ fn read_npy_i64(path: &Path) -> Vec<i64> {
 
 fn bench_hpr(tmp: &Path) {
     println!("## Hidden point removal vs Open3D");
-    println!("| points | visible | dist4d | Open3D | speed-up | agreement |");
-    println!("| ---: | ---: | ---: | ---: | ---: | ---: |");
-    for n in [100_000usize, 300_000] {
+    println!("| points | R / farthest | visible | dist4d | Open3D | speed-up | agreement |");
+    println!("| ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
+    // 100: Open3D's tutorial value; 400: HiddenPointRemoval's default.
+    for (n, factor) in [(100_000usize, 100.0), (300_000, 100.0), (100_000, 400.0), (300_000, 400.0)] {
         // Uniform in a 40 m cube around the camera, as f32 so both sides read the same numbers.
         let mut rng = Rng::new(n as u64);
         let flat: Vec<f32> = (0..n * 3).map(|_| rng.range(-20.0, 20.0) as f32).collect();
         let pts: Vec<DVec3> = flat.chunks_exact(3).map(|c| DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64)).collect();
         let camera = DVec3::new(0.5, -0.25, 0.1);
         let max = pts.iter().map(|p| p.distance(camera)).fold(0.0, f64::max);
-        let radius = 100.0 * max;
+        let radius = factor * max;
         let (ours, vis) = best_of(5, || hidden_point_removal(&pts, camera, radius));
         let visible = vis.iter().filter(|&&v| v).count();
-        let input = tmp.join(format!("hpr_{n}.npy"));
-        let output = tmp.join(format!("hpr_{n}_visible.npy"));
+        let input = tmp.join(format!("hpr_{n}_{factor}.npy"));
+        let output = tmp.join(format!("hpr_{n}_{factor}_visible.npy"));
         std::fs::write(&input, npy_f32(&[n, 3], &flat)).unwrap();
         let args: Vec<String> = vec![
             input.display().to_string(),
@@ -92,7 +93,7 @@ fn bench_hpr(tmp: &Path) {
                 }
                 let agree = vis.iter().zip(&peer_vis).filter(|(a, b)| a == b).count() as f64 / n as f64;
                 println!(
-                    "| {n} | {visible} (Open3D {}) | {:.1} ms | {:.1} ms | {:.2}x | {:.4}% |",
+                    "| {n} | {factor} | {visible} (Open3D {}) | {:.1} ms | {:.1} ms | {:.2}x | {:.4}% |",
                     peer_vis.iter().filter(|&&v| v).count(),
                     ours * 1e3,
                     theirs * 1e3,
@@ -100,7 +101,7 @@ fn bench_hpr(tmp: &Path) {
                     agree * 100.0
                 );
             }
-            None => println!("| {n} | {visible} | {:.1} ms | (no peer venv) | | |", ours * 1e3),
+            None => println!("| {n} | {factor} | {visible} | {:.1} ms | (no peer venv) | | |", ours * 1e3),
         }
     }
 }
