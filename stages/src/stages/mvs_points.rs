@@ -124,6 +124,10 @@ pub fn static_points(params: &Params, m: &MvsInputs) -> Result<PointCloud> {
         m.view.height
     );
     let (iw, ih) = (m.view.width as usize, m.view.height as usize);
+    if w == 0 || h == 0 {
+        return Ok(PointCloud::default());
+    }
+    ensure!(iw > 0 && ih > 0, "the camera calibration has no image size but the MVS depth is {w}x{h}");
     let semantic = m.semantic.filter(|s| s.width > 0 && s.height > 0);
     if let Some(s) = semantic {
         ensure!(
