@@ -54,12 +54,7 @@ impl PairCalibration {
 /// A grey image (ITU-R 601 luma) of an image file.
 pub fn read_grey(path: &Path) -> Result<(usize, usize, Vec<u8>)> {
     let img = crate::files::read_jpeg(path)?;
-    let grey = img
-        .rgb
-        .chunks_exact(3)
-        .map(|p| ((p[0] as u32 * 77 + p[1] as u32 * 150 + p[2] as u32 * 29) >> 8) as u8)
-        .collect();
-    Ok((img.width as usize, img.height as usize, grey))
+    Ok((img.width as usize, img.height as usize, crate::stereo::grey(&img.rgb)))
 }
 
 /// The Motorcycle pair of `dir` (`motorcycle_left.png`, `motorcycle_right.png`) and its ground-truth

@@ -68,6 +68,11 @@ impl StereoView {
     }
 }
 
+/// 8-bit luma (ITU-R 601 weights) of RGB8 pixels: what the census compares.
+pub fn grey(rgb: &[u8]) -> Vec<u8> {
+    rgb.chunks_exact(3).map(|p| ((p[0] as u32 * 77 + p[1] as u32 * 150 + p[2] as u32 * 29) >> 8) as u8).collect()
+}
+
 fn k_matrix(k: &[[f64; 3]; 3]) -> DMat3 {
     DMat3::from_cols_array_2d(k).transpose()
 }
@@ -450,16 +455,9 @@ pub(crate) mod tests {
         )
     }
 
+    /// The MultiViewStereo stage's defaults, from 5 m.
     pub(crate) fn params() -> SweepParams {
-        SweepParams {
-            min_depth: 5.0,
-            max_depth: 100.0,
-            max_planes: 256,
-            plane_step_px: 1.0,
-            p1: 8,
-            p2: 48,
-            uniqueness: 0.05,
-        }
+        SweepParams { min_depth: 5.0, ..crate::stages::mvs::Params::default().sweep() }
     }
 
     #[test]

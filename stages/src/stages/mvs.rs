@@ -117,11 +117,7 @@ fn view(frame: &Frame, downscale: u32) -> Result<StereoView> {
         frame.calib.width,
         frame.calib.height
     );
-    let grey: Vec<u8> = img
-        .rgb
-        .chunks_exact(3)
-        .map(|p| ((p[0] as u32 * 77 + p[1] as u32 * 150 + p[2] as u32 * 29) >> 8) as u8)
-        .collect();
+    let grey = crate::stereo::grey(&img.rgb);
     let world_from_cam = frame.pose.ego_to_world.then_from(&frame.calib.sensor_to_ego);
     Ok(StereoView::downscaled(img.width as usize, img.height as usize, &grey, k, world_from_cam, downscale as usize))
 }
