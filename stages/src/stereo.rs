@@ -148,6 +148,19 @@ impl Warp {
     }
 }
 
+/// The source pixel a reference ray `a + b rho` (see [`Warp`]) samples at inverse depth `rho`,
+/// if it is in front of the source and inside its `sw` x `sh` image.
+#[inline]
+fn sample_at(a: glam::Vec3, b: glam::Vec3, rho: f32, sw: f32, sh: f32) -> Option<(usize, usize)> {
+    let z = a.z + b.z * rho;
+    if z <= 1e-9 {
+        return None;
+    }
+    let inv = 1.0 / z;
+    let (u, v) = ((a.x + b.x * rho) * inv, (a.y + b.y * rho) * inv);
+    (u >= 0.0 && v >= 0.0 && u < sw && v < sh).then_some((u as usize, v as usize))
+}
+
 /// Inverse depths of the planes, far to near: the spacing moves the sample by about
 /// `plane_step_px` along the longest epipolar line of a grid of reference pixels.
 fn plane_inverse_depths(reference: &StereoView, warps: &[Warp], p: &SweepParams) -> Vec<f64> {
@@ -192,50 +205,40 @@ pub fn sweep_depth(reference: &StereoView, sources: &[&StereoView], p: &SweepPar
     let ref_census = census(&reference.grey, w, h);
     let src_census: Vec<Vec<u64>> = sources.iter().map(|s| census(&s.grey, s.width, s.height)).collect();
 
-    // Cost volume, [pixel][plane]. `seen[pixel][plane]`: some source saw the sample.
+    // Cost volume, [pixel][plane]; COST_MAX where no source sees the sample.
     let mut cost = vec![COST_MAX; w * h * planes];
-    let mut seen = vec![false; w * h * planes];
     let rhos32: Vec<f32> = rhos.iter().map(|&r| r as f32).collect();
-    cost.par_chunks_mut(w * planes).zip(seen.par_chunks_mut(w * planes)).enumerate().for_each(
-        |(y, (row, seen_row))| {
-            // Per plane: summed Hamming distance and number of sources that saw the sample.
-            let mut sum = vec![0u16; planes];
-            let mut count = vec![0u8; planes];
-            for x in 0..w {
-                let c0 = ref_census[y * w + x];
-                let px = DVec3::new(x as f64 + 0.5, y as f64 + 0.5, 1.0);
-                sum.fill(0);
-                count.fill(0);
-                for (s, src) in sources.iter().enumerate() {
-                    // f32 is ample for pixel coordinates and keeps the loop cheap.
-                    let a = (warps[s].m * px).as_vec3();
-                    let b = warps[s].b.as_vec3();
-                    let (sw, sh) = (src.width as f32, src.height as f32);
-                    let census = &src_census[s];
-                    for ((&rho, sm), cn) in rhos32.iter().zip(sum.iter_mut()).zip(count.iter_mut()) {
-                        let z = a.z + b.z * rho;
-                        if z <= 1e-9 {
-                            continue;
-                        }
-                        let inv = 1.0 / z;
-                        let (u, v) = ((a.x + b.x * rho) * inv, (a.y + b.y * rho) * inv);
-                        if u >= 0.0 && v >= 0.0 && u < sw && v < sh {
-                            *sm += (c0 ^ census[v as usize * src.width + u as usize]).count_ones() as u16;
-                            *cn += 1;
-                        }
-                    }
-                }
-                let (cost_px, seen_px) =
-                    (&mut row[x * planes..(x + 1) * planes], &mut seen_row[x * planes..(x + 1) * planes]);
-                for d in 0..planes {
-                    if count[d] > 0 {
-                        cost_px[d] = (2 * sum[d] / count[d] as u16) as u8;
-                        seen_px[d] = true;
+    // f32 is ample for pixel coordinates and keeps the inner loop cheap.
+    let rays = |s: usize, x: usize, y: usize| {
+        ((warps[s].m * DVec3::new(x as f64 + 0.5, y as f64 + 0.5, 1.0)).as_vec3(), warps[s].b.as_vec3())
+    };
+    cost.par_chunks_mut(w * planes).enumerate().for_each(|(y, row)| {
+        // Per plane: summed Hamming distance and number of sources that saw the sample.
+        let mut sum = vec![0u16; planes];
+        let mut count = vec![0u8; planes];
+        for x in 0..w {
+            let c0 = ref_census[y * w + x];
+            sum.fill(0);
+            count.fill(0);
+            for (s, src) in sources.iter().enumerate() {
+                let (a, b) = rays(s, x, y);
+                let (sw, sh) = (src.width as f32, src.height as f32);
+                let census = &src_census[s];
+                for ((&rho, sm), cn) in rhos32.iter().zip(sum.iter_mut()).zip(count.iter_mut()) {
+                    if let Some((u, v)) = sample_at(a, b, rho, sw, sh) {
+                        *sm += (c0 ^ census[v * src.width + u]).count_ones() as u16;
+                        *cn += 1;
                     }
                 }
             }
-        },
-    );
+            let cost_px = &mut row[x * planes..(x + 1) * planes];
+            for d in 0..planes {
+                if count[d] > 0 {
+                    cost_px[d] = (2 * sum[d] / count[d] as u16) as u8;
+                }
+            }
+        }
+    });
     let total = aggregate(&cost, w, h, planes, p.p1, p.p2);
     drop(cost);
 
@@ -243,7 +246,13 @@ pub fn sweep_depth(reference: &StereoView, sources: &[&StereoView], p: &SweepPar
     out.depth.par_iter_mut().zip(out.confidence.par_iter_mut()).enumerate().for_each(|(i, (depth, conf))| {
         let s = &total[i * planes..(i + 1) * planes];
         let (best, &sb) = s.iter().enumerate().min_by_key(|(_, &v)| v).expect("planes >= 8");
-        if !seen[i * planes + best] {
+        // The winning plane must have been seen by some source (not just the COST_MAX filler).
+        let (x, y) = (i % w, i / w);
+        let seen = sources.iter().enumerate().any(|(si, src)| {
+            let (a, b) = rays(si, x, y);
+            sample_at(a, b, rhos32[best], src.width as f32, src.height as f32).is_some()
+        });
+        if !seen {
             return;
         }
         let second =
