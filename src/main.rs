@@ -359,15 +359,31 @@ fn run_pipeline(
     Ok(Ok((pipeline, out_dir, code)))
 }
 
-/// The score tables of every EvalDepth stage of `pipeline`, read from the run's exported files.
-fn eval_tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
-    let eval_stages: Vec<&str> = pipeline
+/// The EvalDepth stages of `pipeline`; an error unless there is one and each exports its scores
+/// (`dist4d eval` reads them from the exported files), said before anything runs.
+fn eval_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
+    let stages: Vec<(usize, &str)> = pipeline
         .nodes
         .iter()
-        .filter(|n| n.stage().is_some_and(|s| s.kind == "EvalDepth"))
-        .map(|n| n.name.as_str())
+        .enumerate()
+        .filter(|(_, n)| n.stage().is_some_and(|s| s.kind == "EvalDepth"))
+        .map(|(id, n)| (id, n.name.as_str()))
         .collect();
-    anyhow::ensure!(!eval_stages.is_empty(), "the pipeline has no EvalDepth stage to report");
+    anyhow::ensure!(!stages.is_empty(), "{}: the pipeline has no EvalDepth stage to report", pipeline.path.display());
+    for &(id, name) in &stages {
+        anyhow::ensure!(
+            pipeline.exports.iter().any(|e| e.node == id),
+            "{}: stage `{name}` (EvalDepth) is not exported, and `dist4d eval` reads the scores from the \
+             exported files: add `\"{name}.json\": \"{{scene}}/{{camera}}/{{frame}}_metrics.json\"` to `export`",
+            pipeline.path.display()
+        );
+    }
+    Ok(stages.into_iter().map(|(_, name)| name).collect())
+}
+
+/// The score tables of every EvalDepth stage of `pipeline`, read from the run's exported files.
+fn eval_tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
+    let eval_stages = eval_stages(pipeline)?;
     let index_path = out_dir.join("index.json");
     let index: serde_json::Value = serde_json::from_slice(
         &std::fs::read(&index_path).with_context(|| format!("reading {}", index_path.display()))?,
@@ -451,6 +467,16 @@ fn run(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Eval { p, jobs, out, progress } => {
+            // A pipeline that cannot be reported on fails before its run, not after.
+            match load(&p, &registry)? {
+                Ok(pipeline) => {
+                    if let Err(e) = eval_stages(&pipeline) {
+                        eprintln!("error: {e:#}");
+                        return Ok(ExitCode::from(2));
+                    }
+                }
+                Err(code) => return Ok(code),
+            }
             let (pipeline, out_dir, code) = match run_pipeline(&registry, &p, jobs, false, out, &progress)? {
                 Ok(x) => x,
                 Err(code) => return Ok(code),

@@ -86,6 +86,21 @@ fn a_bad_pipeline_exits_2_with_every_problem() {
     assert_eq!(o.status.code(), Some(2));
 }
 
+#[test]
+fn eval_of_a_pipeline_that_exports_no_scores_fails_before_running() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("no_export.ron");
+    let shipped = std::fs::read_to_string(repo().join("pipelines/curation.ron")).unwrap();
+    let start = shipped.find("    export: {").expect("curation.ron has an export block");
+    std::fs::write(&file, format!("{})\n", &shipped[..start])).unwrap();
+    let o = dist4d(&["eval", file.to_str().unwrap(), "--progress", "off"]);
+    assert_eq!(o.status.code(), Some(2));
+    let t = text(&o);
+    assert!(t.contains("stage `eval` (EvalDepth) is not exported"), "{t}");
+    assert!(t.contains(r#""eval.json": "{scene}/{camera}/{frame}_metrics.json""#), "{t}");
+    assert!(!tmp.path().join(".dist4d").exists(), "nothing may run: {t}");
+}
+
 struct Setup {
     _tmp: tempfile::TempDir,
     root: String,
