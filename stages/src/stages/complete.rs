@@ -10,9 +10,10 @@
 //! ground continues (inverse depth extrapolated from the last two samples when they agree); above
 //! its highest sample a vertical surface continues (constant depth) unless the pixel is sky. Sky
 //! is read from a semantic map when one is wired (Cityscapes id 23); otherwise a built-in estimate
-//! takes, per column, the run of smooth, bright, not-reddish pixels from the top of the image that
-//! lies above every depth sample (a baseline: it fails on sky-coloured flat walls with no depth
-//! above them). Sky pixels get `sky_depth` (paper: 100 m). Columns with no sample take their
+//! takes, per column, the run of smooth (down the column and along the row), bright, not-reddish
+//! pixels from the top of the image that lies above every depth sample and ends at a luminance
+//! edge (a run that fades into what is below it is a smooth facade). A baseline: it fails on
+//! sky-coloured flat walls that end at an edge with no depth above them. Sky pixels get `sky_depth` (paper: 100 m). Columns with no sample take their
 //! nearest filled column.
 //!
 //! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
@@ -142,23 +143,41 @@ fn continues_a_plane(c: &[f32], samples: &[usize], j: usize, tol: f32) -> bool {
 }
 
 /// The built-in sky estimate: per column, the smooth bright not-reddish run from the top that
-/// stays above `top[x]` (the column's highest sample; `h` when none).
+/// stays above `top[x]` (the column's highest sample; `h` when none) and ends at a luminance edge
+/// (or the bottom of the image): a run that fades into what lies below it, sample or not, is a
+/// smooth facade, not sky.
 fn estimate_sky(image: &Image, lum: &[f32], top: &[usize], w: usize) -> Vec<bool> {
     let mut sky = vec![false; lum.len()];
     for x in 0..w {
-        for y in 0..top[x] {
-            let i = y * w + x;
+        let mut end = 0;
+        while end < top[x] {
+            let i = end * w + x;
             let px = &image.rgb[3 * i..3 * i + 3];
-            let smooth = y == 0 || (lum[i] - lum[i - w]).abs() < 6.0;
+            // Smooth down the column and along the row: facade texture is rarely smooth both ways.
+            let smooth = (end == 0 || (lum[i] - lum[i - w]).abs() < SKY_SMOOTH)
+                && (x == 0 || (lum[i] - lum[i - 1]).abs() < SKY_SMOOTH)
+                && (x + 1 == w || (lum[i] - lum[i + 1]).abs() < SKY_SMOOTH);
             let skyish = lum[i] > 90.0 && px[2] as i32 + 12 >= px[0] as i32;
             if !(smooth && skyish) {
                 break;
             }
-            sky[i] = true;
+            end += 1;
+        }
+        let h = lum.len() / w;
+        let bounded = end == h || (end > 0 && (lum[end * w + x] - lum[(end - 1) * w + x]).abs() >= SKY_EDGE);
+        if bounded {
+            for y in 0..end {
+                sky[y * w + x] = true;
+            }
         }
     }
     sky
 }
+
+/// Largest luminance step (0-255) between neighbours inside sky.
+const SKY_SMOOTH: f32 = 6.0;
+/// Smallest luminance step where sky meets what is below it.
+const SKY_EDGE: f32 = 2.0 * SKY_SMOOTH;
 
 /// The built-in sky estimate with no depth samples to bound it (every column may be sky down to
 /// the bottom): what `StaticMvsPoints` uses when the dataset has no segmentation.
@@ -321,7 +340,7 @@ impl TypedOp for Op {
 pub fn def() -> StageDef {
     StageDef::new::<Params>(
         "CompleteDepth",
-        1,
+        2,
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)",
         vec![
             input::<Image>("image", "the camera image"),
@@ -404,6 +423,33 @@ mod tests {
         let d = complete(&Params::default(), &image, &sparse, Some(&seg));
         assert_eq!(d.data[5 * w as usize + 3], 20.0);
     }
+    #[test]
+    fn a_smooth_bright_facade_fading_into_its_samples_is_not_sky() {
+        // Columns 0..10: a bright bluish facade whose luminance falls 1 per row from 110, so it
+        // is smooth and sky-coloured at the top but meets its LiDAR samples (row 30, 10 m)
+        // without an edge. Columns 10..20: sky down to row 12, then a dark wall at an edge.
+        let (w, h) = (20u32, 40u32);
+        let mut sparse = DepthMap::new(w, h);
+        for x in 0..w as usize {
+            sparse.data[30 * w as usize + x] = 10.0;
+        }
+        let image = grey(w, h, |x, y| {
+            if x < 10 {
+                let v = 110 - y as u8;
+                [v - 6, v, v + 20]
+            } else if y < 12 {
+                [150, 190, 240]
+            } else {
+                [60, 60, 60]
+            }
+        });
+        let d = complete(&Params::default(), &image, &sparse, None);
+        let at = |x: usize, y: usize| d.data[y * w as usize + x];
+        assert_eq!(at(5, 2), 10.0, "facade, not sky");
+        assert_eq!(at(15, 2), 100.0, "sky above an edge");
+        assert_eq!(at(15, 12), 10.0, "the wall below the edge");
+    }
+
     #[test]
     fn growing_fills_near_empty_pixels_with_the_nearest_sample_only() {
         let (w, h) = (9, 7);

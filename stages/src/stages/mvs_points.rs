@@ -7,7 +7,7 @@
 //!   grown by `box_margin`): moving objects break the multi-view constraint;
 //! - sky: a Cityscapes-id segmentation (`semantic`, id 23) when the dataset has one, otherwise
 //!   the built-in estimate of `CompleteDepth` (the bright, smooth, not reddish run of each column
-//!   from the top of the image);
+//!   from the top of the image that ends at an edge);
 //! - not more than `min_height` above the LiDAR (z in the LiDAR frame): "we only keep MVS points
 //!   above the ego LiDAR", where LiDAR has no returns.
 //!
@@ -205,7 +205,7 @@ impl TypedOp for Op {
 pub fn def() -> StageDef {
     StageDef::new::<Params>(
         "StaticMvsPoints",
-        1,
+        2,
         "MVS depth -> static points above the LiDAR (no moving boxes, no sky), voxel-downsampled",
         vec![
             input::<DepthMap>("depth", "MultiViewStereo depth (any size; pixels scale to the image)"),
