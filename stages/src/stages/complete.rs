@@ -13,8 +13,8 @@
 //! takes, per column, the run of smooth (down the column and along the row), bright, not-reddish
 //! pixels from the top of the image that lies above every depth sample and ends at a luminance
 //! edge (a run that fades into what is below it is a smooth facade). A baseline: it fails on
-//! sky-coloured flat walls that end at an edge with no depth above them. Sky pixels get `sky_depth` (paper: 100 m). Columns with no sample take their
-//! nearest filled column.
+//! sky-coloured flat walls that end at an edge with no depth above them. Sky pixels get
+//! `sky_depth` (paper: 100 m). Columns with no sample take their nearest filled column.
 //!
 //! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
 
@@ -423,6 +423,7 @@ mod tests {
         let d = complete(&Params::default(), &image, &sparse, Some(&seg));
         assert_eq!(d.data[5 * w as usize + 3], 20.0);
     }
+
     #[test]
     fn a_smooth_bright_facade_fading_into_its_samples_is_not_sky() {
         // Columns 0..10: a bright bluish facade whose luminance falls 1 per row from 110, so it
