@@ -328,11 +328,13 @@ fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> 
     Ok(code)
 }
 
-/// `run` and `eval`: loads the pipeline, runs it, returns it with its output folder and exit code
-/// (or the exit code of a pipeline that did not load).
+/// `run` and `eval`: loads the pipeline, checks it with `usable` (exit 2 when that fails), runs
+/// it, returns it with its output folder and exit code (or the exit code of a pipeline that did
+/// not load or was not usable).
 fn run_pipeline(
     registry: &Registry,
     p: &PipelineArgs,
+    usable: fn(&Pipeline) -> Result<()>,
     jobs: Option<usize>,
     fail_fast: bool,
     out: Option<PathBuf>,
@@ -342,6 +344,10 @@ fn run_pipeline(
         Ok(x) => x,
         Err(code) => return Ok(Err(code)),
     };
+    if let Err(e) = usable(&pipeline) {
+        eprintln!("error: {e:#}");
+        return Ok(Err(ExitCode::from(2)));
+    }
     let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
     let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
     let mut opts = RunOptions {
@@ -468,16 +474,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Eval { p, jobs, out, progress } => {
             // A pipeline that cannot be reported on fails before its run, not after.
-            match load(&p, &registry)? {
-                Ok(pipeline) => {
-                    if let Err(e) = eval_stages(&pipeline) {
-                        eprintln!("error: {e:#}");
-                        return Ok(ExitCode::from(2));
-                    }
-                }
-                Err(code) => return Ok(code),
-            }
-            let (pipeline, out_dir, code) = match run_pipeline(&registry, &p, jobs, false, out, &progress)? {
+            let reportable = |p: &Pipeline| eval_stages(p).map(|_| ());
+            let (pipeline, out_dir, code) = match run_pipeline(&registry, &p, reportable, jobs, false, out, &progress)?
+            {
                 Ok(x) => x,
                 Err(code) => return Ok(code),
             };
@@ -485,7 +484,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             Ok(code)
         }
         Command::Run { p, jobs, fail_fast, out, progress } => {
-            Ok(run_pipeline(&registry, &p, jobs, fail_fast, out, &progress)?
+            Ok(run_pipeline(&registry, &p, |_| Ok(()), jobs, fail_fast, out, &progress)?
                 .map_or_else(|code| code, |(_, _, code)| code))
         }
         Command::Runs { cache, json } => {
