@@ -37,14 +37,17 @@ pub struct Params {
     pub sky_depth: f32,
     /// Whether to estimate sky when no semantic map is wired.
     pub detect_sky: bool,
-    /// Empty pixels within this many pixels (square window) of samples first take the nearest
-    /// depth among them, so that 1-px LiDAR rings become bands the row pass can follow.
-    pub grow: u32,
+    /// Empty pixels within this distance (square window) of samples first take the nearest
+    /// depth among them, so that 1-px LiDAR rings become bands the row pass can follow. In mean
+    /// sample spacings (sqrt(image area / samples)), rounded to whole pixels: sparse input (one
+    /// 32-beam sweep) needs wider bands than three aggregated keyframes, where wide bands only
+    /// smear depth edges.
+    pub grow: f32,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, detect_sky: true, grow: 3 }
+        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, detect_sky: true, grow: 0.13 }
     }
 }
 
@@ -203,6 +206,12 @@ fn transpose(src: &[f32], w: usize, h: usize) -> Vec<f32> {
     out
 }
 
+/// `grow` (in mean sample spacings) in whole pixels for `samples` samples in a `w` x `h` image.
+fn grow_radius(grow: f32, w: usize, h: usize, samples: usize) -> usize {
+    let spacing = ((w * h) as f32 / samples.max(1) as f32).sqrt();
+    (grow * spacing).round() as usize
+}
+
 /// Fills empty pixels (0) with the largest inverse depth (the nearest sample) within a square
 /// window of radius `r`; samples stay. Samples are few (a few percent of the pixels), so each
 /// splats its window rather than every pixel scanning one.
@@ -236,7 +245,8 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, semantic: Option<&
     let (w, h) = (sparse.width as usize, sparse.height as usize);
     let lum = luminance(image);
     let mut inv: Vec<f32> = sparse.data.iter().map(|&z| if z > 0.0 && z.is_finite() { 1.0 / z } else { 0.0 }).collect();
-    grow_samples(&mut inv, w, h, p.grow as usize);
+    let samples = inv.iter().filter(|&&v| v > 0.0).count();
+    grow_samples(&mut inv, w, h, grow_radius(p.grow, w, h, samples));
     fill_rows(p, w, h, &mut inv, &lum);
     // Column pass, on a transposed copy so that columns are contiguous.
     let mut col = transpose(&inv, w, h);
@@ -340,7 +350,7 @@ impl TypedOp for Op {
 pub fn def() -> StageDef {
     StageDef::new::<Params>(
         "CompleteDepth",
-        2,
+        3,
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)",
         vec![
             input::<Image>("image", "the camera image"),
@@ -381,7 +391,7 @@ mod tests {
         let image = grey(w, h, |_, _| [90, 90, 90]);
         // Without growth (which copies a sample's depth to its neighbours, a small error on a
         // slanted surface), interpolation in inverse depth is exact on a plane.
-        let d = complete(&Params { detect_sky: false, grow: 0, ..Params::default() }, &image, &sparse, None);
+        let d = complete(&Params { detect_sky: false, grow: 0.0, ..Params::default() }, &image, &sparse, None);
         for y in 24..h as usize {
             for x in 0..w as usize {
                 let z = d.data[y * w as usize + x];
@@ -449,6 +459,15 @@ mod tests {
         assert_eq!(at(5, 2), 10.0, "facade, not sky");
         assert_eq!(at(15, 2), 100.0, "sky above an edge");
         assert_eq!(at(15, 12), 10.0, "the wall below the edge");
+    }
+
+    #[test]
+    fn sparser_samples_grow_wider() {
+        // 1600x900: three aggregated keyframes (~11,000 samples) vs one 32-beam sweep (~2,700).
+        assert_eq!(grow_radius(0.13, 1600, 900, 11_000), 1);
+        assert_eq!(grow_radius(0.13, 1600, 900, 2_700), 3);
+        assert_eq!(grow_radius(0.0, 1600, 900, 10), 0);
+        assert_eq!(grow_radius(0.13, 1600, 900, 0), 156, "no samples: nothing to grow, no panic");
     }
 
     #[test]
