@@ -68,6 +68,25 @@ impl CameraView {
     }
 }
 
+#[cfg(test)]
+impl CameraView {
+    /// A `w` x `h` pinhole camera with focal length `f` (px) and the principal point at the image
+    /// centre, placed at the cloud frame's origin and looking along its +z: cloud frame = camera
+    /// frame, which keeps test geometry readable.
+    pub fn looking_along_z(w: u32, h: u32, f: f64) -> CameraView {
+        use crate::geometry::Se3;
+        let cam = Calibration {
+            sensor_to_ego: Se3::from_yaw(0.0, DVec3::ZERO),
+            intrinsics: Some([[f, 0.0, w as f64 / 2.0], [0.0, f, h as f64 / 2.0], [0.0, 0.0, 1.0]]),
+            width: w,
+            height: h,
+        };
+        let cloud = Calibration { intrinsics: None, width: 0, height: 0, ..cam.clone() };
+        let pose = Pose { ego_to_world: Se3::from_yaw(0.0, DVec3::ZERO), timestamp_us: 0 };
+        CameraView::new(&cloud, &pose, &cam, &pose).expect("intrinsics are set")
+    }
+}
+
 /// The input ports of a stage that takes a point cloud and looks at it from one camera: the cloud
 /// (`points`) and the four ports [`CameraView::from_inputs`] reads.
 pub fn cloud_and_camera_ports(points_doc: &'static str) -> Vec<dist4d_graph::PortSpec> {

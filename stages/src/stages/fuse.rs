@@ -97,21 +97,11 @@ pub fn def() -> StageDef {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::artifact::{Calibration, Pose};
-    use crate::geometry::Se3;
 
     #[test]
     fn mvs_points_fill_only_regions_without_lidar() {
         // Camera at the origin looking along +z of the cloud frame, 160x120, f = 100.
-        let cam = Calibration {
-            sensor_to_ego: Se3::from_yaw(0.0, DVec3::ZERO),
-            intrinsics: Some([[100.0, 0.0, 80.0], [0.0, 100.0, 60.0], [0.0, 0.0, 1.0]]),
-            width: 160,
-            height: 120,
-        };
-        let cloud = Calibration { intrinsics: None, width: 0, height: 0, ..cam.clone() };
-        let pose = Pose { ego_to_world: Se3::from_yaw(0.0, DVec3::ZERO), timestamp_us: 0 };
-        let view = CameraView::new(&cloud, &pose, &cam, &pose).unwrap();
+        let view = CameraView::looking_along_z(160, 120, 100.0);
         // A point at pixel (u, v), depth 10.
         let at = |u: f64, v: f64| [((u - 80.0) / 100.0 * 10.0) as f32, ((v - 60.0) / 100.0 * 10.0) as f32, 10.0, 0.0];
         let lidar = PointCloud { points: vec![at(20.0, 100.0), at(24.0, 100.0)], labels: vec![7, 7] };

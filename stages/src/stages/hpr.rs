@@ -190,8 +190,6 @@ pub fn def() -> StageDef {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::artifact::{Calibration, Pose};
-    use crate::geometry::Se3;
 
     #[test]
     fn a_wall_hides_what_is_behind_it() {
@@ -217,16 +215,8 @@ mod tests {
 
     #[test]
     fn a_hidden_point_comes_back_unless_a_kept_point_beside_it_is_nearer() {
-        // Camera at the origin looking along +z, 160x120, f = 100.
-        let cam = Calibration {
-            sensor_to_ego: Se3::from_yaw(0.0, DVec3::ZERO),
-            intrinsics: Some([[100.0, 0.0, 80.0], [0.0, 100.0, 60.0], [0.0, 0.0, 1.0]]),
-            width: 160,
-            height: 120,
-        };
-        let cloud = Calibration { intrinsics: None, width: 0, height: 0, ..cam.clone() };
-        let pose = Pose { ego_to_world: Se3::from_yaw(0.0, DVec3::ZERO), timestamp_us: 0 };
-        let view = CameraView::new(&cloud, &pose, &cam, &pose).unwrap();
+        // Camera at the origin looking along +z of the cloud frame, 160x120, f = 100.
+        let view = CameraView::looking_along_z(160, 120, 100.0);
         let at = |u: f64, v: f64, z: f64| DVec3::new((u + 0.5 - 80.0) / 100.0 * z, (v + 0.5 - 60.0) / 100.0 * z, z);
         // Kept: a pole 5 m away in column 40, rows 20..100 every 10 rows (LiDAR rings), and a
         // wall point 30 m away at (104, 55).

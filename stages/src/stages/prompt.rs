@@ -65,5 +65,30 @@ pub fn def() -> StageDef {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synth::rng::Rng;
+
+    #[test]
+    fn the_nearest_point_of_a_pixel_wins_and_the_depth_range_is_kept() {
+        let view = CameraView::looking_along_z(160, 120, 100.0);
+        // A point at pixel (u, v) and depth z.
+        let at = |u: f32, v: f32, z: f32| [(u + 0.5 - 80.0) / 100.0 * z, (v + 0.5 - 60.0) / 100.0 * z, z, 0.0];
+        let points = PointCloud {
+            points: vec![
+                at(10.0, 20.0, 30.0),
+                at(10.0, 20.0, 12.0), // same pixel, nearer: wins whatever the order
+                at(10.0, 20.0, 50.0),
+                at(50.0, 50.0, 0.5),   // nearer than min_depth
+                at(60.0, 50.0, 120.0), // beyond max_depth
+                at(70.0, 50.0, 100.0), // at max_depth: kept
+                at(500.0, 50.0, 10.0), // outside the image
+            ],
+            labels: vec![],
+        };
+        let d = project_points(&Params::default(), &points, &view);
+        let px = |u: usize, v: usize| d.data[v * 160 + u];
+        assert!((px(10, 20) - 12.0).abs() < 1e-4, "{}", px(10, 20));
+        assert_eq!(px(50, 50), 0.0);
+        assert_eq!(px(60, 50), 0.0);
+        assert!((px(70, 50) - 100.0).abs() < 1e-3);
+        assert_eq!(d.data.iter().filter(|&&z| z > 0.0).count(), 2);
+    }
 }
