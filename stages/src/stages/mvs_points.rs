@@ -44,7 +44,7 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params {
-            min_confidence: 0.5,
+            min_confidence: 0.65,
             moving_speed: 0.5,
             box_margin: 0.2,
             min_height: 0.0,
