@@ -128,23 +128,16 @@ fn restore_unoccluded(params: &Params, xyz: &[DVec3], visible: &mut [bool], view
         let (u, v) = view.pixel(c);
         (u.floor() as i64, v.floor() as i64, c.z as f32)
     };
-    let in_image = xyz
-        .iter()
-        .zip(visible.iter())
-        .filter(|(p, &v)| {
-            v && {
-                let (u, v, _) = pixel(p);
-                (0..w).contains(&u) && (0..h).contains(&v)
-            }
-        })
-        .count();
+    let kept: Vec<(i64, i64, f32)> =
+        xyz.iter().zip(visible.iter()).filter(|(_, &v)| v).map(|(p, _)| pixel(p)).collect();
+    let in_image = kept.iter().filter(|(u, v, _)| (0..w).contains(u) && (0..h).contains(v)).count();
     let spacing = ((w * h) as f64 / in_image.max(1) as f64).sqrt();
     let [rx, ry] = params.restore_window.map(|r| (r * spacing).round() as i64);
-    // The nearest visible depth within the window of every pixel: visible points are few (a
-    // few per cent of the pixels), so each splats its window.
+    // The nearest kept depth within the window of every pixel: kept points are few (a few per
+    // cent of the pixels), so each splats its window. Those just outside the image (the frustum
+    // margin) still occlude near the border.
     let mut nearest = vec![f32::INFINITY; (w * h) as usize];
-    for (p, _) in xyz.iter().zip(visible.iter()).filter(|(_, &v)| v) {
-        let (u, v, z) = pixel(p);
+    for &(u, v, z) in &kept {
         let (x0, x1) = ((u - rx).max(0), (u + rx + 1).min(w));
         if x0 >= x1 {
             continue;
