@@ -266,7 +266,9 @@ mod tests {
     #[test]
     fn keeps_only_static_points_above_the_lidar_outside_sky() {
         let (lidar, pose, cam, image, depth) = setup();
-        let conf = DepthMap { width: 40, height: 30, data: vec![0.5; 1200] };
+        // Confident everywhere but in the left half of row 10 (below the default 0.65).
+        let mut conf = DepthMap { width: 40, height: 30, data: vec![0.8; 1200] };
+        conf.data[10 * 40..10 * 40 + 20].fill(0.5);
         let view = CameraView::new(&lidar, &pose, &cam, &pose).unwrap();
         let cloud_from_world = pose.ego_to_world.then_from(&lidar.sensor_to_ego).inverse();
         let car = |speed: f64| Box3D {
@@ -302,6 +304,19 @@ mod tests {
             assert!(p[2] < 20.0 * 0.3 - 4.0 * 20.0 / 100.0 + 0.05, "sky rows must go: {p:?}");
             assert!(!(p[1] < -4.3 && p[1] > -5.7 && p[2] < 4.3), "inside the moving box: {p:?}");
         }
+        let row_10_left = |c: &PointCloud| {
+            c.points
+                .iter()
+                .filter(|p| {
+                    (view.pixel(view.to_camera(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64))).1 / 2.0) as usize
+                        == 10
+                        && p[1] > 0.0
+                })
+                .count()
+        };
+        assert_eq!(row_10_left(&out), 0, "low-confidence pixels are not used");
+        let any_confidence = static_points(&Params { min_confidence: 0.0, ..params.clone() }, &m).unwrap();
+        assert!(row_10_left(&any_confidence) > 0);
         let parked = Boxes3D { timestamp_us: 0, boxes: vec![car(0.0)] };
         let all = static_points(&params, &MvsInputs { boxes: &parked, ..m }).unwrap();
         assert!(all.points.len() > out.points.len(), "a parked car's points stay");
