@@ -87,8 +87,10 @@ pub struct SweepParams {
     pub p1: u16,
     /// SGM penalty for a larger jump.
     pub p2: u16,
-    /// The best aggregated cost must beat the second best (outside +-1 plane) by this fraction.
+    /// The best aggregated cost must beat the second best by this fraction.
     pub uniqueness: f64,
+    /// The second best is sought at least this far (px, along the epipolar line) from the best.
+    pub distinct_px: f64,
 }
 
 /// Depth (0 = none) and confidence in [0, 1] per pixel of the reference view.
@@ -159,6 +161,14 @@ fn sample_at(a: glam::Vec3, b: glam::Vec3, rho: f32, sw: f32, sh: f32) -> Option
     let inv = 1.0 / z;
     let (u, v) = ((a.x + b.x * rho) * inv, (a.y + b.y * rho) * inv);
     (u >= 0.0 && v >= 0.0 && u < sw && v < sh).then_some((u as usize, v as usize))
+}
+
+/// Where a reference ray `a + b rho` lands in a source at inverse depth `rho` (continuous pixel
+/// coordinates, possibly outside the image), if in front of it.
+#[inline]
+fn project(a: glam::Vec3, b: glam::Vec3, rho: f32) -> Option<(f32, f32)> {
+    let z = a.z + b.z * rho;
+    (z > 1e-9).then(|| ((a.x + b.x * rho) / z, (a.y + b.y * rho) / z))
 }
 
 /// Inverse depths of the planes, far to near: the spacing moves the sample by about
@@ -246,22 +256,36 @@ pub fn sweep_depth(reference: &StereoView, sources: &[&StereoView], p: &SweepPar
     out.depth.par_iter_mut().zip(out.confidence.par_iter_mut()).enumerate().for_each(|(i, (depth, conf))| {
         let s = &total[i * planes..(i + 1) * planes];
         let (best, &sb) = s.iter().enumerate().min_by_key(|(_, &v)| v).expect("planes >= 8");
-        // The winning plane must have been seen by some source (not just the COST_MAX filler).
-        let (x, y) = (i % w, i / w);
-        let seen = sources.iter().enumerate().any(|(si, src)| {
-            let (a, b) = rays(si, x, y);
-            sample_at(a, b, rhos32[best], src.width as f32, src.height as f32).is_some()
-        });
-        if !seen {
-            return;
-        }
-        let second =
-            s.iter().enumerate().filter(|(d, _)| d.abs_diff(best) > 1).map(|(_, &v)| v).min().unwrap_or(u16::MAX);
-        if (sb as f64) >= (1.0 - p.uniqueness) * second as f64 {
-            return;
-        }
         // At the ends of the range the minimum may lie beyond it: no depth.
         if best == 0 || best == planes - 1 {
+            return;
+        }
+        // How far the sample moves per plane around the winner, in the source that moves it most
+        // (the one that shapes the cost curve). Zero: no source saw the winning plane, so it won
+        // on the COST_MAX filler alone.
+        let (x, y) = (i % w, i / w);
+        let motion = sources
+            .iter()
+            .enumerate()
+            .filter_map(|(si, src)| {
+                let (a, b) = rays(si, x, y);
+                sample_at(a, b, rhos32[best], src.width as f32, src.height as f32)?;
+                let (u0, v0) = project(a, b, rhos32[best - 1])?;
+                let (u1, v1) = project(a, b, rhos32[best + 1])?;
+                Some((u1 - u0).hypot(v1 - v0) / 2.0)
+            })
+            .fold(0.0f32, f32::max);
+        if motion <= 0.0 {
+            return;
+        }
+        // The runner-up must be a different match, `distinct_px` along the epipolar line away:
+        // where a plane moves the sample a fraction of a pixel, the planes next to the winner
+        // sample the same pixels and cost the same.
+        // (Less a hair, so that exactly one pixel per plane, as in a rectified pair, is one plane.)
+        let apart = ((p.distinct_px / motion as f64 - 1e-3).ceil() as usize).clamp(1, planes / 4);
+        let second =
+            s.iter().enumerate().filter(|(d, _)| d.abs_diff(best) > apart).map(|(_, &v)| v).min().unwrap_or(u16::MAX);
+        if (sb as f64) >= (1.0 - p.uniqueness) * second as f64 {
             return;
         }
         let (l, c, r) = (s[best - 1] as f64, sb as f64, s[best + 1] as f64);
@@ -360,8 +384,7 @@ fn add(t: &mut [u16], v: &[u16]) {
     }
 }
 
-/// Keeps the depths of `reference` that `other`'s depth map confirms: the point goes to `other`,
-/// takes the depth found there, comes back within `max_px` pixels and `max_rel` relative depth.
+/// Keeps the depths of `reference` that `other`'s depth map confirms (see [`confirmed`]).
 /// Failing pixels lose depth and confidence.
 pub fn keep_consistent(
     reference: &StereoView,
@@ -371,6 +394,26 @@ pub fn keep_consistent(
     max_px: f64,
     max_rel: f64,
 ) {
+    let ok = confirmed(reference, depth, other, other_depth, max_px, max_rel);
+    for ((z, c), ok) in depth.depth.iter_mut().zip(depth.confidence.iter_mut()).zip(ok) {
+        if !ok {
+            *z = 0.0;
+            *c = 0.0;
+        }
+    }
+}
+
+/// Per pixel of `reference`: whether `other`'s depth map confirms its depth. The point goes to
+/// `other`, takes the depth found there, and must come back within `max_px` pixels and `max_rel`
+/// relative depth. Pixels without depth, or whose point leaves `other`'s image, are not confirmed.
+pub fn confirmed(
+    reference: &StereoView,
+    depth: &StereoDepth,
+    other: &StereoView,
+    other_depth: &StereoDepth,
+    max_px: f64,
+    max_rel: f64,
+) -> Vec<bool> {
     let other_from_ref = other.world_from_cam.inverse().then_from(&reference.world_from_cam);
     let ref_from_other = other_from_ref.inverse();
     let (kr, kr_inv, ko, ko_inv) = (k_matrix(&reference.k), reference.k_inv(), k_matrix(&other.k), other.k_inv());
@@ -379,34 +422,33 @@ pub fn keep_consistent(
         let q = *k * p;
         (q.x / q.z, q.y / q.z)
     };
-    let (dref, cref) = (&mut depth.depth, &mut depth.confidence);
-    dref.par_iter_mut().zip(cref.par_iter_mut()).enumerate().for_each(|(i, (z, conf))| {
-        if *z <= 0.0 {
-            return;
-        }
-        let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
-        let p = other_from_ref.apply(kr_inv * DVec3::new(x, y, 1.0) * *z as f64);
-        let ok = p.z > 0.0 && {
-            let (u, v) = project(&ko, p);
-            if u >= 0.0 && v >= 0.0 && u < other.width as f64 && v < other.height as f64 {
-                let (ou, ov) = (u.floor() + 0.5, v.floor() + 0.5);
-                let zo = other_depth.depth[v as usize * other_depth.width + u as usize] as f64;
-                zo > 0.0 && {
-                    let back = ref_from_other.apply(ko_inv * DVec3::new(ou, ov, 1.0) * zo);
-                    let (bu, bv) = project(&kr, back);
-                    back.z > 0.0
-                        && (bu - x).hypot(bv - y) <= max_px
-                        && (back.z - *z as f64).abs() <= max_rel * *z as f64
-                }
-            } else {
-                false
+    depth
+        .depth
+        .par_iter()
+        .enumerate()
+        .map(|(i, &z)| {
+            if z <= 0.0 {
+                return false;
             }
-        };
-        if !ok {
-            *z = 0.0;
-            *conf = 0.0;
-        }
-    });
+            let (x, y) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
+            let p = other_from_ref.apply(kr_inv * DVec3::new(x, y, 1.0) * z as f64);
+            if p.z <= 0.0 {
+                return false;
+            }
+            let (u, v) = project(&ko, p);
+            if !(u >= 0.0 && v >= 0.0 && u < other.width as f64 && v < other.height as f64) {
+                return false;
+            }
+            let (ou, ov) = (u.floor() + 0.5, v.floor() + 0.5);
+            let zo = other_depth.depth[v as usize * other_depth.width + u as usize] as f64;
+            if zo <= 0.0 {
+                return false;
+            }
+            let back = ref_from_other.apply(ko_inv * DVec3::new(ou, ov, 1.0) * zo);
+            let (bu, bv) = project(&kr, back);
+            back.z > 0.0 && (bu - x).hypot(bv - y) <= max_px && (back.z - z as f64).abs() <= max_rel * z as f64
+        })
+        .collect()
 }
 
 #[cfg(test)]
@@ -462,6 +504,52 @@ pub(crate) mod tests {
             StereoView { width: w, height: h, grey, k, world_from_cam: Se3::from_yaw(0.0, DVec3::new(cx, 0.0, 0.0)) },
             depth,
         )
+    }
+
+    /// A textured wall at z = 30 seen by a camera at (0, 0, `cz`) looking along +z: driving
+    /// towards it puts the epipole at the image centre.
+    fn render_ahead(cz: f64, w: usize, h: usize) -> StereoView {
+        let f = 150.0;
+        let k = [[f, 0.0, w as f64 / 2.0], [0.0, f, h as f64 / 2.0], [0.0, 0.0, 1.0]];
+        let mut grey = vec![0u8; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let (rx, ry) = ((x as f64 + 0.5 - k[0][2]) / f, (y as f64 + 0.5 - k[1][2]) / f);
+                // Texture coordinates in quarter metres: features of a pixel or two at 30 m.
+                grey[y * w + x] = texture(rx * (30.0 - cz) / 4.0, ry * (30.0 - cz) / 4.0);
+            }
+        }
+        let pose = Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, cz]);
+        StereoView { width: w, height: h, grey, k, world_from_cam: pose }
+    }
+
+    #[test]
+    fn driving_ahead_gives_confident_depth_away_from_the_epipole() {
+        // Planes are spaced for the longest epipolar line (the corners); near the centre a plane
+        // moves the sample a fraction of a pixel, so the runner-up must be sought a pixel away,
+        // not a plane away, or every such match looks ambiguous.
+        let (w, h) = (160, 120);
+        let reference = render_ahead(0.0, w, h);
+        let (back, ahead) = (render_ahead(-3.0, w, h), render_ahead(3.0, w, h));
+        let d = sweep_depth(&reference, &[&back, &ahead], &params());
+        let (mut ring, mut confident, mut good) = (0, 0, 0);
+        for y in 0..h {
+            for x in 0..w {
+                let r = (x as f64 + 0.5 - w as f64 / 2.0).hypot(y as f64 + 0.5 - h as f64 / 2.0);
+                if !(25.0..55.0).contains(&r) {
+                    continue;
+                }
+                ring += 1;
+                let (z, c) = (d.depth[y * w + x], d.confidence[y * w + x]);
+                if z > 0.0 && c >= 0.4 {
+                    confident += 1;
+                    good += ((z - 30.0).abs() < 0.05 * 30.0) as usize;
+                }
+            }
+        }
+        // (With the runner-up a plane away, about half of them.)
+        assert!(confident as f64 > 0.9 * ring as f64, "{confident} of {ring} confident");
+        assert!(good as f64 > 0.95 * confident as f64, "{good} of {confident} within 5%");
     }
 
     /// The MultiViewStereo stage's defaults, from 5 m.

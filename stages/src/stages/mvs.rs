@@ -18,7 +18,7 @@
 
 use crate::artifact::{Artifact, Calibration, DepthMap, Image, Pose};
 use crate::stage::{each, StageDef, TypedOp};
-use crate::stereo::{keep_consistent, sweep_depth, StereoView, SweepParams};
+use crate::stereo::{confirmed, sweep_depth, StereoView, SweepParams};
 use anyhow::{anyhow, ensure, Result};
 use dist4d_graph::PortSpec;
 use serde::{Deserialize, Serialize};
@@ -43,6 +43,9 @@ pub struct Params {
     pub p2: u16,
     /// The best aggregated cost must beat the second best by this fraction.
     pub uniqueness: f64,
+    /// The second best is sought at least this far (working-resolution px along the epipolar
+    /// line) from the best.
+    pub distinct_px: f64,
     /// Geometric consistency: reprojection error allowed (working-resolution px).
     pub consistency_px: f64,
     /// Geometric consistency: relative depth difference allowed.
@@ -60,6 +63,7 @@ impl Default for Params {
             p1: 8,
             p2: 48,
             uniqueness: 0.05,
+            distinct_px: 1.0,
             consistency_px: 1.0,
             consistency_depth: 0.03,
         }
@@ -76,6 +80,7 @@ impl Params {
             p1: self.p1,
             p2: self.p2,
             uniqueness: self.uniqueness,
+            distinct_px: self.distinct_px,
         }
     }
 
@@ -90,6 +95,7 @@ impl Params {
         ensure!(self.max_planes >= 8, "max_planes must be at least 8");
         ensure!(self.p2 >= self.p1, "p2 ({}) must not be below p1 ({})", self.p2, self.p1);
         ensure!((0.0..1.0).contains(&self.uniqueness), "uniqueness must be in [0, 1)");
+        ensure!(self.distinct_px >= 0.0, "distinct_px must not be negative");
         Ok(())
     }
 }
@@ -135,14 +141,22 @@ pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap,
     let sweep = params.sweep();
     let refs: Vec<&StereoView> = sources.iter().collect();
     let mut depth = sweep_depth(&reference, &refs, &sweep);
-    // The check view: the neighbour with the longest baseline, matched against the target alone.
-    let centre = reference.world_from_cam.translation;
-    if let Some(check) = sources.iter().max_by(|a, b| {
-        let (da, db) = (a.world_from_cam.translation.distance(centre), b.world_from_cam.translation.distance(centre));
-        da.total_cmp(&db)
-    }) {
-        let back = sweep_depth(check, &[&reference], &sweep);
-        keep_consistent(&reference, &mut depth, check, &back, params.consistency_px, params.consistency_depth);
+    // Each neighbour, matched back against the target alone, checks the depths it sees; one
+    // confirmation keeps a depth. (Checking only the longest baseline lost what that neighbour
+    // does not see: the side of a side camera's image that the other frame has left behind.)
+    let mut kept = vec![false; depth.depth.len()];
+    for source in &sources {
+        let back = sweep_depth(source, &[&reference], &sweep);
+        let ok = confirmed(&reference, &depth, source, &back, params.consistency_px, params.consistency_depth);
+        for (k, ok) in kept.iter_mut().zip(ok) {
+            *k |= ok;
+        }
+    }
+    for ((z, c), k) in depth.depth.iter_mut().zip(depth.confidence.iter_mut()).zip(kept) {
+        if !k {
+            *z = 0.0;
+            *c = 0.0;
+        }
     }
     let (w, h) = (depth.width as u32, depth.height as u32);
     Ok((DepthMap { width: w, height: h, data: depth.depth }, DepthMap { width: w, height: h, data: depth.confidence }))
@@ -171,7 +185,7 @@ impl TypedOp for Op {
 pub fn def() -> StageDef {
     StageDef::new::<Params>(
         "MultiViewStereo",
-        1,
+        2,
         "Camera images of a window of frames -> depth of the target image by plane-sweep stereo + SGM",
         vec![
             PortSpec::many("images", "Image", "the camera's images: Window(\"dataset.image\", frame, -1, 1)"),
@@ -259,6 +273,13 @@ mod tests {
         // The camera looks straight at the wall: depth 20 m everywhere.
         let valid: Vec<f32> = depth.data.iter().copied().filter(|&z| z > 0.0).collect();
         assert!(valid.len() > depth.data.len() / 2, "{} of {}", valid.len(), depth.data.len());
+        // Both image edges: each is seen by one neighbour only (the wall shifts 15 px per frame),
+        // so the check must take either neighbour's word.
+        for cols in [0..20usize, 140..160] {
+            let n =
+                (0..90).flat_map(|y| cols.clone().map(move |x| y * 160 + x)).filter(|&i| depth.data[i] > 0.0).count();
+            assert!(n as f64 > 0.85 * (90 * 20) as f64, "columns {cols:?}: {n} of {}", 90 * 20);
+        }
         let good = valid.iter().filter(|&&z| (z - 20.0).abs() < 0.6).count();
         assert!(good as f64 > 0.97 * valid.len() as f64, "{good} of {}", valid.len());
         assert!(conf.data.iter().zip(&depth.data).all(|(c, z)| (*c > 0.0) == (*z > 0.0)));
