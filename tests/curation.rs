@@ -99,9 +99,9 @@ fn curation_on_synthetic_data_is_scored_against_ground_truth_and_reruns_only_wha
     assert!(executed(&report, "sheet") >= 1, "{report}");
 
     // Multi-view stereo fills what the LiDAR cannot see: without its points (a confidence no
-    // pixel reaches), the error above the LiDAR's reach grows. Only mvs_points onwards rerun.
-    // The default confidence (0.65) is set at 1600x900; here MVS runs at 160x90, where its
-    // confidences are lower and 0.5 keeps the points that help most.
+    // pixel reaches), the error above the LiDAR's field of view grows (here, at 320x180 with MVS
+    // at 80x45, by about 10%; the full-size figures are in docs/BENCHMARKS.md). Only mvs_points
+    // onwards rerun.
     let above = |extra: &[&str]| {
         let o = curation(&data, tmp.path(), None, extra);
         let report = text(&o);
@@ -109,14 +109,9 @@ fn curation_on_synthetic_data_is_scored_against_ground_truth_and_reruns_only_wha
         assert_eq!(executed(&report, "mvs"), 0, "{report}");
         mean_of(&report, "gt_above_lidar (raw)", 0)
     };
-    let default = above(&[]);
-    let low_confidence = above(&["--set", "mvs_points.min_confidence=0.5"]);
+    let with_mvs = above(&[]);
     let lidar_only = above(&["--set", "mvs_points.min_confidence=2"]);
-    assert!(default < lidar_only, "above the LiDAR: with MVS {default}, LiDAR only {lidar_only}");
-    assert!(
-        low_confidence < 0.95 * lidar_only,
-        "above the LiDAR: with MVS (confidence >= 0.5) {low_confidence}, LiDAR only {lidar_only}"
-    );
+    assert!(with_mvs < 0.95 * lidar_only, "above the LiDAR: with MVS {with_mvs}, LiDAR only {lidar_only}");
 
     // Hold-out: a seeded 20% of each target sweep is left out of curation and scored on.
     let o = curation(&data, tmp.path(), None, &["--set", "aggregate.holdout=0.2"]);

@@ -14,6 +14,7 @@ pub mod stage;
 pub mod stereo;
 pub mod synth;
 pub mod stages {
+    pub mod above_fov;
     pub mod aggregate;
     pub mod complete;
     pub mod encode;
@@ -43,6 +44,7 @@ impl Default for Registry {
     fn default() -> Self {
         Registry {
             stages: vec![
+                stages::above_fov::def(),
                 stages::aggregate::def(),
                 stages::complete::def(),
                 stages::eval::def(),

@@ -10,13 +10,13 @@
 //! References, each an optional input: `gt` (a dense ground truth, e.g. the synthetic world's;
 //! an empty map means the dataset has none), `lidar` (the target frame's single-sweep
 //! projection), `lidar_multi` (the aggregated multi-frame projection, DiST-4D Table 7) and
-//! `holdout` (held-out LiDAR points the curation never saw). With `lidar` wired, the `gt` scores
-//! are also reported for the pixels above the LiDAR's reach (above the topmost LiDAR return of
-//! each image column): where LiDAR cannot help and MVS must.
+//! `holdout` (held-out LiDAR points the curation never saw), and `gt_above_lidar` (the ground
+//! truth only where it lies above the LiDAR's vertical field of view, from `AboveLidarFov`: where
+//! LiDAR cannot help and MVS must).
 
 use crate::artifact::{DepthMap, File};
 use crate::stage::{maybe_one, one, optional_input, StageDef, TypedOp};
-use anyhow::{ensure, Result};
+use anyhow::{ensure, Context, Result};
 use dist4d_graph::PortSpec;
 use serde::{Deserialize, Serialize};
 
@@ -116,20 +116,6 @@ pub fn depth_metrics(
     Ok(Some(m))
 }
 
-/// Pixels above the topmost LiDAR return of their column (columns without any: none).
-pub fn above_lidar(lidar: &DepthMap) -> Vec<bool> {
-    let (w, h) = (lidar.width as usize, lidar.height as usize);
-    let mut mask = vec![false; w * h];
-    for x in 0..w {
-        if let Some(top) = (0..h).find(|&y| lidar.data[y * w + x] > 0.0) {
-            for y in 0..top {
-                mask[y * w + x] = true;
-            }
-        }
-    }
-    mask
-}
-
 /// Raw and median-scaled scores against one reference.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 pub struct Scores {
@@ -144,43 +130,32 @@ pub struct ImageScores {
     pub against: std::collections::BTreeMap<String, Scores>,
 }
 
-pub fn evaluate(
-    params: &Params,
-    pred: &DepthMap,
-    references: &[(&str, Option<&DepthMap>)],
-    lidar: Option<&DepthMap>,
-) -> Result<ImageScores> {
+pub fn evaluate(params: &Params, pred: &DepthMap, references: &[(&str, Option<&DepthMap>)]) -> Result<ImageScores> {
     let mut out = ImageScores::default();
-    let above = lidar.filter(|l| l.width == pred.width && l.height == pred.height).map(above_lidar);
     for &(name, reference) in references {
+        // An empty reference: the dataset has none.
         let Some(r) = reference.filter(|r| r.width > 0 && r.height > 0) else { continue };
-        let mut add = |key: String, mask: Option<&[bool]>| -> Result<()> {
-            if let (Some(raw), Some(median_scaled)) =
-                (depth_metrics(params, pred, r, mask, false)?, depth_metrics(params, pred, r, mask, true)?)
-            {
-                out.against.insert(key, Scores { raw, median_scaled });
-            }
-            Ok(())
-        };
-        add(name.to_string(), None)?;
-        if name == "gt" {
-            if let Some(m) = &above {
-                add("gt_above_lidar".to_string(), Some(m))?;
-            }
+        let scores = (depth_metrics(params, pred, r, None, false), depth_metrics(params, pred, r, None, true));
+        let context = || format!("against `{name}`");
+        if let (Some(raw), Some(median_scaled)) = (scores.0.with_context(context)?, scores.1.with_context(context)?) {
+            out.against.insert(name.to_string(), Scores { raw, median_scaled });
         }
     }
     Ok(out)
 }
+
+/// The reference inputs, in port order after `depth`.
+const REFERENCES: [&str; 5] = ["gt", "lidar", "lidar_multi", "holdout", "gt_above_lidar"];
 
 struct Op(Params);
 
 impl TypedOp for Op {
     fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
         let pred = one::<DepthMap>(inputs, 0)?;
-        let refs: Vec<Option<DepthMap>> = (1..5).map(|i| maybe_one::<DepthMap>(inputs, i)).collect::<Result<_>>()?;
-        let names = ["gt", "lidar", "lidar_multi", "holdout"];
-        let list: Vec<(&str, Option<&DepthMap>)> = names.iter().zip(&refs).map(|(n, r)| (*n, r.as_ref())).collect();
-        let scores = evaluate(&self.0, &pred, &list, refs[1].as_ref())?;
+        let refs: Vec<Option<DepthMap>> = (1..6).map(|i| maybe_one::<DepthMap>(inputs, i)).collect::<Result<_>>()?;
+        let list: Vec<(&str, Option<&DepthMap>)> =
+            REFERENCES.iter().zip(&refs).map(|(n, r)| (*n, r.as_ref())).collect();
+        let scores = evaluate(&self.0, &pred, &list)?;
         use crate::artifact::Artifact;
         Ok(vec![File(serde_json::to_vec_pretty(&scores)?).encode()])
     }
@@ -189,7 +164,7 @@ impl TypedOp for Op {
 pub fn def() -> StageDef {
     StageDef::new::<Params>(
         "EvalDepth",
-        1,
+        2,
         "Dense depth -> Abs Rel, Sq Rel, RMSE, RMSE log, delta<1.25^k (raw and median-scaled) per reference, as JSON",
         vec![
             crate::stage::input::<DepthMap>("depth", "the depth to score"),
@@ -197,6 +172,10 @@ pub fn def() -> StageDef {
             optional_input::<DepthMap>("lidar", "single-sweep LiDAR projection of the target frame"),
             optional_input::<DepthMap>("lidar_multi", "multi-frame aggregated LiDAR projection"),
             optional_input::<DepthMap>("holdout", "projection of held-out LiDAR points"),
+            optional_input::<DepthMap>(
+                "gt_above_lidar",
+                "the ground truth above the LiDAR's field of view (AboveLidarFov of `gt`)",
+            ),
         ],
         vec![PortSpec::one("json", "File", "scores per reference (JSON); `dist4d eval` tabulates them")],
         vec!["camera"],
@@ -239,14 +218,15 @@ mod tests {
     }
 
     #[test]
-    fn above_lidar_marks_pixels_over_the_topmost_return() {
-        let mut l = DepthMap::new(2, 4);
-        l.data[2 * 2] = 5.0; // column 0, row 2
-        let m = above_lidar(&l);
-        assert_eq!(m, vec![true, false, true, false, false, false, false, false]);
-        let scores =
-            evaluate(&Params::default(), &l, &[("gt", Some(&map(vec![]))), ("lidar", Some(&l))], Some(&l)).unwrap();
-        assert!(scores.against.contains_key("lidar") && !scores.against.contains_key("gt"));
+    fn absent_or_empty_references_are_left_out() {
+        let pred = map(vec![10.0, 20.0]);
+        let gt = map(vec![10.0, 25.0]);
+        let refs = [("gt", Some(&gt)), ("lidar", None), ("gt_above_lidar", Some(&DepthMap::new(0, 0)))];
+        let scores = evaluate(&Params::default(), &pred, &refs).unwrap();
+        assert_eq!(scores.against.keys().collect::<Vec<_>>(), vec!["gt"]);
+        let small = map(vec![1.0]);
+        let err = evaluate(&Params::default(), &pred, &[("holdout", Some(&small))]).unwrap_err();
+        assert!(format!("{err:#}").contains("against `holdout`"), "{err:#}");
     }
 }
 
