@@ -5,6 +5,10 @@
 //! Peers run from the venv made by ../shared/bench/peers/setup.sh (`.venv-peers/` in the
 //! workspace, or DIST4D_PEERS_PYTHON); without it only dist4d's figures are printed.
 
+// The allocator the dist4d binary uses, so that stage timings here match a run's.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 use dist4d_stages::stages::encode::npy_f32;
 use dist4d_stages::stages::hpr::hidden_point_removal;
 use dist4d_stages::synth::rng::Rng;
