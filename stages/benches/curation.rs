@@ -130,7 +130,7 @@ fn bench_stereo(tmp: &Path) {
         best_of(3, || {
             let mut d = sweep_depth(&left, &[&right], &p);
             let back = sweep_depth(&right, &[&left], &p);
-            keep_consistent(&left, &mut d, &right, &back, mvs.consistency_px, mvs.consistency_depth);
+            keep_consistent(&left, &mut d, &[(&right, &back)], mvs.consistency_px, mvs.consistency_depth);
             d
         })
     });

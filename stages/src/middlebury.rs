@@ -138,7 +138,7 @@ mod tests {
         let p = calib.sweep(80.0, &crate::stereo::tests::params());
         let mut depth = sweep_depth(&left, &[&right], &p);
         let back = sweep_depth(&right, &[&left], &p);
-        keep_consistent(&left, &mut depth, &right, &back, 1.0, 0.05);
+        keep_consistent(&left, &mut depth, &[(&right, &back)], 1.0, 0.05);
         let disparity: Vec<Option<f64>> =
             depth.depth.iter().map(|&z| (z > 0.0).then(|| calib.disparity(z as f64))).collect();
         let score = bad_pixels(&disparity, &truth, 2.0);

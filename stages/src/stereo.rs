@@ -150,25 +150,23 @@ impl Warp {
     }
 }
 
-/// The source pixel a reference ray `a + b rho` (see [`Warp`]) samples at inverse depth `rho`,
-/// if it is in front of the source and inside its `sw` x `sh` image.
+/// Where a reference ray `a + b rho` (see [`Warp`]) lands in a source at inverse depth `rho`
+/// (continuous pixel coordinates, possibly outside the image), if in front of it.
 #[inline]
-fn sample_at(a: glam::Vec3, b: glam::Vec3, rho: f32, sw: f32, sh: f32) -> Option<(usize, usize)> {
+fn project(a: glam::Vec3, b: glam::Vec3, rho: f32) -> Option<(f32, f32)> {
     let z = a.z + b.z * rho;
     if z <= 1e-9 {
         return None;
     }
     let inv = 1.0 / z;
-    let (u, v) = ((a.x + b.x * rho) * inv, (a.y + b.y * rho) * inv);
-    (u >= 0.0 && v >= 0.0 && u < sw && v < sh).then_some((u as usize, v as usize))
+    Some(((a.x + b.x * rho) * inv, (a.y + b.y * rho) * inv))
 }
 
-/// Where a reference ray `a + b rho` lands in a source at inverse depth `rho` (continuous pixel
-/// coordinates, possibly outside the image), if in front of it.
+/// The source pixel the ray samples at `rho`, if it lands inside the source's `sw` x `sh` image.
 #[inline]
-fn project(a: glam::Vec3, b: glam::Vec3, rho: f32) -> Option<(f32, f32)> {
-    let z = a.z + b.z * rho;
-    (z > 1e-9).then(|| ((a.x + b.x * rho) / z, (a.y + b.y * rho) / z))
+fn sample_at(a: glam::Vec3, b: glam::Vec3, rho: f32, sw: f32, sh: f32) -> Option<(usize, usize)> {
+    let (u, v) = project(a, b, rho)?;
+    (u >= 0.0 && v >= 0.0 && u < sw && v < sh).then_some((u as usize, v as usize))
 }
 
 /// Inverse depths of the planes, far to near: the spacing moves the sample by about
@@ -384,19 +382,23 @@ fn add(t: &mut [u16], v: &[u16]) {
     }
 }
 
-/// Keeps the depths of `reference` that `other`'s depth map confirms (see [`confirmed`]).
-/// Failing pixels lose depth and confidence.
+/// Keeps the depths of `reference` that at least one of the `checks` (another view and its own
+/// depth map) confirms (see [`confirmed`]). Failing pixels lose depth and confidence.
 pub fn keep_consistent(
     reference: &StereoView,
     depth: &mut StereoDepth,
-    other: &StereoView,
-    other_depth: &StereoDepth,
+    checks: &[(&StereoView, &StereoDepth)],
     max_px: f64,
     max_rel: f64,
 ) {
-    let ok = confirmed(reference, depth, other, other_depth, max_px, max_rel);
-    for ((z, c), ok) in depth.depth.iter_mut().zip(depth.confidence.iter_mut()).zip(ok) {
-        if !ok {
+    let mut kept = vec![false; depth.depth.len()];
+    for (other, other_depth) in checks {
+        for (k, ok) in kept.iter_mut().zip(confirmed(reference, depth, other, other_depth, max_px, max_rel)) {
+            *k |= ok;
+        }
+    }
+    for ((z, c), k) in depth.depth.iter_mut().zip(depth.confidence.iter_mut()).zip(kept) {
+        if !k {
             *z = 0.0;
             *c = 0.0;
         }
@@ -406,7 +408,7 @@ pub fn keep_consistent(
 /// Per pixel of `reference`: whether `other`'s depth map confirms its depth. The point goes to
 /// `other`, takes the depth found there, and must come back within `max_px` pixels and `max_rel`
 /// relative depth. Pixels without depth, or whose point leaves `other`'s image, are not confirmed.
-pub fn confirmed(
+fn confirmed(
     reference: &StereoView,
     depth: &StereoDepth,
     other: &StereoView,
@@ -565,7 +567,7 @@ pub(crate) mod tests {
         let (right, _) = render(1.0, w, h);
         let mut depth = sweep_depth(&reference, &[&left, &right], &params());
         let right_depth = sweep_depth(&right, &[&reference], &params());
-        keep_consistent(&reference, &mut depth, &right, &right_depth, 1.0, 0.02);
+        keep_consistent(&reference, &mut depth, &[(&right, &right_depth)], 1.0, 0.02);
         let (mut valid, mut good) = (0, 0);
         for (z, t) in depth.depth.iter().zip(&truth) {
             if *z > 0.0 {
@@ -602,8 +604,8 @@ pub(crate) mod tests {
             *z *= 1.2;
         }
         let other = StereoDepth { width: w, height: h, depth: right_truth, confidence: vec![1.0; w * h] };
-        keep_consistent(&reference, &mut depth, &right, &other, 1.0, 0.02);
-        keep_consistent(&reference, &mut wrong, &right, &other, 1.0, 0.02);
+        keep_consistent(&reference, &mut depth, &[(&right, &other)], 1.0, 0.02);
+        keep_consistent(&reference, &mut wrong, &[(&right, &other)], 1.0, 0.02);
         let kept = depth.depth.iter().filter(|&&z| z > 0.0).count();
         // Pixels that leave the other image (a 1 m shift moves the wall 10 px, the box 25 px) cannot be checked.
         assert!(kept as f64 > 0.6 * (w * h) as f64, "{kept}");

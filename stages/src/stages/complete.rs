@@ -215,15 +215,16 @@ fn grow_samples(inv: &mut [f32], w: usize, h: usize, r: usize) {
             }
         }
     }
+    let mut grown = vec![0f32; w];
     for y in 0..h {
         let row = &mut inv[y * w..(y + 1) * w];
-        let mut grown = across[y * w..(y + 1) * w].to_vec();
+        grown.copy_from_slice(&across[y * w..(y + 1) * w]);
         for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
             for (g, &v) in grown.iter_mut().zip(&across[yy * w..(yy + 1) * w]) {
                 *g = g.max(v);
             }
         }
-        for (i, g) in row.iter_mut().zip(grown) {
+        for (i, &g) in row.iter_mut().zip(&grown) {
             if *i == 0.0 {
                 *i = g;
             }
@@ -238,7 +239,7 @@ struct ColumnSamples {
     rows: Vec<u32>,
 }
 
-fn column_samples(inv: &[f32], w: usize, h: usize) -> ColumnSamples {
+fn column_samples(inv: &[f32], w: usize) -> ColumnSamples {
     let mut start = vec![0usize; w + 1];
     for row in inv.chunks_exact(w) {
         for (x, &v) in row.iter().enumerate() {
@@ -250,7 +251,7 @@ fn column_samples(inv: &[f32], w: usize, h: usize) -> ColumnSamples {
     }
     let mut next = start.clone();
     let mut rows = vec![0u32; start[w]];
-    for (y, row) in inv.chunks_exact(w).enumerate().take(h) {
+    for (y, row) in inv.chunks_exact(w).enumerate() {
         for (x, &v) in row.iter().enumerate() {
             if v > 0.0 {
                 rows[next[x]] = y as u32;
@@ -270,7 +271,7 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, semantic: Option<&
     fill_rows(p, w, h, &mut inv, &lum);
     // Column pass, in place: each column is a stride-`w` view of the row-major maps. (Columns
     // taken in order share cache lines, so this costs less than transposing there and back.)
-    let samples = column_samples(&inv, w, h);
+    let samples = column_samples(&inv, w);
     let mut top = vec![h; w];
     let mut has = vec![false; w];
     for x in 0..w {

@@ -18,7 +18,7 @@
 
 use crate::artifact::{Artifact, Calibration, DepthMap, Image, Pose};
 use crate::stage::{each, StageDef, TypedOp};
-use crate::stereo::{confirmed, sweep_depth, StereoView, SweepParams};
+use crate::stereo::{keep_consistent, sweep_depth, StereoDepth, StereoView, SweepParams};
 use anyhow::{anyhow, ensure, Result};
 use dist4d_graph::PortSpec;
 use serde::{Deserialize, Serialize};
@@ -144,20 +144,9 @@ pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap,
     // Each neighbour, matched back against the target alone, checks the depths it sees; one
     // confirmation keeps a depth. (Checking only the longest baseline lost what that neighbour
     // does not see: the side of a side camera's image that the other frame has left behind.)
-    let mut kept = vec![false; depth.depth.len()];
-    for source in &sources {
-        let back = sweep_depth(source, &[&reference], &sweep);
-        let ok = confirmed(&reference, &depth, source, &back, params.consistency_px, params.consistency_depth);
-        for (k, ok) in kept.iter_mut().zip(ok) {
-            *k |= ok;
-        }
-    }
-    for ((z, c), k) in depth.depth.iter_mut().zip(depth.confidence.iter_mut()).zip(kept) {
-        if !k {
-            *z = 0.0;
-            *c = 0.0;
-        }
-    }
+    let backs: Vec<StereoDepth> = sources.iter().map(|s| sweep_depth(s, &[&reference], &sweep)).collect();
+    let checks: Vec<(&StereoView, &StereoDepth)> = sources.iter().zip(&backs).collect();
+    keep_consistent(&reference, &mut depth, &checks, params.consistency_px, params.consistency_depth);
     let (w, h) = (depth.width as u32, depth.height as u32);
     Ok((DepthMap { width: w, height: h, data: depth.depth }, DepthMap { width: w, height: h, data: depth.confidence }))
 }
