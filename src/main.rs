@@ -7,7 +7,8 @@ use dist4d_runtime::{exec::Engine, Access, ProgressMode, RunOptions, RunStatus, 
 use dist4d_stages::Registry;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
+use std::sync::Arc;
 
 // Stages allocate and free image-sized buffers (a 1600x900 f32 map is 5.8 MB) many times a
 // second; glibc hands each one back to the kernel and faults it in again, which cost as much
@@ -166,6 +167,14 @@ enum Command {
         #[arg(long, default_value = "auto")]
         progress: String,
     },
+    /// Check every exported file of an output folder against what dist4d wrote there.
+    ///
+    /// Hashes each file the folder's manifest lists. Exit code 0 when all are intact, 1 when some
+    /// are modified or missing (a rerun of the pipeline rewrites them). Example: dist4d verify out/curation
+    Verify {
+        /// The output folder (a run's --out).
+        out: PathBuf,
+    },
     /// Remove cached records and blobs that the last N runs did not use.
     ///
     /// Needs the store alone (no run in progress). Example: dist4d gc --cache pipelines/.dist4d --keep-runs 3 --max-size 50G
@@ -259,14 +268,7 @@ fn execute(
     let dataset = registry.open_dataset(pipeline)?;
     let ops = registry.operators(pipeline)?;
     let store = Store::open(cache, Access::Shared).with_context(|| format!("opening the store {}", cache.display()))?;
-    let cancel = opts.cancel.clone();
-    let _ = ctrlc::set_handler(move || {
-        if cancel.swap(true, Ordering::SeqCst) {
-            // Second Ctrl-C: leave now. Every file is written atomically, so nothing is half-written.
-            std::process::exit(130);
-        }
-        eprintln!("\nstopping: running tasks finish, nothing new starts (Ctrl-C again to quit at once)");
-    });
+    let stopped_by = stop_on_signals(opts.cancel.clone())?;
     let engine = Engine { pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
     let rec = engine.run(&opts)?.record;
     println!(
@@ -277,6 +279,12 @@ fn execute(
         println!(
             "{:<16} {:<18} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.2}",
             s.stage, s.kind, s.total, s.executed, s.cached, s.failed, s.skipped, s.seconds
+        );
+    }
+    let recomputed: u64 = rec.stages.iter().map(|s| s.recomputed).sum();
+    if recomputed > 0 {
+        eprintln!(
+            "note: {recomputed} finished tasks were run again because the store had lost or corrupted their outputs"
         );
     }
     for f in &rec.failures {
@@ -295,9 +303,33 @@ fn execute(
     );
     Ok(match rec.status {
         RunStatus::Complete => ExitCode::SUCCESS,
-        RunStatus::Interrupted => ExitCode::from(130),
+        // 128 + the signal, as a shell reports a process that the signal ended.
+        RunStatus::Interrupted => ExitCode::from(128 + stopped_by.load(Ordering::SeqCst).clamp(1, 127) as u8),
         RunStatus::Failed | RunStatus::Stopped => ExitCode::from(1),
     })
+}
+
+/// Stops a run cleanly on SIGINT (Ctrl-C) and SIGTERM (what Slurm, systemd and `kill` send
+/// before SIGKILL): running tasks finish, nothing new starts, the run record is written. A second
+/// signal leaves at once, which is safe too (every file is written whole or not at all). Returns
+/// the number of the signal that stopped the run (SIGINT until one arrives).
+fn stop_on_signals(cancel: Arc<AtomicBool>) -> Result<Arc<AtomicI32>> {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    let stopped_by = Arc::new(AtomicI32::new(SIGINT));
+    let mut signals =
+        signal_hook::iterator::Signals::new([SIGINT, SIGTERM]).context("listening for SIGINT and SIGTERM")?;
+    let by = stopped_by.clone();
+    std::thread::Builder::new().name("dist4d-signals".into()).spawn(move || {
+        for signal in signals.forever() {
+            if cancel.swap(true, Ordering::SeqCst) {
+                std::process::exit(128 + signal);
+            }
+            by.store(signal, Ordering::SeqCst);
+            let name = if signal == SIGTERM { "SIGTERM" } else { "Ctrl-C" };
+            eprintln!("\nstopping on {name}: running tasks finish, nothing new starts (signal again to quit at once)");
+        }
+    })?;
+    Ok(stopped_by)
 }
 
 /// The shipped pipeline the demo runs, built into the binary so the demo works from anywhere.
@@ -542,6 +574,28 @@ fn run(cli: Cli) -> Result<ExitCode> {
             };
             synthesize(&config, &out)?;
             Ok(ExitCode::SUCCESS)
+        }
+        Command::Verify { out } => {
+            let r = dist4d_runtime::export::verify(&out)?;
+            for rel in &r.modified {
+                println!("modified: {rel}");
+            }
+            for rel in &r.missing {
+                println!("missing:  {rel}");
+            }
+            let owner = r.owner.as_deref().unwrap_or("?");
+            println!(
+                "{}: {} files intact, {} modified, {} missing (exports of pipeline `{owner}`)",
+                out.display(),
+                r.ok,
+                r.modified.len(),
+                r.missing.len()
+            );
+            if r.modified.is_empty() && r.missing.is_empty() {
+                return Ok(ExitCode::SUCCESS);
+            }
+            println!("rerun pipeline `{owner}` with the same --out to rewrite them");
+            Ok(ExitCode::from(1))
         }
         Command::Gc { cache, keep_runs, max_size } => {
             let r = dist4d_runtime::gc::gc(&cache, keep_runs, max_size)?;

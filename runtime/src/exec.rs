@@ -8,19 +8,19 @@
 //! through the stages and a frame can finish before later frames start.
 
 use crate::digest::{Digest, DigestBuilder};
-use crate::export::{ExportJob, Exporter};
+use crate::export::{ExportJob, Exporter, FileStat};
 use crate::item::{ItemKey, ItemSpace};
 use crate::operator::{Artifact, Blob, Dataset, FileDigests, Operator, TaskContext};
 use crate::plan::{plan_scene, InputSrc, ScenePlan, View};
 use crate::progress::{Counters, ProgressMode, Reporter};
 use crate::record::{OutputRef, RecordInput, TaskRecord, INLINE_MAX};
 use crate::runs::{self, Failure, RunRecord, RunStatus, StageStats};
-use crate::store::Store;
+use crate::store::{BlobError, Store};
 use anyhow::{anyhow, bail, Context, Result};
 use crossbeam_channel::{unbounded, Receiver, RecvTimeoutError, Sender};
 use dist4d_graph::{NodeKind, Pipeline, StageNode};
 use std::cmp::Reverse;
-use std::collections::BinaryHeap;
+use std::collections::{BinaryHeap, HashMap};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -159,7 +159,25 @@ struct SceneRun {
     readers_left: Vec<u32>,
     outputs: Vec<Option<Arc<Vec<Produced>>>>,
     open: usize,
+    /// Export writes of this scene still running: the scene stays active until they end, so that
+    /// a task whose blob turns out corrupt when exported can still be run again.
+    exports_pending: usize,
+    /// Finished tasks being run again because a blob of theirs was found missing or corrupt, with
+    /// the tasks waiting for the new output (they failed reading the old one).
+    redoing: HashMap<u32, Vec<u32>>,
+    /// How often each task was run again (bounded by [`MAX_REDO`]).
+    redone: HashMap<u32, u32>,
 }
+
+impl SceneRun {
+    fn closed(&self) -> bool {
+        self.open == 0 && self.exports_pending == 0 && self.redoing.is_empty()
+    }
+}
+
+/// How often one task is run again in one run to replace a missing or corrupt blob: a store
+/// that keeps losing blobs (a failing disk) must not make a run loop.
+const MAX_REDO: u32 = 2;
 
 /// Where a worker finds one input artifact.
 enum Src {
@@ -192,7 +210,7 @@ enum Outcome {
 
 enum Msg {
     Task { slot: u32, task: u32, result: Result<Outcome> },
-    Exported { stage: String, item: String, result: Result<()> },
+    Exported { slot: u32, task: u32, rel: String, result: Result<FileStat> },
 }
 
 /// Heap entry: lower sorts first (earlier scene, earlier frame, earlier stage).
@@ -254,7 +272,7 @@ impl<'a> Engine<'a> {
         let reporter = Reporter::start(counters.clone(), opts.progress);
 
         let mut exporter = match &opts.out_dir {
-            Some(dir) if !p.exports.is_empty() => Some(Exporter::open(dir, self.store)?),
+            Some(dir) if !p.exports.is_empty() => Some(Exporter::open(dir, self.store, &p.name, &p.dims)?),
             _ => None,
         };
         let keys_tmp = self.store.temp_path();
@@ -345,11 +363,9 @@ impl<'a> Engine<'a> {
                         c.finish(self, slot, task, result)?;
                         inflight += c.spawn_exports(scope, &tx);
                     }
-                    Ok(Msg::Exported { stage, item, result }) => {
+                    Ok(Msg::Exported { slot, task, rel, result }) => {
                         inflight -= 1;
-                        if let Err(e) = result {
-                            c.failures.push(Failure { stage, item, error: format!("{e:#}") });
-                        }
+                        c.exported(self, slot, task, &rel, result);
                     }
                     Err(RecvTimeoutError::Timeout) => {}
                     Err(RecvTimeoutError::Disconnected) => bail!("the worker pool stopped unexpectedly"),
@@ -537,8 +553,8 @@ struct Coord {
     exporter: Option<Exporter>,
     rank: Vec<u32>,
     live_tasks: usize,
-    /// Export writes decided by `finish`, to be spawned by the loop.
-    export_jobs: Vec<(ExportJob, String, String)>,
+    /// Export writes decided by `finish` (with the task's slot and index), to be spawned by the loop.
+    export_jobs: Vec<(ExportJob, u32, u32)>,
 }
 
 impl Coord {
@@ -570,6 +586,9 @@ impl Coord {
             readers_left: plan.tasks.iter().map(|t| t.dependents.len() as u32).collect(),
             outputs: vec![None; n],
             open: n,
+            exports_pending: 0,
+            redoing: HashMap::new(),
+            redone: HashMap::new(),
             plan,
         };
         for (t, task) in run.plan.tasks.iter().enumerate() {
@@ -582,11 +601,12 @@ impl Coord {
 
     fn spawn_exports<'s>(&mut self, scope: &rayon::Scope<'s>, tx: &Sender<Msg>) -> usize {
         let n = self.export_jobs.len();
-        for (job, stage, item) in self.export_jobs.drain(..) {
+        for (job, slot, task) in self.export_jobs.drain(..) {
             let tx = tx.clone();
             scope.spawn(move |_| {
+                let rel = job.rel.clone();
                 let result = job.write();
-                let _ = tx.send(Msg::Exported { stage, item, result });
+                let _ = tx.send(Msg::Exported { slot, task, rel, result });
             });
         }
         n
@@ -594,9 +614,18 @@ impl Coord {
 
     /// A task ended (cached, executed or failed): record it and release what waited on it.
     fn finish(&mut self, e: &Engine, slot: u32, task: u32, result: Result<Outcome>) -> Result<()> {
-        let p = e.pipeline;
-        let run = self.active[slot as usize].as_mut().unwrap();
         let t = task as usize;
+        if let Err(err) = &result {
+            if let Some(blob) = BlobError::find(err) {
+                if self.heal(slot, t, blob.digest) {
+                    return Ok(());
+                }
+            }
+        }
+        let run = self.active[slot as usize].as_mut().unwrap();
+        if let Some(waiters) = run.redoing.remove(&task) {
+            return self.finish_redo(e, slot, t, waiters, result);
+        }
         let node = run.plan.tasks[t].node as usize;
         let ci = self.counter_of[node];
         match result {
@@ -614,19 +643,8 @@ impl Coord {
                 };
                 self.keys_out.write_all(&key.0)?;
                 self.counters.done[ci].fetch_add(1, Ordering::Relaxed);
-                run.state[t] = State::Done;
-                let item = run.plan.tasks[t].item;
-                if let Some(exporter) = self.exporter.as_mut() {
-                    for x in p.exports.iter().filter(|x| x.node == node) {
-                        let out = &produced[x.port];
-                        let names = (p.nodes[node].name.as_str(), p.nodes[node].outputs[x.port].name.as_str());
-                        if let Some(job) = exporter.plan(x, names, &item, e.dataset, &out.r, out.mem.clone(), e.store) {
-                            self.export_jobs.push((job, p.nodes[node].name.clone(), e.dataset.path(&item)));
-                        }
-                    }
-                }
-                let produced = Arc::new(produced);
-                run.outputs[t] = Some(if run.readers_left[t] > 0 { produced } else { strip(&produced) });
+                self.store_outputs(e, slot, t, produced);
+                let run = self.active[slot as usize].as_mut().unwrap();
                 for i in 0..run.plan.tasks[t].dependents.len() {
                     let d = run.plan.tasks[t].dependents[i] as usize;
                     run.waiting[d] -= 1;
@@ -640,34 +658,189 @@ impl Coord {
                 self.counters.failed[ci].fetch_add(1, Ordering::Relaxed);
                 run.state[t] = State::Failed;
                 self.failures.push(Failure {
-                    stage: p.nodes[node].name.clone(),
+                    stage: e.pipeline.nodes[node].name.clone(),
                     item: e.dataset.path(&run.plan.tasks[t].item),
                     error: format!("{err:#}"),
                 });
-                // Everything downstream of a failed task is skipped (and counted), not run.
-                let mut stack: Vec<usize> = run.plan.tasks[t].dependents.iter().map(|&d| d as usize).collect();
-                while let Some(d) = stack.pop() {
-                    if run.state[d] != State::Waiting {
-                        continue;
-                    }
-                    run.state[d] = State::Skipped;
-                    let dn = self.counter_of[run.plan.tasks[d].node as usize];
-                    self.stats[dn].skipped += 1;
-                    self.counters.failed[dn].fetch_add(1, Ordering::Relaxed);
-                    release_inputs(run, d);
-                    run.open -= 1;
-                    self.live_tasks -= 1;
-                    stack.extend(run.plan.tasks[d].dependents.iter().map(|&x| x as usize));
-                }
+                let dependents: Vec<usize> = run.plan.tasks[t].dependents.iter().map(|&d| d as usize).collect();
+                self.skip_all(slot, dependents);
             }
         }
+        let run = self.active[slot as usize].as_mut().unwrap();
         release_inputs(run, t);
         run.open -= 1;
         self.live_tasks -= 1;
-        if run.open == 0 {
+        if run.closed() {
             self.active[slot as usize] = None;
         }
         Ok(())
+    }
+
+    /// Marks the tasks of `stack` and everything downstream of them that still waits as skipped:
+    /// an input of theirs failed.
+    fn skip_all(&mut self, slot: u32, mut stack: Vec<usize>) {
+        let run = self.active[slot as usize].as_mut().unwrap();
+        while let Some(d) = stack.pop() {
+            if run.state[d] != State::Waiting {
+                continue;
+            }
+            run.state[d] = State::Skipped;
+            let dn = self.counter_of[run.plan.tasks[d].node as usize];
+            self.stats[dn].skipped += 1;
+            self.counters.failed[dn].fetch_add(1, Ordering::Relaxed);
+            release_inputs(run, d);
+            run.open -= 1;
+            self.live_tasks -= 1;
+            stack.extend(run.plan.tasks[d].dependents.iter().map(|&x| x as usize));
+        }
+    }
+
+    /// Keeps a finished task's outputs for its readers and plans their exports.
+    fn store_outputs(&mut self, e: &Engine, slot: u32, t: usize, produced: Vec<Produced>) {
+        let p = e.pipeline;
+        let run = self.active[slot as usize].as_mut().unwrap();
+        run.state[t] = State::Done;
+        let node = run.plan.tasks[t].node as usize;
+        let item = run.plan.tasks[t].item;
+        if let Some(exporter) = self.exporter.as_mut() {
+            for x in p.exports.iter().filter(|x| x.node == node) {
+                let out = &produced[x.port];
+                let names = (p.nodes[node].name.as_str(), p.nodes[node].outputs[x.port].name.as_str());
+                match exporter.plan(x, names, &item, e.dataset, &out.r, out.mem.clone(), e.store) {
+                    Ok(Some(job)) => {
+                        run.exports_pending += 1;
+                        self.export_jobs.push((job, slot, t as u32));
+                    }
+                    Ok(None) => {}
+                    Err(err) => self.failures.push(Failure {
+                        stage: p.nodes[node].name.clone(),
+                        item: e.dataset.path(&item),
+                        error: format!("{err:#}"),
+                    }),
+                }
+            }
+        }
+        let produced = Arc::new(produced);
+        run.outputs[t] = Some(if run.readers_left[t] > 0 { produced } else { strip(&produced) });
+    }
+
+    /// A blob that finished task `u` produced is missing or corrupt, found by its reader `t`:
+    /// runs `u` again and makes `t` wait for it. False when no task of the scene made that blob,
+    /// or `u` was already run again [`MAX_REDO`] times.
+    fn heal(&mut self, slot: u32, t: usize, digest: Digest) -> bool {
+        let run = self.active[slot as usize].as_ref().unwrap();
+        let made_it = |u: usize, port: usize| {
+            run.outputs[u].as_ref().and_then(|o| o.get(port)).is_some_and(|o| o.r.digest == digest)
+        };
+        let producer = run.plan.tasks[t].inputs.iter().flatten().find_map(|src| match *src {
+            InputSrc::Task { task: u, port, .. } if made_it(u as usize, port as usize) => Some(u as usize),
+            _ => None,
+        });
+        let Some(u) = producer else { return false };
+        if !self.redo(slot, u) {
+            return false;
+        }
+        let run = self.active[slot as usize].as_mut().unwrap();
+        run.state[t] = State::Waiting;
+        run.waiting[t] = 1;
+        run.redoing.get_mut(&(u as u32)).expect("redo registered it").push(t as u32);
+        true
+    }
+
+    /// Queues finished task `u` to run again (once, however many readers ask); false when it
+    /// was already run again [`MAX_REDO`] times.
+    fn redo(&mut self, slot: u32, u: usize) -> bool {
+        let run = self.active[slot as usize].as_mut().unwrap();
+        if run.redoing.contains_key(&(u as u32)) {
+            return true;
+        }
+        let n = run.redone.entry(u as u32).or_default();
+        if run.state[u] != State::Done || *n >= MAX_REDO {
+            return false;
+        }
+        *n += 1;
+        run.state[u] = State::Waiting;
+        run.redoing.insert(u as u32, Vec::new());
+        self.ready.push(entry(run, slot, u as u32, &self.rank));
+        let ci = self.counter_of[run.plan.tasks[u].node as usize];
+        self.stats[ci].recomputed += 1;
+        true
+    }
+
+    /// A task run again to replace a lost blob ended: its waiters go on with the new output, or
+    /// fail with it.
+    fn finish_redo(
+        &mut self,
+        e: &Engine,
+        slot: u32,
+        t: usize,
+        waiters: Vec<u32>,
+        result: Result<Outcome>,
+    ) -> Result<()> {
+        match result {
+            Ok(outcome) => {
+                let (key, produced) = match outcome {
+                    Outcome::Cached(key, outs) => (key, outs.into_iter().map(|r| Produced { r, mem: None }).collect()),
+                    Outcome::Executed(key, produced, _) => (key, produced),
+                };
+                self.keys_out.write_all(&key.0)?;
+                self.store_outputs(e, slot, t, produced);
+                let run = self.active[slot as usize].as_mut().unwrap();
+                for w in waiters {
+                    let w = w as usize;
+                    run.waiting[w] -= 1;
+                    if run.waiting[w] == 0 && run.state[w] == State::Waiting {
+                        self.ready.push(entry(run, slot, w as u32, &self.rank));
+                    }
+                }
+            }
+            Err(err) => {
+                let run = self.active[slot as usize].as_mut().unwrap();
+                run.state[t] = State::Failed;
+                let node = run.plan.tasks[t].node as usize;
+                self.failures.push(Failure {
+                    stage: e.pipeline.nodes[node].name.clone(),
+                    item: e.dataset.path(&run.plan.tasks[t].item),
+                    error: format!("run again to replace a lost cache blob, it failed: {err:#}"),
+                });
+                self.skip_all(slot, waiters.into_iter().map(|w| w as usize).collect());
+            }
+        }
+        if self.active[slot as usize].as_ref().unwrap().closed() {
+            self.active[slot as usize] = None;
+        }
+        Ok(())
+    }
+
+    /// An export write ended. A blob found missing or corrupt makes its task run again (which
+    /// exports it anew); any other failure is the item's.
+    fn exported(&mut self, e: &Engine, slot: u32, task: u32, rel: &str, result: Result<FileStat>) {
+        let t = task as usize;
+        let run = self.active[slot as usize].as_mut().unwrap();
+        run.exports_pending -= 1;
+        let (stage, item) = {
+            let node = run.plan.tasks[t].node as usize;
+            (e.pipeline.nodes[node].name.clone(), e.dataset.path(&run.plan.tasks[t].item))
+        };
+        match result {
+            Ok(stat) => {
+                if let Some(x) = self.exporter.as_mut() {
+                    x.job_done(rel, Ok(stat));
+                }
+            }
+            Err(err) => {
+                if let Some(x) = self.exporter.as_mut() {
+                    x.job_done(rel, Err(()));
+                }
+                let healed = BlobError::find(&err).is_some() && self.redo(slot, t);
+                if !healed {
+                    self.failures.push(Failure { stage, item, error: format!("{err:#}") });
+                }
+            }
+        }
+        if self.active[slot as usize].as_ref().unwrap().closed() {
+            self.active[slot as usize] = None;
+        }
     }
 }
 

@@ -249,3 +249,195 @@ fn gc_keeps_what_recent_runs_use() {
     let old = run(&testkit::load(CHAIN, &["b.salt=1"]), &grid, dir.path());
     assert_eq!(old.stages.iter().find(|s| s.stage == "b").unwrap().executed, 24);
 }
+
+/// Every file under `dir` but the manifest (which holds file stats), relative path -> digest.
+fn files_under(dir: &Path) -> BTreeMap<String, String> {
+    let mut out = BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if !p.ends_with(".dist4d-manifest") {
+                let bytes = std::fs::read(&p).unwrap();
+                out.insert(p.strip_prefix(dir).unwrap().display().to_string(), crate::Digest::of(&bytes).short());
+            }
+        }
+    }
+    out
+}
+
+fn index_paths(out: &Path) -> Vec<String> {
+    let index: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("index.json")).unwrap()).unwrap();
+    index["files"].as_array().unwrap().iter().map(|f| f["path"].as_str().unwrap().to_string()).collect()
+}
+
+#[test]
+fn item_names_that_are_not_plain_names_never_leave_the_output_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("a/b/out");
+    std::fs::create_dir_all(dir.path().join("victim")).unwrap();
+    std::fs::write(dir.path().join("victim/000.bin"), b"mine").unwrap();
+    for names in [r#"["../../../victim", "ok"]"#, r#"["..", "ok"]"#, r#"["/tmp", "ok"]"#, r#"["a/b", "ok"]"#] {
+        let p = testkit::load(CHAIN, &[&format!("dataset.names={names}")]);
+        let grid = testkit::grid_of(&p);
+        let opts = RunOptions { jobs: 2, out_dir: Some(out.clone()), ..Default::default() };
+        let r = run_with(&p, &grid, &dir.path().join("store"), &opts);
+        assert_eq!(r.status, RunStatus::Failed, "{names}");
+        assert_eq!(r.failures.len(), 4, "one per frame of the bad scene: {:?}", r.failures);
+        let e = &r.failures[0].error;
+        assert!(e.contains("the scene name") && e.contains("cannot export `{scene}/{frame}.bin`"), "{e}");
+        assert_eq!(r.exported, 4, "{names}");
+        assert_eq!(index_paths(&out), ["ok/000.bin", "ok/001.bin", "ok/002.bin", "ok/003.bin"]);
+    }
+    // Nothing outside `out` was written: the user's file is intact and no other folder appeared.
+    assert_eq!(std::fs::read(dir.path().join("victim/000.bin")).unwrap(), b"mine");
+    let mut top: Vec<String> =
+        std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into()).collect();
+    top.sort();
+    assert_eq!(top, ["a", "store", "victim"]);
+    assert_eq!(files_under(&dir.path().join("a")).len(), 5, "4 exports and index.json");
+}
+
+#[test]
+fn an_output_folder_belongs_to_one_pipeline() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("out");
+    let store = dir.path().join("store");
+    let opts = RunOptions { jobs: 2, out_dir: Some(out.clone()), ..Default::default() };
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    assert_eq!(run_with(&p, &grid, &store, &opts).status, RunStatus::Complete);
+    let before = files_under(&out);
+    // Another pipeline (another name) with the same --out is refused before it runs anything.
+    let other = testkit::load(&CHAIN.replace("Pipeline(", "Pipeline(name: \"other\", "), &["file.salt=1"]);
+    let s = Store::open(&store, Access::Shared).unwrap();
+    let ops = testkit::operators(&other);
+    let err = Engine { pipeline: &other, dataset: &grid, operators: &ops, store: &s }.run(&opts).err().unwrap();
+    let e = format!("{err:#}");
+    assert!(e.contains("holds the exports of pipeline `test`") && e.contains("pipeline `other` will not"), "{e}");
+    assert_eq!(files_under(&out), before, "nothing was overwritten");
+    // The same pipeline with another param may rewrite its own files.
+    let changed = testkit::load(CHAIN, &["file.salt=1"]);
+    assert_eq!(run_with(&changed, &grid, &store, &opts).status, RunStatus::Complete);
+    assert_ne!(files_under(&out), before);
+    // A folder that holds files but no manifest was not made by dist4d: refused too.
+    let foreign = dir.path().join("home");
+    std::fs::create_dir_all(&foreign).unwrap();
+    std::fs::write(foreign.join("index.json"), b"the user's own").unwrap();
+    let opts = RunOptions { jobs: 2, out_dir: Some(foreign.clone()), ..Default::default() };
+    let err = Engine { pipeline: &p, dataset: &grid, operators: &ops, store: &s }.run(&opts).err().unwrap();
+    assert!(format!("{err:#}").contains("is not empty (it holds index.json)"), "{err:#}");
+    assert_eq!(std::fs::read(foreign.join("index.json")).unwrap(), b"the user's own");
+}
+
+/// Overwrites every blob of the store with bytes of the same length.
+fn corrupt_every_blob(store: &Path) -> usize {
+    let mut n = 0;
+    for shard in std::fs::read_dir(store.join("cas")).unwrap() {
+        for blob in std::fs::read_dir(shard.unwrap().path()).unwrap() {
+            let p = blob.unwrap().path();
+            let len = std::fs::metadata(&p).unwrap().len() as usize;
+            std::fs::write(&p, vec![0x5a; len]).unwrap();
+            n += 1;
+        }
+    }
+    n
+}
+
+fn stat(r: &RunRecord, stage: &str) -> crate::runs::StageStats {
+    r.stages.iter().find(|s| s.stage == stage).unwrap().clone()
+}
+
+#[test]
+fn a_corrupt_input_blob_is_recomputed_in_the_same_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    assert!(corrupt_every_blob(dir.path()) >= 24);
+    // per_frame reruns and reads b's (5000-byte) outputs from the store: all corrupt.
+    let changed = testkit::load(CHAIN, &["per_frame.salt=7"]);
+    let r = run(&changed, &grid, dir.path());
+    assert_eq!(r.status, RunStatus::Complete, "{:?}", r.failures);
+    assert_eq!(stat(&r, "b").recomputed, 24);
+    assert_eq!(stat(&r, "per_frame").executed, 8);
+    // The store is healed: a fresh store gives the same outputs, and a rerun executes nothing.
+    let fresh = tempfile::tempdir().unwrap();
+    run(&changed, &grid, fresh.path());
+    assert_eq!(run(&changed, &grid, dir.path()).executed(), 0);
+}
+
+#[test]
+fn a_corrupt_exported_blob_is_recomputed_and_exported() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    // 3000-byte files: exported from blobs, not from inside the records.
+    let p = testkit::load(CHAIN, &["file.size=3000"]);
+    let grid = testkit::grid_of(&p);
+    let opts = RunOptions { jobs: 2, out_dir: Some(out.clone()), ..Default::default() };
+    run_with(&p, &grid, &store, &opts);
+    let reference = files_under(&out);
+    corrupt_every_blob(&store);
+    for f in 0..4 {
+        std::fs::remove_file(out.join(format!("s1/{f:03}.bin"))).unwrap();
+    }
+    let r = run_with(&p, &grid, &store, &opts);
+    assert_eq!(r.status, RunStatus::Complete, "{:?}", r.failures);
+    assert_eq!(stat(&r, "file").recomputed, 4);
+    assert_eq!(r.exported, 8);
+    assert_eq!(files_under(&out), reference);
+}
+
+#[test]
+fn exports_edited_in_place_are_found_and_rewritten() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let opts = RunOptions { jobs: 2, out_dir: Some(out.clone()), ..Default::default() };
+    run_with(&p, &grid, &store, &opts);
+    let reference = files_under(&out);
+    let report = crate::export::verify(&out).unwrap();
+    assert_eq!((report.ok, report.modified.len(), report.missing.len()), (8, 0, 0));
+    // Same size, same mtime: only ctime (and the bytes) tell.
+    let f = out.join("s0/002.bin");
+    let mtime = std::fs::metadata(&f).unwrap().modified().unwrap();
+    let mut bytes = std::fs::read(&f).unwrap();
+    bytes[0] ^= 0xff;
+    std::fs::write(&f, &bytes).unwrap();
+    std::fs::File::options().write(true).open(&f).unwrap().set_modified(mtime).unwrap();
+    std::fs::remove_file(out.join("s1/003.bin")).unwrap();
+    let report = crate::export::verify(&out).unwrap();
+    assert_eq!(
+        (report.ok, report.modified.clone(), report.missing.clone()),
+        (6, vec!["s0/002.bin".to_string()], vec!["s1/003.bin".to_string()])
+    );
+    let r = run_with(&p, &grid, &store, &opts);
+    assert_eq!(r.executed(), 0);
+    assert_eq!(files_under(&out), reference);
+    assert_eq!(crate::export::verify(&out).unwrap().ok, 8);
+}
+
+#[test]
+fn the_index_and_the_manifest_list_only_files_that_exist() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let opts = RunOptions { jobs: 2, out_dir: Some(out.clone()), ..Default::default() };
+    // A folder where a file should go: that export fails.
+    std::fs::create_dir_all(out.join("s1/002.bin/in-the-way")).unwrap();
+    std::fs::write(out.join(".dist4d-manifest"), "").unwrap();
+    let r = run_with(&p, &grid, &store, &opts);
+    assert_eq!(r.status, RunStatus::Failed);
+    assert_eq!(r.failures.len(), 1, "{:?}", r.failures);
+    assert!(r.failures[0].error.contains("s1/002.bin"), "{}", r.failures[0].error);
+    assert_eq!(r.exported, 7);
+    let listed = index_paths(&out);
+    assert_eq!(listed.len(), 7);
+    assert!(!listed.contains(&"s1/002.bin".to_string()));
+    let report = crate::export::verify(&out).unwrap();
+    assert_eq!((report.ok, report.missing.len(), report.modified.len()), (7, 0, 0));
+}

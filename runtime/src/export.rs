@@ -1,23 +1,137 @@
 //! Materialization: final outputs copied from the store into the user-facing dataset layout.
 //!
-//! Files are written whole (temp file in `<out>/.dist4d-tmp/`, fsync, rename). A manifest of what
-//! each path holds lets a rerun skip files already in place, and `index.json` lists every file
-//! of the run with its stage, item and digest.
+//! ```text
+//! <out>/
+//!   .dist4d-manifest   which pipeline owns the folder, and what each exported path holds
+//!   .dist4d-tmp/       temp files, renamed into place when complete
+//!   index.json         every file of the last run with its stage, item and digest
+//! ```
+//!
+//! Files are written whole (temp file, fsync, rename). What is written where is confined:
+//! every dimension label put into a path is checked to be one plain path component, and the
+//! joined path must stay inside the output folder, so a dataset naming a scene `../../x` cannot
+//! write outside it. An output folder belongs to one pipeline (by name): its manifest says which,
+//! and another pipeline refuses to write there instead of overwriting its files.
+//!
+//! The manifest records each file's digest and its stat (device, inode, size, mtime, ctime) as
+//! written. A rerun trusts a file whose stat is unchanged; one whose stat changed is hashed again
+//! and rewritten if its bytes differ (an edit that keeps the size and mtime still changes ctime).
+//! [`verify`] hashes every file on demand.
 
 use crate::digest::Digest;
 use crate::item::ItemKey;
 use crate::operator::{Blob, Dataset};
 use crate::record::OutputRef;
-use crate::store::{write_atomic_via, Store};
-use anyhow::{bail, Context, Result};
-use dist4d_graph::{Export, TemplatePart};
+use crate::store::{write_atomic_via, BlobError, Store};
+use anyhow::{anyhow, bail, Context, Result};
+use dist4d_graph::{Dim, Export, TemplatePart};
 use serde::Serialize;
-use std::collections::{BTreeMap, HashMap};
-use std::path::{Path, PathBuf};
+use std::collections::{BTreeMap, HashSet};
+use std::os::unix::fs::MetadataExt;
+use std::path::{Component, Path, PathBuf};
 use std::sync::Arc;
 
 const MANIFEST: &str = ".dist4d-manifest";
 const TMP: &str = ".dist4d-tmp";
+const INDEX: &str = "index.json";
+/// First word of a version-2 manifest; version 1 had no header and no stats.
+const MANIFEST_V2: &str = "dist4d-manifest 2";
+
+/// What a file looked like when dist4d wrote or last confirmed it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct FileStat {
+    dev: u64,
+    ino: u64,
+    size: u64,
+    mtime_ns: i128,
+    ctime_ns: i128,
+}
+
+impl FileStat {
+    fn of(path: &Path) -> Option<FileStat> {
+        let m = std::fs::metadata(path).ok()?;
+        Some(FileStat {
+            dev: m.dev(),
+            ino: m.ino(),
+            size: m.size(),
+            mtime_ns: m.mtime() as i128 * 1_000_000_000 + m.mtime_nsec() as i128,
+            ctime_ns: m.ctime() as i128 * 1_000_000_000 + m.ctime_nsec() as i128,
+        })
+    }
+
+    fn encode(&self) -> String {
+        format!("{}:{}:{}:{}:{}", self.dev, self.ino, self.size, self.mtime_ns, self.ctime_ns)
+    }
+
+    fn decode(s: &str) -> Option<FileStat> {
+        let mut p = s.split(':');
+        let stat = FileStat {
+            dev: p.next()?.parse().ok()?,
+            ino: p.next()?.parse().ok()?,
+            size: p.next()?.parse().ok()?,
+            mtime_ns: p.next()?.parse().ok()?,
+            ctime_ns: p.next()?.parse().ok()?,
+        };
+        p.next().is_none().then_some(stat)
+    }
+}
+
+/// What the manifest says one exported path holds.
+#[derive(Clone, Debug, PartialEq)]
+struct Held {
+    digest: Digest,
+    size: u64,
+    /// None for entries of a version-1 manifest: the file is hashed once to confirm it.
+    stat: Option<FileStat>,
+}
+
+/// The `.dist4d-manifest` of an output folder.
+#[derive(Debug, Default)]
+struct Manifest {
+    /// The pipeline that owns the folder; None for a version-1 manifest (adopted by the next run).
+    owner: Option<String>,
+    files: BTreeMap<String, Held>,
+}
+
+impl Manifest {
+    /// Reads the manifest of `dir`; `Ok(None)` when there is none.
+    fn read(dir: &Path) -> Result<Option<Manifest>> {
+        let path = dir.join(MANIFEST);
+        let text = match std::fs::read_to_string(&path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+        };
+        let mut m = Manifest::default();
+        let mut lines = text.lines().peekable();
+        if let Some(owner) = lines.peek().and_then(|l| l.strip_prefix(MANIFEST_V2)) {
+            m.owner = Some(owner.trim().to_string());
+            lines.next();
+        }
+        for line in lines {
+            // v2: `<digest> <size> <stat> <path>`; v1: `<digest> <size> <path>`.
+            let parts: Vec<&str> = line.splitn(if m.owner.is_some() { 4 } else { 3 }, ' ').collect();
+            let (d, n, stat, rel) = match parts[..] {
+                [d, n, s, rel] => (d, n, FileStat::decode(s), rel),
+                [d, n, rel] => (d, n, None, rel),
+                _ => continue,
+            };
+            if let (Some(digest), Ok(size)) = (Digest::from_hex(d), n.parse()) {
+                m.files.insert(rel.to_string(), Held { digest, size, stat });
+            }
+        }
+        Ok(Some(m))
+    }
+
+    fn write(&self, dir: &Path, tmp: &Path) -> Result<()> {
+        let mut text = format!("{MANIFEST_V2} {}\n", self.owner.as_deref().unwrap_or_default());
+        for (rel, h) in &self.files {
+            let stat = h.stat.map(|s| s.encode()).unwrap_or_else(|| "-".into());
+            text.push_str(&format!("{} {} {stat} {rel}\n", h.digest.hex(), h.size));
+        }
+        write_atomic_via(tmp, &dir.join(MANIFEST), text.as_bytes())
+    }
+}
 
 #[derive(Serialize, Clone)]
 struct IndexEntry {
@@ -31,48 +145,103 @@ struct IndexEntry {
 
 pub struct Exporter {
     dir: PathBuf,
+    /// Dimension names, for messages about labels that cannot be path components.
+    dims: Vec<String>,
     writer: String,
     counter: u64,
-    /// What each path held after earlier runs.
-    old: HashMap<String, (Digest, u64)>,
+    /// The manifest as earlier runs left it, owned by this pipeline.
+    manifest: Manifest,
+    /// This run's files: planned, then confirmed or written (with their stat) or failed.
     entries: BTreeMap<String, IndexEntry>,
+    done: BTreeMap<String, FileStat>,
+    failed: HashSet<String>,
 }
 
 /// One file to write.
 pub struct ExportJob {
+    /// The path relative to the output folder.
+    pub rel: String,
     dest: PathBuf,
     tmp: PathBuf,
     digest: Digest,
+    size: u64,
     bytes: Source,
 }
 
 enum Source {
     Mem(Blob),
     Inline(Arc<[u8]>),
-    Blob(PathBuf),
+    Blob { path: PathBuf },
 }
 
 impl ExportJob {
-    pub fn write(self) -> Result<()> {
+    /// Writes the file unless it already holds the right bytes; returns its stat afterwards.
+    pub fn write(self) -> Result<FileStat> {
+        if let Some(stat) = FileStat::of(&self.dest).filter(|s| s.size == self.size) {
+            // Same size: maybe the same bytes (a copied folder, a touched file, a v1 manifest).
+            if file_digest(&self.dest) == Some(self.digest) {
+                return Ok(stat);
+            }
+        }
         let owned;
         let bytes: &[u8] = match &self.bytes {
             Source::Mem(b) => b,
             Source::Inline(b) => b,
-            Source::Blob(p) => {
-                owned = std::fs::read(p).with_context(|| format!("reading cache blob {}", p.display()))?;
+            Source::Blob { path } => {
+                owned = std::fs::read(path).map_err(|e| {
+                    anyhow::Error::new(BlobError { digest: self.digest, problem: format!("cannot be read: {e}") })
+                })?;
                 if Digest::of(&owned) != self.digest {
-                    let _ = std::fs::remove_file(p);
-                    bail!("cache blob {} is corrupt and was removed; rerun to recompute it", p.display());
+                    let _ = std::fs::remove_file(path);
+                    return Err(BlobError { digest: self.digest, problem: "is corrupt and was removed".into() }.into());
                 }
                 &owned
             }
         };
-        write_atomic_via(&self.tmp, &self.dest, bytes).with_context(|| format!("exporting {}", self.dest.display()))
+        write_atomic_via(&self.tmp, &self.dest, bytes).with_context(|| format!("exporting {}", self.dest.display()))?;
+        FileStat::of(&self.dest).ok_or_else(|| anyhow!("{} vanished right after it was written", self.dest.display()))
     }
 }
 
 impl Exporter {
-    pub fn open(dir: &Path, store: &Store) -> Result<Exporter> {
+    /// Opens `dir` for the exports of pipeline `pipeline`. Refuses a folder that another pipeline
+    /// owns, or one that holds files but no manifest (it was not made by dist4d), before anything
+    /// is written; claims a new or empty folder by writing its manifest at once, so that a run
+    /// killed before its end still leaves the folder marked as this pipeline's.
+    pub fn open(dir: &Path, store: &Store, pipeline: &str, dims: &[Dim]) -> Result<Exporter> {
+        let manifest = match Manifest::read(dir)? {
+            Some(m) => match &m.owner {
+                Some(owner) if owner != pipeline => bail!(
+                    "{} holds the exports of pipeline `{owner}` (see {}); pipeline `{pipeline}` will not \
+                     overwrite them: give it its own --out (by default each pipeline exports to out/<its name>/ \
+                     beside its file), or remove that folder",
+                    dir.display(),
+                    dir.join(MANIFEST).display()
+                ),
+                _ => m,
+            },
+            None => {
+                let foreign: Vec<String> = match std::fs::read_dir(dir) {
+                    Ok(entries) => entries
+                        .filter_map(|e| e.ok())
+                        .map(|e| e.file_name().to_string_lossy().into_owned())
+                        .filter(|n| n != TMP)
+                        .take(3)
+                        .collect(),
+                    Err(_) => Vec::new(),
+                };
+                if !foreign.is_empty() {
+                    bail!(
+                        "{} is not empty (it holds {}) and has no {MANIFEST}, so dist4d did not make it; \
+                         export into a new or empty folder (--out) instead of writing among files that are not \
+                         its own",
+                        dir.display(),
+                        foreign.join(", ")
+                    );
+                }
+                Manifest::default()
+            }
+        };
         let tmp = dir.join(TMP);
         std::fs::create_dir_all(&tmp).with_context(|| format!("creating output directory {}", dir.display()))?;
         // Temp files of writers that are gone (killed runs) are removed.
@@ -84,27 +253,31 @@ impl Exporter {
                 let _ = std::fs::remove_file(&p);
             }
         }
-        let mut old = HashMap::new();
-        if let Ok(text) = std::fs::read_to_string(dir.join(MANIFEST)) {
-            for line in text.lines() {
-                let mut parts = line.splitn(3, ' ');
-                if let (Some(d), Some(n), Some(path)) = (parts.next(), parts.next(), parts.next()) {
-                    if let (Some(d), Ok(n)) = (Digest::from_hex(d), n.parse()) {
-                        old.insert(path.to_string(), (d, n));
-                    }
-                }
-            }
-        }
-        Ok(Exporter {
+        let mut exporter = Exporter {
             dir: dir.to_path_buf(),
+            dims: dims.iter().map(|d| d.name.clone()).collect(),
             writer: store.writer_id().to_string(),
             counter: 0,
-            old,
+            manifest,
             entries: BTreeMap::new(),
-        })
+            done: BTreeMap::new(),
+            failed: HashSet::new(),
+        };
+        if exporter.manifest.owner.as_deref() != Some(pipeline) {
+            exporter.manifest.owner = Some(pipeline.to_string());
+            let tmp = exporter.tmp_path("manifest");
+            exporter.manifest.write(dir, &tmp)?;
+        }
+        Ok(exporter)
     }
 
-    /// Records the file an output maps to; returns a job when the file is not already in place.
+    fn tmp_path(&mut self, what: &str) -> PathBuf {
+        self.counter += 1;
+        self.dir.join(TMP).join(format!("{}-{what}{}", self.writer, self.counter))
+    }
+
+    /// Records the file an output maps to; returns a job unless the file is known to be in place.
+    /// Fails when the item's labels cannot make a path inside the output folder.
     #[allow(clippy::too_many_arguments)]
     pub fn plan(
         &mut self,
@@ -115,8 +288,9 @@ impl Exporter {
         out: &OutputRef,
         mem: Option<Blob>,
         store: &Store,
-    ) -> Option<ExportJob> {
-        let rel = render(export, item, dataset);
+    ) -> Result<Option<ExportJob>> {
+        let rel = render(export, item, dataset, &self.dims)?;
+        let dest = confined(&self.dir, &rel)?;
         let (stage, port) = names;
         self.entries.insert(
             rel.clone(),
@@ -129,49 +303,201 @@ impl Exporter {
                 bytes: out.size,
             },
         );
-        let dest = self.dir.join(&rel);
-        let in_place = self.old.get(&rel) == Some(&(out.digest, out.size))
-            && std::fs::metadata(&dest).is_ok_and(|m| m.len() == out.size);
-        if in_place {
-            return None;
+        // In place: the manifest says the path holds these bytes, and the file is untouched since.
+        if let Some(held) = self.manifest.files.get(&rel) {
+            if held.digest == out.digest && held.size == out.size {
+                if let Some(stat) = held.stat.filter(|s| FileStat::of(&dest).as_ref() == Some(s)) {
+                    self.done.insert(rel, stat);
+                    return Ok(None);
+                }
+            }
         }
-        self.counter += 1;
-        let tmp = self.dir.join(TMP).join(format!("{}-{}", self.writer, self.counter));
+        let tmp = self.tmp_path("");
         let bytes = match (mem, &out.inline) {
             (Some(m), _) => Source::Mem(m),
             (None, Some(b)) => Source::Inline(b.clone()),
-            (None, None) => Source::Blob(store.blob_path(&out.digest)),
+            (None, None) => Source::Blob { path: store.blob_path(&out.digest) },
         };
-        Some(ExportJob { dest, tmp, digest: out.digest, bytes })
+        Ok(Some(ExportJob { rel, dest, tmp, digest: out.digest, size: out.size, bytes }))
+    }
+
+    /// A job ended: its file is in place with `stat`, or it failed.
+    pub fn job_done(&mut self, rel: &str, result: Result<FileStat, ()>) {
+        match result {
+            Ok(stat) => {
+                self.failed.remove(rel);
+                self.done.insert(rel.to_string(), stat);
+            }
+            Err(()) => {
+                self.failed.insert(rel.to_string());
+            }
+        }
     }
 
     /// Writes the manifest and `index.json`; returns how many files the run exported or confirmed.
-    pub fn finish(self) -> Result<u64> {
-        let mut manifest: BTreeMap<String, (Digest, u64)> = self.old.into_iter().collect();
-        for (path, e) in &self.entries {
-            manifest.insert(path.clone(), (Digest::from_hex(&e.digest).unwrap_or_default(), e.bytes));
+    ///
+    /// Both list only files that exist: a path whose export failed keeps its manifest entry only
+    /// while the file earlier runs wrote is still there, untouched, and is left out of the index.
+    pub fn finish(mut self) -> Result<u64> {
+        let mut manifest = std::mem::take(&mut self.manifest);
+        for (rel, entry) in &self.entries {
+            if let Some(stat) = self.done.get(rel) {
+                let digest = Digest::from_hex(&entry.digest).unwrap_or_default();
+                manifest.files.insert(rel.clone(), Held { digest, size: entry.bytes, stat: Some(*stat) });
+            }
         }
-        let mut text = String::new();
-        for (path, (d, n)) in &manifest {
-            text.push_str(&format!("{} {} {}\n", d.hex(), n, path));
-        }
-        let tmp = self.dir.join(TMP);
-        write_atomic_via(&tmp.join(format!("{}-manifest", self.writer)), &self.dir.join(MANIFEST), text.as_bytes())?;
-        let files: Vec<&IndexEntry> = self.entries.values().collect();
+        manifest.files.retain(|rel, held| match FileStat::of(&self.dir.join(rel)) {
+            None => false,
+            Some(now) => held.stat.is_none_or(|s| s == now) || self.done.contains_key(rel),
+        });
+        let files: Vec<&IndexEntry> = self
+            .entries
+            .iter()
+            .filter(|(rel, _)| self.done.contains_key(*rel) && !self.failed.contains(*rel))
+            .map(|(_, e)| e)
+            .collect();
+        let count = files.len() as u64;
         let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files }))?;
-        write_atomic_via(&tmp.join(format!("{}-index", self.writer)), &self.dir.join("index.json"), &json)?;
-        Ok(self.entries.len() as u64)
+        let manifest_tmp = self.tmp_path("manifest");
+        manifest.write(&self.dir, &manifest_tmp)?;
+        let index_tmp = self.tmp_path("index");
+        write_atomic_via(&index_tmp, &self.dir.join(INDEX), &json)?;
+        Ok(count)
+    }
+}
+
+/// Why `label` cannot be one path component, if it cannot.
+pub fn unsafe_component(label: &str) -> Option<&'static str> {
+    if label.is_empty() {
+        Some("is empty")
+    } else if label == "." || label == ".." {
+        Some("is `.` or `..`")
+    } else if label.contains(['/', '\\']) {
+        Some("contains a path separator")
+    } else if label.contains('\0') {
+        Some("contains a NUL byte")
+    } else if label.chars().any(char::is_control) {
+        Some("contains a control character")
+    } else if label.len() > 255 {
+        Some("is longer than 255 bytes")
+    } else {
+        None
     }
 }
 
 /// The relative path of an export for an item: the template with dimension labels filled in.
-pub fn render(export: &Export, item: &ItemKey, dataset: &dyn Dataset) -> String {
+/// Every label must be one plain path component.
+pub fn render(export: &Export, item: &ItemKey, dataset: &dyn Dataset, dims: &[String]) -> Result<String> {
     let mut out = String::new();
     for part in &export.parts {
         match part {
             TemplatePart::Text(t) => out.push_str(t),
-            TemplatePart::Dim(d) => out.push_str(&dataset.label(&item.prefix(d + 1))),
+            TemplatePart::Dim(d) => {
+                let label = dataset.label(&item.prefix(d + 1));
+                if let Some(why) = unsafe_component(&label) {
+                    bail!(
+                        "cannot export `{}`: the {} name {label:?} {why}, and names are put into export paths \
+                         as single folder or file names",
+                        export.template,
+                        dims.get(*d).map(String::as_str).unwrap_or("item")
+                    );
+                }
+                out.push_str(&label);
+            }
         }
     }
-    out
+    Ok(out)
+}
+
+/// `dir/rel`, provided `rel` is relative and every component a plain name.
+fn confined(dir: &Path, rel: &str) -> Result<PathBuf> {
+    let path = Path::new(rel);
+    if rel.is_empty() || !path.components().all(|c| matches!(c, Component::Normal(_))) {
+        bail!("the export path {rel:?} would leave the output folder {}", dir.display());
+    }
+    Ok(dir.join(path))
+}
+
+/// The digest of a file's bytes, or None when it cannot be read.
+fn file_digest(path: &Path) -> Option<Digest> {
+    let mut hasher = blake3::Hasher::new();
+    hasher.update_mmap(path).ok()?;
+    Some(Digest(*hasher.finalize().as_bytes()))
+}
+
+/// What [`verify`] found.
+#[derive(Debug, Default, Serialize)]
+pub struct VerifyReport {
+    pub ok: u64,
+    /// Paths whose bytes differ from what dist4d wrote.
+    pub modified: Vec<String>,
+    pub missing: Vec<String>,
+    /// The pipeline that owns the folder.
+    pub owner: Option<String>,
+}
+
+/// Hashes every file the manifest of `dir` lists and compares it with what was written.
+pub fn verify(dir: &Path) -> Result<VerifyReport> {
+    let manifest = Manifest::read(dir)?
+        .ok_or_else(|| anyhow!("{} has no {MANIFEST}: it is not an output folder of dist4d", dir.display()))?;
+    let mut report = VerifyReport { owner: manifest.owner.clone(), ..Default::default() };
+    for (rel, held) in &manifest.files {
+        let path = match confined(dir, rel) {
+            Ok(p) => p,
+            Err(_) => {
+                report.modified.push(rel.clone());
+                continue;
+            }
+        };
+        match std::fs::metadata(&path) {
+            Err(_) => report.missing.push(rel.clone()),
+            Ok(m) if m.len() != held.size => report.modified.push(rel.clone()),
+            Ok(_) if file_digest(&path).as_ref() == Some(&held.digest) => report.ok += 1,
+            Ok(_) => report.modified.push(rel.clone()),
+        }
+    }
+    Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_plain_names_are_path_components() {
+        for bad in ["", ".", "..", "../x", "a/b", "/etc", "a\\b", "a\0b", "a\nb"] {
+            assert!(unsafe_component(bad).is_some(), "{bad:?}");
+        }
+        assert!(unsafe_component(&"x".repeat(256)).is_some());
+        for good in ["scene-0061", "CAM_FRONT", "000", "scène 1", "..x", "a.b"] {
+            assert_eq!(unsafe_component(good), None, "{good:?}");
+        }
+    }
+
+    #[test]
+    fn paths_that_leave_the_folder_are_refused() {
+        let dir = Path::new("/tmp/out");
+        assert_eq!(confined(dir, "a/b.png").unwrap(), dir.join("a/b.png"));
+        for bad in ["", "../x", "a/../../x", "/etc/passwd", "./a"] {
+            assert!(confined(dir, bad).is_err(), "{bad:?}");
+        }
+    }
+
+    #[test]
+    fn manifests_keep_owner_digests_and_stats() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("a b.bin"), b"xyz").unwrap();
+        let mut m = Manifest { owner: Some("curation".into()), files: BTreeMap::new() };
+        let stat = FileStat::of(&dir.path().join("a b.bin"));
+        m.files.insert("a b.bin".into(), Held { digest: Digest::of(b"xyz"), size: 3, stat });
+        m.write(dir.path(), &dir.path().join("tmp")).unwrap();
+        let back = Manifest::read(dir.path()).unwrap().unwrap();
+        assert_eq!(back.owner.as_deref(), Some("curation"));
+        assert_eq!(back.files, m.files);
+        // A version-1 manifest (no header, no stats) is read without an owner.
+        std::fs::write(dir.path().join(MANIFEST), format!("{} 3 x/y.bin\n", Digest::of(b"xyz").hex())).unwrap();
+        let v1 = Manifest::read(dir.path()).unwrap().unwrap();
+        assert_eq!(v1.owner, None);
+        assert_eq!(v1.files["x/y.bin"].stat, None);
+    }
 }

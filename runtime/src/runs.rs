@@ -17,6 +17,9 @@ pub struct StageStats {
     pub failed: u64,
     /// Not run because an input failed.
     pub skipped: u64,
+    /// Finished tasks run again because a blob of theirs was found missing or corrupt.
+    #[serde(default)]
+    pub recomputed: u64,
     /// Summed run time of executed tasks.
     pub seconds: f64,
 }

@@ -18,7 +18,7 @@
 use crate::digest::{Digest, DigestMap};
 use crate::record::TaskRecord;
 use crate::segment::{enc, segment_paths, Segment, SegmentWriter};
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use std::collections::HashMap;
 use std::fs::{self, File, OpenOptions};
 use std::io::Write;
@@ -26,6 +26,29 @@ use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, RwLock};
+
+/// A blob that a task record names is missing or corrupt: the task that made it must run again.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct BlobError {
+    pub digest: Digest,
+    /// "is corrupt and was removed (path)", "cannot be read (path): ...".
+    pub problem: String,
+}
+
+impl std::fmt::Display for BlobError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "cache blob {} {}", self.digest.short(), self.problem)
+    }
+}
+
+impl std::error::Error for BlobError {}
+
+impl BlobError {
+    /// The blob error in an error's chain, if any.
+    pub fn find(e: &anyhow::Error) -> Option<&BlobError> {
+        e.chain().find_map(|c| c.downcast_ref::<BlobError>())
+    }
+}
 
 /// How a process uses the store.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
@@ -172,17 +195,18 @@ impl Store {
     }
 
     /// Reads a blob and checks its digest: a corrupt blob is removed so that it is made again.
+    /// Fails with a [`BlobError`] (which the scheduler recognises, to recompute the blob).
     pub fn get_blob(&self, digest: &Digest) -> Result<Vec<u8>> {
         let path = self.blob_path(digest);
         let bytes = fs::read(&path)
-            .with_context(|| format!("cache blob {} is missing ({})", digest.short(), path.display()))?;
+            .map_err(|e| BlobError { digest: *digest, problem: format!("cannot be read ({}): {e}", path.display()) })?;
         if Digest::of(&bytes) != *digest {
             let _ = fs::remove_file(&path);
-            bail!(
-                "cache blob {} is corrupt and was removed ({}); rerun to recompute it",
-                digest.short(),
-                path.display()
-            );
+            return Err(BlobError {
+                digest: *digest,
+                problem: format!("is corrupt and was removed ({})", path.display()),
+            }
+            .into());
         }
         Ok(bytes)
     }

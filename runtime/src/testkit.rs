@@ -21,11 +21,13 @@ pub struct GridConfig {
     pub scenes: u32,
     pub frames: u32,
     pub cameras: u32,
+    /// Scene labels, in order (`s0`, `s1`, ... past the end of the list).
+    pub names: Vec<String>,
 }
 
 impl Default for GridConfig {
     fn default() -> Self {
-        GridConfig { scenes: 2, frames: 4, cameras: 3 }
+        GridConfig { scenes: 2, frames: 4, cameras: 3, names: Vec::new() }
     }
 }
 
@@ -63,7 +65,7 @@ impl ItemSpace for Grid {
     fn label(&self, item: &ItemKey) -> String {
         let i = item.idx[item.depth as usize - 1];
         match item.depth {
-            1 => format!("s{i}"),
+            1 => self.config.names.get(i as usize).cloned().unwrap_or_else(|| format!("s{i}")),
             2 => format!("{i:03}"),
             _ => format!("cam{i}"),
         }
