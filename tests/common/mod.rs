@@ -134,7 +134,8 @@ pub fn multi_frame_nuscenes(dest: &Path, frames: usize) -> PathBuf {
     dest.to_path_buf()
 }
 
-/// Every file under `dir` (relative path -> bytes), skipping nothing.
+/// Every file under `dir` (relative path -> bytes) but the export manifest, which records each
+/// file's inode and ctime and so differs between two runs that wrote the same bytes.
 pub fn tree(dir: &Path) -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
     fn walk(base: &Path, d: &Path, out: &mut Vec<(String, Vec<u8>)>) {
@@ -143,7 +144,7 @@ pub fn tree(dir: &Path) -> Vec<(String, Vec<u8>)> {
         for p in entries {
             if p.is_dir() {
                 walk(base, &p, out);
-            } else {
+            } else if !p.ends_with(".dist4d-manifest") {
                 out.push((p.strip_prefix(base).unwrap().display().to_string(), std::fs::read(&p).unwrap()));
             }
         }
