@@ -1,0 +1,91 @@
+//! Golden digests: the bytes the shipped pipelines export, on a small synthetic seed and on the
+//! shared real data, pinned in `tests/golden/*.txt` (one `<blake3> <path>` line per file).
+//!
+//! Any change in any exported byte fails here, so a restructuring that must not change outputs is
+//! checked, and a change that should change them is deliberate: bump the version of the stage
+//! whose output changed (its task keys change with it) and re-pin with
+//! `DIST4D_BLESS=1 cargo test --release --test golden`.
+
+mod common;
+
+use common::*;
+use std::path::Path;
+
+/// `<digest> <path>` of every exported file under `out` (the manifest, which records inodes, left out).
+fn digests(out: &Path) -> String {
+    tree(out).iter().map(|(path, bytes)| format!("{} {path}\n", blake3::hash(bytes).to_hex())).collect()
+}
+
+/// Runs `pipeline` on `root` (with `sets`) and compares the export digests with `golden/<name>.txt`.
+fn check(name: &str, pipeline: &Path, sets: &[String]) {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("out");
+    let mut args = vec!["run".to_string(), pipeline.display().to_string(), "--progress".into(), "off".into()];
+    args.extend(["--cache".into(), tmp.path().join("cache").display().to_string()]);
+    args.extend(["--out".into(), out.display().to_string()]);
+    for s in sets {
+        args.extend(["--set".into(), s.clone()]);
+    }
+    let o = dist4d(&args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{name}: {}", text(&o));
+    let got = digests(&out);
+    let file = repo().join("tests/golden").join(format!("{name}.txt"));
+    if std::env::var_os("DIST4D_BLESS").is_some() {
+        std::fs::write(&file, &got).unwrap();
+        eprintln!("pinned {} files in {}", got.lines().count(), file.display());
+        return;
+    }
+    let want = std::fs::read_to_string(&file).unwrap_or_default();
+    if got == want {
+        return;
+    }
+    let lines = |t: &str| t.lines().map(String::from).collect::<std::collections::BTreeSet<_>>();
+    let (got_set, want_set) = (lines(&got), lines(&want));
+    let path_of = |l: &String| l.split_once(' ').map(|(_, p)| p.to_string()).unwrap_or_default();
+    let mut changed: Vec<String> = got_set.symmetric_difference(&want_set).map(path_of).collect();
+    changed.dedup();
+    panic!(
+        "{name}: {} of {} exported files differ from {}:\n  {}\nIf the change is deliberate, bump the version of \
+         the stage whose output changed and re-pin: DIST4D_BLESS=1 cargo test --release --test golden",
+        changed.len(),
+        got_set.len().max(want_set.len()),
+        file.display(),
+        changed.iter().take(20).cloned().collect::<Vec<_>>().join("\n  ")
+    );
+}
+
+#[test]
+fn shipped_pipelines_on_a_small_synthetic_seed() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    let o =
+        dist4d(&["synth", "--out", root.to_str().unwrap(), "--keyframes", "3", "--width", "320", "--height", "180"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let set_root = format!("dataset.root={}", root.display());
+    for name in ["curation", "lidar_depth"] {
+        check(&format!("synth-{name}"), &repo().join(format!("pipelines/{name}.ron")), &[set_root.clone()]);
+    }
+}
+
+#[test]
+fn curation_on_the_shared_nuscenes_keyframe() {
+    let Some(root) = shared_nuscenes() else { return };
+    check("nuscenes-curation", &repo().join("pipelines/curation.ron"), &[format!("dataset.root={}", root.display())]);
+}
+
+#[test]
+fn curation_on_the_shared_dgp_scene() {
+    let root = repo().join("../shared/data/dgp-scene02");
+    if !root.is_dir() {
+        eprintln!("SKIPPED: the shared DGP data is not at {} (CI always has it)", root.display());
+        return;
+    }
+    // The same pipeline with the DGP reader in place of the nuScenes one.
+    let tmp = tempfile::tempdir().unwrap();
+    let shipped = std::fs::read_to_string(repo().join("pipelines/curation.ron")).unwrap();
+    let (start, end) = (shipped.find("dataset: NuScenes(").unwrap(), shipped.find("stages:").unwrap());
+    let file = tmp.path().join("curation.ron");
+    let dataset = format!("dataset: Dgp(root: {:?}),\n    ", root.display().to_string());
+    std::fs::write(&file, format!("{}{dataset}{}", &shipped[..start], &shipped[end..])).unwrap();
+    check("dgp-curation", &file, &[]);
+}
