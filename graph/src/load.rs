@@ -111,7 +111,13 @@ fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources
             );
             continue;
         }
-        let value = parse_override_value(arg, eq + 1, id);
+        let value = match parse_override_value(arg, eq + 1, id) {
+            Ok(v) => v,
+            Err(d) => {
+                checker.diags.push(d);
+                continue;
+            }
+        };
         let field =
             Field { name: Name { text: parts[1].to_string(), span: Span::new(id, parts[0].len() + 1, eq) }, value };
         let target_span = Span::new(id, 0, parts[0].len());
@@ -162,17 +168,23 @@ fn params_of(stage: &mut Value) -> Option<&mut Value> {
     fields.iter_mut().find(|f| f.name.text == "params").map(|f| &mut f.value)
 }
 
-/// A --set value is RON when it parses as RON, else a plain string (paths, `v1.0-mini`).
-fn parse_override_value(arg: &str, start: usize, id: SourceId) -> Value {
+/// A --set value is RON when it parses as RON, else a plain string (paths, `v1.0-mini`); but
+/// brackets nested beyond the limit are a value gone wrong, not a string.
+fn parse_override_value(arg: &str, start: usize, id: SourceId) -> Result<Value, Diagnostic> {
     let text = &arg[start..];
     let mut scratch = Sources::default();
     let sid = scratch.add("", text);
-    match syntax::parse(text, sid) {
+    match syntax::parse_value(text, sid) {
         Ok(mut v) => {
             shift_spans(&mut v, id, start as u32);
-            v
+            Ok(v)
         }
-        Err(_) => Value { kind: ValueKind::Str(text.to_string()), span: Span::new(id, start, arg.len()) },
+        Err(e) if e.too_deep => {
+            let mut d = e.diagnostic;
+            d.span = d.span.map(|s| Span { source: id, start: s.start + start as u32, end: s.end + start as u32 });
+            Err(d)
+        }
+        Err(_) => Ok(Value { kind: ValueKind::Str(text.to_string()), span: Span::new(id, start, arg.len()) }),
     }
 }
 

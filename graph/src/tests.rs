@@ -328,3 +328,29 @@ fn missing_dataset_and_unknown_top_level_fields() {
     assert!(out.contains("unknown field `stagse` in Pipeline"), "{out}");
     assert!(out.contains("did you mean `stages`?"), "{out}");
 }
+
+#[test]
+fn values_nested_too_deep_are_refused_at_their_position() {
+    use crate::syntax::MAX_NESTING;
+    // Far beyond the limit (this overflowed the stack) and one level beyond it.
+    for depth in [20_000, MAX_NESTING] {
+        let text = format!("Pipeline(name: {}{})", "[".repeat(depth), "]".repeat(depth));
+        let out = errors(&text, &[]);
+        assert!(out.contains(&format!("values nest deeper than {MAX_NESTING} levels here")), "{out}");
+        // `Pipeline(` is level 1, so the first refused `[` is number MAX_NESTING.
+        assert!(out.contains(&format!("p.ron:1:{}", "Pipeline(name: ".len() + MAX_NESTING)), "{out}");
+    }
+    // Through --set: an error at the argument, not a plain string, not a crash.
+    let deep = format!("project.min_depth={}", "[".repeat(20_000));
+    let out = errors(GOOD, &[&deep]);
+    assert!(out.contains("values nest deeper than"), "{out}");
+    assert!(out.contains(&format!("--> --set:1:{}", "project.min_depth=".len() + MAX_NESTING + 1)), "{out}");
+    // At the limit, values still parse.
+    let mut sources = crate::source::Sources::default();
+    let id = sources.add("t", "");
+    let at_limit = format!("{}{}", "[".repeat(MAX_NESTING), "]".repeat(MAX_NESTING));
+    assert!(crate::syntax::parse(&at_limit, id).is_ok());
+    let over = format!("[{at_limit}]");
+    let e = crate::syntax::parse_value(&over, id).unwrap_err();
+    assert!(e.too_deep && e.diagnostic.span.unwrap().start as usize == MAX_NESTING, "{e:?}");
+}
