@@ -762,7 +762,19 @@ impl<'c> Checker<'c> {
         };
         let int = |this: &mut Self, i: usize| -> Option<i32> {
             match items[i].kind {
-                ValueKind::Int(x) if x.abs() < 1_000_000 => Some(x as i32),
+                // `unsigned_abs`: `abs` of i64::MIN overflows (and wraps to a negative number,
+                // which passed the bound, in release builds).
+                ValueKind::Int(x) if x.unsigned_abs() <= MAX_SELECTOR_OFFSET as u64 => Some(x as i32),
+                ValueKind::Int(x) => {
+                    this.err(
+                        Diagnostic::error(
+                            format!("the offset {x} is out of range: offsets are within ±{MAX_SELECTOR_OFFSET}"),
+                            items[i].span,
+                        )
+                        .with_label("out of range"),
+                    );
+                    None
+                }
                 _ => {
                     this.err(Diagnostic::error(
                         format!("expected a whole number, found {}", items[i].describe()),
@@ -960,6 +972,10 @@ impl<'c> Checker<'c> {
         out
     }
 }
+
+/// Largest offset a `Window` or `Offset` selector may take along a dimension: far beyond any
+/// scene's length (a 20 Hz log of an hour has 72,000 frames), small enough for `i32` positions.
+const MAX_SELECTOR_OFFSET: i32 = 999_999;
 
 /// Why a selector cannot connect an upstream grain `u` to a downstream grain `d` (depths, 1-based).
 fn grain_allows(sel: Selector, u: usize, d: usize, dims: &[Dim]) -> Result<(), String> {

@@ -354,3 +354,27 @@ fn values_nested_too_deep_are_refused_at_their_position() {
     let e = crate::syntax::parse_value(&over, id).unwrap_err();
     assert!(e.too_deep && e.diagnostic.span.unwrap().start as usize == MAX_NESTING, "{e:?}");
 }
+
+#[test]
+fn selector_offsets_out_of_range_are_refused_even_the_most_negative() {
+    for (offset, ok) in [
+        ("-9223372036854775808", false),
+        ("9223372036854775807", false),
+        ("1000000", false),
+        ("-1000000", false),
+        ("999999", true),
+        ("-999999", true),
+    ] {
+        let text = GOOD.replace(
+            r#""window": Fuse(inputs: {"depths": Window("fuse.depth", frame, -1, 1)}),"#,
+            &format!(r#""window": Fuse(inputs: {{"depths": Offset("fuse.depth", frame, {offset})}}),"#),
+        );
+        let out = errors(&text, &[]);
+        if ok {
+            assert_eq!(out, "loaded", "{offset}");
+        } else {
+            assert!(out.contains(&format!("the offset {offset} is out of range: offsets are within ±999999")), "{out}");
+            assert!(out.contains("p.ron:10:71"), "{out}");
+        }
+    }
+}
