@@ -39,8 +39,8 @@ impl std::error::Error for LoadError {}
 /// `overrides` are `target.field=value` strings (`project.min_depth=2`, `dataset.root=/data`);
 /// relative paths given through them resolve against `cwd`.
 pub fn load_file(path: &Path, overrides: &[String], cwd: &Path, catalog: &dyn Catalog) -> Result<Pipeline, LoadError> {
-    let text = match std::fs::read_to_string(path) {
-        Ok(t) => t,
+    let bytes = match std::fs::read(path) {
+        Ok(b) => b,
         Err(e) => {
             return Err(LoadError {
                 sources: Sources::default(),
@@ -51,11 +51,32 @@ pub fn load_file(path: &Path, overrides: &[String], cwd: &Path, catalog: &dyn Ca
             })
         }
     };
+    let text = match String::from_utf8(bytes) {
+        Ok(t) => t,
+        Err(e) => return Err(not_utf8(&path.display().to_string(), e)),
+    };
     let base = path
         .parent()
         .map(|p| if p.as_os_str().is_empty() { cwd.to_path_buf() } else { cwd.join(p) })
         .unwrap_or_else(|| cwd.to_path_buf());
     load_str(&path.display().to_string(), &text, path, &base, overrides, cwd, catalog)
+}
+
+/// A pipeline file that is not UTF-8, shown at its first invalid byte. The text is kept with
+/// that byte and what follows replaced (U+FFFD), so that the valid part before it keeps its byte
+/// offsets and the diagnostic can show the line and column.
+fn not_utf8(name: &str, e: std::string::FromUtf8Error) -> LoadError {
+    let at = e.utf8_error().valid_up_to();
+    let byte = e.as_bytes()[at];
+    let mut sources = Sources::default();
+    let id = sources.add(name, String::from_utf8_lossy(e.as_bytes()).into_owned());
+    let d = Diagnostic::error(
+        format!("the pipeline file is not valid UTF-8: byte {at} (0x{byte:02X}) is not part of a valid character"),
+        Span::new(id, at, at + char::REPLACEMENT_CHARACTER.len_utf8()),
+    )
+    .with_label("not UTF-8")
+    .with_note("pipeline files are UTF-8 text; re-save the file as UTF-8");
+    LoadError { sources, diagnostics: vec![d] }
 }
 
 /// Like [`load_file`] for text already in memory; `base` is where relative paths in it resolve.

@@ -378,3 +378,20 @@ fn selector_offsets_out_of_range_are_refused_even_the_most_negative() {
         }
     }
 }
+
+#[test]
+fn a_file_that_is_not_utf8_is_refused_at_its_first_bad_byte() {
+    let dir = std::env::temp_dir().join(format!("dist4d-graph-utf8-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("bad.ron");
+    // Line 2, after `  name: "ça` (11 characters, 12 bytes): byte 10 + 12 = 22, column 12.
+    std::fs::write(&file, b"Pipeline(\n  name: \"\xc3\xa7a\xff\",\n)\n").unwrap();
+    let e = crate::load_file(&file, &[], &dir, &catalog()).unwrap_err();
+    let out = e.render();
+    std::fs::remove_dir_all(&dir).unwrap();
+    assert!(
+        out.contains("the pipeline file is not valid UTF-8: byte 22 (0xFF) is not part of a valid character"),
+        "{out}"
+    );
+    assert!(out.contains("bad.ron:2:12"), "{out}");
+}
