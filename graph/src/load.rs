@@ -5,7 +5,7 @@
 //! grains), cycles and exports. Each check adds diagnostics and goes on, so one run of `check`
 //! shows everything that is wrong.
 
-use crate::catalog::{Catalog, ParamsSpec};
+use crate::catalog::{Catalog, ParamProblem, ParamsError, ParamsSpec};
 use crate::diag::{did_you_mean, render_all, Diagnostic};
 use crate::pipeline::*;
 use crate::source::{SourceId, Sources, Span};
@@ -272,8 +272,10 @@ impl<'c> Checker<'c> {
         ok
     }
 
-    /// Checks params against a spec: every unknown field, then the first type error.
-    fn params(&mut self, value: Option<&Value>, spec: &ParamsSpec, what: &str) -> Option<String> {
+    /// Checks params against a spec: every unknown field, then the first type error, then every
+    /// value out of range. `fallback` is where a problem with a param left at its default points
+    /// when no params are written (the stage's name).
+    fn params(&mut self, value: Option<&Value>, spec: &ParamsSpec, what: &str, fallback: Span) -> Option<String> {
         if let Some(v) = value {
             match v.fields() {
                 Some(fields) => {
@@ -306,7 +308,7 @@ impl<'c> Checker<'c> {
         }
         match spec.check(value) {
             Ok(canonical) => Some(canonical),
-            Err(e) => {
+            Err(ParamsError::Type(e)) => {
                 let span = e.span.or(value.map(|v| v.span));
                 let d = match span {
                     Some(s) => Diagnostic::error(format!("bad params of {what}: {}", e.message), s),
@@ -315,7 +317,41 @@ impl<'c> Checker<'c> {
                 self.err(d.with_note(format!("params: {}", spec.describe())));
                 None
             }
+            Err(ParamsError::Range(problems)) => {
+                for p in problems {
+                    self.range_problem(&p, value, spec, what, fallback);
+                }
+                None
+            }
         }
+    }
+
+    /// A param out of range, at the value written for it (or for the other field of a relation),
+    /// else at the params struct, else at `fallback`.
+    fn range_problem(
+        &mut self,
+        p: &ParamProblem,
+        value: Option<&Value>,
+        spec: &ParamsSpec,
+        what: &str,
+        fallback: Span,
+    ) {
+        let written = |name: &str| value.and_then(|v| v.field(name)).map(|f| &f.value);
+        let at = match (written(p.field), p.other.and_then(written)) {
+            (Some(v), _) => match (&v.kind, p.index) {
+                (ValueKind::List(items) | ValueKind::Tuple(_, items), Some(i)) if i < items.len() => items[i].span,
+                _ => v.span,
+            },
+            (None, Some(other)) => other.span,
+            (None, None) => value.map(|v| v.span).unwrap_or(fallback),
+        };
+        let mut d = Diagnostic::error(format!("`{}` of {what} {}", p.field, p.message), at);
+        if written(p.field).is_none() {
+            if let Some(f) = spec.fields.iter().find(|f| f.name == p.field) {
+                d = d.with_note(format!("`{}` is not written here, so it has its default {}", p.field, f.default));
+            }
+        }
+        self.err(d);
     }
 
     fn pipeline(&mut self, root: &Value, default_name: String, path: PathBuf) -> Option<Pipeline> {
@@ -429,7 +465,7 @@ impl<'c> Checker<'c> {
                 ));
                 None
             }
-            _ => self.params(Some(&config), schema.config(), &format!("dataset {}", schema.kind())),
+            _ => self.params(Some(&config), schema.config(), &format!("dataset {}", schema.kind()), kind.span),
         };
         let dims =
             schema.dims().iter().map(|d| Dim { name: d.name.to_string(), ordered: d.ordered }).collect::<Vec<_>>();
@@ -501,7 +537,7 @@ impl<'c> Checker<'c> {
         };
         self.known_fields(fields, &["inputs", "params", "grain"], &format!("stage `{name}`"));
         let what = format!("stage `{name}` ({})", schema.kind());
-        let params = self.params(value.field("params").map(|f| &f.value), schema.params(), &what);
+        let params = self.params(value.field("params").map(|f| &f.value), schema.params(), &what, key.span);
 
         let grain = match (value.field("grain"), dims) {
             (_, None) => None,

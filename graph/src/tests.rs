@@ -13,6 +13,40 @@ struct ProjectParams {
     border: u32,
 }
 
+impl Validate for ProjectParams {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new().within("min_depth", self.min_depth as f64, 0.0, 1000.0).done()
+    }
+}
+
+/// Params with every kind of range check, for the diagnostics they give.
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RangeParams {
+    lo: f64,
+    hi: f64,
+    size: u32,
+    names: Vec<String>,
+}
+
+impl Default for RangeParams {
+    fn default() -> Self {
+        RangeParams { lo: 0.0, hi: 1.0, size: 4, names: vec!["a".into()] }
+    }
+}
+
+impl Validate for RangeParams {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new()
+            .within("lo", self.lo, -10.0, 10.0)
+            .within("hi", self.hi, -10.0, 10.0)
+            .below("lo", self.lo, "hi", self.hi)
+            .count("size", self.size as u64, 1, 64)
+            .path_names("names", &self.names)
+            .done()
+    }
+}
+
 #[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 struct DataConfig {
@@ -26,9 +60,13 @@ impl Default for DataConfig {
     }
 }
 
+impl Validate for DataConfig {}
+
 #[derive(Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 struct NoParams {}
+
+impl Validate for NoParams {}
 
 struct Stage {
     kind: &'static str,
@@ -143,6 +181,13 @@ fn catalog() -> Cat {
                 outputs: vec![PortSpec::one("depth", "DepthMap", "")],
                 grains: vec!["frame", "camera"],
                 params: ParamsSpec::of::<NoParams>(),
+            },
+            Stage {
+                kind: "Range",
+                inputs: vec![],
+                outputs: vec![PortSpec::one("depth", "DepthMap", "")],
+                grains: vec!["camera"],
+                params: ParamsSpec::of::<RangeParams>(),
             },
         ],
         data: Data { config: ParamsSpec::of::<DataConfig>() },
@@ -327,6 +372,64 @@ fn missing_dataset_and_unknown_top_level_fields() {
     assert!(out.contains("the pipeline has no `dataset`"), "{out}");
     assert!(out.contains("unknown field `stagse` in Pipeline"), "{out}");
     assert!(out.contains("did you mean `stages`?"), "{out}");
+}
+
+/// GOOD with a `Range` stage whose params are `params`.
+fn with_range(params: &str) -> String {
+    GOOD.replace(
+        "        \"encode\": Encode(",
+        &format!("        \"r\": Range(\n            params: {params},\n        ),\n        \"encode\": Encode("),
+    )
+}
+
+#[test]
+fn params_out_of_range_are_reported_at_the_written_value() {
+    let text = with_range(r#"(lo: 5, hi: 2, size: 0, names: ["a", "../b", "a", ""])"#);
+    let out = errors(&text, &[]);
+    // Line 9 is the params line; columns count from 1.
+    let line = text.lines().nth(8).unwrap();
+    let col = |needle: &str| line.find(needle).unwrap() + 1;
+    assert!(out.contains("`size` of stage `r` (Range) must be in 1..=64, found 0"), "{out}");
+    assert!(out.contains(&format!("p.ron:9:{}", col("0,"))), "{out}");
+    assert!(out.contains("`lo` of stage `r` (Range) must be below `hi` (2), found 5"), "{out}");
+    assert!(out.contains(&format!("p.ron:9:{}", col("5,"))), "{out}");
+    // List elements are pointed at one by one.
+    assert!(
+        out.contains("`names` of stage `r` (Range) must be one file or folder name, without `/`, found `../b`"),
+        "{out}"
+    );
+    assert!(out.contains(&format!("p.ron:9:{}", col("\"../b\""))), "{out}");
+    assert!(out.contains("`names` of stage `r` (Range) names `a` twice"), "{out}");
+    assert!(out.contains(&format!("p.ron:9:{}", col("\"a\", \"\""))), "{out}");
+    assert!(out.contains("must not be empty"), "{out}");
+    assert!(out.contains("5 problems found"), "{out}");
+    // NaN and infinities are not numbers in range.
+    let out = errors(&with_range("(hi: NaN, lo: -inf)"), &[]);
+    assert!(out.contains("`hi` of stage `r` (Range) must be a number in [-10, 10], found NaN"), "{out}");
+    assert!(out.contains("`lo` of stage `r` (Range) must be a number in [-10, 10], found -inf"), "{out}");
+}
+
+#[test]
+fn a_relation_broken_by_one_written_param_points_at_it() {
+    // `lo` keeps its default 0 and `hi` is written: the diagnostic is at `hi`, naming `lo`'s default.
+    let text = with_range("(hi: -1)");
+    let out = errors(&text, &[]);
+    assert!(out.contains("`lo` of stage `r` (Range) must be below `hi` (-1), found 0"), "{out}");
+    let line = text.lines().nth(8).unwrap();
+    assert!(out.contains(&format!("p.ron:9:{}", line.find("-1").unwrap() + 1)), "{out}");
+    assert!(out.contains("`lo` is not written here, so it has its default 0.0"), "{out}");
+}
+
+#[test]
+fn params_out_of_range_through_set_point_into_the_argument() {
+    let out = errors(GOOD, &["project.min_depth=-1", "project.border=3"]);
+    assert!(out.contains("`min_depth` of stage `project` (Project) must be a number in [0, 1000], found -1"), "{out}");
+    assert!(out.contains("--> --set:1:19"), "{out}");
+    assert!(out.contains("1 problem found"), "{out}");
+    // A stage written without params gets them from --set, and their problems point there too.
+    let out = errors(&with_range("()"), &["r.size=65"]);
+    assert!(out.contains("`size` of stage `r` (Range) must be in 1..=64, found 65"), "{out}");
+    assert!(out.contains("--> --set:1:8"), "{out}");
 }
 
 #[test]

@@ -20,7 +20,7 @@ use crate::artifact::{Artifact, Calibration, DepthMap, Image, Pose};
 use crate::stage::{each, StageDef, TypedOp};
 use crate::stereo::{keep_consistent, sweep_depth, StereoDepth, StereoView, SweepParams};
 use anyhow::{anyhow, ensure, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -70,6 +70,39 @@ impl Default for Params {
     }
 }
 
+/// Largest SGM penalty: a path cost stays below cost + `p2`, and 8 paths summed in 16 bits must
+/// not overflow: 8 x (96 + p2) < 65536.
+const MAX_PENALTY: u64 = 4096;
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        c.count("downscale", self.downscale as u64, 1, 64)
+            .above("min_depth", self.min_depth, 0.0, 1e4)
+            .above("max_depth", self.max_depth, 0.0, 1e5)
+            .below("min_depth", self.min_depth, "max_depth", self.max_depth)
+            // The plane count sizes the cost volume (3 bytes per working pixel and plane).
+            .count("max_planes", self.max_planes as u64, 8, 1024)
+            .within("plane_step_px", self.plane_step_px, 0.01, 100.0)
+            .count("p2", self.p2 as u64, 0, MAX_PENALTY)
+            .check((0.0..1.0).contains(&self.uniqueness), "uniqueness", || {
+                format!("must be a fraction in [0, 1), found {}", self.uniqueness)
+            })
+            .within("distinct_px", self.distinct_px, 0.0, 100.0)
+            .within("consistency_px", self.consistency_px, 0.0, 100.0)
+            .within("consistency_depth", self.consistency_depth, 0.0, 1.0);
+        if self.p1 > self.p2 {
+            c.push(ParamProblem {
+                field: "p1",
+                index: None,
+                other: Some("p2"),
+                message: format!("must not exceed `p2` ({}), found {}", self.p2, self.p1),
+            });
+        }
+        c.done()
+    }
+}
+
 impl Params {
     pub fn sweep(&self) -> SweepParams {
         SweepParams {
@@ -82,21 +115,6 @@ impl Params {
             uniqueness: self.uniqueness,
             distinct_px: self.distinct_px,
         }
-    }
-
-    fn check(&self) -> Result<()> {
-        ensure!(self.downscale >= 1, "downscale must be at least 1");
-        ensure!(
-            self.min_depth > 0.0 && self.max_depth > self.min_depth,
-            "need 0 < min_depth < max_depth, not {} and {}",
-            self.min_depth,
-            self.max_depth
-        );
-        ensure!(self.max_planes >= 8, "max_planes must be at least 8");
-        ensure!(self.p2 >= self.p1, "p2 ({}) must not be below p1 ({})", self.p2, self.p1);
-        ensure!((0.0..1.0).contains(&self.uniqueness), "uniqueness must be in [0, 1)");
-        ensure!(self.distinct_px >= 0.0, "distinct_px must not be negative");
-        Ok(())
     }
 }
 
@@ -130,7 +148,7 @@ fn view(frame: &Frame, downscale: u32) -> Result<StereoView> {
 
 /// Depth and confidence of the frame at position 0, at working resolution.
 pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap, DepthMap)> {
-    params.check()?;
+    crate::stage::ensure_valid(params)?;
     let target = frames
         .iter()
         .find(|f| f.position == 0)
@@ -186,10 +204,7 @@ pub fn def() -> StageDef {
             PortSpec::one("confidence", "DepthMap", "per-pixel confidence in [0, 1] (same size), 0 = no depth"),
         ],
         vec!["camera"],
-        |p: Params| {
-            p.check()?;
-            Ok(Box::new(Op(p)))
-        },
+        |p: Params| Ok(Box::new(Op(p))),
     )
 }
 
