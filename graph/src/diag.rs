@@ -54,12 +54,13 @@ impl Diagnostic {
             let pad = " ".repeat(gutter);
             let _ = writeln!(out, "{pad}--> {loc}");
             let _ = writeln!(out, "{pad} |");
-            let _ = writeln!(out, "{} | {}", loc.line, line_text);
-            // Carets under the span, clipped to the first line it covers.
-            let text_from_col: String = line_text.chars().skip(loc.column - 1).collect();
+            let (shown, column) = clip_line(line_text, loc.column);
+            let _ = writeln!(out, "{} | {}", loc.line, shown);
+            // Carets under the span, clipped to the first line it covers (and to what is shown).
+            let text_from_col: String = shown.chars().skip(column - 1).collect();
             let span_chars = sources.slice(span).chars().take_while(|c| *c != '\n').count();
             let width = span_chars.clamp(1, text_from_col.chars().count().max(1));
-            let _ = write!(out, "{pad} | {}{}", " ".repeat(loc.column - 1), "^".repeat(width));
+            let _ = write!(out, "{pad} | {}{}", " ".repeat(column - 1), "^".repeat(width));
             if let Some(label) = &self.label {
                 let _ = write!(out, " {label}");
             }
@@ -70,6 +71,30 @@ impl Diagnostic {
         }
         out
     }
+}
+
+/// Longest line a snippet shows whole, in characters.
+const MAX_SHOWN: usize = 120;
+
+/// The part of `line` a snippet shows (all of it, or `MAX_SHOWN` characters around `column`
+/// between `...` marks: a generated file may hold one line of megabytes) and the 1-based
+/// column of the same character in it.
+fn clip_line(line: &str, column: usize) -> (String, usize) {
+    let chars: Vec<char> = line.chars().collect();
+    if chars.len() <= MAX_SHOWN {
+        return (line.to_string(), column);
+    }
+    let start = column.saturating_sub(1 + MAX_SHOWN / 3).min(chars.len() - MAX_SHOWN);
+    let end = start + MAX_SHOWN;
+    let mut shown = String::new();
+    if start > 0 {
+        shown.push_str("...");
+    }
+    shown.extend(&chars[start..end]);
+    if end < chars.len() {
+        shown.push_str("...");
+    }
+    (shown, column - start + if start > 0 { 3 } else { 0 })
 }
 
 /// Renders every diagnostic, then a count line.
@@ -124,6 +149,24 @@ mod tests {
             text,
             "error: unknown stage kind `Foo`\n --> p.ron:3:10\n  |\n3 |     \"a\": Foo(),\n  |          ^^^ not a stage kind\n  = note: known kinds: Bar\n"
         );
+    }
+
+    #[test]
+    fn long_lines_are_shown_around_the_position() {
+        let mut s = Sources::default();
+        let line = format!("{}X{}", "a".repeat(5000), "b".repeat(5000));
+        let id = s.add("p.ron", line.clone());
+        let text = Diagnostic::error("here", Span::new(id, 5000, 5001)).render(&s);
+        let lines: Vec<&str> = text.lines().collect();
+        assert!(lines[1].ends_with("p.ron:1:5001"), "{text}");
+        let (shown, carets) = (lines[3], lines[4]);
+        assert!(shown.len() < 140 && shown.contains("...a") && shown.ends_with("b..."), "{text}");
+        assert_eq!(shown.find('X'), carets.find('^'), "{text}");
+        // Near the start, nothing is cut before.
+        let text = Diagnostic::error("here", Span::new(id, 3, 4)).render(&s);
+        let lines: Vec<&str> = text.lines().collect();
+        assert!(lines[3].starts_with("1 | aaa") && lines[3].ends_with("..."), "{text}");
+        assert_eq!(lines[4].find('^'), Some("1 | aaa".len()), "{text}");
     }
 
     #[test]

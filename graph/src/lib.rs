@@ -12,7 +12,10 @@ pub mod pipeline;
 pub mod source;
 pub mod syntax;
 
-pub use catalog::{Catalog, DatasetSchema, DimSpec, ParamInfo, ParamsSpec, PortSpec, SourcePortSpec, StageSchema};
+pub use catalog::{
+    Catalog, DatasetSchema, DimSpec, ParamChecks, ParamInfo, ParamProblem, ParamsError, ParamsSpec, PortSpec,
+    SourcePortSpec, StageSchema, Validate,
+};
 pub use diag::Diagnostic;
 pub use load::{load_file, load_str, LoadError};
 pub use pipeline::{

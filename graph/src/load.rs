@@ -5,7 +5,7 @@
 //! grains), cycles and exports. Each check adds diagnostics and goes on, so one run of `check`
 //! shows everything that is wrong.
 
-use crate::catalog::{Catalog, ParamsSpec};
+use crate::catalog::{Catalog, ParamProblem, ParamsError, ParamsSpec};
 use crate::diag::{did_you_mean, render_all, Diagnostic};
 use crate::pipeline::*;
 use crate::source::{SourceId, Sources, Span};
@@ -39,8 +39,8 @@ impl std::error::Error for LoadError {}
 /// `overrides` are `target.field=value` strings (`project.min_depth=2`, `dataset.root=/data`);
 /// relative paths given through them resolve against `cwd`.
 pub fn load_file(path: &Path, overrides: &[String], cwd: &Path, catalog: &dyn Catalog) -> Result<Pipeline, LoadError> {
-    let text = match std::fs::read_to_string(path) {
-        Ok(t) => t,
+    let bytes = match std::fs::read(path) {
+        Ok(b) => b,
         Err(e) => {
             return Err(LoadError {
                 sources: Sources::default(),
@@ -51,11 +51,32 @@ pub fn load_file(path: &Path, overrides: &[String], cwd: &Path, catalog: &dyn Ca
             })
         }
     };
+    let text = match String::from_utf8(bytes) {
+        Ok(t) => t,
+        Err(e) => return Err(not_utf8(&path.display().to_string(), e)),
+    };
     let base = path
         .parent()
         .map(|p| if p.as_os_str().is_empty() { cwd.to_path_buf() } else { cwd.join(p) })
         .unwrap_or_else(|| cwd.to_path_buf());
     load_str(&path.display().to_string(), &text, path, &base, overrides, cwd, catalog)
+}
+
+/// A pipeline file that is not UTF-8, shown at its first invalid byte. The text is kept with
+/// that byte and what follows replaced (U+FFFD), so that the valid part before it keeps its byte
+/// offsets and the diagnostic can show the line and column.
+fn not_utf8(name: &str, e: std::string::FromUtf8Error) -> LoadError {
+    let at = e.utf8_error().valid_up_to();
+    let byte = e.as_bytes()[at];
+    let mut sources = Sources::default();
+    let id = sources.add(name, String::from_utf8_lossy(e.as_bytes()).into_owned());
+    let d = Diagnostic::error(
+        format!("the pipeline file is not valid UTF-8: byte {at} (0x{byte:02X}) is not part of a valid character"),
+        Span::new(id, at, at + char::REPLACEMENT_CHARACTER.len_utf8()),
+    )
+    .with_label("not UTF-8")
+    .with_note("pipeline files are UTF-8 text; re-save the file as UTF-8");
+    LoadError { sources, diagnostics: vec![d] }
 }
 
 /// Like [`load_file`] for text already in memory; `base` is where relative paths in it resolve.
@@ -111,7 +132,13 @@ fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources
             );
             continue;
         }
-        let value = parse_override_value(arg, eq + 1, id);
+        let value = match parse_override_value(arg, eq + 1, id) {
+            Ok(v) => v,
+            Err(d) => {
+                checker.diags.push(d);
+                continue;
+            }
+        };
         let field =
             Field { name: Name { text: parts[1].to_string(), span: Span::new(id, parts[0].len() + 1, eq) }, value };
         let target_span = Span::new(id, 0, parts[0].len());
@@ -162,17 +189,23 @@ fn params_of(stage: &mut Value) -> Option<&mut Value> {
     fields.iter_mut().find(|f| f.name.text == "params").map(|f| &mut f.value)
 }
 
-/// A --set value is RON when it parses as RON, else a plain string (paths, `v1.0-mini`).
-fn parse_override_value(arg: &str, start: usize, id: SourceId) -> Value {
+/// A --set value is RON when it parses as RON, else a plain string (paths, `v1.0-mini`); but
+/// brackets nested beyond the limit are a value gone wrong, not a string.
+fn parse_override_value(arg: &str, start: usize, id: SourceId) -> Result<Value, Diagnostic> {
     let text = &arg[start..];
     let mut scratch = Sources::default();
     let sid = scratch.add("", text);
-    match syntax::parse(text, sid) {
+    match syntax::parse_value(text, sid) {
         Ok(mut v) => {
             shift_spans(&mut v, id, start as u32);
-            v
+            Ok(v)
         }
-        Err(_) => Value { kind: ValueKind::Str(text.to_string()), span: Span::new(id, start, arg.len()) },
+        Err(e) if e.too_deep => {
+            let mut d = e.diagnostic;
+            d.span = d.span.map(|s| Span { source: id, start: s.start + start as u32, end: s.end + start as u32 });
+            Err(d)
+        }
+        Err(_) => Ok(Value { kind: ValueKind::Str(text.to_string()), span: Span::new(id, start, arg.len()) }),
     }
 }
 
@@ -239,8 +272,10 @@ impl<'c> Checker<'c> {
         ok
     }
 
-    /// Checks params against a spec: every unknown field, then the first type error.
-    fn params(&mut self, value: Option<&Value>, spec: &ParamsSpec, what: &str) -> Option<String> {
+    /// Checks params against a spec: every unknown field, then the first type error, then every
+    /// value out of range. `fallback` is where a problem with a param left at its default points
+    /// when no params are written (the stage's name).
+    fn params(&mut self, value: Option<&Value>, spec: &ParamsSpec, what: &str, fallback: Span) -> Option<String> {
         if let Some(v) = value {
             match v.fields() {
                 Some(fields) => {
@@ -273,7 +308,7 @@ impl<'c> Checker<'c> {
         }
         match spec.check(value) {
             Ok(canonical) => Some(canonical),
-            Err(e) => {
+            Err(ParamsError::Type(e)) => {
                 let span = e.span.or(value.map(|v| v.span));
                 let d = match span {
                     Some(s) => Diagnostic::error(format!("bad params of {what}: {}", e.message), s),
@@ -282,7 +317,41 @@ impl<'c> Checker<'c> {
                 self.err(d.with_note(format!("params: {}", spec.describe())));
                 None
             }
+            Err(ParamsError::Range(problems)) => {
+                for p in problems {
+                    self.range_problem(&p, value, spec, what, fallback);
+                }
+                None
+            }
         }
+    }
+
+    /// A param out of range, at the value written for it (or for the other field of a relation),
+    /// else at the params struct, else at `fallback`.
+    fn range_problem(
+        &mut self,
+        p: &ParamProblem,
+        value: Option<&Value>,
+        spec: &ParamsSpec,
+        what: &str,
+        fallback: Span,
+    ) {
+        let written = |name: &str| value.and_then(|v| v.field(name)).map(|f| &f.value);
+        let at = match (written(p.field), p.other.and_then(written)) {
+            (Some(v), _) => match (&v.kind, p.index) {
+                (ValueKind::List(items) | ValueKind::Tuple(_, items), Some(i)) if i < items.len() => items[i].span,
+                _ => v.span,
+            },
+            (None, Some(other)) => other.span,
+            (None, None) => value.map(|v| v.span).unwrap_or(fallback),
+        };
+        let mut d = Diagnostic::error(format!("`{}` of {what} {}", p.field, p.message), at);
+        if written(p.field).is_none() {
+            if let Some(f) = spec.fields.iter().find(|f| f.name == p.field) {
+                d = d.with_note(format!("`{}` is not written here, so it has its default {}", p.field, f.default));
+            }
+        }
+        self.err(d);
     }
 
     fn pipeline(&mut self, root: &Value, default_name: String, path: PathBuf) -> Option<Pipeline> {
@@ -396,7 +465,7 @@ impl<'c> Checker<'c> {
                 ));
                 None
             }
-            _ => self.params(Some(&config), schema.config(), &format!("dataset {}", schema.kind())),
+            _ => self.params(Some(&config), schema.config(), &format!("dataset {}", schema.kind()), kind.span),
         };
         let dims =
             schema.dims().iter().map(|d| Dim { name: d.name.to_string(), ordered: d.ordered }).collect::<Vec<_>>();
@@ -468,7 +537,7 @@ impl<'c> Checker<'c> {
         };
         self.known_fields(fields, &["inputs", "params", "grain"], &format!("stage `{name}`"));
         let what = format!("stage `{name}` ({})", schema.kind());
-        let params = self.params(value.field("params").map(|f| &f.value), schema.params(), &what);
+        let params = self.params(value.field("params").map(|f| &f.value), schema.params(), &what, key.span);
 
         let grain = match (value.field("grain"), dims) {
             (_, None) => None,
@@ -750,7 +819,19 @@ impl<'c> Checker<'c> {
         };
         let int = |this: &mut Self, i: usize| -> Option<i32> {
             match items[i].kind {
-                ValueKind::Int(x) if x.abs() < 1_000_000 => Some(x as i32),
+                // `unsigned_abs`: `abs` of i64::MIN overflows (and wraps to a negative number,
+                // which passed the bound, in release builds).
+                ValueKind::Int(x) if x.unsigned_abs() <= MAX_SELECTOR_OFFSET as u64 => Some(x as i32),
+                ValueKind::Int(x) => {
+                    this.err(
+                        Diagnostic::error(
+                            format!("the offset {x} is out of range: offsets are within ±{MAX_SELECTOR_OFFSET}"),
+                            items[i].span,
+                        )
+                        .with_label("out of range"),
+                    );
+                    None
+                }
                 _ => {
                     this.err(Diagnostic::error(
                         format!("expected a whole number, found {}", items[i].describe()),
@@ -948,6 +1029,10 @@ impl<'c> Checker<'c> {
         out
     }
 }
+
+/// Largest offset a `Window` or `Offset` selector may take along a dimension: far beyond any
+/// scene's length (a 20 Hz log of an hour has 72,000 frames), small enough for `i32` positions.
+const MAX_SELECTOR_OFFSET: i32 = 999_999;
 
 /// Why a selector cannot connect an upstream grain `u` to a downstream grain `d` (depths, 1-based).
 fn grain_allows(sel: Selector, u: usize, d: usize, dims: &[Dim]) -> Result<(), String> {

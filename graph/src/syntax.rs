@@ -121,20 +121,29 @@ impl Value {
     }
 }
 
+/// How deep values may nest (each `(..)`, `[..]` and `{..}` is one level). The parser recurses
+/// once per level, and so do serde and `Drop` on the tree, so an unbounded depth (a file of
+/// 20,000 `[`) overflows the stack. A pipeline needs about 6 levels (`Pipeline(stages: {"s":
+/// Kind(inputs: {"p": Window(..)}))`), a params value a few more.
+pub const MAX_NESTING: usize = 64;
+
+/// Why [`parse_value`] failed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SyntaxError {
+    pub diagnostic: Diagnostic,
+    /// The text nests deeper than [`MAX_NESTING`]: it was meant as a value, not plain text.
+    pub too_deep: bool,
+}
+
 /// Parses one RON value filling the whole text.
 pub fn parse(text: &str, source: SourceId) -> Result<Value, Diagnostic> {
-    let mut p = Parser { text, bytes: text.as_bytes(), pos: 0, source };
-    p.skip_trivia()?;
-    if p.pos >= p.bytes.len() {
-        return Err(Diagnostic::error("the file is empty: expected a pipeline `Pipeline(..)`", p.span(0, 0)));
-    }
-    let v = p.value()?;
-    p.skip_trivia()?;
-    if p.pos < p.bytes.len() {
-        return Err(Diagnostic::error("unexpected text after the end of the value", p.span(p.pos, p.pos + 1))
-            .with_label("expected nothing more here"));
-    }
-    Ok(v)
+    parse_value(text, source).map_err(|e| e.diagnostic)
+}
+
+/// [`parse`], saying whether it failed on the nesting limit.
+pub fn parse_value(text: &str, source: SourceId) -> Result<Value, SyntaxError> {
+    let mut p = Parser { text, bytes: text.as_bytes(), pos: 0, source, depth: 0, too_deep: false };
+    p.parse_all().map_err(|diagnostic| SyntaxError { diagnostic, too_deep: p.too_deep })
 }
 
 struct Parser<'a> {
@@ -142,9 +151,30 @@ struct Parser<'a> {
     bytes: &'a [u8],
     pos: usize,
     source: SourceId,
+    /// Containers open around the current position.
+    depth: usize,
+    too_deep: bool,
 }
 
 impl<'a> Parser<'a> {
+    /// The one value that fills the text.
+    fn parse_all(&mut self) -> Result<Value, Diagnostic> {
+        self.skip_trivia()?;
+        if self.pos >= self.bytes.len() {
+            return Err(Diagnostic::error("the file is empty: expected a pipeline `Pipeline(..)`", self.span(0, 0)));
+        }
+        let v = self.value()?;
+        self.skip_trivia()?;
+        if self.pos < self.bytes.len() {
+            return Err(Diagnostic::error(
+                "unexpected text after the end of the value",
+                self.span(self.pos, self.pos + 1),
+            )
+            .with_label("expected nothing more here"));
+        }
+        Ok(v)
+    }
+
     fn span(&self, start: usize, end: usize) -> Span {
         Span::new(self.source, start, end)
     }
@@ -214,14 +244,32 @@ impl<'a> Parser<'a> {
         }
     }
 
+    /// Runs `f`, which parses a container starting at `start`, one level deeper; refuses to go
+    /// beyond [`MAX_NESTING`].
+    fn nested<T>(&mut self, start: usize, f: impl FnOnce(&mut Self) -> Result<T, Diagnostic>) -> Result<T, Diagnostic> {
+        if self.depth >= MAX_NESTING {
+            self.too_deep = true;
+            return Err(Diagnostic::error(
+                format!("values nest deeper than {MAX_NESTING} levels here"),
+                self.span(start, start + 1),
+            )
+            .with_label(format!("level {}", MAX_NESTING + 1))
+            .with_note("a pipeline needs a handful of levels; look for unbalanced or runaway brackets"));
+        }
+        self.depth += 1;
+        let r = f(self);
+        self.depth -= 1;
+        r
+    }
+
     fn value(&mut self) -> Result<Value, Diagnostic> {
         self.skip_trivia()?;
         let start = self.pos;
         let kind = match self.peek() {
             None => return self.unexpected("a value"),
-            Some(b'(') => return self.parens(None, start),
-            Some(b'[') => self.list()?,
-            Some(b'{') => self.map()?,
+            Some(b'(') => return self.nested(start, |p| p.parens(None, start)),
+            Some(b'[') => self.nested(start, |p| p.list())?,
+            Some(b'{') => self.nested(start, |p| p.map())?,
             Some(b'"') => ValueKind::Str(self.string()?),
             Some(b'\'') => ValueKind::Char(self.char_lit()?),
             Some(b'r') if matches!(self.bytes.get(self.pos + 1), Some(b'"' | b'#')) => {
@@ -234,7 +282,7 @@ impl<'a> Parser<'a> {
                 let after_name = self.pos;
                 self.skip_trivia()?;
                 if self.peek() == Some(b'(') {
-                    return self.parens(Some(Name { text: name, span: name_span }), start);
+                    return self.nested(start, |p| p.parens(Some(Name { text: name, span: name_span }), start));
                 }
                 self.pos = after_name;
                 match name.as_str() {

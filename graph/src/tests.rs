@@ -13,6 +13,40 @@ struct ProjectParams {
     border: u32,
 }
 
+impl Validate for ProjectParams {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new().within("min_depth", self.min_depth as f64, 0.0, 1000.0).done()
+    }
+}
+
+/// Params with every kind of range check, for the diagnostics they give.
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+struct RangeParams {
+    lo: f64,
+    hi: f64,
+    size: u32,
+    names: Vec<String>,
+}
+
+impl Default for RangeParams {
+    fn default() -> Self {
+        RangeParams { lo: 0.0, hi: 1.0, size: 4, names: vec!["a".into()] }
+    }
+}
+
+impl Validate for RangeParams {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new()
+            .within("lo", self.lo, -10.0, 10.0)
+            .within("hi", self.hi, -10.0, 10.0)
+            .below("lo", self.lo, "hi", self.hi)
+            .count("size", self.size as u64, 1, 64)
+            .path_names("names", &self.names)
+            .done()
+    }
+}
+
 #[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 struct DataConfig {
@@ -26,9 +60,13 @@ impl Default for DataConfig {
     }
 }
 
+impl Validate for DataConfig {}
+
 #[derive(Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 struct NoParams {}
+
+impl Validate for NoParams {}
 
 struct Stage {
     kind: &'static str,
@@ -143,6 +181,13 @@ fn catalog() -> Cat {
                 outputs: vec![PortSpec::one("depth", "DepthMap", "")],
                 grains: vec!["frame", "camera"],
                 params: ParamsSpec::of::<NoParams>(),
+            },
+            Stage {
+                kind: "Range",
+                inputs: vec![],
+                outputs: vec![PortSpec::one("depth", "DepthMap", "")],
+                grains: vec!["camera"],
+                params: ParamsSpec::of::<RangeParams>(),
             },
         ],
         data: Data { config: ParamsSpec::of::<DataConfig>() },
@@ -327,4 +372,129 @@ fn missing_dataset_and_unknown_top_level_fields() {
     assert!(out.contains("the pipeline has no `dataset`"), "{out}");
     assert!(out.contains("unknown field `stagse` in Pipeline"), "{out}");
     assert!(out.contains("did you mean `stages`?"), "{out}");
+}
+
+/// GOOD with a `Range` stage whose params are `params`.
+fn with_range(params: &str) -> String {
+    GOOD.replace(
+        "        \"encode\": Encode(",
+        &format!("        \"r\": Range(\n            params: {params},\n        ),\n        \"encode\": Encode("),
+    )
+}
+
+#[test]
+fn params_out_of_range_are_reported_at_the_written_value() {
+    let text = with_range(r#"(lo: 5, hi: 2, size: 0, names: ["a", "../b", "a", ""])"#);
+    let out = errors(&text, &[]);
+    // Line 9 is the params line; columns count from 1.
+    let line = text.lines().nth(8).unwrap();
+    let col = |needle: &str| line.find(needle).unwrap() + 1;
+    assert!(out.contains("`size` of stage `r` (Range) must be in 1..=64, found 0"), "{out}");
+    assert!(out.contains(&format!("p.ron:9:{}", col("0,"))), "{out}");
+    assert!(out.contains("`lo` of stage `r` (Range) must be below `hi` (2), found 5"), "{out}");
+    assert!(out.contains(&format!("p.ron:9:{}", col("5,"))), "{out}");
+    // List elements are pointed at one by one.
+    assert!(
+        out.contains("`names` of stage `r` (Range) must be one file or folder name, without `/`, found `../b`"),
+        "{out}"
+    );
+    assert!(out.contains(&format!("p.ron:9:{}", col("\"../b\""))), "{out}");
+    assert!(out.contains("`names` of stage `r` (Range) names `a` twice"), "{out}");
+    assert!(out.contains(&format!("p.ron:9:{}", col("\"a\", \"\""))), "{out}");
+    assert!(out.contains("must not be empty"), "{out}");
+    assert!(out.contains("5 problems found"), "{out}");
+    // NaN and infinities are not numbers in range.
+    let out = errors(&with_range("(hi: NaN, lo: -inf)"), &[]);
+    assert!(out.contains("`hi` of stage `r` (Range) must be a number in [-10, 10], found NaN"), "{out}");
+    assert!(out.contains("`lo` of stage `r` (Range) must be a number in [-10, 10], found -inf"), "{out}");
+}
+
+#[test]
+fn a_relation_broken_by_one_written_param_points_at_it() {
+    // `lo` keeps its default 0 and `hi` is written: the diagnostic is at `hi`, naming `lo`'s default.
+    let text = with_range("(hi: -1)");
+    let out = errors(&text, &[]);
+    assert!(out.contains("`lo` of stage `r` (Range) must be below `hi` (-1), found 0"), "{out}");
+    let line = text.lines().nth(8).unwrap();
+    assert!(out.contains(&format!("p.ron:9:{}", line.find("-1").unwrap() + 1)), "{out}");
+    assert!(out.contains("`lo` is not written here, so it has its default 0.0"), "{out}");
+}
+
+#[test]
+fn params_out_of_range_through_set_point_into_the_argument() {
+    let out = errors(GOOD, &["project.min_depth=-1", "project.border=3"]);
+    assert!(out.contains("`min_depth` of stage `project` (Project) must be a number in [0, 1000], found -1"), "{out}");
+    assert!(out.contains("--> --set:1:19"), "{out}");
+    assert!(out.contains("1 problem found"), "{out}");
+    // A stage written without params gets them from --set, and their problems point there too.
+    let out = errors(&with_range("()"), &["r.size=65"]);
+    assert!(out.contains("`size` of stage `r` (Range) must be in 1..=64, found 65"), "{out}");
+    assert!(out.contains("--> --set:1:8"), "{out}");
+}
+
+#[test]
+fn values_nested_too_deep_are_refused_at_their_position() {
+    use crate::syntax::MAX_NESTING;
+    // Far beyond the limit (this overflowed the stack) and one level beyond it.
+    for depth in [20_000, MAX_NESTING] {
+        let text = format!("Pipeline(name: {}{})", "[".repeat(depth), "]".repeat(depth));
+        let out = errors(&text, &[]);
+        assert!(out.contains(&format!("values nest deeper than {MAX_NESTING} levels here")), "{out}");
+        // `Pipeline(` is level 1, so the first refused `[` is number MAX_NESTING.
+        assert!(out.contains(&format!("p.ron:1:{}", "Pipeline(name: ".len() + MAX_NESTING)), "{out}");
+    }
+    // Through --set: an error at the argument, not a plain string, not a crash.
+    let deep = format!("project.min_depth={}", "[".repeat(20_000));
+    let out = errors(GOOD, &[&deep]);
+    assert!(out.contains("values nest deeper than"), "{out}");
+    assert!(out.contains(&format!("--> --set:1:{}", "project.min_depth=".len() + MAX_NESTING + 1)), "{out}");
+    // At the limit, values still parse.
+    let mut sources = crate::source::Sources::default();
+    let id = sources.add("t", "");
+    let at_limit = format!("{}{}", "[".repeat(MAX_NESTING), "]".repeat(MAX_NESTING));
+    assert!(crate::syntax::parse(&at_limit, id).is_ok());
+    let over = format!("[{at_limit}]");
+    let e = crate::syntax::parse_value(&over, id).unwrap_err();
+    assert!(e.too_deep && e.diagnostic.span.unwrap().start as usize == MAX_NESTING, "{e:?}");
+}
+
+#[test]
+fn selector_offsets_out_of_range_are_refused_even_the_most_negative() {
+    for (offset, ok) in [
+        ("-9223372036854775808", false),
+        ("9223372036854775807", false),
+        ("1000000", false),
+        ("-1000000", false),
+        ("999999", true),
+        ("-999999", true),
+    ] {
+        let text = GOOD.replace(
+            r#""window": Fuse(inputs: {"depths": Window("fuse.depth", frame, -1, 1)}),"#,
+            &format!(r#""window": Fuse(inputs: {{"depths": Offset("fuse.depth", frame, {offset})}}),"#),
+        );
+        let out = errors(&text, &[]);
+        if ok {
+            assert_eq!(out, "loaded", "{offset}");
+        } else {
+            assert!(out.contains(&format!("the offset {offset} is out of range: offsets are within ±999999")), "{out}");
+            assert!(out.contains("p.ron:10:71"), "{out}");
+        }
+    }
+}
+
+#[test]
+fn a_file_that_is_not_utf8_is_refused_at_its_first_bad_byte() {
+    let dir = std::env::temp_dir().join(format!("dist4d-graph-utf8-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("bad.ron");
+    // Line 2, after `  name: "ça` (11 characters, 12 bytes): byte 10 + 12 = 22, column 12.
+    std::fs::write(&file, b"Pipeline(\n  name: \"\xc3\xa7a\xff\",\n)\n").unwrap();
+    let e = crate::load_file(&file, &[], &dir, &catalog()).unwrap_err();
+    let out = e.render();
+    std::fs::remove_dir_all(&dir).unwrap();
+    assert!(
+        out.contains("the pipeline file is not valid UTF-8: byte 22 (0xFF) is not part of a valid character"),
+        "{out}"
+    );
+    assert!(out.contains("bad.ron:2:12"), "{out}");
 }

@@ -97,6 +97,10 @@ pub struct EchoParams {
     pub sleep_ms: u64,
 }
 
+// Test params: any value is usable.
+impl dist4d_graph::Validate for EchoParams {}
+impl dist4d_graph::Validate for GridConfig {}
+
 struct Kind {
     kind: &'static str,
     inputs: Vec<PortSpec>,

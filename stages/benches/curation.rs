@@ -128,8 +128,8 @@ fn bench_stereo(tmp: &Path) {
     let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     let (ours, depth) = one.install(|| {
         best_of(3, || {
-            let mut d = sweep_depth(&left, &[&right], &p);
-            let back = sweep_depth(&right, &[&left], &p);
+            let mut d = sweep_depth(&left, &[&right], &p).expect("the benchmark sweep fits the budget");
+            let back = sweep_depth(&right, &[&left], &p).expect("the benchmark sweep fits the budget");
             keep_consistent(&left, &mut d, &[(&right, &back)], mvs.consistency_px, mvs.consistency_depth);
             d
         })

@@ -387,6 +387,14 @@ impl Dataset for Dgp {
     }
 }
 
+/// Camera and LiDAR names become folder and file names of exports, so each must be one safe
+/// path component; the cameras, at least one, once each.
+impl dist4d_graph::Validate for DgpConfig {
+    fn validate(&self) -> Vec<dist4d_graph::ParamProblem> {
+        dist4d_graph::ParamChecks::new().path_names("cameras", &self.cameras).path_name("lidar", &self.lidar).done()
+    }
+}
+
 pub struct DgpSchema {
     config: ParamsSpec,
 }

@@ -131,3 +131,101 @@ impl Catalog for Registry {
 }
 
 use artifact::Artifact as _;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dist4d_graph::source::Sources;
+    use dist4d_graph::syntax::parse;
+    use dist4d_graph::ParamsError;
+
+    /// The range problems of `kind`'s params written as `text`, as `field: message` lines.
+    fn problems(catalog: &Registry, kind: &str, text: &str) -> Vec<String> {
+        let mut sources = Sources::default();
+        let id = sources.add("t", text);
+        let value = parse(text, id).unwrap();
+        let spec = match catalog.stage(kind) {
+            Some(s) => s.params(),
+            None => catalog.dataset(kind).unwrap().config(),
+        };
+        match spec.check(Some(&value)) {
+            Ok(_) => Vec::new(),
+            Err(ParamsError::Range(p)) => p.iter().map(|p| format!("{}: {}", p.field, p.message)).collect(),
+            Err(ParamsError::Type(e)) => panic!("{kind} {text}: {e}"),
+        }
+    }
+
+    #[test]
+    fn every_default_is_in_range() {
+        let r = Registry::default();
+        for kind in r.stage_kinds() {
+            assert!(r.stage(kind).unwrap().params().check(None).is_ok(), "{kind}");
+        }
+        for kind in r.dataset_kinds() {
+            assert!(r.dataset(kind).unwrap().config().check(None).is_ok(), "{kind}");
+        }
+    }
+
+    #[test]
+    fn params_that_size_buffers_or_that_every_task_would_refuse_are_out_of_range() {
+        let r = Registry::default();
+        // (kind, params, the fields at fault)
+        let cases: &[(&str, &str, &[&str])] = &[
+            ("MultiViewStereo", "(max_planes: 1000000000, plane_step_px: 0.000001)", &["max_planes", "plane_step_px"]),
+            ("MultiViewStereo", "(downscale: 0)", &["downscale"]),
+            ("MultiViewStereo", "(min_depth: 50, max_depth: 10)", &["min_depth"]),
+            ("MultiViewStereo", "(p1: 9, p2: 8)", &["p1"]),
+            ("MultiViewStereo", "(p2: 60000)", &["p2"]),
+            ("MultiViewStereo", "(uniqueness: 1.0, consistency_px: inf)", &["uniqueness", "consistency_px"]),
+            ("AggregateLidar", "(holdout: NaN)", &["holdout"]),
+            ("AggregateLidar", "(holdout: 2)", &["holdout"]),
+            ("AggregateLidar", "(ego_box_min: [0, 0, 5], min_distance: -1)", &["min_distance", "ego_box_min"]),
+            ("FusePoints", "(cell_px: 0)", &["cell_px"]),
+            ("FusePoints", "(cell_px: 100000)", &["cell_px"]),
+            ("CompleteDepth", "(grow: inf, sky_depth: 0, row_gap: 4000000000)", &["row_gap", "sky_depth", "grow"]),
+            (
+                "HiddenPointRemoval",
+                "(radius_factor: 0.5, restore_window: [1, 1e9])",
+                &["radius_factor", "restore_window"],
+            ),
+            ("StaticMvsPoints", "(support_radius: 100000)", &["support_radius"]),
+            ("StaticMvsPoints", "(support_radius: 1, min_support: 9)", &["min_support"]),
+            ("StaticMvsPoints", "(min_confidence: -0.1, voxel: NaN)", &["min_confidence", "voxel"]),
+            ("DepthSheet", "(scale: 1000)", &["scale"]),
+            ("DepthSheet", "(scale: 0)", &["scale"]),
+            ("EncodeDepth", "(preview_max_depth: 0)", &["preview_max_depth"]),
+            ("EvalDepth", "(min_depth: 0)", &["min_depth"]),
+            ("EvalDepth", "(min_depth: 90)", &["min_depth"]),
+            ("DepthPrompt", "(max_depth: NaN)", &["max_depth"]),
+            ("ProjectLidar", "(border_px: -1)", &["border_px"]),
+            (
+                "AboveLidarFov",
+                "(outlier_share: 1, top_elevation_deg: Some(91))",
+                &["top_elevation_deg", "outlier_share"],
+            ),
+            ("NuScenes", "(cameras: [])", &["cameras"]),
+            ("NuScenes", r#"(cameras: ["CAM_FRONT", "CAM_FRONT"])"#, &["cameras"]),
+            ("NuScenes", r#"(cameras: ["../x", "a/b", "a\\b", ".", "..", "", "/abs", "n\u{0}ul"])"#, &["cameras"; 8]),
+            ("NuScenes", r#"(lidar: "..", version: "../../etc")"#, &["lidar", "version"]),
+            ("Dgp", r#"(cameras: ["CAMERA_01", "../CAMERA_05"], lidar: "")"#, &["cameras", "lidar"]),
+        ];
+        for (kind, text, fields) in cases {
+            let found = problems(&r, kind, text);
+            let at: Vec<&str> = found.iter().map(|p| p.split(':').next().unwrap()).collect();
+            assert_eq!(&at, fields, "{kind} {text}: {found:?}");
+        }
+        // What the shipped pipelines use, and the sane edges, pass.
+        for (kind, text) in [
+            ("MultiViewStereo", "(downscale: 1, max_planes: 1024, plane_step_px: 0.5, p1: 8, p2: 8)"),
+            ("AggregateLidar", "(holdout: 0.2)"),
+            ("AggregateLidar", "(holdout: 1)"),
+            ("FusePoints", "(cell_px: 1)"),
+            ("StaticMvsPoints", "(support_radius: 1, min_support: 8)"),
+            // Above every confidence: MVS points off.
+            ("StaticMvsPoints", "(min_confidence: 2)"),
+            ("NuScenes", r#"(cameras: ["CAM_FRONT"], version: "v1.0-trainval")"#),
+        ] {
+            assert_eq!(problems(&r, kind, text), Vec::<String>::new(), "{kind} {text}");
+        }
+    }
+}

@@ -136,8 +136,8 @@ mod tests {
         let ((left, right), truth) = read_motorcycle(&dir).unwrap();
         let calib = PairCalibration::MOTORCYCLE;
         let p = calib.sweep(80.0, &crate::stereo::tests::params());
-        let mut depth = sweep_depth(&left, &[&right], &p);
-        let back = sweep_depth(&right, &[&left], &p);
+        let mut depth = sweep_depth(&left, &[&right], &p).unwrap();
+        let back = sweep_depth(&right, &[&left], &p).unwrap();
         keep_consistent(&left, &mut depth, &[(&right, &back)], 1.0, 0.05);
         let disparity: Vec<Option<f64>> =
             depth.depth.iter().map(|&z| (z > 0.0).then(|| calib.disparity(z as f64))).collect();

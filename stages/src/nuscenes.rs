@@ -706,6 +706,18 @@ pub(crate) fn surround_label(
     }
 }
 
+/// Camera and LiDAR names become folder and file names of exports (and the version a folder
+/// under the root), so each must be one safe path component; the cameras, at least one, once each.
+impl dist4d_graph::Validate for NuScenesConfig {
+    fn validate(&self) -> Vec<dist4d_graph::ParamProblem> {
+        dist4d_graph::ParamChecks::new()
+            .path_names("cameras", &self.cameras)
+            .path_name("lidar", &self.lidar)
+            .path_name("version", &self.version)
+            .done()
+    }
+}
+
 pub struct NuScenesSchema {
     config: ParamsSpec,
 }

@@ -3,7 +3,7 @@
 
 use crate::artifact::Artifact;
 use anyhow::{anyhow, Context, Result};
-use dist4d_graph::{ParamsSpec, PortSpec, StageSchema};
+use dist4d_graph::{ParamsSpec, PortSpec, StageSchema, Validate};
 use dist4d_runtime::{Operator, TaskContext};
 use serde::{de::DeserializeOwned, Serialize};
 
@@ -48,7 +48,7 @@ pub struct StageDef {
 
 impl StageDef {
     #[allow(clippy::too_many_arguments)]
-    pub fn new<P: DeserializeOwned + Serialize + Default + 'static>(
+    pub fn new<P: DeserializeOwned + Serialize + Default + Validate + 'static>(
         kind: &'static str,
         version: u32,
         summary: &'static str,
@@ -67,6 +67,8 @@ impl StageDef {
             params: ParamsSpec::of::<P>(),
             build: Box::new(move |canonical| {
                 let params: P = parse_canonical(canonical).with_context(|| format!("params of {kind}"))?;
+                // `check` refused these already; params that reach here another way are checked too.
+                ensure_valid(&params).with_context(|| format!("params of {kind}"))?;
                 build(params)
             }),
         }
@@ -107,6 +109,16 @@ impl StageSchema for StageDef {
     fn params(&self) -> &ParamsSpec {
         &self.params
     }
+}
+
+/// An error listing every range problem of `params` (none: Ok).
+pub fn ensure_valid<P: Validate>(params: &P) -> Result<()> {
+    let problems = params.validate();
+    if problems.is_empty() {
+        return Ok(());
+    }
+    let list: Vec<String> = problems.iter().map(|p| format!("`{}` {}", p.field, p.message)).collect();
+    Err(anyhow!("{}", list.join("; ")))
 }
 
 /// Reads a params struct back from its canonical RON text.

@@ -91,6 +91,46 @@ pub struct SweepParams {
     pub uniqueness: f64,
     /// The second best is sought at least this far (px, along the epipolar line) from the best.
     pub distinct_px: f64,
+    /// Largest cost volume (with its aggregation, see [`volume_bytes`]) a sweep may allocate;
+    /// beyond it the sweep is refused before anything is allocated.
+    pub max_volume_bytes: u64,
+}
+
+/// Bytes a sweep of `width` x `height` pixels over `planes` planes holds at its peak: the
+/// census cost volume (1 byte per pixel and plane) and the aggregated costs (2 bytes), alive
+/// together during the aggregation. Rows, census images and maps are small beside them.
+pub fn volume_bytes(width: usize, height: usize, planes: usize) -> u64 {
+    (width as u64).saturating_mul(height as u64).saturating_mul(planes as u64).saturating_mul(3)
+}
+
+/// A sweep refused because its cost volume exceeds [`SweepParams::max_volume_bytes`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct VolumeTooLarge {
+    pub width: usize,
+    pub height: usize,
+    pub planes: usize,
+    pub bytes: u64,
+    pub budget: u64,
+}
+
+impl std::fmt::Display for VolumeTooLarge {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "the stereo cost volume would need {} ({} x {} pixels x {} planes x 3 bytes), over the budget of {}",
+            gib(self.bytes),
+            self.width,
+            self.height,
+            self.planes,
+            gib(self.budget)
+        )
+    }
+}
+
+impl std::error::Error for VolumeTooLarge {}
+
+fn gib(bytes: u64) -> String {
+    format!("{:.1} GiB", bytes as f64 / (1u64 << 30) as f64)
 }
 
 /// Depth (0 = none) and confidence in [0, 1] per pixel of the reference view.
@@ -200,16 +240,25 @@ fn plane_inverse_depths(reference: &StereoView, warps: &[Warp], p: &SweepParams)
 }
 
 /// Depth of `reference` from `sources` by plane sweep, census and 8-path SGM, with uniqueness
-/// and sub-plane (parabola) refinement. No source: no depth.
-pub fn sweep_depth(reference: &StereoView, sources: &[&StereoView], p: &SweepParams) -> StereoDepth {
+/// and sub-plane (parabola) refinement. No source: no depth. Refused, before the cost volume is
+/// allocated, when that volume would exceed `p.max_volume_bytes`.
+pub fn sweep_depth(
+    reference: &StereoView,
+    sources: &[&StereoView],
+    p: &SweepParams,
+) -> Result<StereoDepth, VolumeTooLarge> {
     let (w, h) = (reference.width, reference.height);
     let mut out = StereoDepth { width: w, height: h, depth: vec![0.0; w * h], confidence: vec![0.0; w * h] };
     if sources.is_empty() || w == 0 || h == 0 {
-        return out;
+        return Ok(out);
     }
     let warps: Vec<Warp> = sources.iter().map(|s| Warp::new(reference, s)).collect();
     let rhos = plane_inverse_depths(reference, &warps, p);
     let planes = rhos.len();
+    let bytes = volume_bytes(w, h, planes);
+    if bytes > p.max_volume_bytes {
+        return Err(VolumeTooLarge { width: w, height: h, planes, bytes, budget: p.max_volume_bytes });
+    }
     let ref_census = census(&reference.grey, w, h);
     let src_census: Vec<Vec<u64>> = sources.iter().map(|s| census(&s.grey, s.width, s.height)).collect();
 
@@ -295,7 +344,7 @@ pub fn sweep_depth(reference: &StereoView, sources: &[&StereoView], p: &SweepPar
             *conf = (1.0 - sb as f64 / second.max(1) as f64) as f32;
         }
     });
-    out
+    Ok(out)
 }
 
 /// Semi-global aggregation over 8 paths (Hirschmüller 2008): the summed path costs per pixel
@@ -533,7 +582,7 @@ pub(crate) mod tests {
         let (w, h) = (160, 120);
         let reference = render_ahead(0.0, w, h);
         let (back, ahead) = (render_ahead(-3.0, w, h), render_ahead(3.0, w, h));
-        let d = sweep_depth(&reference, &[&back, &ahead], &params());
+        let d = sweep_depth(&reference, &[&back, &ahead], &params()).unwrap();
         let (mut ring, mut confident, mut good) = (0, 0, 0);
         for y in 0..h {
             for x in 0..w {
@@ -565,8 +614,8 @@ pub(crate) mod tests {
         let (reference, truth) = render(0.0, w, h);
         let (left, _) = render(-1.0, w, h);
         let (right, _) = render(1.0, w, h);
-        let mut depth = sweep_depth(&reference, &[&left, &right], &params());
-        let right_depth = sweep_depth(&right, &[&reference], &params());
+        let mut depth = sweep_depth(&reference, &[&left, &right], &params()).unwrap();
+        let right_depth = sweep_depth(&right, &[&reference], &params()).unwrap();
         keep_consistent(&reference, &mut depth, &[(&right, &right_depth)], 1.0, 0.02);
         let (mut valid, mut good) = (0, 0);
         for (z, t) in depth.depth.iter().zip(&truth) {
@@ -587,9 +636,28 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn a_sweep_over_the_memory_budget_is_refused_before_allocating() {
+        let (w, h) = (160, 120);
+        let (reference, _) = render(0.0, w, h);
+        let (left, _) = render(-1.0, w, h);
+        // A plane every 0.01 px: the plane count reaches max_planes.
+        let dense = SweepParams { plane_step_px: 0.01, max_planes: 1024, ..params() };
+        let need = volume_bytes(w, h, 1024);
+        assert_eq!(need, 160 * 120 * 1024 * 3);
+        let e = sweep_depth(&reference, &[&left], &SweepParams { max_volume_bytes: need - 1, ..dense.clone() })
+            .unwrap_err();
+        assert_eq!((e.width, e.height, e.planes, e.bytes), (w, h, 1024, need));
+        assert!(e.to_string().contains("160 x 120 pixels x 1024 planes"), "{e}");
+        // Exactly at the budget it runs.
+        assert!(sweep_depth(&reference, &[&left], &SweepParams { max_volume_bytes: need, ..dense }).is_ok());
+        // The sizes cannot overflow into a small number.
+        assert_eq!(volume_bytes(usize::MAX, 2, 8), u64::MAX);
+    }
+
+    #[test]
     fn without_sources_there_is_no_depth() {
         let (reference, _) = render(0.0, 40, 30);
-        let d = sweep_depth(&reference, &[], &params());
+        let d = sweep_depth(&reference, &[], &params()).unwrap();
         assert!(d.depth.iter().all(|&z| z == 0.0));
     }
 

@@ -13,7 +13,7 @@ use crate::artifact::{DepthMap, PointCloud};
 use crate::camera::CameraView;
 use crate::stage::{input, one, StageDef, TypedOp};
 use anyhow::{ensure, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -30,6 +30,20 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params { top_elevation_deg: None, min_range: 2.0, outlier_share: 0.001 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        if let Some(deg) = self.top_elevation_deg {
+            c.within("top_elevation_deg", deg, -90.0, 90.0);
+        }
+        c.within("min_range", self.min_range, 0.0, 1000.0)
+            .check((0.0..1.0).contains(&self.outlier_share), "outlier_share", || {
+                format!("must be a fraction in [0, 1), found {}", self.outlier_share)
+            })
+            .done()
     }
 }
 

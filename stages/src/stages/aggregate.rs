@@ -20,7 +20,7 @@ use crate::geometry::BoxTest;
 use crate::stage::{each, StageDef, TypedOp};
 use crate::synth::rng::mix;
 use anyhow::{anyhow, ensure, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -57,6 +57,41 @@ impl Default for Params {
             holdout: 0.0,
             holdout_seed: 0,
         }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        c.within("moving_speed", self.moving_speed, 0.0, 1000.0)
+            .within("box_margin", self.box_margin, 0.0, 100.0)
+            .within("ground_clearance", self.ground_clearance, 0.0, 100.0)
+            .within("min_distance", self.min_distance, 0.0, 1000.0)
+            .within("holdout", self.holdout, 0.0, 1.0);
+        for (field, corner) in [("ego_box_min", self.ego_box_min), ("ego_box_max", self.ego_box_max)] {
+            for (axis, v) in corner.into_iter().enumerate() {
+                if !(v.is_finite() && v.abs() <= 100.0) {
+                    c.push(ParamProblem {
+                        field,
+                        index: Some(axis),
+                        other: None,
+                        message: format!("must hold numbers in [-100, 100] (metres), found {v}"),
+                    });
+                }
+            }
+        }
+        for axis in 0..3 {
+            let (lo, hi) = (self.ego_box_min[axis], self.ego_box_max[axis]);
+            if lo > hi {
+                c.push(ParamProblem {
+                    field: "ego_box_min",
+                    index: Some(axis),
+                    other: Some("ego_box_max"),
+                    message: format!("must not exceed `ego_box_max` on axis {axis} ({hi}), found {lo}"),
+                });
+            }
+        }
+        c.done()
     }
 }
 

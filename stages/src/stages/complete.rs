@@ -21,7 +21,7 @@
 use crate::artifact::{DepthMap, Image, Segmentation};
 use crate::stage::{input, maybe_one, one, optional_input, StageDef, TypedOp};
 use anyhow::{ensure, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -48,6 +48,22 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, detect_sky: true, grow: 0.13 }
+    }
+}
+
+/// Longest gap (px) worth bridging: wider than any camera image.
+const MAX_GAP_PX: u64 = 100_000;
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new()
+            .count("row_gap", self.row_gap as u64, 0, MAX_GAP_PX)
+            .count("column_gap", self.column_gap as u64, 0, MAX_GAP_PX)
+            .within("tolerance", self.tolerance as f64, 0.0, 100.0)
+            .above("sky_depth", self.sky_depth as f64, 0.0, 1e6)
+            // The growing window's work is image area x radius; 16 spacings is already coarse.
+            .within("grow", self.grow as f64, 0.0, 16.0)
+            .done()
     }
 }
 

@@ -7,7 +7,7 @@
 use crate::artifact::{DepthMap, Image, ProjectedPoints};
 use crate::stage::{input, one, StageDef, TypedOp};
 use anyhow::{Context, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -20,6 +20,12 @@ pub struct DepthParams {
 impl Default for DepthParams {
     fn default() -> Self {
         DepthParams { preview_max_depth: 80.0 }
+    }
+}
+
+impl Validate for DepthParams {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new().above("preview_max_depth", self.preview_max_depth as f64, 0.0, 1e6).done()
     }
 }
 
@@ -134,6 +140,8 @@ pub fn encode_depth() -> StageDef {
 #[serde(deny_unknown_fields)]
 pub struct NoParams {}
 
+impl Validate for NoParams {}
+
 struct PointsOp;
 
 impl TypedOp for PointsOp {
@@ -167,6 +175,17 @@ pub struct SheetParams {
 impl Default for SheetParams {
     fn default() -> Self {
         SheetParams { scale: 0.5, max_depth: 80.0 }
+    }
+}
+
+impl Validate for SheetParams {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new()
+            // The sheet is 3 x scale^2 image areas per camera (nearest pixel: above 1 it only
+            // grows; 2 leaves room to enlarge small images).
+            .above("scale", self.scale as f64, 0.0, 2.0)
+            .above("max_depth", self.max_depth as f64, 0.0, 1e6)
+            .done()
     }
 }
 

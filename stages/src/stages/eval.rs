@@ -17,7 +17,7 @@
 use crate::artifact::{DepthMap, File};
 use crate::stage::{maybe_one, one, optional_input, StageDef, TypedOp};
 use anyhow::{ensure, Context, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -30,6 +30,17 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params { min_depth: 0.1, max_depth: 80.0 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        // A positive minimum: the metrics divide by the reference and take logs of both.
+        ParamChecks::new()
+            .above("min_depth", self.min_depth as f64, 0.0, 1e6)
+            .above("max_depth", self.max_depth as f64, 0.0, 1e6)
+            .below("min_depth", self.min_depth as f64, "max_depth", self.max_depth as f64)
+            .done()
     }
 }
 

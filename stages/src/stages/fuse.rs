@@ -11,7 +11,7 @@ use crate::artifact::{Artifact, PointCloud};
 use crate::camera::CameraView;
 use crate::stage::{input, one, StageDef, TypedOp};
 use anyhow::{ensure, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -27,6 +27,15 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params { cell_px: 16, min_depth: 0.1 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new()
+            .count("cell_px", self.cell_px as u64, 1, 4096)
+            .within("min_depth", self.min_depth, 0.0, 1000.0)
+            .done()
     }
 }
 

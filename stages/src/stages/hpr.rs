@@ -27,7 +27,7 @@ use crate::camera::CameraView;
 use crate::hull::hull_vertices;
 use crate::stage::{one, StageDef, TypedOp};
 use anyhow::Result;
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -56,6 +56,29 @@ impl Default for Params {
             restore_window: [0.55, 1.8],
             restore_tolerance: 0.1,
         }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        // The flip radius must exceed the farthest point's distance, or points fold inwards.
+        c.above("radius_factor", self.radius_factor, 1.0, 1e6)
+            .within("min_depth", self.min_depth, 0.0, 1000.0)
+            .within("frustum_margin", self.frustum_margin, 0.0, 1.0)
+            .within("restore_tolerance", self.restore_tolerance, 0.0, 1.0);
+        // Every hidden point scans its window: its area bounds the work.
+        for (axis, v) in self.restore_window.into_iter().enumerate() {
+            if !(v.is_finite() && (0.0..=16.0).contains(&v)) {
+                c.push(ParamProblem {
+                    field: "restore_window",
+                    index: Some(axis),
+                    other: None,
+                    message: format!("must hold numbers in [0, 16] (mean sample spacings), found {v}"),
+                });
+            }
+        }
+        c.done()
     }
 }
 

@@ -18,9 +18,9 @@
 
 use crate::artifact::{Artifact, Calibration, DepthMap, Image, Pose};
 use crate::stage::{each, StageDef, TypedOp};
-use crate::stereo::{keep_consistent, sweep_depth, StereoDepth, StereoView, SweepParams};
+use crate::stereo::{keep_consistent, sweep_depth, StereoDepth, StereoView, SweepParams, VolumeTooLarge};
 use anyhow::{anyhow, ensure, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -70,6 +70,48 @@ impl Default for Params {
     }
 }
 
+/// Memory one MVS task may give its cost volume (see [`crate::stereo::volume_bytes`]). The
+/// defaults need 69 MB for a 1600x900 camera (400 x 225 x 256 planes x 3 bytes); full resolution
+/// with 256 planes needs 1.1 GB. Tasks run in parallel (`--jobs`), each within this budget.
+pub const MAX_COST_VOLUME_BYTES: u64 = 4 << 30;
+
+/// Most neighbouring frames one target is matched against: the cost of a plane sums one census
+/// comparison per neighbour (in 8 bits of count), and the DiST-4D window is t-1..t+1.
+pub const MAX_NEIGHBOURS: usize = 16;
+
+/// Largest SGM penalty: a path cost stays below cost + `p2`, and 8 paths summed in 16 bits must
+/// not overflow: 8 x (96 + p2) < 65536.
+const MAX_PENALTY: u64 = 4096;
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        c.count("downscale", self.downscale as u64, 1, 64)
+            .above("min_depth", self.min_depth, 0.0, 1e4)
+            .above("max_depth", self.max_depth, 0.0, 1e5)
+            .below("min_depth", self.min_depth, "max_depth", self.max_depth)
+            // The plane count sizes the cost volume (3 bytes per working pixel and plane).
+            .count("max_planes", self.max_planes as u64, 8, 1024)
+            .within("plane_step_px", self.plane_step_px, 0.01, 100.0)
+            .count("p2", self.p2 as u64, 0, MAX_PENALTY)
+            .check((0.0..1.0).contains(&self.uniqueness), "uniqueness", || {
+                format!("must be a fraction in [0, 1), found {}", self.uniqueness)
+            })
+            .within("distinct_px", self.distinct_px, 0.0, 100.0)
+            .within("consistency_px", self.consistency_px, 0.0, 100.0)
+            .within("consistency_depth", self.consistency_depth, 0.0, 1.0);
+        if self.p1 > self.p2 {
+            c.push(ParamProblem {
+                field: "p1",
+                index: None,
+                other: Some("p2"),
+                message: format!("must not exceed `p2` ({}), found {}", self.p2, self.p1),
+            });
+        }
+        c.done()
+    }
+}
+
 impl Params {
     pub fn sweep(&self) -> SweepParams {
         SweepParams {
@@ -81,22 +123,19 @@ impl Params {
             p2: self.p2,
             uniqueness: self.uniqueness,
             distinct_px: self.distinct_px,
+            max_volume_bytes: MAX_COST_VOLUME_BYTES,
         }
     }
 
-    fn check(&self) -> Result<()> {
-        ensure!(self.downscale >= 1, "downscale must be at least 1");
-        ensure!(
-            self.min_depth > 0.0 && self.max_depth > self.min_depth,
-            "need 0 < min_depth < max_depth, not {} and {}",
-            self.min_depth,
-            self.max_depth
-        );
-        ensure!(self.max_planes >= 8, "max_planes must be at least 8");
-        ensure!(self.p2 >= self.p1, "p2 ({}) must not be below p1 ({})", self.p2, self.p1);
-        ensure!((0.0..1.0).contains(&self.uniqueness), "uniqueness must be in [0, 1)");
-        ensure!(self.distinct_px >= 0.0, "distinct_px must not be negative");
-        Ok(())
+    /// A refused sweep, said with the params that size it.
+    fn too_large(&self, e: VolumeTooLarge) -> anyhow::Error {
+        anyhow!(
+            "{e} per MultiViewStereo task: raise `downscale` (now {}), or lower `max_planes` (now {}) or raise \
+             `plane_step_px` (now {})",
+            self.downscale,
+            self.max_planes,
+            self.plane_step_px
+        )
     }
 }
 
@@ -130,21 +169,30 @@ fn view(frame: &Frame, downscale: u32) -> Result<StereoView> {
 
 /// Depth and confidence of the frame at position 0, at working resolution.
 pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap, DepthMap)> {
-    params.check()?;
+    crate::stage::ensure_valid(params)?;
     let target = frames
         .iter()
         .find(|f| f.position == 0)
         .ok_or_else(|| anyhow!("the window has no image at position 0 (the target frame)"))?;
+    let neighbours = frames.iter().filter(|f| f.position != 0).count();
+    ensure!(
+        neighbours <= MAX_NEIGHBOURS,
+        "the window gives {neighbours} neighbouring frames; MultiViewStereo matches at most {MAX_NEIGHBOURS}: \
+         narrow the Window of `images`"
+    );
     let reference = view(target, params.downscale)?;
     let sources =
         frames.iter().filter(|f| f.position != 0).map(|f| view(f, params.downscale)).collect::<Result<Vec<_>>>()?;
     let sweep = params.sweep();
     let refs: Vec<&StereoView> = sources.iter().collect();
-    let mut depth = sweep_depth(&reference, &refs, &sweep);
+    let mut depth = sweep_depth(&reference, &refs, &sweep).map_err(|e| params.too_large(e))?;
     // Each neighbour, matched back against the target alone, checks the depths it sees; one
     // confirmation keeps a depth. (Checking only the longest baseline lost what that neighbour
     // does not see: the side of a side camera's image that the other frame has left behind.)
-    let backs: Vec<StereoDepth> = sources.iter().map(|s| sweep_depth(s, &[&reference], &sweep)).collect();
+    let backs: Vec<StereoDepth> = sources
+        .iter()
+        .map(|s| sweep_depth(s, &[&reference], &sweep).map_err(|e| params.too_large(e)))
+        .collect::<Result<_>>()?;
     let checks: Vec<(&StereoView, &StereoDepth)> = sources.iter().zip(&backs).collect();
     keep_consistent(&reference, &mut depth, &checks, params.consistency_px, params.consistency_depth);
     let (w, h) = (depth.width as u32, depth.height as u32);
@@ -186,10 +234,7 @@ pub fn def() -> StageDef {
             PortSpec::one("confidence", "DepthMap", "per-pixel confidence in [0, 1] (same size), 0 = no depth"),
         ],
         vec!["camera"],
-        |p: Params| {
-            p.check()?;
-            Ok(Box::new(Op(p)))
-        },
+        |p: Params| Ok(Box::new(Op(p))),
     )
 }
 
@@ -202,8 +247,11 @@ mod tests {
     /// A camera looking left (ego +y), so driving along ego +x is a sideways baseline, at a
     /// textured wall 20 m to the left.
     fn frame_data(x: f64) -> (Image, Calibration, Pose) {
-        let (w, h) = (320u32, 180u32);
-        let f = 200.0;
+        frame_data_sized(x, 320, 180)
+    }
+
+    fn frame_data_sized(x: f64, w: u32, h: u32) -> (Image, Calibration, Pose) {
+        let f = 200.0 * w as f64 / 320.0;
         // Camera x (right) = ego +x, y (down) = ego -z, z (optical axis) = ego +y: -90 deg about x.
         let calib = Calibration {
             sensor_to_ego: Se3::from_wxyz_t(
@@ -272,6 +320,31 @@ mod tests {
         let good = valid.iter().filter(|&&z| (z - 20.0).abs() < 0.6).count();
         assert!(good as f64 > 0.97 * valid.len() as f64, "{good} of {}", valid.len());
         assert!(conf.data.iter().zip(&depth.data).all(|(c, z)| (*c > 0.0) == (*z > 0.0)));
+    }
+
+    #[test]
+    fn a_plan_over_the_memory_budget_fails_naming_the_params_that_size_it() {
+        // Full nuScenes size, every pixel, 1024 planes: 1600 x 900 x 1024 x 3 bytes = 4.1 GiB.
+        let data: Vec<(i64, (Image, Calibration, Pose))> =
+            [(-1, -3.0), (0, 0.0), (1, 3.0)].map(|(p, x)| (p, frame_data_sized(x, 1600, 900))).into();
+        let frames: Vec<Frame> =
+            data.iter().map(|(p, (i, c, q))| Frame { position: *p, image: i, calib: c, pose: q }).collect();
+        let params = Params { downscale: 1, max_planes: 1024, plane_step_px: 0.01, ..Params::default() };
+        let e = multi_view_stereo(&params, &frames).unwrap_err().to_string();
+        assert!(e.contains("would need 4.1 GiB (1600 x 900 pixels x 1024 planes x 3 bytes)"), "{e}");
+        assert!(e.contains("over the budget of 4.0 GiB per MultiViewStereo task"), "{e}");
+        assert!(e.contains("raise `downscale` (now 1), or lower `max_planes` (now 1024)"), "{e}");
+        assert!(e.contains("`plane_step_px` (now 0.01)"), "{e}");
+        // What the message suggests, half the resolution, fits.
+        assert!(crate::stereo::volume_bytes(800, 450, 1024) < MAX_COST_VOLUME_BYTES);
+    }
+
+    #[test]
+    fn too_many_neighbours_are_refused() {
+        let (i, c, q) = frame_data(0.0);
+        let frames: Vec<Frame> = (-9..=9).map(|p| Frame { position: p, image: &i, calib: &c, pose: &q }).collect();
+        let e = multi_view_stereo(&Params::default(), &frames).unwrap_err().to_string();
+        assert!(e.contains("18 neighbouring frames; MultiViewStereo matches at most 16"), "{e}");
     }
 
     #[test]

@@ -22,7 +22,7 @@ use crate::camera::CameraView;
 use crate::geometry::BoxTest;
 use crate::stage::{input, maybe_one, one, optional_input, StageDef, TypedOp};
 use anyhow::{ensure, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -61,6 +61,37 @@ impl Default for Params {
             support_radius: 2,
             support_tolerance: 0.03,
         }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        // Confidences lie in [0, 1]; a minimum above 1 is the way to keep no MVS point at all.
+        let min_confidence = self.min_confidence;
+        c.check(min_confidence.is_finite() && min_confidence >= 0.0, "min_confidence", || {
+            format!("must be a number >= 0 (above 1 keeps no pixel), found {min_confidence}")
+        })
+        .within("moving_speed", self.moving_speed, 0.0, 1000.0)
+        .within("box_margin", self.box_margin, 0.0, 100.0)
+        .within("min_height", self.min_height, -100.0, 100.0)
+        .within("voxel", self.voxel, 0.0, 100.0)
+        // Each pixel scans its (2r+1)^2 window.
+        .count("support_radius", self.support_radius as u64, 0, 32)
+        .within("support_tolerance", self.support_tolerance as f64, 0.0, 1.0);
+        let neighbours = (2 * self.support_radius as u64 + 1).pow(2) - 1;
+        if self.support_radius <= 32 && self.min_support as u64 > neighbours {
+            c.push(ParamProblem {
+                field: "min_support",
+                index: None,
+                other: Some("support_radius"),
+                message: format!(
+                    "can never be met: a window of radius {} holds {neighbours} neighbours, found {}",
+                    self.support_radius, self.min_support
+                ),
+            });
+        }
+        c.done()
     }
 }
 

@@ -10,13 +10,15 @@
 use crate::artifact::{Artifact, DepthMap};
 use crate::stage::{input, one, StageDef, TypedOp};
 use anyhow::Result;
-use dist4d_graph::PortSpec;
+use dist4d_graph::{PortSpec, Validate};
 use serde::{Deserialize, Serialize};
 
 /// No parameters.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Default)]
 #[serde(deny_unknown_fields)]
 pub struct Params {}
+
+impl Validate for Params {}
 
 /// For every pixel, the index of the nearest pixel with depth > 0 (`u32::MAX` if there is none).
 pub fn nearest_seed(depth: &DepthMap) -> Vec<u32> {

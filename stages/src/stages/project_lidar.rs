@@ -8,7 +8,7 @@
 use crate::artifact::{Calibration, DepthMap, PointCloud, Pose, ProjectedPoints};
 use crate::stage::{input, one, StageDef, TypedOp};
 use anyhow::{anyhow, Result};
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -24,6 +24,16 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params { min_depth: 1.0, border_px: 1.0 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        // A negative border would let points land outside the depth map.
+        ParamChecks::new()
+            .within("min_depth", self.min_depth, 0.0, 1000.0)
+            .within("border_px", self.border_px, 0.0, 1000.0)
+            .done()
     }
 }
 

@@ -7,7 +7,7 @@ use crate::artifact::{DepthMap, PointCloud};
 use crate::camera::{CameraView, ZBuffer};
 use crate::stage::{one, StageDef, TypedOp};
 use anyhow::Result;
-use dist4d_graph::PortSpec;
+use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -23,6 +23,16 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params { min_depth: 1.0, max_depth: 100.0 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new()
+            .within("min_depth", self.min_depth, 0.0, 1000.0)
+            .above("max_depth", self.max_depth, 0.0, 1e6)
+            .below("min_depth", self.min_depth, "max_depth", self.max_depth)
+            .done()
     }
 }
 
