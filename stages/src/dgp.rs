@@ -7,7 +7,10 @@
 //! annotated in the LiDAR frame and returned in the world frame.
 
 use crate::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
-use crate::files::{read_jpeg, read_npz};
+use crate::dataset_checks::{
+    check_reference, join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform,
+};
+use crate::files::{read_camera_image, read_npz};
 use crate::geometry::Se3;
 use crate::nuscenes::{surround_count, surround_label};
 use crate::sidecar::Sidecars;
@@ -56,8 +59,8 @@ struct Datum {
     file: PathBuf,
     calib: Calibration,
     pose: Pose,
-    /// LiDAR only: the 3D box annotation file.
-    boxes: Option<PathBuf>,
+    /// LiDAR only: the 3D box annotation file, or why its reference is refused.
+    boxes: Option<Result<PathBuf, String>>,
 }
 
 struct Frame {
@@ -75,6 +78,8 @@ pub struct Dgp {
     pub config: DgpConfig,
     scenes: Vec<Scene>,
     sidecars: Sidecars,
+    /// What was normalised when the dataset was opened (for the caller to print).
+    pub warnings: Vec<String>,
 }
 
 fn read_json(path: &Path) -> Result<Value> {
@@ -93,13 +98,13 @@ fn num(v: &Value, name: &str, file: &Path, what: &str) -> Result<f64> {
         .ok_or_else(|| anyhow!("{}: {what}: field `{name}` is not a number", file.display()))
 }
 
-/// A DGP pose `{rotation: {qw, qx, qy, qz}, translation: {x, y, z}}`.
-fn pose(v: &Value, file: &Path, what: &str) -> Result<Se3> {
+/// The numbers of a DGP pose `{rotation: {qw, qx, qy, qz}, translation: {x, y, z}}`.
+fn pose_values(v: &Value, file: &Path, what: &str) -> Result<([f64; 4], [f64; 3])> {
     let r = field(v, "rotation", file, what)?;
     let t = field(v, "translation", file, what)?;
     let what_r = format!("{what} rotation");
     let what_t = format!("{what} translation");
-    Ok(Se3::from_wxyz_t(
+    Ok((
         [
             num(r, "qw", file, &what_r)?,
             num(r, "qx", file, &what_r)?,
@@ -108,6 +113,20 @@ fn pose(v: &Value, file: &Path, what: &str) -> Result<Se3> {
         ],
         [num(t, "x", file, &what_t)?, num(t, "y", file, &what_t)?, num(t, "z", file, &what_t)?],
     ))
+}
+
+/// A DGP pose as a transform, unchecked (box poses).
+fn pose(v: &Value, file: &Path, what: &str) -> Result<Se3> {
+    let (q, t) = pose_values(v, file, what)?;
+    Ok(Se3::from_wxyz_t(q, t))
+}
+
+/// A DGP pose checked as a `kind` transform; `fields` prefixes the field names (`pose`,
+/// `extrinsics[2]`).
+fn checked_pose(v: &Value, at: &Place, fields: &str, kind: Transform, notes: &mut Renormalised) -> Result<Se3> {
+    let (q, t) = pose_values(v, &at.file, &at.item)?;
+    let (rotation, translation) = (format!("{fields}.rotation"), format!("{fields}.translation"));
+    rigid(at, Fields { rotation: &rotation, translation: &translation }, q, t, kind, notes).map_err(anyhow::Error::msg)
 }
 
 /// Microseconds from a DGP file name in 100 ns units (`15616458250027900.npz`).
@@ -140,15 +159,19 @@ impl Dgp {
             .and_then(|f| f.as_array())
             .ok_or_else(|| anyhow!("{}: split {} ({split}) lists no scene files", index.display(), config.split))?;
         let mut scenes = Vec::new();
-        for f in files {
-            let rel = f.as_str().ok_or_else(|| anyhow!("{}: a scene file name is not a string", index.display()))?;
-            scenes.push(Self::scene(&config, &root.join(rel))?);
+        let mut renormalised = Renormalised::default();
+        let at = Place::new(&index, format!("split {}", config.split));
+        for (i, f) in files.iter().enumerate() {
+            let field = format!("filenames[{i}]");
+            let rel = f.as_str().ok_or_else(|| anyhow!("{at}: field {field} is not a string"))?;
+            let path = join_inside(&root, &at, &field, rel).map_err(anyhow::Error::msg)?;
+            scenes.push(Self::scene(&config, &path, &mut renormalised)?);
         }
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
-        Ok(Dgp { config, scenes, sidecars })
+        Ok(Dgp { config, scenes, sidecars, warnings: renormalised.warnings() })
     }
 
-    fn scene(config: &DgpConfig, path: &Path) -> Result<Scene> {
+    fn scene(config: &DgpConfig, path: &Path, notes: &mut Renormalised) -> Result<Scene> {
         let dir = path.parent().unwrap_or(Path::new("."));
         let scene = read_json(path)?;
         let name = dir.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
@@ -163,6 +186,7 @@ impl Dgp {
         // Ontology of the 3D boxes (annotation type 1).
         let mut ontology = HashMap::new();
         if let Some(key) = scene.get("ontologies").and_then(|o| o.get("1")).and_then(|k| k.as_str()) {
+            check_reference(&Place::new(path, "(the scene)"), "ontologies.1", key).map_err(anyhow::Error::msg)?;
             let file = dir.join("ontology").join(format!("{key}.json"));
             let o = read_json(&file)?;
             for item in o.get("items").and_then(|i| i.as_array()).into_iter().flatten() {
@@ -173,28 +197,37 @@ impl Dgp {
                 }
             }
         }
-        let mut calibrations: HashMap<String, (Value, PathBuf)> = HashMap::new();
+        // Calibrations by key, each read once; a refused key fails the items of its samples.
+        let mut calibrations: HashMap<String, Result<(Value, PathBuf), String>> = HashMap::new();
         let mut frames = Vec::new();
         let samples = field(&scene, "samples", path, "the scene")?.as_array().context("`samples` is not a list")?;
         for (i, sample) in samples.iter().enumerate() {
             let what = format!("sample {i}");
             let calib_key = field(sample, "calibration_key", path, &what)?.as_str().unwrap_or("").to_string();
             if !calibrations.contains_key(&calib_key) {
-                let file = dir.join("calibration").join(format!("{calib_key}.json"));
-                calibrations.insert(calib_key.clone(), (read_json(&file)?, file));
+                let loaded = match check_reference(&Place::new(path, what.as_str()), "calibration_key", &calib_key) {
+                    Err(e) => Err(e),
+                    Ok(()) => {
+                        let file = dir.join("calibration").join(format!("{calib_key}.json"));
+                        Ok((read_json(&file)?, file))
+                    }
+                };
+                calibrations.insert(calib_key.clone(), loaded);
             }
-            let (calib, calib_file) = &calibrations[&calib_key];
+            let calibration = &calibrations[&calib_key];
             let keys: Vec<&str> = field(sample, "datum_keys", path, &what)?
                 .as_array()
                 .map(|a| a.iter().filter_map(|k| k.as_str()).collect())
                 .unwrap_or_default();
-            let resolve = |sensor: &str| -> Result<Datum, String> {
+            let mut resolve = |sensor: &str| -> Result<Datum, String> {
+                let (calib, calib_file) = calibration.as_ref().map_err(String::clone)?;
                 let d = keys
                     .iter()
                     .filter_map(|k| datums.get(k))
                     .find(|d| d.pointer("/id/name").and_then(|n| n.as_str()) == Some(sensor))
                     .ok_or_else(|| format!("{}: sample {i} has no datum named {sensor}", path.display()))?;
-                datum(d, sensor, dir, calib, calib_file, path).map_err(|e| format!("{e:#}"))
+                let sources = Sources { dir, scene_file: path, sample: i, calib, calib_file };
+                datum(d, sensor, &sources, notes).map_err(|e| format!("{e:#}"))
             };
             frames.push(Frame {
                 lidar: resolve(&config.lidar),
@@ -224,7 +257,11 @@ impl Dgp {
         let f = item.idx[1] as usize;
         let read = |frame: usize| -> Result<Option<(i64, Vec<Box3D>)>> {
             let Some(Ok(d)) = scene.frames.get(frame).map(|fr| &fr.lidar) else { return Ok(None) };
-            let Some(file) = &d.boxes else { return Ok(Some((d.pose.timestamp_us, Vec::new()))) };
+            let file = match &d.boxes {
+                None => return Ok(Some((d.pose.timestamp_us, Vec::new()))),
+                Some(Err(e)) => bail!("{e}"),
+                Some(Ok(file)) => file,
+            };
             let sensor_to_world = d.pose.ego_to_world.then_from(&d.calib.sensor_to_ego);
             Ok(Some((d.pose.timestamp_us, read_boxes(file, &sensor_to_world, &scene.ontology)?)))
         };
@@ -250,48 +287,70 @@ impl Dgp {
     }
 }
 
-fn datum(d: &Value, sensor: &str, dir: &Path, calib: &Value, calib_file: &Path, scene_file: &Path) -> Result<Datum> {
+/// Where a datum's references resolve and what it is checked against.
+struct Sources<'a> {
+    /// The scene's folder: datum files are relative to it.
+    dir: &'a Path,
+    scene_file: &'a Path,
+    sample: usize,
+    calib: &'a Value,
+    calib_file: &'a Path,
+}
+
+fn datum(d: &Value, sensor: &str, src: &Sources, notes: &mut Renormalised) -> Result<Datum> {
+    let scene_file = src.scene_file;
     let key = d.get("key").and_then(|k| k.as_str()).unwrap_or("?").to_string();
     let what = format!("datum {key} ({sensor})");
-    let body = d
-        .pointer("/datum/image")
-        .or_else(|| d.pointer("/datum/point_cloud"))
-        .ok_or_else(|| anyhow!("{}: {what} is neither an image nor a point cloud", scene_file.display()))?;
+    let at = Place::new(scene_file, format!("sample {} {what}", src.sample));
+    let (body, is_image) = match (d.pointer("/datum/image"), d.pointer("/datum/point_cloud")) {
+        (Some(image), _) => (image, true),
+        (None, Some(cloud)) => (cloud, false),
+        (None, None) => bail!("{at} is neither an image nor a point cloud"),
+    };
     let filename = field(body, "filename", scene_file, &what)?.as_str().unwrap_or("");
+    let file = join_inside(src.dir, &at, "filename", filename).map_err(anyhow::Error::msg)?;
     let timestamp = timestamp_of(filename)
         .ok_or_else(|| anyhow!("{}: {what}: file name {filename} is not a timestamp", scene_file.display()))?;
-    let sensor_to_world = pose(field(body, "pose", scene_file, &what)?, scene_file, &what)?;
-    let names = calib.get("names").and_then(|n| n.as_array()).context("calibration has no `names`")?;
+    let sensor_to_world = checked_pose(field(body, "pose", scene_file, &what)?, &at, "pose", Transform::Pose, notes)?;
+    let names = src.calib.get("names").and_then(|n| n.as_array()).context("calibration has no `names`")?;
     let idx = names
         .iter()
         .position(|n| n.as_str() == Some(sensor))
-        .ok_or_else(|| anyhow!("{}: no calibration for {sensor}", calib_file.display()))?;
-    let cwhat = format!("{sensor} calibration");
-    let ext = calib
+        .ok_or_else(|| anyhow!("{}: no calibration for {sensor}", src.calib_file.display()))?;
+    let cat = Place::new(src.calib_file, format!("entry {idx} ({sensor})"));
+    let ext = src
+        .calib
         .pointer(&format!("/extrinsics/{idx}"))
-        .ok_or_else(|| anyhow!("{}: {cwhat} has no extrinsics", calib_file.display()))?;
-    let sensor_to_ego = pose(ext, calib_file, &cwhat)?;
-    let intr = calib.pointer(&format!("/intrinsics/{idx}"));
-    let intrinsics = match intr {
-        Some(k) if num(k, "fx", calib_file, &cwhat)? > 0.0 => Some([
-            [
-                num(k, "fx", calib_file, &cwhat)?,
-                num(k, "skew", calib_file, &cwhat).unwrap_or(0.0),
-                num(k, "cx", calib_file, &cwhat)?,
-            ],
-            [0.0, num(k, "fy", calib_file, &cwhat)?, num(k, "cy", calib_file, &cwhat)?],
-            [0.0, 0.0, 1.0],
-        ]),
-        _ => None,
-    };
+        .ok_or_else(|| anyhow!("{}: {sensor} calibration has no extrinsics", src.calib_file.display()))?;
+    let sensor_to_ego = checked_pose(ext, &cat, &format!("extrinsics[{idx}]"), Transform::Mount, notes)?;
     let dim = |n: &str| body.get(n).and_then(|v| v.as_u64()).unwrap_or(0) as u32;
+    let (width, height) = (dim("width"), dim("height"));
+    // Point clouds have no intrinsics (DGP writes zeros for them); an image must have good ones.
+    let intrinsics = if is_image { Some(intrinsics(src.calib, idx, &cat, width, height, &at)?) } else { None };
     Ok(Datum {
         key,
-        file: dir.join(filename),
-        calib: Calibration { sensor_to_ego, intrinsics, width: dim("width"), height: dim("height") },
+        file,
+        calib: Calibration { sensor_to_ego, intrinsics, width, height },
         pose: Pose { ego_to_world: sensor_to_world.then_from(&sensor_to_ego.inverse()), timestamp_us: timestamp },
-        boxes: body.pointer("/annotations/1").and_then(|a| a.as_str()).map(|a| dir.join(a)),
+        boxes: body
+            .pointer("/annotations/1")
+            .and_then(|a| a.as_str())
+            .map(|a| join_inside(src.dir, &at, "annotations.1", a)),
     })
+}
+
+/// Entry `idx` of a calibration's `intrinsics` as a checked pinhole matrix whose principal point
+/// lies inside the `width` x `height` image of the datum at `datum`.
+fn intrinsics(calib: &Value, idx: usize, at: &Place, width: u32, height: u32, datum: &Place) -> Result<[[f64; 3]; 3]> {
+    let field_name = format!("intrinsics[{idx}]");
+    let k =
+        calib.pointer(&format!("/intrinsics/{idx}")).ok_or_else(|| anyhow!("{at}: field {field_name} is missing"))?;
+    let what = format!("{} {field_name}", at.item);
+    let get = |n: &str| num(k, n, &at.file, &what);
+    let m = [[get("fx")?, get("skew").unwrap_or(0.0), get("cx")?], [0.0, get("fy")?, get("cy")?], [0.0, 0.0, 1.0]];
+    let m = pinhole(at, &field_name, m).map_err(anyhow::Error::msg)?;
+    principal_point_inside(at, &field_name, &m, width, height).map_err(|e| anyhow!("{e} of {datum}"))?;
+    Ok(m)
 }
 
 /// A `bounding_box_3d` file, boxes moved from the sensor frame to the world.
@@ -376,7 +435,7 @@ impl Dataset for Dgp {
         let d = self.datum(port, item)?;
         Ok(match port {
             "lidar" => read_dgp_points(&d.file).with_context(|| format!("datum {}", d.key))?.encode(),
-            "image" => read_jpeg(&d.file).with_context(|| format!("datum {}", d.key))?.encode(),
+            "image" => read_camera_image(&d.file, d.calib.width, d.calib.height, &format!("datum {}", d.key))?.encode(),
             "boxes" => self.boxes(item)?.encode(),
             "gt_depth" => self.sidecars.gt_depth(&self.config.cameras[item.idx[2] as usize], &d.file)?.encode(),
             "semantic" => self.sidecars.semantic(&self.config.cameras[item.idx[2] as usize], &d.file)?.encode(),
@@ -449,6 +508,7 @@ mod tests {
     #[test]
     fn reads_the_shared_scene() {
         let Some(ds) = open() else { return };
+        assert!(ds.warnings.is_empty(), "real data passes every check silently: {:?}", ds.warnings);
         assert_eq!(ds.count(&ItemKey::new(&[])), 1);
         assert_eq!(ds.count(&ItemKey::new(&[0])), 3);
         assert_eq!(ds.path(&ItemKey::new(&[0, 2, 5])), "scene_02/002/CAMERA_09");
@@ -514,5 +574,188 @@ mod tests {
                 assert!((13.0..19.0).contains(&near(1600.0, 800.0)), "{}", near(1600.0, 800.0));
             }
         }
+    }
+
+    /// A writable copy of the shared DGP scene in a temp folder: (temp, root).
+    fn copy_of_shared_dgp() -> Option<(tempfile::TempDir, PathBuf)> {
+        let src = shared_dgp()?;
+        let tmp = tempfile::tempdir().unwrap();
+        let root = tmp.path().join("dgp");
+        copy_dir(&src, &root);
+        Some((tmp, root))
+    }
+
+    fn copy_dir(from: &Path, to: &Path) {
+        std::fs::create_dir_all(to).unwrap();
+        for e in std::fs::read_dir(from).unwrap() {
+            let p = e.unwrap().path();
+            let dest = to.join(p.file_name().unwrap());
+            if p.is_dir() {
+                copy_dir(&p, &dest)
+            } else {
+                std::fs::copy(&p, &dest).unwrap();
+            }
+        }
+    }
+
+    /// The scene JSON of the copy (its path and content).
+    fn scene_json(root: &Path) -> (PathBuf, Value) {
+        let dir = root.join("scene_02");
+        let file = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .find(|p| p.file_name().unwrap().to_string_lossy().starts_with("scene_"))
+            .unwrap();
+        let v = read_json(&file).unwrap();
+        (file, v)
+    }
+
+    fn write(path: &Path, v: &Value) {
+        std::fs::write(path, serde_json::to_vec(v).unwrap()).unwrap();
+    }
+
+    fn open_at(root: &Path) -> Result<Dgp> {
+        Dgp::open(DgpConfig { root: root.display().to_string(), ..Default::default() })
+    }
+
+    /// The datum of `sensor` in sample `sample` of a scene JSON (mutable).
+    fn datum_mut<'a>(scene: &'a mut Value, sample: usize, sensor: &str) -> &'a mut Value {
+        let keys: Vec<String> = scene["samples"][sample]["datum_keys"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|k| k.as_str().unwrap().to_string())
+            .collect();
+        scene["data"]
+            .as_array_mut()
+            .unwrap()
+            .iter_mut()
+            .find(|d| keys.iter().any(|k| d["key"] == k.as_str()) && d["id"]["name"] == sensor)
+            .unwrap()
+    }
+
+    fn load_err(ds: &Dgp, port: &str, item: &[u32]) -> String {
+        format!(
+            "{:#}",
+            ds.load_source(port, &ItemKey::new(item)).err().unwrap_or_else(|| panic!("{port} {item:?} loads"))
+        )
+    }
+
+    #[test]
+    fn file_references_outside_the_root_are_refused() {
+        let Some((tmp, root)) = copy_of_shared_dgp() else { return };
+        let index = root.join("scene_dataset_v1.0.json");
+        let original_index = read_json(&index).unwrap();
+        let (scene_file, original) = scene_json(&root);
+        let scene_name = scene_file.file_name().unwrap().to_string_lossy().to_string();
+
+        // A scene file outside the root: a full copy of the scene there, which would read fine.
+        let outside = tmp.path().join("outside");
+        copy_dir(&root.join("scene_02"), &outside);
+        for bad in [format!("../outside/{scene_name}"), outside.join(&scene_name).display().to_string()] {
+            let mut v = original_index.clone();
+            v["scene_splits"]["0"]["filenames"][0] = bad.clone().into();
+            write(&index, &v);
+            let err = format!("{:#}", open_at(&root).err().unwrap());
+            assert!(
+                err.contains(&format!(
+                    "scene_dataset_v1.0.json split train: field filenames[0] {bad:?} leaves the dataset root"
+                )),
+                "{err}"
+            );
+        }
+        write(&index, &original_index);
+
+        // An ontology key that climbs out: the whole scene is refused.
+        let mut v = original.clone();
+        v["ontologies"]["1"] = "../../../onto".into();
+        write(&scene_file, &v);
+        let err = format!("{:#}", open_at(&root).err().unwrap());
+        assert!(err.contains("field ontologies.1 \"../../../onto\" leaves the dataset root"), "{err}");
+
+        // Datum files, box files and calibration keys: only the items that use them fail.
+        let mut v = original.clone();
+        let cam = datum_mut(&mut v, 0, "CAMERA_01");
+        let real = root.join("scene_02").join(cam["datum"]["image"]["filename"].as_str().unwrap());
+        std::fs::copy(&real, tmp.path().join("x.jpg")).unwrap();
+        cam["datum"]["image"]["filename"] = "../../x.jpg".into();
+        let key = cam["key"].as_str().unwrap().to_string();
+        let lidar = datum_mut(&mut v, 2, "LIDAR");
+        lidar["datum"]["point_cloud"]["annotations"]["1"] = "/etc/passwd".into();
+        let calib = root.join("scene_02/calibration");
+        let calib_file = std::fs::read_dir(&calib).unwrap().next().unwrap().unwrap().path();
+        std::fs::copy(&calib_file, tmp.path().join("calib.json")).unwrap();
+        v["samples"][1]["calibration_key"] = "../../../calib".into();
+        write(&scene_file, &v);
+        let ds = open_at(&root).unwrap();
+        let err = load_err(&ds, "image", &[0, 0, 0]);
+        assert!(
+            err.contains(&format!(
+                "sample 0 datum {key} (CAMERA_01): field filename \"../../x.jpg\" leaves the dataset root"
+            )),
+            "{err}"
+        );
+        assert!(ds.load_source("image", &ItemKey::new(&[0, 0, 1])).is_ok());
+        let err = load_err(&ds, "boxes", &[0, 2]);
+        assert!(
+            err.contains("field annotations.1 \"/etc/passwd\" leaves the dataset root (an absolute path)"),
+            "{err}"
+        );
+        assert!(ds.load_source("lidar", &ItemKey::new(&[0, 2])).is_ok(), "only the boxes are refused");
+        let err = load_err(&ds, "camera_calib", &[0, 1, 3]);
+        assert!(err.contains("sample 1: field calibration_key \"../../../calib\" leaves the dataset root"), "{err}");
+        assert!(ds.load_source("camera_calib", &ItemKey::new(&[0, 2, 3])).is_ok());
+    }
+
+    #[test]
+    fn bad_poses_and_intrinsics_fail_their_datums_and_slightly_off_quaternions_warn() {
+        let Some((_tmp, root)) = copy_of_shared_dgp() else { return };
+        let (scene_file, mut v) = scene_json(&root);
+        let cam = datum_mut(&mut v, 0, "CAMERA_05");
+        cam["datum"]["image"]["pose"]["rotation"] = serde_json::json!({"qw": 0.0, "qx": 0.0, "qy": 0.0, "qz": 0.0});
+        let key = cam["key"].as_str().unwrap().to_string();
+        let cam = datum_mut(&mut v, 1, "CAMERA_09");
+        cam["datum"]["image"]["width"] = 1000.into();
+        let small_key = cam["key"].as_str().unwrap().to_string();
+        for s in 0..3 {
+            let r = &mut datum_mut(&mut v, s, "LIDAR")["datum"]["point_cloud"]["pose"]["rotation"];
+            for c in ["qw", "qx", "qy", "qz"] {
+                r[c] = (r[c].as_f64().unwrap() * 1.005).into();
+            }
+        }
+        write(&scene_file, &v);
+        let calib_file = std::fs::read_dir(root.join("scene_02/calibration")).unwrap().next().unwrap().unwrap().path();
+        let mut c = read_json(&calib_file).unwrap();
+        // Entries: LIDAR, CAMERA_01, _05, _06, _07, _08, _09.
+        c["intrinsics"][3] = serde_json::json!({"cx": 0.0, "cy": 0.0, "fx": 0.0, "fy": 0.0, "skew": 0.0});
+        c["extrinsics"][4]["translation"]["x"] = 1000.0.into();
+        write(&calib_file, &c);
+
+        let ds = open_at(&root).unwrap();
+        assert_eq!(ds.warnings.len(), 1, "{:?}", ds.warnings);
+        assert!(ds.warnings[0].contains("3 quaternion(s) off unit norm were normalised"), "{:?}", ds.warnings);
+        let err = load_err(&ds, "camera_pose", &[0, 0, 1]);
+        assert!(
+            err.contains(&format!(
+                "sample 0 datum {key} (CAMERA_05): field pose.rotation [0, 0, 0, 0] is not a rotation"
+            )),
+            "{err}"
+        );
+        assert!(ds.load_source("camera_pose", &ItemKey::new(&[0, 1, 1])).is_ok());
+        for f in 0..3 {
+            let err = load_err(&ds, "camera_calib", &[0, f, 2]);
+            assert!(err.contains("entry 3 (CAMERA_06): field intrinsics[3]") && err.contains("fx 0 and fy 0"), "{err}");
+            let err = load_err(&ds, "camera_calib", &[0, f, 3]);
+            assert!(err.contains("entry 4 (CAMERA_07): field extrinsics[4].translation [1000, "), "{err}");
+        }
+        let err = load_err(&ds, "image", &[0, 1, 5]);
+        assert!(
+            err.contains(&format!("is 1936x1216 but datum {small_key} (fields width, height) says 1000x1216")),
+            "{err}"
+        );
+        assert!(err.contains("rgb/CAMERA_09/"), "{err}");
+        // The LiDAR poses were normalised: projection still lands in every camera left intact.
+        let lidar = Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, 0])).unwrap()).unwrap();
+        assert!((lidar.ego_to_world.rotation.length() - 1.0).abs() < 1e-12);
     }
 }

@@ -5,11 +5,46 @@ use anyhow::{bail, ensure, Context, Result};
 use std::path::Path;
 
 /// Decodes a JPEG (or any image the `image` crate reads) to RGB8.
+///
+/// A JPEG must end with its end-of-image marker: the decoder fills a truncated file's missing
+/// rows with grey without an error, which would reach the pipeline as plausible-looking pixels.
 pub fn read_jpeg(path: &Path) -> Result<Image> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    check_jpeg_end(&bytes).with_context(|| format!("{} is truncated", path.display()))?;
     let img = image::load_from_memory(&bytes).with_context(|| format!("{} is not a readable image", path.display()))?;
     let rgb = img.into_rgb8();
     Ok(Image { width: rgb.width(), height: rgb.height(), rgb: rgb.into_raw() })
+}
+
+/// A camera image whose size must be the one its metadata gives (`width` x `height`, skipped when
+/// 0): `source` names that metadata, e.g. `sample_data <token>`. Checked here, where the file is
+/// known, rather than in a stage that only sees two sizes disagree.
+pub fn read_camera_image(path: &Path, width: u32, height: u32, source: &str) -> Result<Image> {
+    let img = read_jpeg(path).with_context(|| source.to_string())?;
+    if width > 0 && height > 0 && (img.width, img.height) != (width, height) {
+        bail!(
+            "{} is {}x{} but {source} (fields width, height) says {width}x{height}",
+            path.display(),
+            img.width,
+            img.height
+        );
+    }
+    Ok(img)
+}
+
+/// A JPEG (it starts with the SOI marker FF D8) must end with the EOI marker FF D9. Zero bytes
+/// after it are allowed: some writers pad files to a block size. Other formats pass unchecked.
+fn check_jpeg_end(bytes: &[u8]) -> Result<()> {
+    if !bytes.starts_with(&[0xFF, 0xD8]) {
+        return Ok(());
+    }
+    let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
+    ensure!(
+        bytes[..end].ends_with(&[0xFF, 0xD9]),
+        "the JPEG has no end-of-image marker (FF D9) after its {} bytes",
+        bytes.len()
+    );
+    Ok(())
 }
 
 /// A numeric array from an `.npy` file: shape and values as f64.
@@ -127,6 +162,42 @@ mod tests {
         assert_eq!(parse_npy(&b).unwrap(), NpyArray { shape: vec![2, 2], data: vec![1.0, 2.0, 3.0, 4.5] });
         assert!(parse_npy(&b[..b.len() - 2]).unwrap_err().to_string().contains("truncated"));
         assert!(parse_npy(&b"\x93NUMPY\x01\x00\x05\x00{'a'}"[..]).is_err());
+    }
+
+    fn tiny_jpeg() -> Vec<u8> {
+        let rgb: Vec<u8> = (0..64 * 48 * 3).map(|i| (i * 7 % 251) as u8).collect();
+        let mut jpeg = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 90)
+            .encode(&rgb, 64, 48, image::ExtendedColorType::Rgb8)
+            .unwrap();
+        jpeg
+    }
+
+    #[test]
+    fn a_truncated_jpeg_is_an_error_naming_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("cam.jpg");
+        let jpeg = tiny_jpeg();
+        std::fs::write(&f, &jpeg).unwrap();
+        assert_eq!(read_jpeg(&f).unwrap().width, 64);
+        // Zero padding after the end-of-image marker is fine.
+        std::fs::write(&f, [jpeg.as_slice(), &[0u8; 16]].concat()).unwrap();
+        assert!(read_jpeg(&f).is_ok());
+        std::fs::write(&f, &jpeg[..jpeg.len() / 2]).unwrap();
+        let err = format!("{:#}", read_jpeg(&f).unwrap_err());
+        assert!(err.contains(&format!("{} is truncated", f.display())), "{err}");
+        assert!(err.contains("no end-of-image marker (FF D9)"), "{err}");
+    }
+
+    #[test]
+    fn a_camera_image_of_the_wrong_size_names_the_file_and_both_sizes() {
+        let dir = tempfile::tempdir().unwrap();
+        let f = dir.path().join("cam.jpg");
+        std::fs::write(&f, tiny_jpeg()).unwrap();
+        assert!(read_camera_image(&f, 64, 48, "sample_data abc").is_ok());
+        assert!(read_camera_image(&f, 0, 0, "sample_data abc").is_ok(), "size unknown: not checked");
+        let err = read_camera_image(&f, 1600, 900, "sample_data abc").unwrap_err().to_string();
+        assert_eq!(err, format!("{} is 64x48 but sample_data abc (fields width, height) says 1600x900", f.display()));
     }
 
     #[test]

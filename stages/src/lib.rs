@@ -3,6 +3,7 @@
 
 pub mod artifact;
 pub mod camera;
+pub mod dataset_checks;
 pub mod dgp;
 pub mod files;
 pub mod geometry;

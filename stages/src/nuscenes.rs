@@ -6,7 +6,10 @@
 //! and `lidar_pose` (per frame), `camera_calib` and `camera_pose` (per camera).
 
 use crate::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
-use crate::files::read_jpeg;
+use crate::dataset_checks::{
+    join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform,
+};
+use crate::files::read_camera_image;
 use crate::geometry::Se3;
 use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, Context, Result};
@@ -82,6 +85,9 @@ struct SampleDataRow {
     calibrated_sensor_token: String,
     filename: String,
     is_key_frame: bool,
+    /// Index in the table file, for errors.
+    #[serde(skip)]
+    row: usize,
     #[serde(default)]
     width: u32,
     #[serde(default)]
@@ -95,6 +101,8 @@ struct SampleDataRow {
 
 #[derive(Deserialize)]
 struct CalibratedSensorRow {
+    #[serde(skip)]
+    row: usize,
     token: String,
     sensor_token: String,
     translation: [f64; 3],
@@ -111,6 +119,8 @@ struct SensorRow {
 
 #[derive(Deserialize)]
 struct EgoPoseRow {
+    #[serde(skip)]
+    row: usize,
     token: String,
     translation: [f64; 3],
     rotation: [f64; 4],
@@ -148,6 +158,10 @@ struct NamedRow {
 
 #[derive(Deserialize)]
 struct LidarsegRow {
+    #[serde(skip)]
+    row: usize,
+    #[serde(default)]
+    token: String,
     sample_data_token: String,
     filename: String,
 }
@@ -192,45 +206,145 @@ pub struct NuScenes {
     annotations: Vec<Annotation>,
     annotation_by_token: HashMap<String, usize>,
     sample_time: HashMap<String, i64>,
-    /// What was missing but optional (printed when the dataset is opened).
+    /// What was missing but optional, repeated or normalised (printed when the dataset is opened).
     pub warnings: Vec<String>,
     sidecars: Sidecars,
 }
 
+/// A table row; the tables whose rows errors cite keep their index in the file.
+trait TableRow: for<'de> Deserialize<'de> {
+    fn set_row(&mut self, _row: usize) {}
+}
+
+macro_rules! rows_without_index {
+    ($($t:ty),*) => { $(impl TableRow for $t {})* };
+}
+rows_without_index!(SceneRow, SampleRow, SensorRow, AnnotationRow, InstanceRow, NamedRow);
+
+macro_rules! rows_with_index {
+    ($($t:ty),*) => { $(impl TableRow for $t { fn set_row(&mut self, row: usize) { self.row = row; } })* };
+}
+rows_with_index!(SampleDataRow, CalibratedSensorRow, EgoPoseRow, LidarsegRow);
+
 /// Reads a table; a malformed row is reported with its index, token and the field at fault.
-fn read_table<T: for<'de> Deserialize<'de>>(dir: &Path, name: &str) -> Result<Vec<T>> {
+fn read_table<T: TableRow>(dir: &Path, name: &str, warnings: &mut Vec<String>) -> Result<Vec<T>> {
     let path = dir.join(format!("{name}.json"));
     let bytes = std::fs::read(&path).with_context(|| format!("reading nuScenes table {}", path.display()))?;
     let rows: Vec<serde_json::Value> = serde_json::from_slice(&bytes)
         .with_context(|| format!("malformed nuScenes table {}: not a JSON list", path.display()))?;
-    rows.into_iter()
-        .enumerate()
+    unique_rows(&path, rows, warnings)?
+        .into_iter()
         .map(|(i, row)| {
             let token = row.get("token").and_then(|t| t.as_str()).unwrap_or("?").to_string();
-            serde_path_to_error::deserialize(row).map_err(|e| {
+            let mut parsed: T = serde_path_to_error::deserialize(row).map_err(|e| {
                 anyhow!(
                     "malformed nuScenes table {}: row {i} (token {token}), field `{}`: {}",
                     path.display(),
                     e.path(),
                     e.inner()
                 )
-            })
+            })?;
+            parsed.set_row(i);
+            Ok(parsed)
         })
         .collect()
 }
 
-/// An optional table: missing is a warning and no rows; malformed is still an error.
-fn read_optional<T: for<'de> Deserialize<'de>>(
-    dir: &Path,
-    name: &str,
+/// The rows of a table with their indices, each token once. Two different rows with one token
+/// are an error naming both: every lookup by token would silently take one of them. A row that
+/// repeats an earlier one exactly is dropped with a warning (nothing is ambiguous, but a tool
+/// wrote the table twice over).
+fn unique_rows(
+    path: &Path,
+    rows: Vec<serde_json::Value>,
     warnings: &mut Vec<String>,
-    why: &str,
-) -> Result<Vec<T>> {
+) -> Result<Vec<(usize, serde_json::Value)>> {
+    use std::collections::hash_map::Entry;
+    // Tokens borrowed from the rows: trainval's sample_data has millions.
+    let mut first: HashMap<&str, usize> = HashMap::with_capacity(rows.len());
+    let mut repeats: Vec<(usize, usize)> = Vec::new();
+    for (i, row) in rows.iter().enumerate() {
+        let Some(token) = row.get("token").and_then(|t| t.as_str()) else { continue };
+        match first.entry(token) {
+            Entry::Vacant(e) => {
+                e.insert(i);
+            }
+            Entry::Occupied(e) if rows[*e.get()] == *row => repeats.push((*e.get(), i)),
+            Entry::Occupied(e) => {
+                bail!("{}: rows {} and {i} have the same token {token} but different contents", path.display(), e.get())
+            }
+        }
+    }
+    if let Some(&(earlier, again)) = repeats.first() {
+        let token = rows[earlier].get("token").and_then(|t| t.as_str()).unwrap_or("?");
+        warnings.push(format!(
+            "{}: {} row(s) repeat an earlier row exactly and were dropped (first: row {again} repeats row {earlier}, \
+             token {token})",
+            path.display(),
+            repeats.len(),
+        ));
+    }
+    let dropped: std::collections::HashSet<usize> = repeats.iter().map(|&(_, again)| again).collect();
+    Ok(rows.into_iter().enumerate().filter(|(i, _)| !dropped.contains(i)).collect())
+}
+
+/// An optional table: missing is a warning and no rows; malformed is still an error.
+fn read_optional<T: TableRow>(dir: &Path, name: &str, warnings: &mut Vec<String>, why: &str) -> Result<Vec<T>> {
     if !dir.join(format!("{name}.json")).exists() {
         warnings.push(format!("{}/{name}.json is missing: {why}", dir.display()));
         return Ok(Vec::new());
     }
-    read_table(dir, name)
+    read_table(dir, name, warnings)
+}
+
+/// An empty `sample_data` table, or one without keyframes, is one error when the dataset is
+/// opened rather than one per task: every frame starts at a keyframe.
+fn ensure_keyframes(rows: &[SampleDataRow], file: &Path) -> Result<()> {
+    if rows.is_empty() {
+        bail!("{} has no rows: the dataset has no sensor data", file.display());
+    }
+    if !rows.iter().any(|r| r.is_key_frame) {
+        bail!(
+            "{} has {} rows but no keyframe (is_key_frame: true); frames start at keyframes",
+            file.display(),
+            rows.len()
+        );
+    }
+    Ok(())
+}
+
+/// The field names of the nuScenes transforms (`ego_pose`, `calibrated_sensor`).
+const TRANSFORM_FIELDS: Fields = Fields { rotation: "rotation", translation: "translation" };
+
+/// A `calibrated_sensor` row, checked: its mounting and, for cameras, its intrinsics.
+struct Mount {
+    sensor_to_ego: Se3,
+    intrinsics: Option<[[f64; 3]; 3]>,
+    /// The row, for errors found later against a `sample_data` row (principal point vs image size).
+    at: Place,
+}
+
+fn check_mount(cs: &CalibratedSensorRow, file: &Path, notes: &mut Renormalised) -> Result<Mount, String> {
+    let at = Place::row(file, cs.row, &cs.token);
+    let sensor_to_ego = rigid(&at, TRANSFORM_FIELDS, cs.rotation, cs.translation, Transform::Mount, notes)?;
+    let intrinsics = match cs.camera_intrinsic.as_slice() {
+        [] => None,
+        [a, b, c] if a.len() == 3 && b.len() == 3 && c.len() == 3 => {
+            Some(pinhole(&at, "camera_intrinsic", [[a[0], a[1], a[2]], [b[0], b[1], b[2]], [c[0], c[1], c[2]]])?)
+        }
+        _ => return Err(format!("{at}: field camera_intrinsic is not a 3x3 matrix")),
+    };
+    Ok(Mount { sensor_to_ego, intrinsics, at })
+}
+
+/// The error of a token that names no row of the table it points into.
+fn dangling(file: &Path, row: usize, token: &str, field: &str, value: &str, table: &str) -> String {
+    format!("{}: field {field} {value} names no {table} row", Place::row(file, row, token))
+}
+
+/// Whether a nuScenes file name says it is of `channel` (`samples/CAM_FRONT/..__CAM_FRONT__..`).
+fn names_channel(filename: &str, channel: &str) -> bool {
+    filename.contains(&format!("__{channel}__")) || filename.split('/').any(|part| part == channel)
 }
 
 impl NuScenes {
@@ -247,82 +361,130 @@ impl NuScenes {
             );
         }
         let mut warnings = Vec::new();
-        let scenes: Vec<SceneRow> = read_table(&tables, "scene")?;
-        let samples: Vec<SampleRow> = read_table(&tables, "sample")?;
-        let sample_data: Vec<SampleDataRow> = read_table(&tables, "sample_data")?;
-        let calibs: Vec<CalibratedSensorRow> = read_table(&tables, "calibrated_sensor")?;
-        let sensors: Vec<SensorRow> = read_table(&tables, "sensor")?;
-        let poses: Vec<EgoPoseRow> = read_table(&tables, "ego_pose")?;
+        let w = &mut warnings;
+        let scenes: Vec<SceneRow> = read_table(&tables, "scene", w)?;
+        let samples: Vec<SampleRow> = read_table(&tables, "sample", w)?;
+        let sample_data: Vec<SampleDataRow> = read_table(&tables, "sample_data", w)?;
+        let calibs: Vec<CalibratedSensorRow> = read_table(&tables, "calibrated_sensor", w)?;
+        let sensors: Vec<SensorRow> = read_table(&tables, "sensor", w)?;
+        let poses: Vec<EgoPoseRow> = read_table(&tables, "ego_pose", w)?;
         let no_boxes = "frames have no boxes";
-        let anns: Vec<AnnotationRow> = read_optional(&tables, "sample_annotation", &mut warnings, no_boxes)?;
-        let instances: Vec<InstanceRow> = read_optional(&tables, "instance", &mut warnings, no_boxes)?;
-        let categories: Vec<NamedRow> = read_optional(&tables, "category", &mut warnings, "boxes have no category")?;
-        let attributes: Vec<NamedRow> = read_optional(&tables, "attribute", &mut warnings, "boxes have no attributes")?;
+        let anns: Vec<AnnotationRow> = read_optional(&tables, "sample_annotation", w, no_boxes)?;
+        let instances: Vec<InstanceRow> = read_optional(&tables, "instance", w, no_boxes)?;
+        let categories: Vec<NamedRow> = read_optional(&tables, "category", w, "boxes have no category")?;
+        let attributes: Vec<NamedRow> = read_optional(&tables, "attribute", w, "boxes have no attributes")?;
         for t in ["log", "map", "visibility"] {
             if !tables.join(format!("{t}.json")).exists() {
-                warnings.push(format!("{}/{t}.json is missing (not needed by dist4d)", tables.display()));
+                w.push(format!("{}/{t}.json is missing (not needed by dist4d)", tables.display()));
             }
         }
         // lidarseg is an add-on: absent means no labels, without a warning.
         let lidarseg: Vec<LidarsegRow> =
-            if tables.join("lidarseg.json").exists() { read_table(&tables, "lidarseg")? } else { Vec::new() };
-        let labels_by: HashMap<&str, PathBuf> =
-            lidarseg.iter().map(|l| (l.sample_data_token.as_str(), root.join(&l.filename))).collect();
+            if tables.join("lidarseg.json").exists() { read_table(&tables, "lidarseg", w)? } else { Vec::new() };
+        let (sd_file, cs_file) = (tables.join("sample_data.json"), tables.join("calibrated_sensor.json"));
+        ensure_keyframes(&sample_data, &sd_file)?;
+
+        // Every row is checked once here; a bad row becomes the error of the items that use it.
+        let mut renormalised = Renormalised::default();
+        let seg_file = tables.join("lidarseg.json");
+        let labels_by: HashMap<&str, Result<PathBuf, String>> = lidarseg
+            .iter()
+            .map(|l| {
+                let at = Place::row(&seg_file, l.row, &l.token);
+                (l.sample_data_token.as_str(), join_inside(&root, &at, "filename", &l.filename))
+            })
+            .collect();
+        let pose_file = tables.join("ego_pose.json");
+        let pose_by: HashMap<&str, Result<Se3, String>> = poses
+            .iter()
+            .map(|p| {
+                let at = Place::row(&pose_file, p.row, &p.token);
+                let pose = rigid(&at, TRANSFORM_FIELDS, p.rotation, p.translation, Transform::Pose, &mut renormalised);
+                (p.token.as_str(), pose)
+            })
+            .collect();
+        let calib_by: HashMap<&str, (&CalibratedSensorRow, Result<Mount, String>)> =
+            calibs.iter().map(|c| (c.token.as_str(), (c, check_mount(c, &cs_file, &mut renormalised)))).collect();
+        warnings.extend(renormalised.warnings());
 
         let sample_by: HashMap<&str, &SampleRow> = samples.iter().map(|s| (s.token.as_str(), s)).collect();
-        let calib_by: HashMap<&str, &CalibratedSensorRow> = calibs.iter().map(|c| (c.token.as_str(), c)).collect();
         let channel_by: HashMap<&str, &str> = sensors.iter().map(|s| (s.token.as_str(), s.channel.as_str())).collect();
-        let pose_by: HashMap<&str, &EgoPoseRow> = poses.iter().map(|p| (p.token.as_str(), p)).collect();
         let sd_by: HashMap<&str, &SampleDataRow> = sample_data.iter().map(|s| (s.token.as_str(), s)).collect();
-        let channel_of = |sd: &SampleDataRow| -> &str {
-            calib_by
-                .get(sd.calibrated_sensor_token.as_str())
-                .and_then(|c| channel_by.get(c.sensor_token.as_str()))
-                .copied()
-                .unwrap_or("")
+        let mount_of = |sd: &SampleDataRow| -> Result<&(&CalibratedSensorRow, Result<Mount, String>), String> {
+            calib_by.get(sd.calibrated_sensor_token.as_str()).ok_or_else(|| {
+                let (field, value) = ("calibrated_sensor_token", &sd.calibrated_sensor_token);
+                dangling(&sd_file, sd.row, &sd.token, field, value, "calibrated_sensor")
+            })
         };
-        // Keyframe sample_data by (sample, channel).
+        let channel_of = |sd: &SampleDataRow| -> Result<&str, String> {
+            let (cs, _) = mount_of(sd)?;
+            channel_by
+                .get(cs.sensor_token.as_str())
+                .copied()
+                .ok_or_else(|| dangling(&cs_file, cs.row, &cs.token, "sensor_token", &cs.sensor_token, "sensor"))
+        };
+        // Keyframe sample_data by (sample, channel); those whose channel is unknown, by sample.
         let mut keyframe: HashMap<(&str, &str), &SampleDataRow> = HashMap::new();
+        let mut unresolved: HashMap<&str, Vec<(&SampleDataRow, String)>> = HashMap::new();
         for sd in sample_data.iter().filter(|sd| sd.is_key_frame) {
-            keyframe.insert((sd.sample_token.as_str(), channel_of(sd)), sd);
-        }
-        let resolve = |sd: &SampleDataRow| -> Result<Reading, String> {
-            let cs = calib_by.get(sd.calibrated_sensor_token.as_str()).ok_or_else(|| {
-                format!(
-                    "sample_data {}: field calibrated_sensor_token {} names no calibrated_sensor row",
-                    sd.token, sd.calibrated_sensor_token
-                )
-            })?;
-            let ep = pose_by.get(sd.ego_pose_token.as_str()).ok_or_else(|| {
-                format!("sample_data {}: field ego_pose_token {} names no ego_pose row", sd.token, sd.ego_pose_token)
-            })?;
-            let intrinsics = if cs.camera_intrinsic.is_empty() {
-                None
-            } else {
-                if cs.camera_intrinsic.len() != 3 || cs.camera_intrinsic.iter().any(|r| r.len() != 3) {
-                    return Err(format!("calibrated_sensor {}: field camera_intrinsic is not 3x3", cs.token));
+            match channel_of(sd) {
+                Ok(channel) => {
+                    keyframe.insert((sd.sample_token.as_str(), channel), sd);
                 }
-                let k = &cs.camera_intrinsic;
-                Some([[k[0][0], k[0][1], k[0][2]], [k[1][0], k[1][1], k[1][2]], [k[2][0], k[2][1], k[2][2]]])
-            };
+                Err(e) => unresolved.entry(sd.sample_token.as_str()).or_default().push((sd, e)),
+            }
+        }
+        // Why a sample has no keyframe of a channel: a keyframe of it whose sensor is unknown and
+        // whose file name says that channel is the one, and its dangling token the reason.
+        let no_keyframe = |sample: &str, channel: &str| -> String {
+            let unknown = unresolved.get(sample).map(Vec::as_slice).unwrap_or_default();
+            let named: Vec<&str> = unknown
+                .iter()
+                .filter(|(sd, _)| names_channel(&sd.filename, channel))
+                .map(|(_, e)| e.as_str())
+                .collect();
+            if !named.is_empty() {
+                return named.join("; ");
+            }
+            let mut why = format!("sample {sample} has no keyframe sample_data for channel {channel}");
+            if !unknown.is_empty() {
+                let errors: Vec<&str> = unknown.iter().map(|(_, e)| e.as_str()).collect();
+                why += &format!(" (its keyframes of unknown channel: {})", errors.join("; "));
+            }
+            why
+        };
+        let resolve = |sd: &SampleDataRow, camera: bool| -> Result<Reading, String> {
+            let at = Place::row(&sd_file, sd.row, &sd.token);
+            let file = join_inside(&root, &at, "filename", &sd.filename)?;
+            let mount = mount_of(sd)?.1.as_ref().map_err(String::clone)?;
+            match &mount.intrinsics {
+                Some(k) => principal_point_inside(&mount.at, "camera_intrinsic", k, sd.width, sd.height)
+                    .map_err(|e| format!("{e} of {at}"))?,
+                None if camera => {
+                    return Err(format!("{}: field camera_intrinsic is empty, but {at} is a camera image", mount.at))
+                }
+                None => {}
+            }
+            let ego_to_world = pose_by
+                .get(sd.ego_pose_token.as_str())
+                .ok_or_else(|| dangling(&sd_file, sd.row, &sd.token, "ego_pose_token", &sd.ego_pose_token, "ego_pose"))?
+                .clone()?;
             Ok(Reading {
                 token: sd.token.clone(),
-                file: root.join(&sd.filename),
+                file,
                 calib: Calibration {
-                    sensor_to_ego: Se3::from_wxyz_t(cs.rotation, cs.translation),
-                    intrinsics,
+                    sensor_to_ego: mount.sensor_to_ego,
+                    intrinsics: mount.intrinsics,
                     width: sd.width,
                     height: sd.height,
                 },
-                pose: Pose { ego_to_world: Se3::from_wxyz_t(ep.rotation, ep.translation), timestamp_us: sd.timestamp },
-                labels: labels_by.get(sd.token.as_str()).cloned(),
+                pose: Pose { ego_to_world, timestamp_us: sd.timestamp },
+                labels: labels_by.get(sd.token.as_str()).cloned().transpose()?,
             })
         };
-        let key_reading = |sample: &str, channel: &str| -> Result<Reading, String> {
-            let sd = keyframe
-                .get(&(sample, channel))
-                .ok_or_else(|| format!("sample {sample} has no keyframe sample_data for channel {channel}"))?;
-            resolve(sd)
+        let key_reading = |sample: &str, channel: &str, camera: bool| -> Result<Reading, String> {
+            let sd = keyframe.get(&(sample, channel)).ok_or_else(|| no_keyframe(sample, channel))?;
+            resolve(sd, camera)
         };
         // A channel's whole sample_data chain through a keyframe (prev to the start, next to the end).
         fn chain<'a>(
@@ -411,18 +573,17 @@ impl NuScenes {
                     .iter()
                     .enumerate()
                     .map(|(i, k)| Frame {
-                        lidar: key_reading(&k.token, &config.lidar),
-                        cameras: config.cameras.iter().map(|c| key_reading(&k.token, c)).collect(),
+                        lidar: key_reading(&k.token, &config.lidar, false),
+                        cameras: config.cameras.iter().map(|c| key_reading(&k.token, c, true)).collect(),
                         timestamp: k.timestamp,
                         sample: Some(i),
                         key: true,
                     })
                     .collect(),
                 FrameMode::Sweeps => {
-                    let Some(first_key) =
-                        keys.first().and_then(|k| keyframe.get(&(k.token.as_str(), config.lidar.as_str())))
-                    else {
-                        bail!("scene {}: its first sample has no {} keyframe", scene.name, config.lidar);
+                    let Some(first) = keys.first() else { bail!("scene {}: it has no samples", scene.name) };
+                    let Some(first_key) = keyframe.get(&(first.token.as_str(), config.lidar.as_str())) else {
+                        bail!("scene {}: {}", scene.name, no_keyframe(&first.token, &config.lidar));
                     };
                     let lidar_chain = chain(first_key, &sd_by, &tables)?;
                     let camera_chains: Vec<Option<Vec<&SampleDataRow>>> = config
@@ -441,7 +602,7 @@ impl NuScenes {
                             let t = sd.timestamp;
                             let sample = keys.iter().rposition(|k| k.timestamp <= t);
                             Frame {
-                                lidar: resolve(sd),
+                                lidar: resolve(sd, false),
                                 cameras: camera_chains
                                     .iter()
                                     .zip(&config.cameras)
@@ -451,7 +612,7 @@ impl NuScenes {
                                             .ok_or_else(|| format!("scene {}: no {name} images", scene.name))?;
                                         let nearest =
                                             ch.iter().min_by_key(|c| (c.timestamp - t).abs()).ok_or("empty chain")?;
-                                        resolve(nearest)
+                                        resolve(nearest, true)
                                     })
                                     .collect(),
                                 timestamp: t,
@@ -643,7 +804,9 @@ impl Dataset for NuScenes {
                 }
                 pc.encode()
             }
-            "image" => read_jpeg(&r.file).with_context(|| format!("sample_data {}", r.token))?.encode(),
+            "image" => {
+                read_camera_image(&r.file, r.calib.width, r.calib.height, &format!("sample_data {}", r.token))?.encode()
+            }
             "gt_depth" => self.sidecars.gt_depth(&self.config.cameras[item.idx[2] as usize], &r.file)?.encode(),
             "semantic" => self.sidecars.semantic(&self.config.cameras[item.idx[2] as usize], &r.file)?.encode(),
             "lidar_calib" | "camera_calib" => r.calib.encode(),
@@ -809,6 +972,7 @@ mod tests {
     fn reads_the_shared_keyframe() {
         let Some(root) = shared_nuscenes() else { return };
         let ds = NuScenes::open(NuScenesConfig { root: root.display().to_string(), ..Default::default() }).unwrap();
+        assert!(ds.warnings.is_empty(), "real data passes every check silently: {:?}", ds.warnings);
         assert_eq!(ds.count(&ItemKey::new(&[])), 1);
         assert_eq!(ds.count(&ItemKey::new(&[0])), 1);
         assert_eq!(ds.label(&ItemKey::new(&[0])), "scene-0061");
@@ -929,5 +1093,322 @@ mod tests {
         std::fs::write(&f, [0u8; 30]).unwrap();
         let err = read_pcd_bin(&f).unwrap_err().to_string();
         assert!(err.contains("truncated"), "{err}");
+    }
+
+    /// Rewrites a table of the dataset at `root`.
+    fn edit_table(root: &Path, table: &str, edit: impl FnOnce(&mut Vec<serde_json::Value>)) {
+        let path = root.join(format!("v1.0-mini/{table}.json"));
+        let mut rows: Vec<serde_json::Value> = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+        edit(&mut rows);
+        std::fs::write(&path, serde_json::to_vec(&rows).unwrap()).unwrap();
+    }
+
+    /// The index of the row with `token` in a table.
+    fn row_of(root: &Path, table: &str, token: &str) -> usize {
+        let path = root.join(format!("v1.0-mini/{table}.json"));
+        let rows: Vec<serde_json::Value> = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+        rows.iter().position(|r| r["token"] == token).unwrap()
+    }
+
+    /// The sample_data token of an item's reading (`lidar` or `image` port).
+    fn token_of(root: &Path, port: &str, item: &[u32]) -> String {
+        open(root, FrameMode::Keyframes).unwrap().reading(port, &ItemKey::new(item)).unwrap().token.clone()
+    }
+
+    fn load_err(ds: &NuScenes, port: &str, item: &[u32]) -> String {
+        format!(
+            "{:#}",
+            ds.load_source(port, &ItemKey::new(item)).err().unwrap_or_else(|| panic!("{port} {item:?} loads"))
+        )
+    }
+
+    #[test]
+    fn file_references_outside_the_root_fail_their_item_only() {
+        let (tmp, root) = synthetic();
+        let lidar = token_of(&root, "lidar", &[0, 1]);
+        let (cam, other_cam) = (token_of(&root, "image", &[0, 0, 2]), token_of(&root, "image", &[0, 2, 1]));
+        let lidar_file =
+            open(&root, FrameMode::Keyframes).unwrap().reading("lidar", &ItemKey::new(&[0, 1])).unwrap().file.clone();
+        let cam_file = open(&root, FrameMode::Keyframes)
+            .unwrap()
+            .reading("image", &ItemKey::new(&[0, 0, 2]))
+            .unwrap()
+            .file
+            .clone();
+        // Real files outside the root: a reader that followed the references would read them fine.
+        std::fs::create_dir_all(tmp.path().join("outside")).unwrap();
+        std::fs::copy(&lidar_file, tmp.path().join("outside/x.pcd.bin")).unwrap();
+        let outside_jpg = tmp.path().join("outside/x.jpg");
+        std::fs::copy(&cam_file, &outside_jpg).unwrap();
+        edit_table(&root, "sample_data", |rows| {
+            for r in rows.iter_mut() {
+                if r["token"] == lidar.as_str() {
+                    r["filename"] = "../outside/x.pcd.bin".into();
+                } else if r["token"] == cam.as_str() {
+                    r["filename"] = outside_jpg.display().to_string().into();
+                } else if r["token"] == other_cam.as_str() {
+                    r["filename"] = "../../../../etc/passwd".into();
+                }
+            }
+        });
+        let first_lidar = token_of(&root, "lidar", &[0, 0]);
+        edit_table(&root, "lidarseg", |rows| {
+            let r = rows.iter_mut().find(|r| r["sample_data_token"] == first_lidar.as_str()).unwrap();
+            r["filename"] = "lidarseg/../../labels.bin".into();
+        });
+        let ds = open(&root, FrameMode::Keyframes).unwrap();
+        let row = row_of(&root, "sample_data", &lidar);
+        let err = load_err(&ds, "lidar", &[0, 1]);
+        assert!(
+            err.contains(&format!(
+                "v1.0-mini/sample_data.json row {row} (token {lidar}): field filename \"../outside/x.pcd.bin\" leaves the \
+                 dataset root"
+            )),
+            "{err}"
+        );
+        // The whole reading is refused: its calibration and pose too.
+        assert!(ds.load_source("lidar_pose", &ItemKey::new(&[0, 1])).is_err());
+        let err = load_err(&ds, "image", &[0, 0, 2]);
+        assert!(err.contains(&format!("(token {cam}): field filename")) && err.contains("(an absolute path)"), "{err}");
+        let err = load_err(&ds, "camera_calib", &[0, 2, 1]);
+        assert!(err.contains("\"../../../../etc/passwd\" leaves the dataset root"), "{err}");
+        let err = load_err(&ds, "lidar", &[0, 0]);
+        assert!(err.contains("v1.0-mini/lidarseg.json row") && err.contains("lidarseg/../../labels.bin"), "{err}");
+        // Everything else still loads.
+        assert!(ds.load_source("lidar", &ItemKey::new(&[0, 2])).is_ok());
+        assert!(ds.load_source("image", &ItemKey::new(&[0, 0, 3])).is_ok());
+        assert!(ds.load_source("image", &ItemKey::new(&[0, 1, 2])).is_ok());
+    }
+
+    #[test]
+    fn bad_poses_and_calibrations_fail_the_items_that_use_them() {
+        let (_tmp, root) = synthetic();
+        let ds = open(&root, FrameMode::Keyframes).unwrap();
+        let sd_row = |item: &[u32], port: &str| -> serde_json::Value {
+            let token = ds.reading(port, &ItemKey::new(item)).unwrap().token.clone();
+            let rows: Vec<serde_json::Value> =
+                serde_json::from_slice(&std::fs::read(root.join("v1.0-mini/sample_data.json")).unwrap()).unwrap();
+            rows.into_iter().find(|r| r["token"] == token.as_str()).unwrap()
+        };
+        let lidar_pose = sd_row(&[0, 1], "lidar")["ego_pose_token"].as_str().unwrap().to_string();
+        let cam_pose = sd_row(&[0, 2, 0], "image")["ego_pose_token"].as_str().unwrap().to_string();
+        let cs =
+            |camera: u32| sd_row(&[0, 0, camera], "image")["calibrated_sensor_token"].as_str().unwrap().to_string();
+        let (right, back, back_left, front_left) = (cs(1), cs(3), cs(4), cs(5));
+        edit_table(&root, "ego_pose", |rows| {
+            for r in rows.iter_mut() {
+                if r["token"] == lidar_pose.as_str() {
+                    r["rotation"] = serde_json::json!([0.0, 0.0, 0.0, 0.0]);
+                } else if r["token"] == cam_pose.as_str() {
+                    r["translation"] = serde_json::json!([1e300, 0.0, 0.0]);
+                }
+            }
+        });
+        edit_table(&root, "calibrated_sensor", |rows| {
+            for r in rows.iter_mut() {
+                let t = r["token"].as_str().unwrap().to_string();
+                if t == back {
+                    r["camera_intrinsic"] = serde_json::json!([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]]);
+                } else if t == front_left {
+                    r["rotation"] = serde_json::json!([0.0, 0.0, 0.0, 0.0]);
+                } else if t == right {
+                    r["translation"] = serde_json::json!([0.0, 0.0, 1000.0]);
+                } else if t == back_left {
+                    r["camera_intrinsic"][0][2] = serde_json::json!(5000.0);
+                }
+            }
+        });
+        let ds = open(&root, FrameMode::Keyframes).unwrap();
+        let row = row_of(&root, "ego_pose", &lidar_pose);
+        let err = load_err(&ds, "lidar_pose", &[0, 1]);
+        assert!(
+            err.contains(&format!(
+                "v1.0-mini/ego_pose.json row {row} (token {lidar_pose}): field rotation [0, 0, 0, 0] is not a rotation \
+                 (norm 0"
+            )),
+            "{err}"
+        );
+        let err = load_err(&ds, "camera_pose", &[0, 2, 0]);
+        assert!(err.contains(&format!("(token {cam_pose}): field translation [1e300, 0, 0] is 1e300 m")), "{err}");
+        for f in 0..3 {
+            let err = load_err(&ds, "camera_calib", &[0, f, 3]);
+            assert!(
+                err.contains(&format!(
+                    "calibrated_sensor.json row {} (token {back}): field camera_intrinsic",
+                    row_of(&root, "calibrated_sensor", &back)
+                )),
+                "{err}"
+            );
+            assert!(err.contains("fx 0 and fy 0; both must be positive"), "{err}");
+        }
+        assert!(load_err(&ds, "camera_pose", &[0, 0, 5]).contains("field rotation [0, 0, 0, 0] is not a rotation"));
+        assert!(load_err(&ds, "image", &[0, 0, 1])
+            .contains("field translation [0, 0, 1000] is 1000 m from the origin, beyond the 100 m bound"));
+        let err = load_err(&ds, "camera_calib", &[0, 1, 4]);
+        assert!(err.contains("principal point (5000, ") && err.contains("outside the 160x90 image of"), "{err}");
+        assert!(err.contains("v1.0-mini/sample_data.json row"), "{err}");
+        // The rows nobody broke still load.
+        for item in [[0u32, 0, 0], [0, 1, 0], [0, 1, 2]] {
+            assert!(ds.load_source("camera_calib", &ItemKey::new(&item)).is_ok(), "{item:?}");
+            assert!(ds.load_source("camera_pose", &ItemKey::new(&item)).is_ok(), "{item:?}");
+        }
+        assert!(ds.load_source("lidar_pose", &ItemKey::new(&[0, 0])).is_ok());
+    }
+
+    #[test]
+    fn slightly_off_quaternions_are_normalised_with_one_warning() {
+        let (_tmp, root) = synthetic();
+        let before = Pose::decode(
+            &open(&root, FrameMode::Keyframes).unwrap().load_source("lidar_pose", &ItemKey::new(&[0, 1])).unwrap(),
+        )
+        .unwrap();
+        edit_table(&root, "ego_pose", |rows| {
+            for r in rows.iter_mut() {
+                let q: Vec<f64> =
+                    r["rotation"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() * 0.995).collect();
+                r["rotation"] = serde_json::json!(q);
+            }
+        });
+        let ds = open(&root, FrameMode::Keyframes).unwrap();
+        assert_eq!(ds.warnings.len(), 1, "{:?}", ds.warnings);
+        assert!(ds.warnings[0].contains("ego_pose.json") && ds.warnings[0].contains("normalised"), "{:?}", ds.warnings);
+        let after = Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, 1])).unwrap()).unwrap();
+        assert!(after.ego_to_world.rotation.abs_diff_eq(before.ego_to_world.rotation, 1e-12));
+    }
+
+    #[test]
+    fn duplicate_tokens_with_different_rows_are_rejected_and_identical_ones_kept_once() {
+        let (_tmp, root) = synthetic();
+        // Boxes of all three keyframes.
+        let boxes = |ds: &NuScenes| -> usize {
+            (0..3)
+                .map(|f| {
+                    Boxes3D::decode(&ds.load_source("boxes", &ItemKey::new(&[0, f])).unwrap()).unwrap().boxes.len()
+                })
+                .sum()
+        };
+        let n = boxes(&open(&root, FrameMode::Keyframes).unwrap());
+        let mut token = String::new();
+        edit_table(&root, "sample_annotation", |rows| {
+            let copy = rows[0].clone();
+            rows.push(copy);
+        });
+        let ds = open(&root, FrameMode::Keyframes).unwrap();
+        assert!(
+            ds.warnings.iter().any(|w| w.contains("sample_annotation.json: 1 row(s) repeat an earlier row exactly")),
+            "{:?}",
+            ds.warnings
+        );
+        // The repeated annotation is one box, not two.
+        assert_eq!(boxes(&ds), n);
+        edit_table(&root, "ego_pose", |rows| {
+            let mut copy = rows[2].clone();
+            copy["translation"][0] = serde_json::json!(copy["translation"][0].as_f64().unwrap() + 1.0);
+            token = copy["token"].as_str().unwrap().to_string();
+            rows.push(copy);
+        });
+        let rows = std::fs::read(root.join("v1.0-mini/ego_pose.json")).unwrap();
+        let last = serde_json::from_slice::<Vec<serde_json::Value>>(&rows).unwrap().len() - 1;
+        let err = format!("{:#}", open(&root, FrameMode::Keyframes).err().unwrap());
+        assert!(
+            err.contains(&format!(
+                "v1.0-mini/ego_pose.json: rows 2 and {last} have the same token {token} but different contents"
+            )),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn dangling_tokens_name_the_sample_data_row_and_field() {
+        let (_tmp, root) = synthetic();
+        let (front, back) = (token_of(&root, "image", &[0, 1, 0]), token_of(&root, "image", &[0, 1, 3]));
+        edit_table(&root, "sample_data", |rows| {
+            for r in rows.iter_mut() {
+                if r["token"] == front.as_str() {
+                    r["calibrated_sensor_token"] = "nope".into();
+                } else if r["token"] == back.as_str() {
+                    r["ego_pose_token"] = "gone".into();
+                }
+            }
+        });
+        let ds = open(&root, FrameMode::Keyframes).unwrap();
+        let err = load_err(&ds, "camera_calib", &[0, 1, 0]);
+        let row = row_of(&root, "sample_data", &front);
+        assert!(
+            err.contains(&format!(
+                "v1.0-mini/sample_data.json row {row} (token {front}): field calibrated_sensor_token nope names no \
+                 calibrated_sensor row"
+            )),
+            "{err}"
+        );
+        assert!(!err.contains("has no keyframe sample_data"), "{err}");
+        let err = load_err(&ds, "camera_pose", &[0, 1, 3]);
+        let row = row_of(&root, "sample_data", &back);
+        assert!(
+            err.contains(&format!("row {row} (token {back}): field ego_pose_token gone names no ego_pose row")),
+            "{err}"
+        );
+        assert!(ds.load_source("camera_calib", &ItemKey::new(&[0, 0, 0])).is_ok());
+    }
+
+    #[test]
+    fn an_empty_sample_data_table_or_one_without_keyframes_is_one_error_at_open() {
+        let (_tmp, root) = synthetic();
+        edit_table(&root, "sample_data", |rows| {
+            for r in rows.iter_mut() {
+                r["is_key_frame"] = false.into();
+            }
+        });
+        let err = format!("{:#}", open(&root, FrameMode::Keyframes).err().unwrap());
+        assert!(err.contains("v1.0-mini/sample_data.json has") && err.contains("rows but no keyframe"), "{err}");
+        edit_table(&root, "sample_data", |rows| rows.clear());
+        for mode in [FrameMode::Keyframes, FrameMode::Sweeps] {
+            let err = format!("{:#}", open(&root, mode).err().unwrap());
+            assert!(err.ends_with("v1.0-mini/sample_data.json has no rows: the dataset has no sensor data"), "{err}");
+        }
+    }
+
+    #[test]
+    fn truncated_and_wrong_size_images_fail_naming_the_file() {
+        let (_tmp, root) = synthetic();
+        let ds = open(&root, FrameMode::Keyframes).unwrap();
+        let file = |camera: u32| ds.reading("image", &ItemKey::new(&[0, 1, camera])).unwrap().file.clone();
+        let (cut, small) = (file(2), file(3));
+        let jpeg = std::fs::read(&cut).unwrap();
+        std::fs::write(&cut, &jpeg[..jpeg.len() / 2]).unwrap();
+        let err = load_err(&ds, "image", &[0, 1, 2]);
+        assert!(err.contains(&format!("{} is truncated", cut.display())), "{err}");
+        let mut half = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new(&mut half)
+            .encode(&vec![128u8; 80 * 45 * 3], 80, 45, image::ExtendedColorType::Rgb8)
+            .unwrap();
+        std::fs::write(&small, half).unwrap();
+        let err = load_err(&ds, "image", &[0, 1, 3]);
+        let token = ds.reading("image", &ItemKey::new(&[0, 1, 3])).unwrap().token.clone();
+        assert_eq!(
+            err,
+            format!("{} is 80x45 but sample_data {token} (fields width, height) says 160x90", small.display())
+        );
+        assert!(ds.load_source("image", &ItemKey::new(&[0, 1, 1])).is_ok());
+    }
+
+    /// `semantics` is the user's own setting, not dataset metadata: it may point anywhere.
+    #[test]
+    fn the_semantics_folder_may_live_outside_the_root() {
+        let (tmp, root) = synthetic();
+        let elsewhere = tmp.path().join("segmenter-output");
+        std::fs::rename(root.join("groundtruth/semantic"), &elsewhere).unwrap();
+        for semantics in [elsewhere.display().to_string(), "../segmenter-output".to_string()] {
+            let ds = NuScenes::open(NuScenesConfig {
+                root: root.display().to_string(),
+                semantics: Some(semantics.clone()),
+                ..Default::default()
+            })
+            .unwrap();
+            let seg =
+                crate::artifact::Segmentation::decode(&ds.load_source("semantic", &ItemKey::new(&[0, 0, 0])).unwrap())
+                    .unwrap();
+            assert_eq!((seg.width, seg.height), (160, 90), "{semantics}");
+        }
     }
 }
