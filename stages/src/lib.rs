@@ -83,7 +83,11 @@ impl Registry {
                 Ok(Box::new(ds))
             }
             "Dgp" => {
-                Ok(Box::new(dgp::Dgp::open(parse_canonical(&p.dataset.config)?).context("opening the DGP dataset")?))
+                let ds = dgp::Dgp::open(parse_canonical(&p.dataset.config)?).context("opening the DGP dataset")?;
+                for w in &ds.warnings {
+                    eprintln!("warning: {w}");
+                }
+                Ok(Box::new(ds))
             }
             other => Err(anyhow!("unknown dataset kind {other}")),
         }
