@@ -321,21 +321,11 @@ fn ctrl_c_stops_cleanly_and_a_rerun_completes() {
 
 #[test]
 fn the_same_pipeline_runs_on_dgp_data() {
-    let dgp = repo().join("../shared/data/dgp-scene02");
-    if !dgp.is_dir() {
-        eprintln!("SKIPPED: the shared DGP data is not at {} (CI always has it)", dgp.display());
-        return;
-    }
+    let Some(dgp) = shared_dgp() else { return };
     let tmp = tempfile::tempdir().unwrap();
-    // Only the dataset line differs: both readers give the same items and artifact types.
-    let text_in = std::fs::read_to_string(repo().join("pipelines/lidar_depth.ron")).unwrap();
-    let (start, end) = (text_in.find("dataset: NuScenes(").unwrap(), text_in.find("stages:").unwrap());
+    // Only the dataset differs: both readers give the same items and artifact types.
     let file = tmp.path().join("dgp.ron");
-    std::fs::write(
-        &file,
-        format!("{}dataset: Dgp(root: {:?}),\n    {}", &text_in[..start], dgp.display().to_string(), &text_in[end..]),
-    )
-    .unwrap();
+    std::fs::write(&file, with_dataset("lidar_depth", &format!("Dgp(root: {:?})", dgp.display().to_string()))).unwrap();
     let out = tmp.path().join("out");
     let o = dist4d(&["run", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
     assert!(o.status.success(), "{}", text(&o));

@@ -13,10 +13,7 @@ fn curation(data: &Path, dir: &Path, dataset_kind: Option<&str>, extra: &[&str])
     let kind_file;
     if let Some(kind) = dataset_kind {
         // Swap the dataset (same ports) by writing a copy of the pipeline with another dataset.
-        let text = std::fs::read_to_string(&pipeline).unwrap();
-        let start = text.find("    dataset: NuScenes(").unwrap();
-        let end = start + text[start..].find("    ),\n").unwrap() + 7;
-        let text = format!("{}    dataset: {kind}(root: \"\"),\n{}", &text[..start], &text[end..]);
+        let text = with_dataset("curation", &format!("{kind}(root: \"\")"));
         kind_file = dir.join("curation.ron");
         std::fs::write(&kind_file, text).unwrap();
         args[1] = kind_file.to_str().unwrap();
@@ -134,11 +131,7 @@ fn curation_runs_on_the_shared_nuscenes_keyframe_and_dgp_scene() {
         assert!(held > 0.0 && held < 0.5, "{held}\n{report}");
         assert!(dir.join("out/scene-0061/CAM_FRONT/000_depth.exr").is_file());
     }
-    let dgp = repo().join("../shared/data/dgp-scene02");
-    if !dgp.is_dir() {
-        eprintln!("SKIPPED: the shared DGP scene is not at {}", dgp.display());
-        return;
-    }
+    let Some(dgp) = shared_dgp() else { return };
     let dir = tmp.path().join("dgp");
     std::fs::create_dir_all(&dir).unwrap();
     let o = curation(&dgp, &dir, Some("Dgp"), &["--set", "aggregate.holdout=0.2"]);

@@ -75,17 +75,10 @@ fn curation_on_the_shared_nuscenes_keyframe() {
 
 #[test]
 fn curation_on_the_shared_dgp_scene() {
-    let root = repo().join("../shared/data/dgp-scene02");
-    if !root.is_dir() {
-        eprintln!("SKIPPED: the shared DGP data is not at {} (CI always has it)", root.display());
-        return;
-    }
+    let Some(root) = shared_dgp() else { return };
     // The same pipeline with the DGP reader in place of the nuScenes one.
     let tmp = tempfile::tempdir().unwrap();
-    let shipped = std::fs::read_to_string(repo().join("pipelines/curation.ron")).unwrap();
-    let (start, end) = (shipped.find("dataset: NuScenes(").unwrap(), shipped.find("stages:").unwrap());
     let file = tmp.path().join("curation.ron");
-    let dataset = format!("dataset: Dgp(root: {:?}),\n    ", root.display().to_string());
-    std::fs::write(&file, format!("{}{dataset}{}", &shipped[..start], &shipped[end..])).unwrap();
+    std::fs::write(&file, with_dataset("curation", &format!("Dgp(root: {:?})", root.display().to_string()))).unwrap();
     check("dgp-curation", &file, &[]);
 }

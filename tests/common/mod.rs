@@ -25,6 +25,25 @@ pub fn shared_nuscenes() -> Option<PathBuf> {
     }
 }
 
+pub fn shared_dgp() -> Option<PathBuf> {
+    let p = repo().join("../shared/data/dgp-scene02");
+    if p.is_dir() {
+        Some(p)
+    } else {
+        eprintln!("SKIPPED: the shared DGP data is not at {} (CI always has it)", p.display());
+        None
+    }
+}
+
+/// The text of shipped pipeline `name` (`pipelines/<name>.ron`) with its `dataset: NuScenes(..)`
+/// replaced by `dataset` (e.g. `Dgp(root: "..")`): both readers give the same ports and items.
+pub fn with_dataset(name: &str, dataset: &str) -> String {
+    let text = std::fs::read_to_string(repo().join(format!("pipelines/{name}.ron"))).unwrap();
+    let start = text.find("dataset: NuScenes(").expect("the shipped pipeline reads NuScenes");
+    let end = start + text[start..].find("\n    ),\n").expect("its dataset ends with `    ),`") + 7;
+    format!("{}dataset: {dataset},{}", &text[..start], &text[end..])
+}
+
 pub fn peers_python() -> Option<PathBuf> {
     let p = std::env::var_os("DIST4D_PEERS_PYTHON")
         .map(PathBuf::from)
