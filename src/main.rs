@@ -244,8 +244,8 @@ fn load(args: &PipelineArgs, registry: &Registry) -> Result<Result<Pipeline, Exi
 }
 
 /// Writes a synthetic dataset (or finds it already there) and says so.
-fn synthesize(config: &dist4d_stages::synth::SynthConfig, out: &Path) -> Result<()> {
-    match dist4d_stages::synth::write_dataset(config, out, &|m| eprintln!("synth: {m}"))? {
+fn synthesize(config: &dist4d_synth::SynthConfig, out: &Path) -> Result<()> {
+    match dist4d_synth::write_dataset(config, out, &|m| eprintln!("synth: {m}"))? {
         None => println!("{}: the synthetic dataset is already there", out.display()),
         Some(s) => println!(
             "{}: {} scenes, {} samples, {} LiDAR sweeps, {} camera images, {} annotations in {:.1}s",
@@ -352,7 +352,7 @@ const DEMO_PIPELINE: &str = include_str!("../pipelines/curation.ron");
 /// `dist4d demo`: synthesize a small dataset (once), write the pipeline beside it, run it.
 fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> Result<ExitCode> {
     let data = dir.join("data/synth");
-    let config = dist4d_stages::synth::SynthConfig { keyframes, width, height, ..Default::default() };
+    let config = dist4d_synth::SynthConfig { keyframes, width, height, ..Default::default() };
     synthesize(&config, &data)?;
     let pipeline_file = dir.join("curation.ron");
     let text = DEMO_PIPELINE.replace("root: \"../data/nuscenes\",", "root: \"data/synth\",");
@@ -453,7 +453,7 @@ fn eval_tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
         for e in index["files"].as_array().into_iter().flatten().filter(|e| e["stage"] == stage) {
             let rel = e["path"].as_str().unwrap_or_default();
             let path = out_dir.join(rel);
-            let scores: dist4d_stages::stages::eval::ImageScores =
+            let scores: dist4d_stages::eval::depth::ImageScores =
                 serde_json::from_slice(&std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
                     .with_context(|| format!("{} is not an EvalDepth score file", path.display()))?;
             let camera = e["item"].as_str().unwrap_or_default().rsplit('/').next().unwrap_or_default().to_string();
@@ -465,7 +465,7 @@ fn eval_tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
             out_dir.display()
         );
         text.push_str(&format!("\n# {stage}: {} images, depth range 0.1-80 m\n", images.len()));
-        text.push_str(&dist4d_stages::stages::eval::tabulate(&images));
+        text.push_str(&dist4d_stages::eval::depth::tabulate(&images));
     }
     Ok(text)
 }
@@ -575,7 +575,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             no_lidar_sweeps,
             no_ground_truth,
         } => {
-            let config = dist4d_stages::synth::SynthConfig {
+            let config = dist4d_synth::SynthConfig {
                 seed,
                 scenes,
                 keyframes,

@@ -145,7 +145,7 @@ fn sigterm_stops_like_ctrl_c_with_a_run_record() {
     // Multi-view stereo on 800x450 images keeps one job busy for several seconds.
     let (tmp, root) = synthetic(4, 800, 450);
     let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
-    let mut child = Command::new(bin())
+    let child = Command::new(bin())
         .args(["run", repo().join("pipelines/curation.ron").to_str().unwrap(), "--progress", "off", "--jobs", "1"])
         .args(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap()])
         .args(["--set", &format!("dataset.root={}", root.display())])

@@ -253,8 +253,8 @@ fn demo_synthesizes_once_runs_the_shipped_pipeline_and_says_where_outputs_are() 
 
 #[test]
 fn the_renderer_reproduces_the_ground_truth_from_synth_json_for_any_pose() {
-    use dist4d_stages::geometry::Se3;
-    use dist4d_stages::synth::{PinholeCamera, Renderer};
+    use dist4d_synth::{PinholeCamera, Renderer};
+    use dist4d_types::geometry::Se3;
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("synth");
     assert!(synth_with(&data, &TINY, &[]).status.success());

@@ -9,9 +9,9 @@
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-use dist4d_stages::stages::encode::npy_f32;
-use dist4d_stages::stages::hpr::hidden_point_removal;
-use dist4d_stages::synth::rng::Rng;
+use dist4d_stages::curation::hpr::hidden_point_removal;
+use dist4d_stages::output::encode::npy_f32;
+use dist4d_types::rng::Rng;
 use glam::DVec3;
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -122,7 +122,7 @@ fn bench_stereo(tmp: &Path) {
     }
     let ((left, right), truth) = read_motorcycle(&dir).unwrap();
     let calib = PairCalibration::MOTORCYCLE;
-    let mvs = dist4d_stages::stages::mvs::Params::default();
+    let mvs = dist4d_stages::curation::mvs::Params::default();
     let p = calib.sweep(80.0, &mvs.sweep());
     // One thread, as OpenCV runs below.
     let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
@@ -168,7 +168,7 @@ fn bench_stereo(tmp: &Path) {
         }
         let j: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
         let theirs = j["best_seconds"].as_f64().unwrap();
-        let disp = dist4d_stages::files::parse_npy(&std::fs::read(&out).unwrap()).unwrap().data;
+        let disp = dist4d_datasets::files::parse_npy(&std::fs::read(&out).unwrap()).unwrap().data;
         let est: Vec<Option<f64>> = disp.iter().map(|&d| d.is_finite().then_some(d)).collect();
         let s = bad_pixels(&est, &truth, 2.0);
         println!(
@@ -185,7 +185,7 @@ fn bench_stereo(tmp: &Path) {
 
 /// Voxel-mean downsampling at 0.1 m against Open3D's `voxel_down_sample` on the same points.
 fn bench_voxel(tmp: &Path) {
-    use dist4d_stages::stages::mvs_points::voxel_mean;
+    use dist4d_stages::curation::mvs_points::voxel_mean;
     println!("## Voxel downsampling (0.1 m, mean per voxel) vs Open3D");
     println!("| points | kept (dist4d / Open3D) | dist4d | Open3D | speed-up | max coordinate difference |");
     println!("| ---: | ---: | ---: | ---: | ---: | ---: |");
@@ -204,7 +204,7 @@ fn bench_voxel(tmp: &Path) {
     match peer("voxel_open3d.py", &args) {
         Some(j) => {
             let theirs = j["best_seconds"].as_f64().unwrap();
-            let mut peer_pts: Vec<[f64; 3]> = dist4d_stages::files::parse_npy(&std::fs::read(&output).unwrap())
+            let mut peer_pts: Vec<[f64; 3]> = dist4d_datasets::files::parse_npy(&std::fs::read(&output).unwrap())
                 .unwrap()
                 .data
                 .chunks_exact(3)

@@ -1,9 +1,9 @@
 //! A pinhole camera seen from a point cloud's frame: the composed transform every curation stage
 //! needs to move points between a sensor frame and a camera image.
 
-use crate::artifact::{Calibration, Pose};
-use crate::geometry::Se3;
 use anyhow::{anyhow, Result};
+use dist4d_types::artifact::{Calibration, Pose};
+use dist4d_types::geometry::Se3;
 use glam::{DMat3, DVec3};
 
 /// Maps points of one sensor frame (at one ego pose) into one camera (at its own ego pose).
@@ -74,7 +74,7 @@ impl CameraView {
     /// centre, placed at the cloud frame's origin and looking along its +z: cloud frame = camera
     /// frame, which keeps test geometry readable.
     pub fn looking_along_z(w: u32, h: u32, f: f64) -> CameraView {
-        use crate::geometry::Se3;
+        use dist4d_types::geometry::Se3;
         let cam = Calibration {
             sensor_to_ego: Se3::from_yaw(0.0, DVec3::ZERO),
             intrinsics: Some([[f, 0.0, w as f64 / 2.0], [0.0, f, h as f64 / 2.0], [0.0, 0.0, 1.0]]),
@@ -92,7 +92,7 @@ impl CameraView {
 pub fn cloud_and_camera_ports(points_doc: &'static str) -> Vec<dist4d_graph::PortSpec> {
     use crate::stage::input;
     vec![
-        input::<crate::artifact::PointCloud>("points", points_doc),
+        input::<dist4d_types::artifact::PointCloud>("points", points_doc),
         input::<Calibration>("cloud_calib", "the sensor the cloud is in (the target frame's LiDAR)"),
         input::<Pose>("cloud_pose", "ego pose of that sensor's frame"),
         input::<Calibration>("camera_calib", "camera mounting and intrinsics"),

@@ -345,7 +345,7 @@ fn initial_simplex(pts: &[DVec3]) -> Option<[u32; 4]> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synth::rng::Rng;
+    use dist4d_types::rng::Rng;
 
     #[test]
     fn a_cube_with_inner_points_has_its_corners_as_vertices() {

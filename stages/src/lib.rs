@@ -1,33 +1,15 @@
-//! dist4d-stages: the driving domain. Geometry, dataset readers, and every stage, each a module
-//! with its params, ports and a plain function that does the work.
+//! dist4d-stages: every stage, each a module with its params, ports and a plain function that
+//! does the work, grouped by family (`curation`, `eval`, `output`), and the registry that offers
+//! them with the dataset readers to the graph and the runtime.
 
-pub mod artifact;
 pub mod camera;
-pub mod dataset_checks;
-pub mod dgp;
-pub mod files;
-pub mod geometry;
+pub mod curation;
+pub mod eval;
 pub mod hull;
 pub mod middlebury;
-pub mod nuscenes;
-pub mod sidecar;
+pub mod output;
 pub mod stage;
 pub mod stereo;
-pub mod synth;
-pub mod stages {
-    pub mod above_fov;
-    pub mod aggregate;
-    pub mod complete;
-    pub mod encode;
-    pub mod eval;
-    pub mod fuse;
-    pub mod hpr;
-    pub mod mvs;
-    pub mod mvs_points;
-    pub mod nearest_fill;
-    pub mod project_lidar;
-    pub mod prompt;
-}
 
 use anyhow::{anyhow, Context, Result};
 use dist4d_graph::{Catalog, DatasetSchema, Pipeline, StageSchema};
@@ -37,31 +19,31 @@ use stage::{parse_canonical, StageDef};
 /// Every stage kind and dataset kind dist4d has.
 pub struct Registry {
     stages: Vec<StageDef>,
-    nuscenes: nuscenes::NuScenesSchema,
-    dgp: dgp::DgpSchema,
+    nuscenes: dist4d_datasets::nuscenes::NuScenesSchema,
+    dgp: dist4d_datasets::dgp::DgpSchema,
 }
 
 impl Default for Registry {
     fn default() -> Self {
         Registry {
             stages: vec![
-                stages::above_fov::def(),
-                stages::aggregate::def(),
-                stages::complete::def(),
-                stages::eval::def(),
-                stages::fuse::def(),
-                stages::hpr::def(),
-                stages::mvs::def(),
-                stages::mvs_points::def(),
-                stages::nearest_fill::def(),
-                stages::prompt::def(),
-                stages::project_lidar::def(),
-                stages::encode::encode_depth(),
-                stages::encode::encode_points(),
-                stages::encode::depth_sheet_def(),
+                eval::above_fov::def(),
+                curation::aggregate::def(),
+                curation::complete::def(),
+                eval::depth::def(),
+                curation::fuse::def(),
+                curation::hpr::def(),
+                curation::mvs::def(),
+                curation::mvs_points::def(),
+                curation::nearest_fill::def(),
+                curation::prompt::def(),
+                curation::project_lidar::def(),
+                output::encode::encode_depth(),
+                output::encode::encode_points(),
+                output::encode::depth_sheet_def(),
             ],
-            nuscenes: nuscenes::NuScenesSchema::default(),
-            dgp: dgp::DgpSchema::default(),
+            nuscenes: dist4d_datasets::nuscenes::NuScenesSchema::default(),
+            dgp: dist4d_datasets::dgp::DgpSchema::default(),
         }
     }
 }
@@ -75,7 +57,7 @@ impl Registry {
     pub fn open_dataset(&self, p: &Pipeline) -> Result<Box<dyn Dataset>> {
         match p.dataset.kind.as_str() {
             "NuScenes" => {
-                let ds = nuscenes::NuScenes::open(parse_canonical(&p.dataset.config)?)
+                let ds = dist4d_datasets::nuscenes::NuScenes::open(parse_canonical(&p.dataset.config)?)
                     .context("opening the NuScenes dataset")?;
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
@@ -83,7 +65,8 @@ impl Registry {
                 Ok(Box::new(ds))
             }
             "Dgp" => {
-                let ds = dgp::Dgp::open(parse_canonical(&p.dataset.config)?).context("opening the DGP dataset")?;
+                let ds = dist4d_datasets::dgp::Dgp::open(parse_canonical(&p.dataset.config)?)
+                    .context("opening the DGP dataset")?;
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }
@@ -131,11 +114,11 @@ impl Catalog for Registry {
         vec!["NuScenes", "Dgp"]
     }
     fn exportable(&self, ty: &str) -> bool {
-        ty == artifact::File::TYPE
+        ty == dist4d_types::artifact::File::TYPE
     }
 }
 
-use artifact::Artifact as _;
+use dist4d_types::artifact::Artifact as _;
 
 #[cfg(test)]
 mod tests {

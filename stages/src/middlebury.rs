@@ -1,9 +1,9 @@
 //! The Middlebury stereo benchmark's rectified pairs as calibrated views, and its bad-pixel score:
 //! the check that the plane-sweep stereo of [`crate::stereo`] measures disparity correctly.
 
-use crate::geometry::Se3;
 use crate::stereo::{StereoView, SweepParams};
 use anyhow::{ensure, Context, Result};
+use dist4d_types::geometry::Se3;
 use glam::DVec3;
 use std::path::Path;
 
@@ -53,7 +53,7 @@ impl PairCalibration {
 
 /// A grey image (ITU-R 601 luma) of an image file.
 pub fn read_grey(path: &Path) -> Result<(usize, usize, Vec<u8>)> {
-    let img = crate::files::read_jpeg(path)?;
+    let img = dist4d_datasets::files::read_jpeg(path)?;
     Ok((img.width as usize, img.height as usize, crate::stereo::grey(&img.rgb)))
 }
 
@@ -63,9 +63,10 @@ pub fn read_motorcycle(dir: &Path) -> Result<((StereoView, StereoView), Vec<f64>
     let left = read_grey(&dir.join("motorcycle_left.png"))?;
     let right = read_grey(&dir.join("motorcycle_right.png"))?;
     let gt_path = dir.join("motorcycle_disp.npy");
-    let gt =
-        crate::files::parse_npy(&std::fs::read(&gt_path).with_context(|| format!("reading {}", gt_path.display()))?)
-            .with_context(|| format!("parsing {}", gt_path.display()))?;
+    let gt = dist4d_datasets::files::parse_npy(
+        &std::fs::read(&gt_path).with_context(|| format!("reading {}", gt_path.display()))?,
+    )
+    .with_context(|| format!("parsing {}", gt_path.display()))?;
     ensure!(
         gt.shape == [left.1, left.0] && (right.0, right.1) == (left.0, left.1),
         "{}: ground truth {:?} and images {}x{} / {}x{} disagree in size",

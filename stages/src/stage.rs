@@ -1,10 +1,10 @@
 //! The shape every stage module shares: a [`StageDef`] (schema + how to build its operator from
 //! canonical params) and helpers to decode typed inputs.
 
-use crate::artifact::Artifact;
 use anyhow::{anyhow, Context, Result};
 use dist4d_graph::{ParamsSpec, PortSpec, StageSchema, Validate};
 use dist4d_runtime::{Operator, TaskContext};
+use dist4d_types::artifact::Artifact;
 use serde::{de::DeserializeOwned, Serialize};
 
 /// A stage's work on decoded params; the context is rarely needed, so it is left out.

@@ -12,7 +12,7 @@
 //! The number of planes follows the geometry: planes are spaced so that the sample moves about
 //! `plane_step_px` pixels along the longest epipolar line, capped at `max_planes`.
 
-use crate::geometry::Se3;
+use dist4d_types::geometry::Se3;
 use glam::{DMat3, DVec3};
 use rayon::prelude::*;
 
@@ -605,7 +605,7 @@ pub(crate) mod tests {
 
     /// The MultiViewStereo stage's defaults, from 5 m.
     pub(crate) fn params() -> SweepParams {
-        SweepParams { min_depth: 5.0, ..crate::stages::mvs::Params::default().sweep() }
+        SweepParams { min_depth: 5.0, ..crate::curation::mvs::Params::default().sweep() }
     }
 
     #[test]

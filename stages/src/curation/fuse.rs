@@ -7,11 +7,11 @@
 //! stays at least one cell away from the LiDAR's coverage). Both clouds are in the same frame
 //! (the target LiDAR's); the output is the whole LiDAR cloud followed by the kept MVS points.
 
-use crate::artifact::{Artifact, PointCloud};
 use crate::camera::CameraView;
 use crate::stage::{input, one, StageDef, TypedOp};
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::{Artifact, PointCloud};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 

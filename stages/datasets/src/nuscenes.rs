@@ -5,16 +5,14 @@
 //! Source ports: `lidar` (PointCloud, per frame, from the keyframe `.pcd.bin`), `lidar_calib`
 //! and `lidar_pose` (per frame), `camera_calib` and `camera_pose` (per camera).
 
-use crate::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
-use crate::dataset_checks::{
-    join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform,
-};
+use crate::checks::{join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform};
 use crate::files::read_camera_image;
-use crate::geometry::Se3;
 use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{DatasetSchema, DimSpec, ParamsSpec, SourcePortSpec};
 use dist4d_runtime::{Dataset, Digest, DigestBuilder, FileDigests, ItemKey, ItemSpace};
+use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
+use dist4d_types::geometry::Se3;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -959,7 +957,7 @@ mod tests {
     use super::*;
 
     pub fn shared_nuscenes() -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/nuscenes-scene0061-kf0");
+        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuscenes-scene0061-kf0");
         if p.is_dir() {
             Some(p)
         } else {
@@ -991,8 +989,8 @@ mod tests {
     fn synthetic() -> (tempfile::TempDir, PathBuf) {
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path().join("synth");
-        let config = crate::synth::SynthConfig { keyframes: 3, width: 160, height: 90, ..Default::default() };
-        crate::synth::write_dataset(&config, &root, &|_| {}).unwrap();
+        let config = dist4d_synth::SynthConfig { keyframes: 3, width: 160, height: 90, ..Default::default() };
+        dist4d_synth::write_dataset(&config, &root, &|_| {}).unwrap();
         (dir, root)
     }
 
@@ -1020,7 +1018,8 @@ mod tests {
         let pc = PointCloud::decode(&ds.load_source("lidar", &ItemKey::new(&[0, 0])).unwrap()).unwrap();
         assert_eq!(pc.labels.len(), pc.points.len());
         assert!(pc.labels.contains(&24) && pc.labels.contains(&17));
-        let img = crate::artifact::Image::decode(&ds.load_source("image", &ItemKey::new(&[0, 0, 3])).unwrap()).unwrap();
+        let img = dist4d_types::artifact::Image::decode(&ds.load_source("image", &ItemKey::new(&[0, 0, 3])).unwrap())
+            .unwrap();
         assert_eq!((img.width, img.height, img.rgb.len()), (160, 90, 160 * 90 * 3));
     }
 
@@ -1405,9 +1404,10 @@ mod tests {
                 ..Default::default()
             })
             .unwrap();
-            let seg =
-                crate::artifact::Segmentation::decode(&ds.load_source("semantic", &ItemKey::new(&[0, 0, 0])).unwrap())
-                    .unwrap();
+            let seg = dist4d_types::artifact::Segmentation::decode(
+                &ds.load_source("semantic", &ItemKey::new(&[0, 0, 0])).unwrap(),
+            )
+            .unwrap();
             assert_eq!((seg.width, seg.height), (160, 90), "{semantics}");
         }
     }

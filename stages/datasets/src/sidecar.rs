@@ -4,8 +4,8 @@
 //! stem>.png`, 8-bit Cityscapes ids). A dataset without them gives empty (0 x 0) artifacts, which
 //! the stages read as "none", so one pipeline file serves real and synthetic data.
 
-use crate::artifact::{DepthMap, Segmentation};
 use anyhow::{bail, Context, Result};
+use dist4d_types::artifact::{DepthMap, Segmentation};
 use std::path::{Path, PathBuf};
 
 #[derive(Clone, Debug, Default)]

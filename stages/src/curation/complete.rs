@@ -18,10 +18,10 @@
 //!
 //! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
 
-use crate::artifact::{DepthMap, Image, Segmentation};
 use crate::stage::{input, maybe_one, one, optional_input, StageDef, TypedOp};
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::{DepthMap, Image, Segmentation};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -383,7 +383,7 @@ impl TypedOp for Op {
         // An empty map is a dataset without segmentations.
         let semantic = maybe_one::<Segmentation>(inputs, 2)?.filter(|s| s.width > 0 && s.height > 0);
         let dense = ScanlineCompleter(self.0.clone()).complete(&image, &sparse, semantic.as_ref())?;
-        use crate::artifact::Artifact;
+        use dist4d_types::artifact::Artifact;
         Ok(vec![dense.encode()])
     }
 }
@@ -413,7 +413,7 @@ mod tests {
         // Against a direct scan of every window, for several radii, on a map with runs of
         // samples, lone ones and samples at the borders.
         let (w, h) = (23, 17);
-        let mut rng = crate::synth::rng::Rng::new(7);
+        let mut rng = dist4d_types::rng::Rng::new(7);
         let sparse: Vec<f32> =
             (0..w * h).map(|_| if rng.range(0.0, 1.0) < 0.08 { rng.range(0.01, 1.0) as f32 } else { 0.0 }).collect();
         for r in [1usize, 2, 4] {

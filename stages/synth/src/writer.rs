@@ -8,10 +8,10 @@
 use super::render::{PinholeCamera, Snapshot};
 use super::world::{class, AgentKind, World, ROAD_HALF_WIDTH};
 use super::{SynthConfig, CAMERA_RIG, GENERATOR_VERSION, GROUND_TRUTH_DIR, LIDAR_TOP};
-use crate::artifact::DepthMap;
-use crate::geometry::Se3;
-use crate::stages::encode::depth_exr;
 use anyhow::{bail, Context, Result};
+use dist4d_types::artifact::DepthMap;
+use dist4d_types::formats::depth_exr;
+use dist4d_types::geometry::Se3;
 use glam::DVec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};

@@ -7,10 +7,10 @@
 //! for 1600x900, which is why it is a stage of its own: pipelines run it only when a completer
 //! reads it.
 
-use crate::artifact::{Artifact, DepthMap};
 use crate::stage::{input, one, StageDef, TypedOp};
 use anyhow::Result;
 use dist4d_graph::{PortSpec, Validate};
+use dist4d_types::artifact::{Artifact, DepthMap};
 use serde::{Deserialize, Serialize};
 
 /// No parameters.
@@ -129,7 +129,7 @@ pub fn def() -> StageDef {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synth::rng::Rng;
+    use dist4d_types::rng::Rng;
 
     #[test]
     fn the_fill_takes_the_exactly_nearest_seed() {

@@ -16,11 +16,11 @@
 //! fail the uniqueness or consistency test and get no depth rather than a wrong one.
 //! A frame without neighbours (a one-frame scene) gets no depth.
 
-use crate::artifact::{Artifact, Calibration, DepthMap, Image, Pose};
 use crate::stage::{each, StageDef, TypedOp};
 use crate::stereo::{keep_consistent, sweep_depth, StereoDepth, StereoView, SweepParams, VolumeTooLarge};
 use anyhow::{anyhow, ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::{Artifact, Calibration, DepthMap, Image, Pose};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -241,7 +241,7 @@ pub fn def() -> StageDef {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::Se3;
+    use dist4d_types::geometry::Se3;
     use glam::DVec3;
 
     /// A camera looking left (ego +y), so driving along ego +x is a sideways baseline, at a

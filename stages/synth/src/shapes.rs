@@ -402,7 +402,7 @@ mod tests {
 
     #[test]
     fn the_grid_finds_the_same_nearest_hit_as_brute_force() {
-        let mut rng = super::super::rng::Rng::new(3);
+        let mut rng = dist4d_types::rng::Rng::new(3);
         let mut prims = Vec::new();
         for _ in 0..300 {
             let c = DVec3::new(rng.range(-50.0, 50.0), rng.range(-50.0, 50.0), rng.range(0.0, 5.0));

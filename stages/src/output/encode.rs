@@ -4,10 +4,11 @@
 //! 256, the KITTI convention; 0 = no depth, clamped at 255.99 m), NPY (float32 H x W) and a colour
 //! preview (turbo, near = warm, black = no depth). `EncodePoints` writes projected points as NPY.
 
-use crate::artifact::{DepthMap, Image, ProjectedPoints};
 use crate::stage::{input, one, StageDef, TypedOp};
 use anyhow::{Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::{DepthMap, Image, ProjectedPoints};
+pub use dist4d_types::formats::{depth_exr, depth_png16, npy_f32};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -27,55 +28,6 @@ impl Validate for DepthParams {
     fn validate(&self) -> Vec<ParamProblem> {
         ParamChecks::new().above("preview_max_depth", self.preview_max_depth as f64, 0.0, 1e6).done()
     }
-}
-
-/// OpenEXR, one float32 channel `Z`, ZIP-compressed.
-pub fn depth_exr(d: &DepthMap) -> Result<Vec<u8>> {
-    use exr::prelude::*;
-    let channel = AnyChannel::new("Z", FlatSamples::F32(d.data.clone()));
-    let layer = Layer::new(
-        (d.width as usize, d.height as usize),
-        LayerAttributes::named("depth"),
-        Encoding::SMALL_LOSSLESS,
-        AnyChannels::sort(smallvec::smallvec![channel]),
-    );
-    let image = Image::from_layer(layer);
-    let mut out = std::io::Cursor::new(Vec::new());
-    image.write().non_parallel().to_buffered(&mut out).context("encoding EXR")?;
-    Ok(out.into_inner())
-}
-
-/// 16-bit grey PNG of depth x 256.
-pub fn depth_png16(d: &DepthMap) -> Result<Vec<u8>> {
-    let px: Vec<u16> = d
-        .data
-        .iter()
-        .map(|&z| if z > 0.0 && z.is_finite() { (z * 256.0).round().clamp(1.0, 65535.0) as u16 } else { 0 })
-        .collect();
-    let img =
-        image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(d.width, d.height, px).context("depth map size")?;
-    let mut out = std::io::Cursor::new(Vec::new());
-    img.write_to(&mut out, image::ImageFormat::Png).context("encoding PNG")?;
-    Ok(out.into_inner())
-}
-
-/// NPY v1.0 of a little-endian float32 array.
-pub fn npy_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
-    let dims = shape.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ");
-    let shape = if shape.len() == 1 { format!("({dims},)") } else { format!("({dims})") };
-    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
-    // Magic (6) + version (2) + length (2) + header + '\n' is a multiple of 64.
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = b"\x93NUMPY\x01\x00".to_vec();
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for x in data {
-        out.extend_from_slice(&x.to_le_bytes());
-    }
-    out
 }
 
 /// Turbo colormap (Mikhailov 2019, polynomial fit), t in [0, 1].

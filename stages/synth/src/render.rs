@@ -1,10 +1,10 @@
 //! Ray casting the world at a moment in time: camera images with exact depth and semantics, and
 //! LiDAR sweeps. This is the renderer API evaluation uses for novel views: any pose, any time.
 
-use super::rng::{mix, Rng};
 use super::shapes::{Grid, Prim};
 use super::world::{class, ego_body, Material, World, LANE_WIDTH, ROAD_HALF_WIDTH};
-use crate::geometry::Se3;
+use dist4d_types::geometry::Se3;
+use dist4d_types::rng::{mix, Rng};
 use glam::DVec3;
 use rayon::prelude::*;
 

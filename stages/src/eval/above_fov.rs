@@ -9,11 +9,11 @@
 //! the highest `outlier_share` of them), so no sensor table is needed; `top_elevation_deg`
 //! overrides it for sweeps that were cropped.
 
-use crate::artifact::{DepthMap, PointCloud};
 use crate::camera::CameraView;
 use crate::stage::{input, one, StageDef, TypedOp};
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::{DepthMap, PointCloud};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -119,7 +119,7 @@ struct Op(Params);
 
 impl TypedOp for Op {
     fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        use crate::artifact::Artifact;
+        use dist4d_types::artifact::Artifact;
         let depth = one::<DepthMap>(inputs, 5)?;
         // No reference (a dataset without ground truth) or no sweep: nothing to restrict.
         let top = top_elevation(&self.0, &one::<PointCloud>(inputs, 0)?);
@@ -182,7 +182,7 @@ mod tests {
 
     #[test]
     fn the_slope_test_agrees_with_the_elevation_angle() {
-        let mut rng = crate::synth::rng::Rng::new(3);
+        let mut rng = dist4d_types::rng::Rng::new(3);
         for _ in 0..20_000 {
             let p = glam::DVec3::new(rng.range(-50.0, 50.0), rng.range(-50.0, 50.0), rng.range(-20.0, 20.0));
             let top = rng.range(-80.0, 80.0).to_radians();

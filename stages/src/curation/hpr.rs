@@ -22,12 +22,12 @@
 //! go into the hull: the others never reach the image, and leaving them out makes the hull 5-6x
 //! smaller for a surround rig.
 
-use crate::artifact::PointCloud;
 use crate::camera::CameraView;
 use crate::hull::hull_vertices;
 use crate::stage::{one, StageDef, TypedOp};
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::PointCloud;
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -186,7 +186,7 @@ impl TypedOp for Op {
     fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
         let points = one::<PointCloud>(inputs, 0)?;
         let view = CameraView::from_inputs(inputs)?;
-        use crate::artifact::Artifact;
+        use dist4d_types::artifact::Artifact;
         Ok(vec![visible_points(&self.0, &points, &view).encode()])
     }
 }

@@ -5,7 +5,6 @@
 //! Everything is a pure function of [`SynthConfig`]: the same config gives byte-identical files.
 
 pub mod render;
-pub mod rng;
 pub mod shapes;
 pub mod world;
 mod writer;
@@ -14,8 +13,8 @@ pub use render::{CameraImage, LidarModel, LidarSweep, PinholeCamera, Snapshot};
 pub use world::{World, WorldParams};
 pub use writer::write_dataset;
 
-use crate::geometry::Se3;
 use anyhow::{Context, Result};
+use dist4d_types::geometry::Se3;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -67,7 +66,7 @@ impl Default for SynthConfig {
 impl SynthConfig {
     /// The seed of scene `i`: scenes are independent worlds.
     pub fn scene_seed(&self, i: u32) -> u64 {
-        rng::mix(self.seed.wrapping_mul(0x1000_0000_01B3) ^ (i as u64 + 1))
+        dist4d_types::rng::mix(self.seed.wrapping_mul(0x1000_0000_01B3) ^ (i as u64 + 1))
     }
 
     /// The world of scene `i`, long enough for its keyframes.

@@ -6,7 +6,7 @@
 //! from (file, row or object, token) and names the field, so a reader can store it as the error of
 //! just the items that use the bad row and the user can find the row without a debugger.
 
-use crate::geometry::Se3;
+use dist4d_types::geometry::Se3;
 use std::collections::BTreeMap;
 use std::fmt;
 use std::path::{Component, Path, PathBuf};

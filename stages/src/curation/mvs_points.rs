@@ -17,12 +17,12 @@
 //! `voxel_down_sample`: voxels anchored at the cloud's minimum corner less half a voxel), in voxel
 //! order so the output does not depend on thread count.
 
-use crate::artifact::{Artifact, Boxes3D, Calibration, DepthMap, Image, PointCloud, Pose, Segmentation};
 use crate::camera::CameraView;
-use crate::geometry::BoxTest;
 use crate::stage::{input, maybe_one, one, optional_input, StageDef, TypedOp};
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::{Artifact, Boxes3D, Calibration, DepthMap, Image, PointCloud, Pose, Segmentation};
+use dist4d_types::geometry::BoxTest;
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -171,7 +171,7 @@ pub struct MvsInputs<'a> {
     /// Target LiDAR frame -> camera (the camera at full image size).
     pub view: &'a CameraView,
     /// World -> target LiDAR frame.
-    pub cloud_from_world: crate::geometry::Se3,
+    pub cloud_from_world: dist4d_types::geometry::Se3,
     pub boxes: &'a Boxes3D,
 }
 
@@ -208,7 +208,7 @@ pub fn static_points(params: &Params, m: &MvsInputs) -> Result<PointCloud> {
     }
     let sky: Vec<bool> = match semantic {
         Some(s) => s.ids.iter().map(|&id| id == Segmentation::SKY).collect(),
-        None if params.detect_sky => crate::stages::complete::estimate_sky_from_top(m.image),
+        None if params.detect_sky => crate::curation::complete::estimate_sky_from_top(m.image),
         None => vec![false; iw * ih],
     };
     let boxes: Vec<BoxTest> = m
@@ -305,8 +305,8 @@ pub fn def() -> StageDef {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::artifact::Box3D;
-    use crate::geometry::Se3;
+    use dist4d_types::artifact::Box3D;
+    use dist4d_types::geometry::Se3;
 
     #[test]
     fn voxel_mean_averages_each_voxel_with_open3d_anchoring() {

@@ -3,11 +3,11 @@
 //! `NearestFill`, so that only pipelines whose completer reads it pay for it (the built-in
 //! `CompleteDepth` reads the sparse map).
 
-use crate::artifact::{DepthMap, PointCloud};
 use crate::camera::{CameraView, ZBuffer};
 use crate::stage::{one, StageDef, TypedOp};
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::{DepthMap, PointCloud};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -55,7 +55,7 @@ impl TypedOp for Op {
     fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
         let view = CameraView::from_inputs(inputs)?;
         let sparse = project_points(&self.0, &one::<PointCloud>(inputs, 0)?, &view);
-        use crate::artifact::Artifact;
+        use dist4d_types::artifact::Artifact;
         Ok(vec![sparse.encode()])
     }
 }

@@ -2,8 +2,8 @@
 //! buildings, poles, trees, parked and moving cars, pedestrians. Everything is a function of the
 //! seed, so the world (and any rendering of it) can be rebuilt exactly from `synth.json`.
 
-use super::rng::Rng;
 use super::shapes::{Prim, Shape};
+use dist4d_types::rng::Rng;
 use glam::DVec3;
 
 /// Cityscapes ids of the ground-truth semantic PNGs.

@@ -14,10 +14,10 @@
 //! truth only where it lies above the LiDAR's vertical field of view, from `AboveLidarFov`: where
 //! LiDAR cannot help and MVS must).
 
-use crate::artifact::{DepthMap, File};
 use crate::stage::{maybe_one, one, optional_input, StageDef, TypedOp};
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::{DepthMap, File};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -167,7 +167,7 @@ impl TypedOp for Op {
         let list: Vec<(&str, Option<&DepthMap>)> =
             REFERENCES.iter().zip(&refs).map(|(n, r)| (*n, r.as_ref())).collect();
         let scores = evaluate(&self.0, &pred, &list)?;
-        use crate::artifact::Artifact;
+        use dist4d_types::artifact::Artifact;
         Ok(vec![File(serde_json::to_vec_pretty(&scores)?).encode()])
     }
 }

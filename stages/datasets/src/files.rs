@@ -1,7 +1,7 @@
 //! Sensor file formats shared by the dataset readers: JPEG images and NumPy `.npy` / `.npz`.
 
-use crate::artifact::Image;
 use anyhow::{bail, ensure, Context, Result};
+use dist4d_types::artifact::Image;
 use std::path::Path;
 
 /// Decodes a JPEG (or any image the `image` crate reads) to RGB8.
@@ -203,7 +203,7 @@ mod tests {
     #[test]
     fn reads_the_shared_dgp_npz() {
         let dir =
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/dgp-scene02/scene_02/point_cloud/LIDAR");
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/dgp-scene02/scene_02/point_cloud/LIDAR");
         let Ok(entries) = std::fs::read_dir(&dir) else {
             eprintln!("SKIPPED: shared DGP data not found at {}", dir.display());
             return;

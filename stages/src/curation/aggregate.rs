@@ -15,12 +15,12 @@
 //! out of the aggregate and returns them separately, so a curated depth can be scored on LiDAR
 //! points it never saw (works on real data).
 
-use crate::artifact::{Boxes3D, Calibration, PointCloud, Pose};
-use crate::geometry::BoxTest;
 use crate::stage::{each, StageDef, TypedOp};
-use crate::synth::rng::mix;
 use anyhow::{anyhow, ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_types::artifact::{Boxes3D, Calibration, PointCloud, Pose};
+use dist4d_types::geometry::BoxTest;
+use dist4d_types::rng::mix;
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -198,7 +198,7 @@ impl TypedOp for Op {
             });
         }
         let (agg, held) = aggregate(&self.0, &sweeps)?;
-        use crate::artifact::Artifact;
+        use dist4d_types::artifact::Artifact;
         Ok(vec![agg.encode(), held.encode()])
     }
 }
@@ -226,8 +226,8 @@ pub fn def() -> StageDef {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::artifact::Box3D;
-    use crate::geometry::Se3;
+    use dist4d_types::artifact::Box3D;
+    use dist4d_types::geometry::Se3;
 
     fn lidar() -> Calibration {
         Calibration {
