@@ -349,27 +349,26 @@ fn stop_on_signals(cancel: Arc<AtomicBool>) -> Result<Arc<AtomicI32>> {
 /// The shipped pipeline the demo runs, built into the binary so the demo works from anywhere.
 const DEMO_PIPELINE: &str = include_str!("../pipelines/curation.ron");
 
-/// `dist4d demo`: synthesize a small dataset (once), write the pipeline beside it, run it.
+/// `dist4d demo`: synthesize a small dataset (once), write the shipped pipeline beside it as it
+/// ships (its `root: "../data/nuscenes"` finds the data in the same layout as in the repository),
+/// run it with the default store and output folder, and print its scores.
 fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> Result<ExitCode> {
-    let data = dir.join("data/synth");
+    let data = dir.join("data/nuscenes");
     let config = dist4d_synth::SynthConfig { keyframes, width, height, ..Default::default() };
     synthesize(&config, &data)?;
-    let pipeline_file = dir.join("curation.ron");
-    let text = DEMO_PIPELINE.replace("root: \"../data/nuscenes\",", "root: \"data/synth\",");
-    anyhow::ensure!(text != DEMO_PIPELINE, "the shipped pipeline no longer names ../data/nuscenes; update the demo");
-    if std::fs::read_to_string(&pipeline_file).ok().as_deref() != Some(text.as_str()) {
-        std::fs::write(&pipeline_file, &text).with_context(|| format!("writing {}", pipeline_file.display()))?;
+    let pipeline_file = dir.join("pipelines/curation.ron");
+    if std::fs::read_to_string(&pipeline_file).ok().as_deref() != Some(DEMO_PIPELINE) {
+        std::fs::create_dir_all(dir.join("pipelines"))?;
+        std::fs::write(&pipeline_file, DEMO_PIPELINE)
+            .with_context(|| format!("writing {}", pipeline_file.display()))?;
     }
     let registry = Registry::default();
     let args = PipelineArgs { pipeline: pipeline_file.clone(), sets: vec![], cache: None, scenes: None, limit: None };
-    let pipeline = match load(&args, &registry)? {
-        Ok(p) => p,
+    let (pipeline, out_dir, code) = match run_pipeline(&registry, &args, |_| Ok(()), None, false, None, progress)? {
+        Ok(x) => x,
         Err(code) => return Ok(code),
     };
-    let out_dir = dir.join("out");
-    let opts = RunOptions { out_dir: Some(out_dir.clone()), progress: progress_mode(progress), ..Default::default() };
-    let code = execute(&registry, &pipeline, &dir.join(".dist4d"), &out_dir, opts)?;
-    print!("{}", eval_tables(&pipeline, &out_dir)?);
+    print!("{}", dist4d_stages::eval::report::tables(&pipeline, &out_dir)?);
     println!();
     println!("demo outputs:");
     println!("  synthetic nuScenes dataset   {}", data.display());
@@ -415,59 +414,6 @@ fn run_pipeline(
     }
     let code = execute(registry, &pipeline, &cache, &out_dir, opts)?;
     Ok(Ok((pipeline, out_dir, code)))
-}
-
-/// The EvalDepth stages of `pipeline`; an error unless there is one and each exports its scores
-/// (`dist4d eval` reads them from the exported files), said before anything runs.
-fn eval_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
-    let stages: Vec<(usize, &str)> = pipeline
-        .nodes
-        .iter()
-        .enumerate()
-        .filter(|(_, n)| n.stage().is_some_and(|s| s.kind == "EvalDepth"))
-        .map(|(id, n)| (id, n.name.as_str()))
-        .collect();
-    anyhow::ensure!(!stages.is_empty(), "{}: the pipeline has no EvalDepth stage to report", pipeline.path.display());
-    for &(id, name) in &stages {
-        anyhow::ensure!(
-            pipeline.exports.iter().any(|e| e.node == id),
-            "{}: stage `{name}` (EvalDepth) is not exported, and `dist4d eval` reads the scores from the \
-             exported files: add `\"{name}.json\": \"{{scene}}/{{camera}}/{{frame}}_metrics.json\"` to `export`",
-            pipeline.path.display()
-        );
-    }
-    Ok(stages.into_iter().map(|(_, name)| name).collect())
-}
-
-/// The score tables of every EvalDepth stage of `pipeline`, read from the run's exported files.
-fn eval_tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
-    let eval_stages = eval_stages(pipeline)?;
-    let index_path = out_dir.join("index.json");
-    let index: serde_json::Value = serde_json::from_slice(
-        &std::fs::read(&index_path).with_context(|| format!("reading {}", index_path.display()))?,
-    )
-    .with_context(|| format!("{} is not valid JSON", index_path.display()))?;
-    let mut text = String::new();
-    for stage in eval_stages {
-        let mut images = Vec::new();
-        for e in index["files"].as_array().into_iter().flatten().filter(|e| e["stage"] == stage) {
-            let rel = e["path"].as_str().unwrap_or_default();
-            let path = out_dir.join(rel);
-            let scores: dist4d_stages::eval::depth::ImageScores =
-                serde_json::from_slice(&std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?)
-                    .with_context(|| format!("{} is not an EvalDepth score file", path.display()))?;
-            let camera = e["item"].as_str().unwrap_or_default().rsplit('/').next().unwrap_or_default().to_string();
-            images.push((camera, scores));
-        }
-        anyhow::ensure!(
-            !images.is_empty(),
-            "stage `{stage}` exported no scores to {}: export its `json` port",
-            out_dir.display()
-        );
-        text.push_str(&format!("\n# {stage}: {} images, depth range 0.1-80 m\n", images.len()));
-        text.push_str(&dist4d_stages::eval::depth::tabulate(&images));
-    }
-    Ok(text)
 }
 
 fn beside(pipeline: &Path, rel: &str) -> PathBuf {
@@ -526,13 +472,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
         }
         Command::Eval { p, jobs, out, progress } => {
             // A pipeline that cannot be reported on fails before its run, not after.
-            let reportable = |p: &Pipeline| eval_stages(p).map(|_| ());
+            let reportable = |p: &Pipeline| dist4d_stages::eval::report::scored_stages(p).map(|_| ());
             let (pipeline, out_dir, code) = match run_pipeline(&registry, &p, reportable, jobs, false, out, &progress)?
             {
                 Ok(x) => x,
                 Err(code) => return Ok(code),
             };
-            print!("{}", eval_tables(&pipeline, &out_dir)?);
+            print!("{}", dist4d_stages::eval::report::tables(&pipeline, &out_dir)?);
             Ok(code)
         }
         Command::Run { p, jobs, fail_fast, out, progress } => {

@@ -25,7 +25,7 @@ use crate::record::OutputRef;
 use crate::store::{write_atomic_via, BlobError, Store};
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{Dim, Export, TemplatePart};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::{BTreeMap, HashSet};
 use std::os::unix::fs::MetadataExt;
 use std::path::{Component, Path, PathBuf};
@@ -133,14 +133,31 @@ impl Manifest {
     }
 }
 
-#[derive(Serialize, Clone)]
-struct IndexEntry {
-    path: String,
-    stage: String,
-    port: String,
-    item: String,
-    digest: String,
-    bytes: u64,
+/// One file of `index.json`: where it is, which stage, port and item made it, and its bytes.
+#[derive(Serialize, Deserialize, Clone, Debug)]
+pub struct IndexEntry {
+    /// Relative to the output folder.
+    pub path: String,
+    pub stage: String,
+    pub port: String,
+    /// The item's labels joined by `/`.
+    pub item: String,
+    pub digest: String,
+    pub bytes: u64,
+}
+
+#[derive(Deserialize)]
+struct Index {
+    files: Vec<IndexEntry>,
+}
+
+/// The files the last run exported into `out_dir`, as its `index.json` lists them.
+pub fn read_index(out_dir: &Path) -> Result<Vec<IndexEntry>> {
+    let path = out_dir.join(INDEX);
+    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+    let index: Index =
+        serde_json::from_slice(&bytes).with_context(|| format!("{} is not a dist4d index", path.display()))?;
+    Ok(index.files)
 }
 
 pub struct Exporter {
@@ -357,6 +374,7 @@ impl Exporter {
             .map(|(_, e)| e)
             .collect();
         let count = files.len() as u64;
+        // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
         let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files }))?;
         let manifest_tmp = self.tmp_path("manifest");
         manifest.write(&self.dir, &manifest_tmp)?;

@@ -3,3 +3,4 @@
 
 pub mod above_fov;
 pub mod depth;
+pub mod report;
