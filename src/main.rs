@@ -302,7 +302,8 @@ fn execute(
         );
     }
     for f in &rec.failures {
-        eprintln!("failed: {} {}: {}", f.stage, f.item, f.error);
+        // Item names come from the dataset: control characters are shown, not sent to the terminal.
+        eprintln!("failed: {} {}: {}", f.stage, printable(&f.item), printable(&f.error));
     }
     println!(
         "run {} {:?} in {:.2}s: {} executed, {} cached, {} failed; {} files in {}",
@@ -323,15 +324,22 @@ fn execute(
     })
 }
 
-/// Stops a run cleanly on SIGINT (Ctrl-C) and SIGTERM (what Slurm, systemd and `kill` send
-/// before SIGKILL): running tasks finish, nothing new starts, the run record is written. A second
+/// `s` with control characters escaped (`\u{1b}`), line breaks of multi-line errors kept.
+fn printable(s: &str) -> String {
+    s.chars()
+        .map(|c| if c.is_control() && c != '\n' { c.escape_default().to_string() } else { c.to_string() })
+        .collect()
+}
+
+/// Stops a run cleanly on SIGINT (Ctrl-C), SIGTERM (what Slurm, systemd and `kill` send before
+/// SIGKILL) and SIGHUP (its terminal closed): running tasks finish, nothing new starts, the run record is written. A second
 /// signal leaves at once, which is safe too (every file is written whole or not at all). Returns
 /// the number of the signal that stopped the run (SIGINT until one arrives).
 fn stop_on_signals(cancel: Arc<AtomicBool>) -> Result<Arc<AtomicI32>> {
-    use signal_hook::consts::{SIGINT, SIGTERM};
+    use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
     let stopped_by = Arc::new(AtomicI32::new(SIGINT));
-    let mut signals =
-        signal_hook::iterator::Signals::new([SIGINT, SIGTERM]).context("listening for SIGINT and SIGTERM")?;
+    let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM, SIGHUP])
+        .context("listening for SIGINT, SIGTERM and SIGHUP")?;
     let by = stopped_by.clone();
     std::thread::Builder::new().name("dist4d-signals".into()).spawn(move || {
         for signal in signals.forever() {
@@ -339,7 +347,13 @@ fn stop_on_signals(cancel: Arc<AtomicBool>) -> Result<Arc<AtomicI32>> {
                 std::process::exit(128 + signal);
             }
             by.store(signal, Ordering::SeqCst);
-            let name = if signal == SIGTERM { "SIGTERM" } else { "Ctrl-C" };
+            let name = if signal == SIGTERM {
+                "SIGTERM"
+            } else if signal == SIGHUP {
+                "SIGHUP"
+            } else {
+                "Ctrl-C"
+            };
             eprintln!("\nstopping on {name}: running tasks finish, nothing new starts (signal again to quit at once)");
         }
     })?;
@@ -478,7 +492,10 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 Ok(x) => x,
                 Err(code) => return Ok(code),
             };
-            print!("{}", dist4d_stages::eval::report::tables(&pipeline, &out_dir)?);
+            // A stopped run has not exported every score: say how it ended, not what is missing.
+            if code == ExitCode::SUCCESS || code == ExitCode::from(1) {
+                print!("{}", dist4d_stages::eval::report::tables(&pipeline, &out_dir)?);
+            }
             Ok(code)
         }
         Command::Run { p, jobs, fail_fast, out, progress } => {

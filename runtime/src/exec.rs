@@ -272,7 +272,10 @@ impl<'a> Engine<'a> {
         let reporter = Reporter::start(counters.clone(), opts.progress);
 
         let mut exporter = match &opts.out_dir {
-            Some(dir) if !p.exports.is_empty() => Some(Exporter::open(dir, self.store, &p.name, &p.dims)?),
+            Some(dir) if !p.exports.is_empty() => {
+                let stages: Vec<&str> = p.stage_order().map(|n| p.nodes[n].name.as_str()).collect();
+                Some(Exporter::open(dir, self.store, &p.name, &stages, &p.dims)?)
+            }
             _ => None,
         };
         let keys_tmp = self.store.temp_path();

@@ -427,9 +427,10 @@ fn the_index_and_the_manifest_list_only_files_that_exist() {
     let p = testkit::load(CHAIN, &[]);
     let grid = testkit::grid_of(&p);
     let opts = RunOptions { jobs: 2, out_dir: Some(out.clone()), ..Default::default() };
-    // A folder where a file should go: that export fails.
+    run_with(&p, &grid, &store, &opts);
+    // A folder where a file should go: that export fails on the rerun (the task itself is cached).
+    std::fs::remove_file(out.join("s1/002.bin")).unwrap();
     std::fs::create_dir_all(out.join("s1/002.bin/in-the-way")).unwrap();
-    std::fs::write(out.join(".dist4d-manifest"), "").unwrap();
     let r = run_with(&p, &grid, &store, &opts);
     assert_eq!(r.status, RunStatus::Failed);
     assert_eq!(r.failures.len(), 1, "{:?}", r.failures);
@@ -440,4 +441,69 @@ fn the_index_and_the_manifest_list_only_files_that_exist() {
     assert!(!listed.contains(&"s1/002.bin".to_string()));
     let report = crate::export::verify(&out).unwrap();
     assert_eq!((report.ok, report.missing.len(), report.modified.len()), (7, 0, 0));
+}
+
+#[test]
+fn a_folder_from_an_older_or_newer_dist4d_is_taken_over_only_when_this_pipeline_wrote_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let opts = RunOptions { jobs: 2, out_dir: Some(out.clone()), ..Default::default() };
+    let engine_run = |p: &Pipeline| {
+        let s = Store::open(&store, Access::Shared).unwrap();
+        let ops = testkit::operators(p);
+        Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }.run(&opts).map(|r| r.record)
+    };
+    assert_eq!(engine_run(&p).unwrap().status, RunStatus::Complete);
+    let manifest = out.join(".dist4d-manifest");
+    let v2 = std::fs::read_to_string(&manifest).unwrap();
+    // A version-1 manifest (no owner line, as older releases wrote): this pipeline's own index
+    // lets it take the folder over; another pipeline's stages do not.
+    let v1: String = v2
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.splitn(4, ' ').collect();
+            format!("{} {} {}\n", f[0], f[1], f[3])
+        })
+        .collect();
+    std::fs::write(&manifest, &v1).unwrap();
+    let other = testkit::load(
+        &CHAIN.replace("\"file\": ToFile", "\"other\": ToFile").replace("\"file.file\"", "\"other.file\""),
+        &[],
+    );
+    let err = format!("{:#}", engine_run(&other).err().unwrap());
+    assert!(err.contains("holds exports of stages `file`"), "{err}");
+    assert_eq!(engine_run(&p).unwrap().status, RunStatus::Complete);
+    assert!(std::fs::read_to_string(&manifest).unwrap().starts_with("dist4d-manifest 2 test\n"));
+    // An empty manifest is a version-1 one without files: the same rule.
+    std::fs::write(&manifest, "").unwrap();
+    assert!(engine_run(&other).is_err());
+    // A manifest of an unknown version names no owner this dist4d can read: refused.
+    std::fs::write(&manifest, "dist4d-manifest 99 test\n").unwrap();
+    let err = format!("{:#}", engine_run(&p).err().unwrap());
+    assert!(err.contains("a manifest this dist4d does not read"), "{err}");
+}
+
+#[test]
+fn a_folder_where_a_blob_should_be_is_replaced() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    let mut n = 0;
+    for shard in std::fs::read_dir(dir.path().join("cas")).unwrap() {
+        for blob in std::fs::read_dir(shard.unwrap().path()).unwrap() {
+            let path = blob.unwrap().path();
+            std::fs::remove_file(&path).unwrap();
+            std::fs::create_dir_all(path.join("in-the-way")).unwrap();
+            n += 1;
+        }
+    }
+    assert!(n >= 24);
+    let changed = testkit::load(CHAIN, &["per_frame.salt=7"]);
+    let r = run(&changed, &grid, dir.path());
+    assert_eq!(r.status, RunStatus::Complete, "{:?}", r.failures);
+    assert_eq!(run(&changed, &grid, dir.path()).executed(), 0);
 }

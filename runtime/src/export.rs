@@ -88,9 +88,15 @@ struct Held {
 /// The `.dist4d-manifest` of an output folder.
 #[derive(Debug, Default)]
 struct Manifest {
-    /// The pipeline that owns the folder; None for a version-1 manifest (adopted by the next run).
+    /// The pipeline that owns the folder; None for a version-1 manifest, which named none.
     owner: Option<String>,
     files: BTreeMap<String, Held>,
+}
+
+/// The first line of a manifest that is neither version 1 nor 2: written by a newer dist4d, or
+/// edited; either way its owner cannot be told, so the folder is not written into.
+fn unknown_header(first_line: &str) -> bool {
+    first_line.starts_with("dist4d-manifest") && !first_line.starts_with(&format!("{MANIFEST_V2} "))
 }
 
 impl Manifest {
@@ -102,6 +108,14 @@ impl Manifest {
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
         };
+        if text.lines().next().is_some_and(unknown_header) {
+            bail!(
+                "{} starts with {:?}, a manifest this dist4d does not read (a newer version wrote it, or it \
+                 was edited), so it cannot tell which pipeline owns the folder: export elsewhere",
+                path.display(),
+                text.lines().next().unwrap_or_default()
+            );
+        }
         let mut m = Manifest::default();
         let mut lines = text.lines().peekable();
         if let Some(owner) = lines.peek().and_then(|l| l.strip_prefix(MANIFEST_V2)) {
@@ -225,9 +239,13 @@ impl Exporter {
     /// owns, or one that holds files but no manifest (it was not made by dist4d), before anything
     /// is written; claims a new or empty folder by writing its manifest at once, so that a run
     /// killed before its end still leaves the folder marked as this pipeline's.
-    pub fn open(dir: &Path, store: &Store, pipeline: &str, dims: &[Dim]) -> Result<Exporter> {
+    pub fn open(dir: &Path, store: &Store, pipeline: &str, stages: &[&str], dims: &[Dim]) -> Result<Exporter> {
         let manifest = match Manifest::read(dir)? {
             Some(m) => match &m.owner {
+                None => {
+                    adopt_legacy(dir, pipeline, stages)?;
+                    m
+                }
                 Some(owner) if owner != pipeline => bail!(
                     "{} holds the exports of pipeline `{owner}` (see {}); pipeline `{pipeline}` will not \
                      overwrite them: give it its own --out (by default each pipeline exports to out/<its name>/ \
@@ -384,6 +402,46 @@ impl Exporter {
     }
 }
 
+/// A folder with a version-1 manifest (which named no owner, like an empty one) is taken over
+/// only when its `index.json` shows that this pipeline's stages made its files: the stages of
+/// another pipeline, or files without an index, are not overwritten.
+fn adopt_legacy(dir: &Path, pipeline: &str, stages: &[&str]) -> Result<()> {
+    let index = match read_index(dir) {
+        Ok(files) => files,
+        Err(_) if only_bookkeeping(dir) => return Ok(()),
+        Err(e) => {
+            return Err(e.context(format!(
+                "{} has a manifest without an owner and no readable index, so dist4d cannot tell which pipeline \
+                 wrote it; pipeline `{pipeline}` will not write there: export elsewhere, or remove that folder",
+                dir.display()
+            )))
+        }
+    };
+    let mut foreign: Vec<&str> =
+        index.iter().map(|e| e.stage.as_str()).filter(|s| !stages.contains(s)).collect::<Vec<_>>();
+    foreign.sort();
+    foreign.dedup();
+    if !foreign.is_empty() {
+        bail!(
+            "{} holds exports of stages {} (listed in its index.json), which pipeline `{pipeline}` does not have: \
+             another pipeline wrote them, and they are not overwritten; export elsewhere, or remove that folder",
+            dir.display(),
+            foreign.iter().map(|s| format!("`{s}`")).collect::<Vec<_>>().join(", ")
+        );
+    }
+    Ok(())
+}
+
+/// Whether `dir` holds nothing but dist4d's own bookkeeping (manifest, temp folder).
+fn only_bookkeeping(dir: &Path) -> bool {
+    std::fs::read_dir(dir).map_or(true, |entries| {
+        entries.filter_map(|e| e.ok()).all(|e| {
+            let name = e.file_name();
+            name == MANIFEST || name == TMP
+        })
+    })
+}
+
 /// Why `label` cannot be one path component, if it cannot.
 pub fn unsafe_component(label: &str) -> Option<&'static str> {
     if label.is_empty() {
@@ -427,11 +485,16 @@ pub fn render(export: &Export, item: &ItemKey, dataset: &dyn Dataset, dims: &[St
     Ok(out)
 }
 
-/// `dir/rel`, provided `rel` is relative and every component a plain name.
+/// `dir/rel`, provided `rel` is relative, every component a plain name, and its first component
+/// none of the names dist4d keeps for itself in the folder.
 fn confined(dir: &Path, rel: &str) -> Result<PathBuf> {
     let path = Path::new(rel);
     if rel.is_empty() || !path.components().all(|c| matches!(c, Component::Normal(_))) {
         bail!("the export path {rel:?} would leave the output folder {}", dir.display());
+    }
+    let first = rel.split('/').next().unwrap_or_default();
+    if [MANIFEST, TMP, INDEX].contains(&first) {
+        bail!("the export path {rel:?} would write into `{first}`, which dist4d keeps for itself in {}", dir.display());
     }
     Ok(dir.join(path))
 }
@@ -496,7 +559,9 @@ mod tests {
     fn paths_that_leave_the_folder_are_refused() {
         let dir = Path::new("/tmp/out");
         assert_eq!(confined(dir, "a/b.png").unwrap(), dir.join("a/b.png"));
-        for bad in ["", "../x", "a/../../x", "/etc/passwd", "./a"] {
+        for bad in
+            ["", "../x", "a/../../x", "/etc/passwd", "./a", "index.json/x.png", ".dist4d-tmp/a", ".dist4d-manifest"]
+        {
             assert!(confined(dir, bad).is_err(), "{bad:?}");
         }
     }

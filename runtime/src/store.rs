@@ -181,16 +181,22 @@ impl Store {
         self.root.join("cas").join(&hex[..2]).join(&hex[2..])
     }
 
+    /// Whether the blob is there as a file (its bytes are checked when they are read).
     pub fn has_blob(&self, d: &Digest) -> bool {
-        self.blob_path(d).exists()
+        fs::metadata(self.blob_path(d)).is_ok_and(|m| m.is_file())
     }
 
-    /// Stores bytes under their digest (once: an existing blob is not rewritten).
+    /// Stores bytes under their digest (once: an existing blob file is not rewritten). Anything
+    /// else in its place (a folder, say) is removed first, so that a store damaged that way heals.
     pub fn put_blob(&self, digest: &Digest, bytes: &[u8]) -> Result<()> {
         let path = self.blob_path(digest);
-        if path.exists() {
-            return Ok(());
+        match fs::symlink_metadata(&path) {
+            Ok(m) if m.is_file() => return Ok(()),
+            Ok(m) if m.is_dir() => fs::remove_dir_all(&path),
+            Ok(_) => fs::remove_file(&path),
+            Err(_) => Ok(()),
         }
+        .with_context(|| format!("removing {}, which is not a blob file", path.display()))?;
         self.write_atomic(&path, bytes)
     }
 

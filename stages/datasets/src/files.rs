@@ -38,14 +38,21 @@ fn check_jpeg_end(bytes: &[u8]) -> Result<()> {
     if !bytes.starts_with(&[0xFF, 0xD8]) {
         return Ok(());
     }
-    let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
+    // Cameras and tools may append bytes after the end marker (padding, a newline, metadata).
+    // Inside the compressed data a 0xFF is always followed by 0x00 or a restart marker, so an
+    // FF D9 near the end is the end-of-image marker of a whole file.
+    let tail = &bytes[bytes.len().saturating_sub(JPEG_TRAILER_MAX)..];
     ensure!(
-        bytes[..end].ends_with(&[0xFF, 0xD9]),
-        "the JPEG has no end-of-image marker (FF D9) after its {} bytes",
+        tail.windows(2).any(|w| w == [0xFF, 0xD9]),
+        "the JPEG has no end-of-image marker (FF D9) in the last {} of its {} bytes",
+        tail.len(),
         bytes.len()
     );
     Ok(())
 }
+
+/// How many bytes after the end-of-image marker a JPEG may carry and still count as whole.
+const JPEG_TRAILER_MAX: usize = 4096;
 
 /// A numeric array from an `.npy` file: shape and values as f64.
 #[derive(Debug, PartialEq)]
@@ -182,6 +189,9 @@ mod tests {
         assert_eq!(read_jpeg(&f).unwrap().width, 64);
         // Zero padding after the end-of-image marker is fine.
         std::fs::write(&f, [jpeg.as_slice(), &[0u8; 16]].concat()).unwrap();
+        assert!(read_jpeg(&f).is_ok());
+        // So are a newline or a few bytes of metadata after it.
+        std::fs::write(&f, [jpeg.as_slice(), b"\nexif trailer"].concat()).unwrap();
         assert!(read_jpeg(&f).is_ok());
         std::fs::write(&f, &jpeg[..jpeg.len() / 2]).unwrap();
         let err = format!("{:#}", read_jpeg(&f).unwrap_err());
