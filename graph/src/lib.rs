@@ -4,6 +4,7 @@
 //! [`Catalog`] that the `stages` crate provides. Loading a pipeline reports every problem at once,
 //! each with `file:line:column` and a caret snippet.
 
+pub mod canonical;
 pub mod catalog;
 pub mod de;
 pub mod diag;
