@@ -15,7 +15,7 @@ use crate::geometry::Se3;
 use crate::nuscenes::{surround_count, surround_label};
 use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, ensure, Context, Result};
-use dist4d_graph::{DatasetSchema, DimSpec, ParamsSpec, SourcePortSpec};
+use dist4d_graph::{DatasetSchema, ParamsSpec};
 use dist4d_runtime::{Dataset, Digest, FileDigests, ItemKey, ItemSpace};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -454,34 +454,15 @@ impl dist4d_graph::Validate for DgpConfig {
     }
 }
 
-pub struct DgpSchema {
-    config: ParamsSpec,
-}
-
-impl Default for DgpSchema {
-    fn default() -> Self {
-        DgpSchema { config: ParamsSpec::of::<DgpConfig>() }
-    }
-}
-
-impl DatasetSchema for DgpSchema {
-    fn kind(&self) -> &'static str {
-        "Dgp"
-    }
-    fn summary(&self) -> &'static str {
-        "TRI DGP scenes (DDAD): samples, six cameras, LiDAR, 3D boxes"
-    }
-    fn dims(&self) -> &[DimSpec] {
-        &crate::nuscenes::DIMS
-    }
-    fn ports(&self) -> &[SourcePortSpec] {
-        &crate::nuscenes::PORTS
-    }
-    fn config(&self) -> &ParamsSpec {
-        &self.config
-    }
-    fn path_fields(&self) -> &[&'static str] {
-        &["root"]
+/// The Dgp dataset kind as pipelines see it: the items and ports of nuScenes.
+pub fn schema() -> DatasetSchema {
+    DatasetSchema {
+        kind: "Dgp",
+        summary: "TRI DGP scenes (DDAD): samples, six cameras, LiDAR, 3D boxes",
+        dims: crate::nuscenes::DIMS.to_vec(),
+        ports: crate::nuscenes::PORTS.to_vec(),
+        config: ParamsSpec::of::<DgpConfig>(),
+        path_fields: vec!["root"],
     }
 }
 
