@@ -42,14 +42,6 @@ pub fn from_value<'de, T: de::Deserialize<'de>>(value: &'de Value) -> Result<T, 
     T::deserialize(ValueDe(value))
 }
 
-/// Reads a `T` back from canonical RON text (params or dataset config as the graph wrote them).
-pub fn from_canonical<T: de::DeserializeOwned>(text: &str) -> Result<T, DeError> {
-    let mut sources = crate::source::Sources::default();
-    let id = sources.add("canonical", text);
-    let v = crate::syntax::parse(text, id).map_err(|d| DeError { message: d.message, span: None })?;
-    from_value(&v)
-}
-
 /// The field names of a serde struct, found by asking its `Deserialize` impl.
 pub fn struct_fields<'de, T: de::Deserialize<'de>>() -> &'static [&'static str] {
     struct Probe;

@@ -4,20 +4,22 @@
 //! [`Catalog`] that the `stages` crate provides. Loading a pipeline reports every problem at once,
 //! each with `file:line:column` and a caret snippet.
 
+pub mod canonical;
 pub mod catalog;
+pub mod checks;
 pub mod de;
 pub mod diag;
 mod load;
+pub mod params;
 pub mod pipeline;
 pub mod source;
 pub mod syntax;
 
-pub use catalog::{
-    Catalog, DatasetSchema, DimSpec, ParamChecks, ParamInfo, ParamProblem, ParamsError, ParamsSpec, PortSpec,
-    SourcePortSpec, StageSchema, Validate,
-};
+pub use catalog::{Catalog, DatasetSchema, DimSpec, PortSpec, SourcePortSpec, StageSchema};
+pub use checks::{ParamChecks, ParamProblem, Validate};
 pub use diag::Diagnostic;
 pub use load::{load_file, load_str, LoadError};
+pub use params::{ParamInfo, ParamsError, ParamsSpec, ParamsValue};
 pub use pipeline::{
     DatasetDecl, Dim, Export, Input, Node, NodeId, NodeKind, OutPort, Pipeline, Selector, StageNode, TemplatePart,
 };

@@ -5,8 +5,10 @@
 //! grains), cycles and exports. Each check adds diagnostics and goes on, so one run of `check`
 //! shows everything that is wrong.
 
-use crate::catalog::{Catalog, ParamProblem, ParamsError, ParamsSpec};
+use crate::catalog::Catalog;
+use crate::checks::ParamProblem;
 use crate::diag::{did_you_mean, render_all, Diagnostic};
+use crate::params::{ParamsError, ParamsSpec, ParamsValue};
 use crate::pipeline::*;
 use crate::source::{SourceId, Sources, Span};
 use crate::syntax::{self, Field, Name, Value, ValueKind};
@@ -275,7 +277,7 @@ impl<'c> Checker<'c> {
     /// Checks params against a spec: every unknown field, then the first type error, then every
     /// value out of range. `fallback` is where a problem with a param left at its default points
     /// when no params are written (the stage's name).
-    fn params(&mut self, value: Option<&Value>, spec: &ParamsSpec, what: &str, fallback: Span) -> Option<String> {
+    fn params(&mut self, value: Option<&Value>, spec: &ParamsSpec, what: &str, fallback: Span) -> Option<ParamsValue> {
         if let Some(v) = value {
             match v.fields() {
                 Some(fields) => {
@@ -307,7 +309,7 @@ impl<'c> Checker<'c> {
             }
         }
         match spec.check(value) {
-            Ok(canonical) => Some(canonical),
+            Ok(checked) => Some(checked),
             Err(ParamsError::Type(e)) => {
                 let span = e.span.or(value.map(|v| v.span));
                 let d = match span {
@@ -446,7 +448,7 @@ impl<'c> Checker<'c> {
         // Resolve relative paths against the directory of the text they were written in.
         let mut config = v.clone();
         if let Some(fields) = config.fields_mut() {
-            for f in fields.iter_mut().filter(|f| schema.path_fields().contains(&f.name.text.as_str())) {
+            for f in fields.iter_mut().filter(|f| schema.path_fields.contains(&f.name.text.as_str())) {
                 if let ValueKind::Str(s) | ValueKind::Ident(s) = &f.value.kind {
                     let p = Path::new(s);
                     if p.is_relative() {
@@ -465,12 +467,11 @@ impl<'c> Checker<'c> {
                 ));
                 None
             }
-            _ => self.params(Some(&config), schema.config(), &format!("dataset {}", schema.kind()), kind.span),
+            _ => self.params(Some(&config), &schema.config, &format!("dataset {}", schema.kind), kind.span),
         };
-        let dims =
-            schema.dims().iter().map(|d| Dim { name: d.name.to_string(), ordered: d.ordered }).collect::<Vec<_>>();
+        let dims = schema.dims.iter().map(|d| Dim { name: d.name.to_string(), ordered: d.ordered }).collect::<Vec<_>>();
         let ports = schema
-            .ports()
+            .ports
             .iter()
             .map(|p| {
                 (
@@ -480,7 +481,7 @@ impl<'c> Checker<'c> {
                 )
             })
             .collect();
-        Some((canonical.map(|config| DatasetDecl { kind: schema.kind().to_string(), config }), dims, ports))
+        Some((canonical.map(|config| DatasetDecl { kind: schema.kind.to_string(), config }), dims, ports))
     }
 
     fn stage<'v>(
@@ -536,8 +537,8 @@ impl<'c> Checker<'c> {
             }
         };
         self.known_fields(fields, &["inputs", "params", "grain"], &format!("stage `{name}`"));
-        let what = format!("stage `{name}` ({})", schema.kind());
-        let params = self.params(value.field("params").map(|f| &f.value), schema.params(), &what, key.span);
+        let what = format!("stage `{name}` ({})", schema.kind);
+        let params = self.params(value.field("params").map(|f| &f.value), &schema.params, &what, key.span);
 
         let grain = match (value.field("grain"), dims) {
             (_, None) => None,
@@ -547,24 +548,20 @@ impl<'c> Checker<'c> {
                     _ => None,
                 };
                 match g {
-                    Some(g) if schema.grains().contains(&g) && dims.iter().any(|d| d.name == g) => {
+                    Some(g) if schema.grains.contains(&g) && dims.iter().any(|d| d.name == g) => {
                         dims.iter().position(|d| d.name == g).map(|i| i + 1)
                     }
                     _ => {
                         self.err(
                             Diagnostic::error(format!("{what} cannot run per `{}`", self.text(&f.value)), f.value.span)
-                                .with_note(format!(
-                                    "{} runs per one of: {}",
-                                    schema.kind(),
-                                    schema.grains().join(", ")
-                                )),
+                                .with_note(format!("{} runs per one of: {}", schema.kind, schema.grains.join(", "))),
                         );
                         None
                     }
                 }
             }
             (None, Some(dims)) => {
-                let g = schema.grains().first().copied().unwrap_or("");
+                let g = schema.grains.first().copied().unwrap_or("");
                 match dims.iter().position(|d| d.name == g) {
                     Some(i) => Some(i + 1),
                     None => {
@@ -585,23 +582,23 @@ impl<'c> Checker<'c> {
         };
 
         let inputs = value.field("inputs").map(|f| &f.value);
-        if inputs.is_none() && !schema.inputs().is_empty() {
+        if inputs.is_none() && !schema.inputs.is_empty() {
             self.err(Diagnostic::error(format!("{what} has no `inputs`"), kind.span).with_note(format!(
                 "{} inputs: {}",
-                schema.kind(),
-                describe_ports(schema.inputs())
+                schema.kind,
+                describe_ports(&schema.inputs)
             )));
         }
         let node = nodes.len();
         nodes.push(Node {
             name: name.to_string(),
             grain: grain.unwrap_or(0),
-            outputs: schema.outputs().iter().map(|p| OutPort { name: p.name.into(), ty: p.ty.into() }).collect(),
+            outputs: schema.outputs.iter().map(|p| OutPort { name: p.name.into(), ty: p.ty.into() }).collect(),
             kind: NodeKind::Stage(StageNode {
-                kind: schema.kind().into(),
-                version: schema.version(),
+                kind: schema.kind.into(),
+                version: schema.version,
                 params: params.unwrap_or_default(),
-                seeded: schema.seeded(),
+                seeded: schema.seeded,
                 inputs: Vec::new(),
             }),
         });
@@ -609,7 +606,7 @@ impl<'c> Checker<'c> {
             node,
             name_span: key.span,
             inputs,
-            schema_inputs: schema.inputs().to_vec(),
+            schema_inputs: schema.inputs.clone(),
             kind_span: kind.span,
         });
     }

@@ -1,5 +1,6 @@
 //! The validated pipeline: a typed DAG of dataset sources and stages, wired port to port.
 
+use crate::params::ParamsValue;
 use petgraph::graph::{DiGraph, NodeIndex};
 use std::fmt;
 use std::path::PathBuf;
@@ -71,8 +72,8 @@ pub struct Input {
 pub struct StageNode {
     pub kind: String,
     pub version: u32,
-    /// Canonical RON of the params: every field, defaults filled.
-    pub params: String,
+    /// The checked params: typed, for building the operator, and canonical, for task keys.
+    pub params: ParamsValue,
     pub seeded: bool,
     pub inputs: Vec<Input>,
 }
@@ -125,8 +126,8 @@ pub struct Export {
 #[derive(Clone, Debug, PartialEq)]
 pub struct DatasetDecl {
     pub kind: String,
-    /// Canonical RON of the dataset config.
-    pub config: String,
+    /// The checked config: typed, for opening the dataset, and canonical, for the pipeline digest.
+    pub config: ParamsValue,
 }
 
 /// A checked pipeline: every node exists, every wire is typed and allowed.

@@ -1,6 +1,8 @@
 //! Pipeline loading against a small catalog that mimics the real one.
 
 use crate::catalog::*;
+use crate::checks::*;
+use crate::params::*;
 use crate::pipeline::*;
 use crate::{load_str, LoadError};
 use serde::{Deserialize, Serialize};
@@ -68,42 +70,6 @@ struct NoParams {}
 
 impl Validate for NoParams {}
 
-struct Stage {
-    kind: &'static str,
-    inputs: Vec<PortSpec>,
-    outputs: Vec<PortSpec>,
-    grains: Vec<&'static str>,
-    params: ParamsSpec,
-}
-
-impl StageSchema for Stage {
-    fn kind(&self) -> &'static str {
-        self.kind
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn summary(&self) -> &'static str {
-        ""
-    }
-    fn inputs(&self) -> &[PortSpec] {
-        &self.inputs
-    }
-    fn outputs(&self) -> &[PortSpec] {
-        &self.outputs
-    }
-    fn grains(&self) -> &[&'static str] {
-        &self.grains
-    }
-    fn params(&self) -> &ParamsSpec {
-        &self.params
-    }
-}
-
-struct Data {
-    config: ParamsSpec,
-}
-
 const DIMS: [DimSpec; 3] = [
     DimSpec { name: "scene", ordered: false },
     DimSpec { name: "frame", ordered: true },
@@ -114,83 +80,79 @@ const PORTS: [SourcePortSpec; 2] = [
     SourcePortSpec { name: "image", ty: "Image", grain: "camera", doc: "" },
 ];
 
-impl DatasetSchema for Data {
-    fn kind(&self) -> &'static str {
-        "NuScenes"
-    }
-    fn summary(&self) -> &'static str {
-        ""
-    }
-    fn dims(&self) -> &[DimSpec] {
-        &DIMS
-    }
-    fn ports(&self) -> &[SourcePortSpec] {
-        &PORTS
-    }
-    fn config(&self) -> &ParamsSpec {
-        &self.config
-    }
-    fn path_fields(&self) -> &[&'static str] {
-        &["root"]
-    }
-}
-
 struct Cat {
-    stages: Vec<Stage>,
-    data: Data,
+    stages: Vec<StageSchema>,
+    data: DatasetSchema,
 }
 
 impl Catalog for Cat {
-    fn stage(&self, kind: &str) -> Option<&dyn StageSchema> {
-        self.stages.iter().find(|s| s.kind == kind).map(|s| s as &dyn StageSchema)
+    fn stage(&self, kind: &str) -> Option<&StageSchema> {
+        self.stages.iter().find(|s| s.kind == kind)
     }
     fn stage_kinds(&self) -> Vec<&'static str> {
         self.stages.iter().map(|s| s.kind).collect()
     }
-    fn dataset(&self, kind: &str) -> Option<&dyn DatasetSchema> {
-        (kind == "NuScenes").then_some(&self.data as &dyn DatasetSchema)
+    fn dataset(&self, kind: &str) -> Option<&DatasetSchema> {
+        (kind == self.data.kind).then_some(&self.data)
     }
     fn dataset_kinds(&self) -> Vec<&'static str> {
-        vec!["NuScenes"]
+        vec![self.data.kind]
     }
     fn exportable(&self, ty: &str) -> bool {
         ty == "File"
     }
 }
 
+fn stage(
+    kind: &'static str,
+    inputs: Vec<PortSpec>,
+    outputs: Vec<PortSpec>,
+    grains: Vec<&'static str>,
+    params: ParamsSpec,
+) -> StageSchema {
+    StageSchema { kind, version: 1, summary: "", inputs, outputs, grains, params, seeded: false }
+}
+
 fn catalog() -> Cat {
     Cat {
         stages: vec![
-            Stage {
-                kind: "Project",
-                inputs: vec![PortSpec::one("points", "PointCloud", ""), PortSpec::one("image", "Image", "")],
-                outputs: vec![PortSpec::one("depth", "DepthMap", "")],
-                grains: vec!["camera"],
-                params: ParamsSpec::of::<ProjectParams>(),
-            },
-            Stage {
-                kind: "Encode",
-                inputs: vec![PortSpec::one("depth", "DepthMap", "")],
-                outputs: vec![PortSpec::one("png", "File", ""), PortSpec::one("depth", "DepthMap", "")],
-                grains: vec!["camera", "frame"],
-                params: ParamsSpec::of::<NoParams>(),
-            },
-            Stage {
-                kind: "Fuse",
-                inputs: vec![PortSpec::many("depths", "DepthMap", "")],
-                outputs: vec![PortSpec::one("depth", "DepthMap", "")],
-                grains: vec!["frame", "camera"],
-                params: ParamsSpec::of::<NoParams>(),
-            },
-            Stage {
-                kind: "Range",
-                inputs: vec![],
-                outputs: vec![PortSpec::one("depth", "DepthMap", "")],
-                grains: vec!["camera"],
-                params: ParamsSpec::of::<RangeParams>(),
-            },
+            stage(
+                "Project",
+                vec![PortSpec::one("points", "PointCloud", ""), PortSpec::one("image", "Image", "")],
+                vec![PortSpec::one("depth", "DepthMap", "")],
+                vec!["camera"],
+                ParamsSpec::of::<ProjectParams>(),
+            ),
+            stage(
+                "Encode",
+                vec![PortSpec::one("depth", "DepthMap", "")],
+                vec![PortSpec::one("png", "File", ""), PortSpec::one("depth", "DepthMap", "")],
+                vec!["camera", "frame"],
+                ParamsSpec::of::<NoParams>(),
+            ),
+            stage(
+                "Fuse",
+                vec![PortSpec::many("depths", "DepthMap", "")],
+                vec![PortSpec::one("depth", "DepthMap", "")],
+                vec!["frame", "camera"],
+                ParamsSpec::of::<NoParams>(),
+            ),
+            stage(
+                "Range",
+                vec![],
+                vec![PortSpec::one("depth", "DepthMap", "")],
+                vec!["camera"],
+                ParamsSpec::of::<RangeParams>(),
+            ),
         ],
-        data: Data { config: ParamsSpec::of::<DataConfig>() },
+        data: DatasetSchema {
+            kind: "NuScenes",
+            summary: "",
+            dims: DIMS.to_vec(),
+            ports: PORTS.to_vec(),
+            config: ParamsSpec::of::<DataConfig>(),
+            path_fields: vec!["root"],
+        },
     }
 }
 
@@ -221,10 +183,10 @@ fn errors(text: &str, sets: &[&str]) -> String {
 fn a_good_pipeline_loads_into_a_typed_dag() {
     let p = load(GOOD, &[]).unwrap();
     assert_eq!(p.name, "p");
-    assert_eq!(p.dataset.config, r#"(root:"/base/data",version:"v1.0-mini")"#);
+    assert_eq!(p.dataset.config.canonical, r#"(root:"/base/data",version:"v1.0-mini")"#);
     let project = &p.nodes[p.node_by_name("project").unwrap()];
     assert_eq!(project.grain, 3);
-    assert_eq!(project.stage().unwrap().params, "(min_depth:1.0,border:0)");
+    assert_eq!(project.stage().unwrap().params.canonical, "(min_depth:1.0,border:0)");
     let fuse = &p.nodes[p.node_by_name("fuse").unwrap()];
     assert_eq!(fuse.grain, 2);
     assert_eq!(fuse.stage().unwrap().inputs[0].selector, Selector::Gather { dim: 2 });
@@ -241,8 +203,8 @@ fn a_good_pipeline_loads_into_a_typed_dag() {
 fn set_overrides_params_and_dataset_fields() {
     let p = load(GOOD, &["project.min_depth=2.5", "dataset.root=rel/x", "dataset.version=v1.0-trainval"]).unwrap();
     let project = &p.nodes[p.node_by_name("project").unwrap()];
-    assert_eq!(project.stage().unwrap().params, "(min_depth:2.5,border:0)");
-    assert_eq!(p.dataset.config, r#"(root:"/cwd/rel/x",version:"v1.0-trainval")"#);
+    assert_eq!(project.stage().unwrap().params.canonical, "(min_depth:2.5,border:0)");
+    assert_eq!(p.dataset.config.canonical, r#"(root:"/cwd/rel/x",version:"v1.0-trainval")"#);
 }
 
 #[test]

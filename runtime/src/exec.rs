@@ -71,12 +71,12 @@ pub struct Engine<'a> {
 /// Digest of everything about a pipeline that affects its results.
 pub fn pipeline_digest(p: &Pipeline) -> Digest {
     let mut b = DigestBuilder::new("dist4d-pipeline-v1");
-    b.str(&p.dataset.kind).str(&p.dataset.config);
+    b.str(&p.dataset.kind).str(&p.dataset.config.canonical);
     for &n in &p.order {
         let node = &p.nodes[n];
         b.str(&node.name).u64(node.grain as u64);
         if let Some(s) = node.stage() {
-            b.str(&s.kind).u64(s.version as u64).str(&s.params);
+            b.str(&s.kind).u64(s.version as u64).str(&s.params.canonical);
             for i in &s.inputs {
                 b.str(&i.port).str(&p.nodes[i.from].name).u64(i.from_port as u64).str(&format!("{:?}", i.selector));
             }
@@ -231,7 +231,7 @@ impl<'a> Engine<'a> {
         // Canonical params are stored as blobs so that explain can show what changed.
         let mut params_digest = vec![Digest::default(); p.nodes.len()];
         for n in p.stage_order() {
-            let text = &p.nodes[n].stage().unwrap().params;
+            let text = &p.nodes[n].stage().unwrap().params.canonical;
             params_digest[n] = Digest::of(text.as_bytes());
             self.store.put_blob(&params_digest[n], text.as_bytes())?;
         }

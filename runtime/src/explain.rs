@@ -86,7 +86,7 @@ pub fn explain(engine: &Engine, scenes: Option<&[String]>, frame_limit: Option<u
     let mut out: Vec<StageExplain> = vec![StageExplain::default(); p.nodes.len()];
     for n in p.stage_order() {
         let s = p.nodes[n].stage().unwrap();
-        params_digest[n] = Digest::of(s.params.as_bytes());
+        params_digest[n] = Digest::of(s.params.canonical.as_bytes());
         out[n].stage = p.nodes[n].name.clone();
         out[n].kind = s.kind.clone();
     }
@@ -151,7 +151,7 @@ pub fn explain(engine: &Engine, scenes: Option<&[String]>, frame_limit: Option<u
                     }
                     if prev.params != params_digest[node] {
                         let old = store.get_blob(&prev.params).ok().and_then(|b| String::from_utf8(b).ok());
-                        reasons.extend(param_changes(old.as_deref(), &stage.params));
+                        reasons.extend(param_changes(old.as_deref(), &stage.params.canonical));
                     }
                     for up in &unknown_inputs {
                         reasons.push(format!("upstream `{up}` will run"));

@@ -101,42 +101,6 @@ pub struct EchoParams {
 impl dist4d_graph::Validate for EchoParams {}
 impl dist4d_graph::Validate for GridConfig {}
 
-struct Kind {
-    kind: &'static str,
-    inputs: Vec<PortSpec>,
-    outputs: Vec<PortSpec>,
-    grains: Vec<&'static str>,
-    params: ParamsSpec,
-}
-
-impl StageSchema for Kind {
-    fn kind(&self) -> &'static str {
-        self.kind
-    }
-    fn version(&self) -> u32 {
-        1
-    }
-    fn summary(&self) -> &'static str {
-        "test stage"
-    }
-    fn inputs(&self) -> &[PortSpec] {
-        &self.inputs
-    }
-    fn outputs(&self) -> &[PortSpec] {
-        &self.outputs
-    }
-    fn grains(&self) -> &[&'static str] {
-        &self.grains
-    }
-    fn params(&self) -> &ParamsSpec {
-        &self.params
-    }
-}
-
-struct GridSchema {
-    config: ParamsSpec,
-}
-
 const DIMS: [DimSpec; 3] = [
     DimSpec { name: "scene", ordered: false },
     DimSpec { name: "frame", ordered: true },
@@ -147,27 +111,22 @@ const PORTS: [SourcePortSpec; 2] = [
     SourcePortSpec { name: "camera_value", ty: "Bytes", grain: "camera", doc: "" },
 ];
 
-impl DatasetSchema for GridSchema {
-    fn kind(&self) -> &'static str {
-        "Grid"
-    }
-    fn summary(&self) -> &'static str {
-        "synthetic grid"
-    }
-    fn dims(&self) -> &[DimSpec] {
-        &DIMS
-    }
-    fn ports(&self) -> &[SourcePortSpec] {
-        &PORTS
-    }
-    fn config(&self) -> &ParamsSpec {
-        &self.config
-    }
+pub struct TestCatalog {
+    kinds: Vec<StageSchema>,
+    grid: DatasetSchema,
 }
 
-pub struct TestCatalog {
-    kinds: Vec<Kind>,
-    grid: GridSchema,
+fn kind(kind: &'static str, inputs: Vec<PortSpec>, outputs: Vec<PortSpec>, grains: Vec<&'static str>) -> StageSchema {
+    StageSchema {
+        kind,
+        version: 1,
+        summary: "test stage",
+        inputs,
+        outputs,
+        grains,
+        params: ParamsSpec::of::<EchoParams>(),
+        seeded: false,
+    }
 }
 
 impl Default for TestCatalog {
@@ -175,45 +134,39 @@ impl Default for TestCatalog {
         let all = vec!["camera", "frame", "scene"];
         TestCatalog {
             kinds: vec![
-                Kind {
-                    kind: "Echo",
-                    inputs: vec![PortSpec::one("x", "Bytes", "")],
-                    outputs: vec![PortSpec::one("y", "Bytes", "")],
-                    grains: all.clone(),
-                    params: ParamsSpec::of::<EchoParams>(),
-                },
-                Kind {
-                    kind: "Merge",
-                    inputs: vec![PortSpec::many("xs", "Bytes", "")],
-                    outputs: vec![PortSpec::one("y", "Bytes", "")],
-                    grains: vec!["frame", "scene", "camera"],
-                    params: ParamsSpec::of::<EchoParams>(),
-                },
-                Kind {
-                    kind: "ToFile",
-                    inputs: vec![PortSpec::one("x", "Bytes", "")],
-                    outputs: vec![PortSpec::one("file", "File", "")],
-                    grains: all,
-                    params: ParamsSpec::of::<EchoParams>(),
-                },
+                kind("Echo", vec![PortSpec::one("x", "Bytes", "")], vec![PortSpec::one("y", "Bytes", "")], all.clone()),
+                kind(
+                    "Merge",
+                    vec![PortSpec::many("xs", "Bytes", "")],
+                    vec![PortSpec::one("y", "Bytes", "")],
+                    vec!["frame", "scene", "camera"],
+                ),
+                kind("ToFile", vec![PortSpec::one("x", "Bytes", "")], vec![PortSpec::one("file", "File", "")], all),
             ],
-            grid: GridSchema { config: ParamsSpec::of::<GridConfig>() },
+            grid: DatasetSchema {
+                kind: "Grid",
+                summary: "synthetic grid",
+                dims: DIMS.to_vec(),
+                ports: PORTS.to_vec(),
+                config: ParamsSpec::of::<GridConfig>(),
+                path_fields: Vec::new(),
+            },
         }
     }
 }
 
 impl Catalog for TestCatalog {
-    fn stage(&self, kind: &str) -> Option<&dyn StageSchema> {
-        self.kinds.iter().find(|k| k.kind == kind).map(|k| k as &dyn StageSchema)
+    fn stage(&self, kind: &str) -> Option<&StageSchema> {
+        self.kinds.iter().find(|k| k.kind == kind)
     }
     fn stage_kinds(&self) -> Vec<&'static str> {
         self.kinds.iter().map(|k| k.kind).collect()
     }
-    fn dataset(&self, kind: &str) -> Option<&dyn DatasetSchema> {
-        (kind == "Grid").then_some(&self.grid as &dyn DatasetSchema)
+    fn dataset(&self, kind: &str) -> Option<&DatasetSchema> {
+        (kind == self.grid.kind).then_some(&self.grid)
     }
     fn dataset_kinds(&self) -> Vec<&'static str> {
-        vec!["Grid"]
+        vec![self.grid.kind]
     }
     fn exportable(&self, ty: &str) -> bool {
         ty == "File"
@@ -245,7 +198,7 @@ impl Operator for EchoOp {
 
 /// The grid dataset a pipeline names, with its config.
 pub fn grid_of(p: &Pipeline) -> Grid {
-    Grid::new(dist4d_graph::de::from_canonical(&p.dataset.config).expect("canonical config reads"))
+    Grid::new(p.dataset.config.get::<GridConfig>().expect("a Grid pipeline's config is a GridConfig").clone())
 }
 
 /// Operators for a pipeline of test stages.
@@ -254,7 +207,7 @@ pub fn operators(p: &Pipeline) -> Vec<Option<Box<dyn Operator>>> {
         .iter()
         .map(|n| {
             n.stage().map(|s| {
-                let params: EchoParams = dist4d_graph::de::from_canonical(&s.params).expect("canonical params read");
+                let params = s.params.get::<EchoParams>().expect("test stages take EchoParams").clone();
                 Box::new(EchoOp(params)) as Box<dyn Operator>
             })
         })

@@ -12,15 +12,16 @@ pub mod stage;
 pub mod stereo;
 
 use anyhow::{anyhow, Context, Result};
+use dist4d_graph::ParamsValue;
 use dist4d_graph::{Catalog, DatasetSchema, Pipeline, StageSchema};
 use dist4d_runtime::{Dataset, Operator};
-use stage::{parse_canonical, StageDef};
+use stage::StageDef;
 
 /// Every stage kind and dataset kind dist4d has.
 pub struct Registry {
     stages: Vec<StageDef>,
-    nuscenes: dist4d_datasets::nuscenes::NuScenesSchema,
-    dgp: dist4d_datasets::dgp::DgpSchema,
+    nuscenes: DatasetSchema,
+    dgp: DatasetSchema,
 }
 
 impl Default for Registry {
@@ -42,8 +43,8 @@ impl Default for Registry {
                 output::encode::encode_points(),
                 output::encode::depth_sheet_def(),
             ],
-            nuscenes: dist4d_datasets::nuscenes::NuScenesSchema::default(),
-            dgp: dist4d_datasets::dgp::DgpSchema::default(),
+            nuscenes: dist4d_datasets::nuscenes::schema(),
+            dgp: dist4d_datasets::dgp::schema(),
         }
     }
 }
@@ -57,16 +58,15 @@ impl Registry {
     pub fn open_dataset(&self, p: &Pipeline) -> Result<Box<dyn Dataset>> {
         match p.dataset.kind.as_str() {
             "NuScenes" => {
-                let ds = dist4d_datasets::nuscenes::NuScenes::open(parse_canonical(&p.dataset.config)?)
-                    .context("opening the NuScenes dataset")?;
+                let ds =
+                    dist4d_datasets::nuscenes::NuScenes::open(config(&p.dataset.config)?).context("opening the NuScenes dataset")?;
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }
                 Ok(Box::new(ds))
             }
             "Dgp" => {
-                let ds = dist4d_datasets::dgp::Dgp::open(parse_canonical(&p.dataset.config)?)
-                    .context("opening the DGP dataset")?;
+                let ds = dist4d_datasets::dgp::Dgp::open(config(&p.dataset.config)?).context("opening the DGP dataset")?;
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }
@@ -86,7 +86,7 @@ impl Registry {
                     let def = self
                         .stages
                         .iter()
-                        .find(|d| d.kind == s.kind)
+                        .find(|d| d.schema.kind == s.kind)
                         .ok_or_else(|| anyhow!("unknown stage kind {}", s.kind))?;
                     let wired: Vec<&str> = s.inputs.iter().map(|i| i.port.as_str()).collect();
                     def.build(&s.params, &wired).with_context(|| format!("stage `{}`", n.name)).map(Some)
@@ -97,21 +97,17 @@ impl Registry {
 }
 
 impl Catalog for Registry {
-    fn stage(&self, kind: &str) -> Option<&dyn StageSchema> {
-        self.stages.iter().find(|s| s.kind == kind).map(|s| s as &dyn StageSchema)
+    fn stage(&self, kind: &str) -> Option<&StageSchema> {
+        self.stages.iter().map(|s| &s.schema).find(|s| s.kind == kind)
     }
     fn stage_kinds(&self) -> Vec<&'static str> {
-        self.stages.iter().map(|s| s.kind).collect()
+        self.stages.iter().map(|s| s.schema.kind).collect()
     }
-    fn dataset(&self, kind: &str) -> Option<&dyn DatasetSchema> {
-        match kind {
-            "NuScenes" => Some(&self.nuscenes),
-            "Dgp" => Some(&self.dgp),
-            _ => None,
-        }
+    fn dataset(&self, kind: &str) -> Option<&DatasetSchema> {
+        [&self.nuscenes, &self.dgp].into_iter().find(|d| d.kind == kind)
     }
     fn dataset_kinds(&self) -> Vec<&'static str> {
-        vec!["NuScenes", "Dgp"]
+        vec![self.nuscenes.kind, self.dgp.kind]
     }
     fn exportable(&self, ty: &str) -> bool {
         ty == dist4d_types::artifact::File::TYPE
@@ -119,6 +115,14 @@ impl Catalog for Registry {
 }
 
 use dist4d_types::artifact::Artifact as _;
+
+/// The typed config of a dataset, as the graph checked it.
+fn config<C: Clone + 'static>(checked: &ParamsValue) -> Result<C> {
+    checked
+        .get::<C>()
+        .cloned()
+        .ok_or_else(|| anyhow!("the dataset config was checked as another type, not {}", std::any::type_name::<C>()))
+}
 
 #[cfg(test)]
 mod tests {
@@ -133,8 +137,8 @@ mod tests {
         let id = sources.add("t", text);
         let value = parse(text, id).unwrap();
         let spec = match catalog.stage(kind) {
-            Some(s) => s.params(),
-            None => catalog.dataset(kind).unwrap().config(),
+            Some(s) => &s.params,
+            None => &catalog.dataset(kind).unwrap().config,
         };
         match spec.check(Some(&value)) {
             Ok(_) => Vec::new(),
@@ -147,10 +151,10 @@ mod tests {
     fn every_default_is_in_range() {
         let r = Registry::default();
         for kind in r.stage_kinds() {
-            assert!(r.stage(kind).unwrap().params().check(None).is_ok(), "{kind}");
+            assert!(r.stage(kind).unwrap().params.check(None).is_ok(), "{kind}");
         }
         for kind in r.dataset_kinds() {
-            assert!(r.dataset(kind).unwrap().config().check(None).is_ok(), "{kind}");
+            assert!(r.dataset(kind).unwrap().config.check(None).is_ok(), "{kind}");
         }
     }
 

@@ -1,8 +1,8 @@
 //! The shape every stage module shares: a [`StageDef`] (schema + how to build its operator from
-//! canonical params) and helpers to decode typed inputs.
+//! checked params) and helpers to decode typed inputs.
 
 use anyhow::{anyhow, Context, Result};
-use dist4d_graph::{ParamsSpec, PortSpec, StageSchema, Validate};
+use dist4d_graph::{ParamsSpec, ParamsValue, PortSpec, StageSchema, Validate};
 use dist4d_runtime::{Operator, TaskContext};
 use dist4d_types::artifact::Artifact;
 use serde::{de::DeserializeOwned, Serialize};
@@ -33,22 +33,18 @@ impl Operator for OpAdapter {
     }
 }
 
-type BuildFn = Box<dyn Fn(&str) -> Result<Box<dyn TypedOp>> + Send + Sync>;
+type BuildFn = Box<dyn Fn(&ParamsValue) -> Result<Box<dyn TypedOp>> + Send + Sync>;
 
+/// A stage kind: its schema (what the graph checks pipelines against) and how to build its
+/// operator from checked params.
 pub struct StageDef {
-    pub kind: &'static str,
-    pub version: u32,
-    pub summary: &'static str,
-    pub inputs: Vec<PortSpec>,
-    pub outputs: Vec<PortSpec>,
-    pub grains: Vec<&'static str>,
-    pub params: ParamsSpec,
+    pub schema: StageSchema,
     build: BuildFn,
 }
 
 impl StageDef {
     #[allow(clippy::too_many_arguments)]
-    pub fn new<P: DeserializeOwned + Serialize + Default + Validate + 'static>(
+    pub fn new<P: DeserializeOwned + Serialize + Default + Validate + Clone + Send + Sync + 'static>(
         kind: &'static str,
         version: u32,
         summary: &'static str,
@@ -58,56 +54,42 @@ impl StageDef {
         build: fn(P) -> Result<Box<dyn TypedOp>>,
     ) -> StageDef {
         StageDef {
-            kind,
-            version,
-            summary,
-            inputs,
-            outputs,
-            grains,
-            params: ParamsSpec::of::<P>(),
-            build: Box::new(move |canonical| {
-                let params: P = parse_canonical(canonical).with_context(|| format!("params of {kind}"))?;
-                // `check` refused these already; params that reach here another way are checked too.
-                ensure_valid(&params).with_context(|| format!("params of {kind}"))?;
-                build(params)
+            schema: StageSchema {
+                kind,
+                version,
+                summary,
+                inputs,
+                outputs,
+                grains,
+                params: ParamsSpec::of::<P>(),
+                seeded: false,
+            },
+            build: Box::new(move |checked| {
+                let params = checked.get::<P>().ok_or_else(|| {
+                    anyhow!("params of {kind}: checked as another type, not {}", std::any::type_name::<P>())
+                })?;
+                // `check` refused invalid params already; params that reach here another way are checked too.
+                ensure_valid(params).with_context(|| format!("params of {kind}"))?;
+                build(params.clone())
             }),
         }
     }
 
-    /// The operator for canonical params (as the graph produced them) and the names of the
+    /// The operator for checked params (as the graph produced them) and the names of the
     /// wired input ports, in schema order.
-    pub fn build(&self, canonical: &str, wired: &[&str]) -> Result<Box<dyn Operator>> {
+    pub fn build(&self, params: &ParamsValue, wired: &[&str]) -> Result<Box<dyn Operator>> {
+        let schema = &self.schema;
         let slots = wired
             .iter()
             .map(|w| {
-                self.inputs.iter().position(|p| p.name == *w).ok_or_else(|| anyhow!("{} has no input `{w}`", self.kind))
+                schema
+                    .inputs
+                    .iter()
+                    .position(|p| p.name == *w)
+                    .ok_or_else(|| anyhow!("{} has no input `{w}`", schema.kind))
             })
             .collect::<Result<Vec<_>>>()?;
-        Ok(Box::new(OpAdapter { op: (self.build)(canonical)?, slots, schema_len: self.inputs.len() }))
-    }
-}
-
-impl StageSchema for StageDef {
-    fn kind(&self) -> &'static str {
-        self.kind
-    }
-    fn version(&self) -> u32 {
-        self.version
-    }
-    fn summary(&self) -> &'static str {
-        self.summary
-    }
-    fn inputs(&self) -> &[PortSpec] {
-        &self.inputs
-    }
-    fn outputs(&self) -> &[PortSpec] {
-        &self.outputs
-    }
-    fn grains(&self) -> &[&'static str] {
-        &self.grains
-    }
-    fn params(&self) -> &ParamsSpec {
-        &self.params
+        Ok(Box::new(OpAdapter { op: (self.build)(params)?, slots, schema_len: schema.inputs.len() }))
     }
 }
 
@@ -119,11 +101,6 @@ pub fn ensure_valid<P: Validate>(params: &P) -> Result<()> {
     }
     let list: Vec<String> = problems.iter().map(|p| format!("`{}` {}", p.field, p.message)).collect();
     Err(anyhow!("{}", list.join("; ")))
-}
-
-/// Reads a params struct back from its canonical RON text.
-pub fn parse_canonical<P: DeserializeOwned>(text: &str) -> Result<P> {
-    dist4d_graph::de::from_canonical(text).map_err(|e| anyhow!("{e}"))
 }
 
 /// An input port of artifact type `A` taking one artifact.

@@ -13,7 +13,7 @@ use crate::files::{read_camera_image, read_npz};
 use crate::nuscenes::{surround_count, surround_label};
 use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, ensure, Context, Result};
-use dist4d_graph::{DatasetSchema, DimSpec, ParamsSpec, SourcePortSpec};
+use dist4d_graph::{DatasetSchema, ParamsSpec};
 use dist4d_runtime::{Dataset, Digest, FileDigests, ItemKey, ItemSpace};
 use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
 use dist4d_types::geometry::Se3;
@@ -454,34 +454,15 @@ impl dist4d_graph::Validate for DgpConfig {
     }
 }
 
-pub struct DgpSchema {
-    config: ParamsSpec,
-}
-
-impl Default for DgpSchema {
-    fn default() -> Self {
-        DgpSchema { config: ParamsSpec::of::<DgpConfig>() }
-    }
-}
-
-impl DatasetSchema for DgpSchema {
-    fn kind(&self) -> &'static str {
-        "Dgp"
-    }
-    fn summary(&self) -> &'static str {
-        "TRI DGP scenes (DDAD): samples, six cameras, LiDAR, 3D boxes"
-    }
-    fn dims(&self) -> &[DimSpec] {
-        &crate::nuscenes::DIMS
-    }
-    fn ports(&self) -> &[SourcePortSpec] {
-        &crate::nuscenes::PORTS
-    }
-    fn config(&self) -> &ParamsSpec {
-        &self.config
-    }
-    fn path_fields(&self) -> &[&'static str] {
-        &["root"]
+/// The Dgp dataset kind as pipelines see it: the items and ports of nuScenes.
+pub fn schema() -> DatasetSchema {
+    DatasetSchema {
+        kind: "Dgp",
+        summary: "TRI DGP scenes (DDAD): samples, six cameras, LiDAR, 3D boxes",
+        dims: crate::nuscenes::DIMS.to_vec(),
+        ports: crate::nuscenes::PORTS.to_vec(),
+        config: ParamsSpec::of::<DgpConfig>(),
+        path_fields: vec!["root"],
     }
 }
 

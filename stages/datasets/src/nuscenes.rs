@@ -879,16 +879,6 @@ impl dist4d_graph::Validate for NuScenesConfig {
     }
 }
 
-pub struct NuScenesSchema {
-    config: ParamsSpec,
-}
-
-impl Default for NuScenesSchema {
-    fn default() -> Self {
-        NuScenesSchema { config: ParamsSpec::of::<NuScenesConfig>() }
-    }
-}
-
 pub(crate) const DIMS: [DimSpec; 3] = [
     DimSpec { name: "scene", ordered: false },
     DimSpec { name: "frame", ordered: true },
@@ -931,24 +921,15 @@ pub(crate) const PORTS: [SourcePortSpec; 9] = [
     },
 ];
 
-impl DatasetSchema for NuScenesSchema {
-    fn kind(&self) -> &'static str {
-        "NuScenes"
-    }
-    fn summary(&self) -> &'static str {
-        "nuScenes v1.0 tables and files: scenes, keyframes or sweeps, six cameras, boxes, lidarseg"
-    }
-    fn dims(&self) -> &[DimSpec] {
-        &DIMS
-    }
-    fn ports(&self) -> &[SourcePortSpec] {
-        &PORTS
-    }
-    fn config(&self) -> &ParamsSpec {
-        &self.config
-    }
-    fn path_fields(&self) -> &[&'static str] {
-        &["root"]
+/// The NuScenes dataset kind as pipelines see it.
+pub fn schema() -> DatasetSchema {
+    DatasetSchema {
+        kind: "NuScenes",
+        summary: "nuScenes v1.0 tables and files: scenes, keyframes or sweeps, six cameras, boxes, lidarseg",
+        dims: DIMS.to_vec(),
+        ports: PORTS.to_vec(),
+        config: ParamsSpec::of::<NuScenesConfig>(),
+        path_fields: vec!["root"],
     }
 }
 
