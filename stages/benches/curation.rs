@@ -10,7 +10,7 @@
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use dist4d_stages::curation::hpr::hidden_point_removal;
-use dist4d_stages::output::encode::npy_f32;
+use dist4d_types::formats::npy_f32;
 use dist4d_types::rng::Rng;
 use glam::DVec3;
 use std::path::{Path, PathBuf};

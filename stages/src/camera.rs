@@ -87,32 +87,6 @@ impl CameraView {
     }
 }
 
-/// The input ports of a stage that takes a point cloud and looks at it from one camera: the cloud
-/// (`points`) and the four ports [`CameraView::from_inputs`] reads.
-pub fn cloud_and_camera_ports(points_doc: &'static str) -> Vec<dist4d_graph::PortSpec> {
-    use crate::stage::input;
-    vec![
-        input::<dist4d_types::artifact::PointCloud>("points", points_doc),
-        input::<Calibration>("cloud_calib", "the sensor the cloud is in (the target frame's LiDAR)"),
-        input::<Pose>("cloud_pose", "ego pose of that sensor's frame"),
-        input::<Calibration>("camera_calib", "camera mounting and intrinsics"),
-        input::<Pose>("camera_pose", "ego pose at the camera time"),
-    ]
-}
-
-impl CameraView {
-    /// The view from inputs 1..=4 of [`cloud_and_camera_ports`].
-    pub fn from_inputs(inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<CameraView> {
-        use crate::stage::one;
-        CameraView::new(
-            &one::<Calibration>(inputs, 1)?,
-            &one::<Pose>(inputs, 2)?,
-            &one::<Calibration>(inputs, 3)?,
-            &one::<Pose>(inputs, 4)?,
-        )
-    }
-}
-
 /// Per pixel, the nearest of the given camera-frame depths (z-buffer); 0 where none.
 pub struct ZBuffer {
     pub width: u32,

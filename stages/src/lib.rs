@@ -27,22 +27,7 @@ pub struct Registry {
 impl Default for Registry {
     fn default() -> Self {
         Registry {
-            stages: vec![
-                eval::above_fov::def(),
-                curation::aggregate::def(),
-                curation::complete::def(),
-                eval::depth::def(),
-                curation::fuse::def(),
-                curation::hpr::def(),
-                curation::mvs::def(),
-                curation::mvs_points::def(),
-                curation::nearest_fill::def(),
-                curation::prompt::def(),
-                curation::project_lidar::def(),
-                output::encode::encode_depth(),
-                output::encode::encode_points(),
-                output::encode::depth_sheet_def(),
-            ],
+            stages: [curation::stages(), eval::stages(), output::stages()].into_iter().flatten().collect(),
             nuscenes: dist4d_datasets::nuscenes::schema(),
             dgp: dist4d_datasets::dgp::schema(),
         }
@@ -58,15 +43,16 @@ impl Registry {
     pub fn open_dataset(&self, p: &Pipeline) -> Result<Box<dyn Dataset>> {
         match p.dataset.kind.as_str() {
             "NuScenes" => {
-                let ds =
-                    dist4d_datasets::nuscenes::NuScenes::open(config(&p.dataset.config)?).context("opening the NuScenes dataset")?;
+                let ds = dist4d_datasets::nuscenes::NuScenes::open(config(&p.dataset.config)?)
+                    .context("opening the NuScenes dataset")?;
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }
                 Ok(Box::new(ds))
             }
             "Dgp" => {
-                let ds = dist4d_datasets::dgp::Dgp::open(config(&p.dataset.config)?).context("opening the DGP dataset")?;
+                let ds =
+                    dist4d_datasets::dgp::Dgp::open(config(&p.dataset.config)?).context("opening the DGP dataset")?;
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }

@@ -1,39 +1,207 @@
-//! The shape every stage module shares: a [`StageDef`] (schema + how to build its operator from
-//! checked params) and helpers to decode typed inputs.
+//! How a stage is declared: a type implementing [`Stage`], with its params and its typed ports
+//! (declared with [`crate::ports!`]), and one line in its family's [`crate::stage_modules!`].
+//! [`StageDef::of`] turns it into what the graph checks pipelines against (the schema: ports and
+//! their artifact types come from the Rust types) and what the runtime runs (an operator that
+//! decodes inputs by port name and encodes outputs with their type tags).
+//!
+//! ```ignore
+//! crate::ports! {
+//!     pub struct Inputs {
+//!         /// The sweep, in the LiDAR frame.
+//!         points: One<PointCloud>,
+//!         /// Cityscapes ids; the estimate is used when unwired.
+//!         semantic: Optional<Segmentation>,
+//!         /// The window of sweeps, by offset.
+//!         sweeps: Many<PointCloud>,
+//!     }
+//! }
+//! ```
 
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, bail, ensure, Context, Result};
 use dist4d_graph::{ParamsSpec, ParamsValue, PortSpec, StageSchema, Validate};
 use dist4d_runtime::{Operator, TaskContext};
 use dist4d_types::artifact::Artifact;
 use serde::{de::DeserializeOwned, Serialize};
+use std::marker::PhantomData;
 
-/// A stage's work on decoded params; the context is rarely needed, so it is left out.
-pub trait TypedOp: Send + Sync {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>>;
+/// What params structs are: serde structs with defaults and range checks.
+pub trait Params: DeserializeOwned + Serialize + Default + Validate + Clone + Send + Sync + 'static {}
+impl<T: DeserializeOwned + Serialize + Default + Validate + Clone + Send + Sync + 'static> Params for T {}
+
+/// A stage kind.
+pub trait Stage: Sized + Send + Sync + 'static {
+    /// The name pipeline files use.
+    const KIND: &'static str;
+    /// Bumped whenever the output for the same inputs and params changes (part of task keys).
+    const VERSION: u32;
+    /// One line for `docs/stages.md` and messages.
+    const SUMMARY: &'static str;
+    /// Dimension names it may run per; the first is the default.
+    const GRAINS: &'static [&'static str];
+    /// Stages that draw random numbers (from [`TaskContext::seed`]) get the item in their task key.
+    const SEEDED: bool = false;
+    type Params: Params;
+    type Inputs: Ports;
+    type Outputs: Ports;
+    fn new(params: Self::Params) -> Result<Self>;
+    fn run(&self, ctx: &TaskContext, inputs: Self::Inputs) -> Result<Self::Outputs>;
 }
 
-/// Runs a [`TypedOp`]. `slots[i]` is the schema position of the i-th wired input, so that an
-/// operator always sees its inputs in schema order, unwired optional ones as empty lists.
-struct OpAdapter {
-    op: Box<dyn TypedOp>,
-    slots: Vec<usize>,
-    schema_len: usize,
+/// The input artifacts of one task, by port name (as the runtime hands them over: one list per
+/// wired input port).
+pub struct InputSet<'a> {
+    wired: &'a [&'static str],
+    lists: &'a [Vec<dist4d_runtime::Artifact>],
 }
 
-impl Operator for OpAdapter {
-    fn run(&self, _ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        if self.slots.len() == self.schema_len {
-            return self.op.run(inputs);
-        }
-        let mut full = vec![Vec::new(); self.schema_len];
-        for (slot, artifacts) in self.slots.iter().zip(inputs) {
-            full[*slot] = artifacts.clone();
-        }
-        self.op.run(&full)
+impl InputSet<'_> {
+    fn get(&self, port: &str) -> Option<&[dist4d_runtime::Artifact]> {
+        self.wired.iter().position(|w| *w == port).and_then(|i| self.lists.get(i)).map(Vec::as_slice)
     }
 }
 
-type BuildFn = Box<dyn Fn(&ParamsValue) -> Result<Box<dyn TypedOp>> + Send + Sync>;
+/// An encoded output with its artifact type tag.
+pub struct Encoded {
+    pub ty: &'static str,
+    pub bytes: Vec<u8>,
+}
+
+/// A struct of ports, as [`crate::ports!`] declares it.
+pub trait Ports: Sized {
+    fn specs() -> Vec<PortSpec>;
+    fn decode(inputs: &InputSet) -> Result<Self>;
+    fn encode(self) -> Result<Vec<Encoded>>;
+}
+
+/// How many artifacts a port carries: the field types of a [`crate::ports!`] struct.
+pub trait Port {
+    type Artifact: Artifact;
+    /// What the field holds.
+    type Value;
+    const MANY: bool;
+    const OPTIONAL: bool;
+    fn decode(port: &str, inputs: &InputSet) -> Result<Self::Value>;
+    fn encode(port: &str, value: Self::Value) -> Result<Encoded>;
+}
+
+/// Exactly one artifact (the field is the artifact).
+pub struct One<A>(PhantomData<A>);
+/// One artifact, or none when the input is not wired (the field is an `Option`).
+pub struct Optional<A>(PhantomData<A>);
+/// Several artifacts (a window, a gather), each with its position (the offset along the window's
+/// dimension, the index of a gathered item): the field is a `Vec<(i64, A)>`.
+pub struct Many<A>(PhantomData<A>);
+
+fn decode_one<A: Artifact>(port: &str, a: &dist4d_runtime::Artifact) -> Result<A> {
+    A::decode(&a.bytes).with_context(|| format!("decoding input `{port}` as {}", A::TYPE))
+}
+
+impl<A: Artifact> Port for One<A> {
+    type Artifact = A;
+    type Value = A;
+    const MANY: bool = false;
+    const OPTIONAL: bool = false;
+    fn decode(port: &str, inputs: &InputSet) -> Result<A> {
+        match inputs.get(port) {
+            Some([a]) => decode_one(port, a),
+            Some(list) => bail!("input `{port}` takes one {}, it was given {}", A::TYPE, list.len()),
+            None => bail!("input `{port}` is not wired"),
+        }
+    }
+    fn encode(_: &str, value: A) -> Result<Encoded> {
+        Ok(Encoded { ty: A::TYPE, bytes: value.encode() })
+    }
+}
+
+impl<A: Artifact> Port for Optional<A> {
+    type Artifact = A;
+    type Value = Option<A>;
+    const MANY: bool = false;
+    const OPTIONAL: bool = true;
+    fn decode(port: &str, inputs: &InputSet) -> Result<Option<A>> {
+        match inputs.get(port) {
+            None | Some([]) => Ok(None),
+            Some([a]) => decode_one(port, a).map(Some),
+            Some(list) => bail!("input `{port}` takes one {}, it was given {}", A::TYPE, list.len()),
+        }
+    }
+    fn encode(port: &str, _: Option<A>) -> Result<Encoded> {
+        bail!("output `{port}`: outputs are `One`, not `Optional`")
+    }
+}
+
+impl<A: Artifact> Port for Many<A> {
+    type Artifact = A;
+    type Value = Vec<(i64, A)>;
+    const MANY: bool = true;
+    const OPTIONAL: bool = false;
+    fn decode(port: &str, inputs: &InputSet) -> Result<Vec<(i64, A)>> {
+        let list = inputs.get(port).ok_or_else(|| anyhow!("input `{port}` is not wired"))?;
+        list.iter()
+            .map(|a| {
+                let x = A::decode(&a.bytes)
+                    .with_context(|| format!("decoding input `{port}` (position {}) as {}", a.pos, A::TYPE))?;
+                Ok((a.pos, x))
+            })
+            .collect()
+    }
+    fn encode(port: &str, _: Vec<(i64, A)>) -> Result<Encoded> {
+        bail!("output `{port}`: outputs are `One`, not `Many`")
+    }
+}
+
+/// The schema entry of a port declared as field `name: P` with doc comment `doc`.
+pub fn spec<P: Port>(name: &'static str, doc: &'static str) -> PortSpec {
+    PortSpec { name, ty: P::Artifact::TYPE, many: P::MANY, optional: P::OPTIONAL, doc: doc.trim() }
+}
+
+/// Declares a struct of typed ports: each field `name: One<T>`, `Optional<T>` or `Many<T>` with
+/// a doc comment, in port order. Implements [`Ports`] for it.
+#[macro_export]
+macro_rules! ports {
+    (
+        $(#[$meta:meta])*
+        $vis:vis struct $name:ident {
+            $( $(#[doc = $doc:literal])* $field:ident : $port:ident < $ty:ty > ),* $(,)?
+        }
+    ) => {
+        $(#[$meta])*
+        $vis struct $name {
+            $( $(#[doc = $doc])* pub $field: <$crate::stage::$port<$ty> as $crate::stage::Port>::Value, )*
+        }
+
+        impl $crate::stage::Ports for $name {
+            fn specs() -> Vec<dist4d_graph::PortSpec> {
+                vec![$( $crate::stage::spec::<$crate::stage::$port<$ty>>(stringify!($field), concat!($($doc),*)) ),*]
+            }
+            #[allow(unused_variables)]
+            fn decode(inputs: &$crate::stage::InputSet) -> anyhow::Result<Self> {
+                Ok($name {
+                    $( $field: <$crate::stage::$port<$ty> as $crate::stage::Port>::decode(stringify!($field), inputs)?, )*
+                })
+            }
+            fn encode(self) -> anyhow::Result<Vec<$crate::stage::Encoded>> {
+                Ok(vec![$( <$crate::stage::$port<$ty> as $crate::stage::Port>::encode(stringify!($field), self.$field)? ),*])
+            }
+        }
+    };
+}
+
+/// Declares a family's stage modules and registers their stages, one line per stage:
+/// `module::StageType`. Adding a stage is its module plus one line here.
+#[macro_export]
+macro_rules! stage_modules {
+    ($( $module:ident :: $stage:ident ),* $(,)?) => {
+        $( pub mod $module; )*
+
+        /// Every stage of this family, for the registry.
+        pub fn stages() -> Vec<$crate::stage::StageDef> {
+            vec![$( $crate::stage::StageDef::of::<$module::$stage>() ),*]
+        }
+    };
+}
+
+type BuildFn = Box<dyn Fn(&ParamsValue, &[&'static str]) -> Result<Box<dyn Operator>> + Send + Sync>;
 
 /// A stage kind: its schema (what the graph checks pipelines against) and how to build its
 /// operator from checked params.
@@ -43,53 +211,75 @@ pub struct StageDef {
 }
 
 impl StageDef {
-    #[allow(clippy::too_many_arguments)]
-    pub fn new<P: DeserializeOwned + Serialize + Default + Validate + Clone + Send + Sync + 'static>(
-        kind: &'static str,
-        version: u32,
-        summary: &'static str,
-        inputs: Vec<PortSpec>,
-        outputs: Vec<PortSpec>,
-        grains: Vec<&'static str>,
-        build: fn(P) -> Result<Box<dyn TypedOp>>,
-    ) -> StageDef {
+    pub fn of<S: Stage>() -> StageDef {
         StageDef {
             schema: StageSchema {
-                kind,
-                version,
-                summary,
-                inputs,
-                outputs,
-                grains,
-                params: ParamsSpec::of::<P>(),
-                seeded: false,
+                kind: S::KIND,
+                version: S::VERSION,
+                summary: S::SUMMARY,
+                inputs: S::Inputs::specs(),
+                outputs: S::Outputs::specs(),
+                grains: S::GRAINS.to_vec(),
+                params: ParamsSpec::of::<S::Params>(),
+                seeded: S::SEEDED,
             },
-            build: Box::new(move |checked| {
-                let params = checked.get::<P>().ok_or_else(|| {
-                    anyhow!("params of {kind}: checked as another type, not {}", std::any::type_name::<P>())
+            build: Box::new(|checked, wired| {
+                let params = checked.get::<S::Params>().ok_or_else(|| {
+                    anyhow!(
+                        "params of {}: checked as another type, not {}",
+                        S::KIND,
+                        std::any::type_name::<S::Params>()
+                    )
                 })?;
                 // `check` refused invalid params already; params that reach here another way are checked too.
-                ensure_valid(params).with_context(|| format!("params of {kind}"))?;
-                build(params.clone())
+                ensure_valid(params).with_context(|| format!("params of {}", S::KIND))?;
+                let stage = S::new(params.clone()).with_context(|| format!("building {}", S::KIND))?;
+                Ok(Box::new(StageOp { stage, wired: wired.to_vec(), outputs: S::Outputs::specs() }))
             }),
         }
     }
 
-    /// The operator for checked params (as the graph produced them) and the names of the
-    /// wired input ports, in schema order.
+    /// The operator for checked params (as the graph produced them) and the names of the wired
+    /// input ports, in the order the runtime hands their artifacts over.
     pub fn build(&self, params: &ParamsValue, wired: &[&str]) -> Result<Box<dyn Operator>> {
-        let schema = &self.schema;
-        let slots = wired
+        let wired = wired
             .iter()
             .map(|w| {
-                schema
+                self.schema
                     .inputs
                     .iter()
-                    .position(|p| p.name == *w)
-                    .ok_or_else(|| anyhow!("{} has no input `{w}`", schema.kind))
+                    .find(|p| p.name == *w)
+                    .map(|p| p.name)
+                    .ok_or_else(|| anyhow!("{} has no input `{w}`", self.schema.kind))
             })
             .collect::<Result<Vec<_>>>()?;
-        Ok(Box::new(OpAdapter { op: (self.build)(params)?, slots, schema_len: schema.inputs.len() }))
+        (self.build)(params, &wired)
+    }
+}
+
+/// Runs a [`Stage`] as a runtime operator.
+struct StageOp<S> {
+    stage: S,
+    wired: Vec<&'static str>,
+    outputs: Vec<PortSpec>,
+}
+
+impl<S: Stage> Operator for StageOp<S> {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+        let inputs = S::Inputs::decode(&InputSet { wired: &self.wired, lists: inputs })?;
+        let encoded = self.stage.run(ctx, inputs)?.encode()?;
+        ensure!(encoded.len() == self.outputs.len(), "{} encoded {} outputs", S::KIND, encoded.len());
+        for (e, spec) in encoded.iter().zip(&self.outputs) {
+            ensure!(
+                e.ty == spec.ty,
+                "{} output `{}` was encoded as {}, declared {}",
+                S::KIND,
+                spec.name,
+                e.ty,
+                spec.ty
+            );
+        }
+        Ok(encoded.into_iter().map(|e| e.bytes).collect())
     }
 }
 
@@ -101,40 +291,4 @@ pub fn ensure_valid<P: Validate>(params: &P) -> Result<()> {
     }
     let list: Vec<String> = problems.iter().map(|p| format!("`{}` {}", p.field, p.message)).collect();
     Err(anyhow!("{}", list.join("; ")))
-}
-
-/// An input port of artifact type `A` taking one artifact.
-pub fn input<A: Artifact>(name: &'static str, doc: &'static str) -> PortSpec {
-    PortSpec::one(name, A::TYPE, doc)
-}
-
-/// An optional input port of artifact type `A` (may be left unwired).
-pub fn optional_input<A: Artifact>(name: &'static str, doc: &'static str) -> PortSpec {
-    PortSpec::optional(name, A::TYPE, doc)
-}
-
-/// Decodes the artifact of optional input `i`, if it is wired.
-pub fn maybe_one<A: Artifact>(inputs: &[Vec<dist4d_runtime::Artifact>], i: usize) -> Result<Option<A>> {
-    match inputs.get(i).and_then(|v| v.first()) {
-        None => Ok(None),
-        Some(a) => A::decode(&a.bytes).with_context(|| format!("decoding input {i} as {}", A::TYPE)).map(Some),
-    }
-}
-
-/// Decodes every artifact of a several-artifact input `i`, with its position (window offset).
-pub fn each<A: Artifact>(inputs: &[Vec<dist4d_runtime::Artifact>], i: usize) -> Result<Vec<(i64, A)>> {
-    let list = inputs.get(i).ok_or_else(|| anyhow!("input {i} is missing"))?;
-    list.iter()
-        .map(|a| {
-            A::decode(&a.bytes)
-                .with_context(|| format!("decoding input {i} (position {}) as {}", a.pos, A::TYPE))
-                .map(|x| (a.pos, x))
-        })
-        .collect()
-}
-
-/// Decodes the single artifact of input `i`.
-pub fn one<A: Artifact>(inputs: &[Vec<dist4d_runtime::Artifact>], i: usize) -> Result<A> {
-    let a = inputs.get(i).and_then(|v| v.first()).ok_or_else(|| anyhow!("input {i} is missing"))?;
-    A::decode(&a.bytes).with_context(|| format!("decoding input {i} as {}", A::TYPE))
 }

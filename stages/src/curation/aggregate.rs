@@ -15,9 +15,10 @@
 //! out of the aggregate and returns them separately, so a curated depth can be scored on LiDAR
 //! points it never saw (works on real data).
 
-use crate::stage::{each, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::{anyhow, ensure, Result};
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_types::artifact::{Boxes3D, Calibration, PointCloud, Pose};
 use dist4d_types::geometry::BoxTest;
 use dist4d_types::rng::mix;
@@ -166,14 +167,44 @@ pub fn aggregate(params: &Params, sweeps: &[Sweep]) -> Result<(PointCloud, Point
     Ok((out, held))
 }
 
-struct Op(Params);
+crate::ports! {
+    pub struct Inputs {
+        /// the window's sweeps: Window("dataset.lidar", frame, -1, 1)
+        sweeps: Many<PointCloud>,
+        /// their LiDAR mountings (same Window)
+        calibs: Many<Calibration>,
+        /// their ego poses (same Window)
+        poses: Many<Pose>,
+        /// their frames' boxes (same Window)
+        boxes: Many<Boxes3D>,
+    }
+}
 
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let points = each::<PointCloud>(inputs, 0)?;
-        let calibs = each::<Calibration>(inputs, 1)?;
-        let poses = each::<Pose>(inputs, 2)?;
-        let boxes = each::<Boxes3D>(inputs, 3)?;
+crate::ports! {
+    pub struct Outputs {
+        /// the aggregate, in the target frame's LiDAR frame
+        points: One<PointCloud>,
+        /// held-out target points (empty unless holdout > 0)
+        holdout: One<PointCloud>,
+    }
+}
+
+pub struct AggregateLidar(Params);
+
+impl Stage for AggregateLidar {
+    const KIND: &'static str = "AggregateLidar";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "LiDAR sweeps of a window of frames -> one static-scene cloud in the target frame's LiDAR frame";
+    const GRAINS: &'static [&'static str] = &["frame"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(AggregateLidar(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let (points, calibs, poses, boxes) = (&i.sweeps, &i.calibs, &i.poses, &i.boxes);
         ensure!(
             calibs.len() == points.len() && poses.len() == points.len() && boxes.len() == points.len(),
             "the sweeps, calibrations, poses and boxes windows differ in length ({}, {}, {}, {}): wire them with the same Window",
@@ -197,30 +228,9 @@ impl TypedOp for Op {
                 boxes: &boxes[i].1,
             });
         }
-        let (agg, held) = aggregate(&self.0, &sweeps)?;
-        use dist4d_types::artifact::Artifact;
-        Ok(vec![agg.encode(), held.encode()])
+        let (points, holdout) = aggregate(&self.0, &sweeps)?;
+        Ok(Outputs { points, holdout })
     }
-}
-
-pub fn def() -> StageDef {
-    StageDef::new::<Params>(
-        "AggregateLidar",
-        1,
-        "LiDAR sweeps of a window of frames -> one static-scene cloud in the target frame's LiDAR frame",
-        vec![
-            PortSpec::many("sweeps", "PointCloud", "the window's sweeps: Window(\"dataset.lidar\", frame, -1, 1)"),
-            PortSpec::many("calibs", "Calibration", "their LiDAR mountings (same Window)"),
-            PortSpec::many("poses", "Pose", "their ego poses (same Window)"),
-            PortSpec::many("boxes", "Boxes3D", "their frames' boxes (same Window)"),
-        ],
-        vec![
-            PortSpec::one("points", "PointCloud", "the aggregate, in the target frame's LiDAR frame"),
-            PortSpec::one("holdout", "PointCloud", "held-out target points (empty unless holdout > 0)"),
-        ],
-        vec!["frame"],
-        |p: Params| Ok(Box::new(Op(p))),
-    )
 }
 
 #[cfg(test)]

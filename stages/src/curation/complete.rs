@@ -18,9 +18,10 @@
 //!
 //! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
 
-use crate::stage::{input, maybe_one, one, optional_input, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Result};
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_types::artifact::{DepthMap, Image, Segmentation};
 use serde::{Deserialize, Serialize};
 
@@ -374,34 +375,44 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, semantic: Option<&
     DepthMap { width: sparse.width, height: sparse.height, data: depth }
 }
 
-struct Op(Params);
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let image = one::<Image>(inputs, 0)?;
-        let sparse = one::<DepthMap>(inputs, 1)?;
-        // An empty map is a dataset without segmentations.
-        let semantic = maybe_one::<Segmentation>(inputs, 2)?.filter(|s| s.width > 0 && s.height > 0);
-        let dense = ScanlineCompleter(self.0.clone()).complete(&image, &sparse, semantic.as_ref())?;
-        use dist4d_types::artifact::Artifact;
-        Ok(vec![dense.encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// the camera image
+        image: One<Image>,
+        /// sparse metric depth (the z-buffered prompt)
+        sparse: One<DepthMap>,
+        /// Cityscapes-id segmentation; sky = 23
+        semantic: Optional<Segmentation>,
     }
 }
 
-pub fn def() -> StageDef {
-    StageDef::new::<Params>(
-        "CompleteDepth",
-        3,
-        "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)",
-        vec![
-            input::<Image>("image", "the camera image"),
-            input::<DepthMap>("sparse", "sparse metric depth (the z-buffered prompt)"),
-            optional_input::<Segmentation>("semantic", "Cityscapes-id segmentation; sky = 23"),
-        ],
-        vec![PortSpec::one("depth", "DepthMap", "dense metric depth, sky at sky_depth")],
-        vec!["camera"],
-        |p: Params| Ok(Box::new(Op(p))),
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// dense metric depth, sky at sky_depth
+        depth: One<DepthMap>,
+    }
+}
+
+pub struct CompleteDepth(Params);
+
+impl Stage for CompleteDepth {
+    const KIND: &'static str = "CompleteDepth";
+    const VERSION: u32 = 3;
+    const SUMMARY: &'static str =
+        "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(CompleteDepth(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        // An empty map is a dataset without segmentations.
+        let semantic = i.semantic.filter(|s| s.width > 0 && s.height > 0);
+        let depth = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, semantic.as_ref())?;
+        Ok(Outputs { depth })
+    }
 }
 
 #[cfg(test)]

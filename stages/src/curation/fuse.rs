@@ -8,10 +8,11 @@
 //! (the target LiDAR's); the output is the whole LiDAR cloud followed by the kept MVS points.
 
 use crate::camera::CameraView;
-use crate::stage::{input, one, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Result};
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
-use dist4d_types::artifact::{Artifact, PointCloud};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_types::artifact::{Calibration, PointCloud, Pose};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -78,29 +79,47 @@ pub fn fuse(params: &Params, lidar: &PointCloud, mvs: &PointCloud, view: &Camera
     Ok(out)
 }
 
-struct Op(Params);
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let lidar = one::<PointCloud>(inputs, 0)?;
-        let mvs = one::<PointCloud>(inputs, 5)?;
-        let view = CameraView::from_inputs(inputs)?;
-        Ok(vec![fuse(&self.0, &lidar, &mvs, &view)?.encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// the LiDAR cloud (has priority), e.g. aggregate.points
+        points: One<PointCloud>,
+        /// the sensor the cloud is in (the target frame's LiDAR)
+        cloud_calib: One<Calibration>,
+        /// ego pose of that sensor's frame
+        cloud_pose: One<Pose>,
+        /// camera mounting and intrinsics
+        camera_calib: One<Calibration>,
+        /// ego pose at the camera time
+        camera_pose: One<Pose>,
+        /// static MVS points in the same frame, e.g. StaticMvsPoints
+        mvs: One<PointCloud>,
     }
 }
 
-pub fn def() -> StageDef {
-    let mut inputs = crate::camera::cloud_and_camera_ports("the LiDAR cloud (has priority), e.g. aggregate.points");
-    inputs.push(input::<PointCloud>("mvs", "static MVS points in the same frame, e.g. StaticMvsPoints"));
-    StageDef::new::<Params>(
-        "FusePoints",
-        1,
-        "LiDAR cloud + MVS points -> one cloud: MVS only in image regions without LiDAR",
-        inputs,
-        vec![PortSpec::one("points", "PointCloud", "the LiDAR points, then the kept MVS points (same frame)")],
-        vec!["camera"],
-        |p: Params| Ok(Box::new(Op(p))),
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// the LiDAR points, then the kept MVS points (same frame)
+        points: One<PointCloud>,
+    }
+}
+
+pub struct FusePoints(Params);
+
+impl Stage for FusePoints {
+    const KIND: &'static str = "FusePoints";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str = "LiDAR cloud + MVS points -> one cloud: MVS only in image regions without LiDAR";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(FusePoints(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
+        Ok(Outputs { points: fuse(&self.0, &i.points, &i.mvs, &view)? })
+    }
 }
 
 #[cfg(test)]

@@ -24,10 +24,11 @@
 
 use crate::camera::CameraView;
 use crate::hull::hull_vertices;
-use crate::stage::{one, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::Result;
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
-use dist4d_types::artifact::PointCloud;
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_types::artifact::{Calibration, PointCloud, Pose};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -180,27 +181,46 @@ fn restore_unoccluded(params: &Params, xyz: &[DVec3], visible: &mut [bool], view
     }
 }
 
-struct Op(Params);
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let points = one::<PointCloud>(inputs, 0)?;
-        let view = CameraView::from_inputs(inputs)?;
-        use dist4d_types::artifact::Artifact;
-        Ok(vec![visible_points(&self.0, &points, &view).encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
+        points: One<PointCloud>,
+        /// the sensor the cloud is in (the target frame's LiDAR)
+        cloud_calib: One<Calibration>,
+        /// ego pose of that sensor's frame
+        cloud_pose: One<Pose>,
+        /// camera mounting and intrinsics
+        camera_calib: One<Calibration>,
+        /// ego pose at the camera time
+        camera_pose: One<Pose>,
     }
 }
 
-pub fn def() -> StageDef {
-    StageDef::new::<Params>(
-        "HiddenPointRemoval",
-        2,
-        "Point cloud -> the points one camera can see (Katz et al. 2007 spherical flip + convex hull)",
-        crate::camera::cloud_and_camera_ports("the cloud, in the frame of `cloud_calib` at `cloud_pose`"),
-        vec![PortSpec::one("points", "PointCloud", "the visible points, same frame, in input order")],
-        vec!["camera"],
-        |p: Params| Ok(Box::new(Op(p))),
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// the visible points, same frame, in input order
+        points: One<PointCloud>,
+    }
+}
+
+pub struct HiddenPointRemoval(Params);
+
+impl Stage for HiddenPointRemoval {
+    const KIND: &'static str = "HiddenPointRemoval";
+    const VERSION: u32 = 2;
+    const SUMMARY: &'static str =
+        "Point cloud -> the points one camera can see (Katz et al. 2007 spherical flip + convex hull)";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(HiddenPointRemoval(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
+        Ok(Outputs { points: visible_points(&self.0, &i.points, &view) })
+    }
 }
 
 #[cfg(test)]

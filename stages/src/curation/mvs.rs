@@ -16,11 +16,12 @@
 //! fail the uniqueness or consistency test and get no depth rather than a wrong one.
 //! A frame without neighbours (a one-frame scene) gets no depth.
 
-use crate::stage::{each, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use crate::stereo::{keep_consistent, sweep_depth, StereoDepth, StereoView, SweepParams, VolumeTooLarge};
 use anyhow::{anyhow, ensure, Result};
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
-use dist4d_types::artifact::{Artifact, Calibration, DepthMap, Image, Pose};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_types::artifact::{Calibration, DepthMap, Image, Pose};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -199,43 +200,51 @@ pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap,
     Ok((DepthMap { width: w, height: h, data: depth.depth }, DepthMap { width: w, height: h, data: depth.confidence }))
 }
 
-struct Op(Params);
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let images = each::<Image>(inputs, 0)?;
-        let calibs = each::<Calibration>(inputs, 1)?;
-        let poses = each::<Pose>(inputs, 2)?;
-        let mut frames = Vec::new();
-        for (pos, image) in &images {
-            let calib =
-                calibs.iter().find(|(p, _)| p == pos).ok_or_else(|| anyhow!("no camera_calib at position {pos}"))?;
-            let pose =
-                poses.iter().find(|(p, _)| p == pos).ok_or_else(|| anyhow!("no camera_pose at position {pos}"))?;
-            frames.push(Frame { position: *pos, image, calib: &calib.1, pose: &pose.1 });
-        }
-        let (depth, confidence) = multi_view_stereo(&self.0, &frames)?;
-        Ok(vec![depth.encode(), confidence.encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// the camera's images: Window("dataset.image", frame, -1, 1)
+        images: Many<Image>,
+        /// their calibrations (same Window)
+        calibs: Many<Calibration>,
+        /// their ego poses (same Window)
+        poses: Many<Pose>,
     }
 }
 
-pub fn def() -> StageDef {
-    StageDef::new::<Params>(
-        "MultiViewStereo",
-        2,
-        "Camera images of a window of frames -> depth of the target image by plane-sweep stereo + SGM",
-        vec![
-            PortSpec::many("images", "Image", "the camera's images: Window(\"dataset.image\", frame, -1, 1)"),
-            PortSpec::many("calibs", "Calibration", "their calibrations (same Window)"),
-            PortSpec::many("poses", "Pose", "their ego poses (same Window)"),
-        ],
-        vec![
-            PortSpec::one("depth", "DepthMap", "depth of the target image at 1/downscale size, 0 = none"),
-            PortSpec::one("confidence", "DepthMap", "per-pixel confidence in [0, 1] (same size), 0 = no depth"),
-        ],
-        vec!["camera"],
-        |p: Params| Ok(Box::new(Op(p))),
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// depth of the target image at 1/downscale size, 0 = none
+        depth: One<DepthMap>,
+        /// per-pixel confidence in [0, 1] (same size), 0 = no depth
+        confidence: One<DepthMap>,
+    }
+}
+
+pub struct MultiViewStereo(Params);
+
+impl Stage for MultiViewStereo {
+    const KIND: &'static str = "MultiViewStereo";
+    const VERSION: u32 = 2;
+    const SUMMARY: &'static str =
+        "Camera images of a window of frames -> depth of the target image by plane-sweep stereo + SGM";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(MultiViewStereo(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let mut frames = Vec::new();
+        for (pos, image) in &i.images {
+            let calib =
+                i.calibs.iter().find(|(p, _)| p == pos).ok_or_else(|| anyhow!("no camera_calib at position {pos}"))?;
+            let pose = i.poses.iter().find(|(p, _)| p == pos).ok_or_else(|| anyhow!("no camera_pose at position {pos}"))?;
+            frames.push(Frame { position: *pos, image, calib: &calib.1, pose: &pose.1 });
+        }
+        let (depth, confidence) = multi_view_stereo(&self.0, &frames)?;
+        Ok(Outputs { depth, confidence })
+    }
 }
 
 #[cfg(test)]

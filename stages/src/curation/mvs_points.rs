@@ -18,10 +18,11 @@
 //! order so the output does not depend on thread count.
 
 use crate::camera::CameraView;
-use crate::stage::{input, maybe_one, one, optional_input, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Result};
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
-use dist4d_types::artifact::{Artifact, Boxes3D, Calibration, DepthMap, Image, PointCloud, Pose, Segmentation};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_types::artifact::{Boxes3D, Calibration, DepthMap, Image, PointCloud, Pose, Segmentation};
 use dist4d_types::geometry::BoxTest;
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -252,54 +253,63 @@ pub fn static_points(params: &Params, m: &MvsInputs) -> Result<PointCloud> {
     Ok(PointCloud { points: voxel_mean(&kept, params.voxel), labels: Vec::new() })
 }
 
-struct Op(Params);
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let depth = one::<DepthMap>(inputs, 0)?;
-        let confidence = one::<DepthMap>(inputs, 1)?;
-        let image = one::<Image>(inputs, 2)?;
-        let cloud_calib = one::<Calibration>(inputs, 3)?;
-        let cloud_pose = one::<Pose>(inputs, 4)?;
-        let camera_calib = one::<Calibration>(inputs, 5)?;
-        let camera_pose = one::<Pose>(inputs, 6)?;
-        let boxes = one::<Boxes3D>(inputs, 7)?;
-        let semantic = maybe_one::<Segmentation>(inputs, 8)?;
-        let view = CameraView::new(&cloud_calib, &cloud_pose, &camera_calib, &camera_pose)?;
-        let cloud_from_world = cloud_pose.ego_to_world.then_from(&cloud_calib.sensor_to_ego).inverse();
-        let m = MvsInputs {
-            depth: &depth,
-            confidence: &confidence,
-            image: &image,
-            semantic: semantic.as_ref(),
-            view: &view,
-            cloud_from_world,
-            boxes: &boxes,
-        };
-        Ok(vec![static_points(&self.0, &m)?.encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// MultiViewStereo depth (any size; pixels scale to the image)
+        depth: One<DepthMap>,
+        /// MultiViewStereo confidence (same size)
+        confidence: One<DepthMap>,
+        /// the camera image (for the built-in sky estimate)
+        image: One<Image>,
+        /// the sensor of the output frame (the target frame's LiDAR)
+        cloud_calib: One<Calibration>,
+        /// ego pose of that sensor's frame
+        cloud_pose: One<Pose>,
+        /// camera mounting and intrinsics
+        camera_calib: One<Calibration>,
+        /// ego pose at the camera time
+        camera_pose: One<Pose>,
+        /// the target frame's boxes
+        boxes: One<Boxes3D>,
+        /// Cityscapes ids (sky = 23); empty or unwired: built-in sky
+        semantic: Optional<Segmentation>,
     }
 }
 
-pub fn def() -> StageDef {
-    StageDef::new::<Params>(
-        "StaticMvsPoints",
-        3,
-        "MVS depth -> static points above the LiDAR (no moving boxes, no sky), voxel-downsampled",
-        vec![
-            input::<DepthMap>("depth", "MultiViewStereo depth (any size; pixels scale to the image)"),
-            input::<DepthMap>("confidence", "MultiViewStereo confidence (same size)"),
-            input::<Image>("image", "the camera image (for the built-in sky estimate)"),
-            input::<Calibration>("cloud_calib", "the sensor of the output frame (the target frame's LiDAR)"),
-            input::<Pose>("cloud_pose", "ego pose of that sensor's frame"),
-            input::<Calibration>("camera_calib", "camera mounting and intrinsics"),
-            input::<Pose>("camera_pose", "ego pose at the camera time"),
-            input::<Boxes3D>("boxes", "the target frame's boxes"),
-            optional_input::<Segmentation>("semantic", "Cityscapes ids (sky = 23); empty or unwired: built-in sky"),
-        ],
-        vec![PortSpec::one("points", "PointCloud", "static MVS points in the target LiDAR frame")],
-        vec!["camera"],
-        |p: Params| Ok(Box::new(Op(p))),
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// static MVS points in the target LiDAR frame
+        points: One<PointCloud>,
+    }
+}
+
+pub struct StaticMvsPoints(Params);
+
+impl Stage for StaticMvsPoints {
+    const KIND: &'static str = "StaticMvsPoints";
+    const VERSION: u32 = 3;
+    const SUMMARY: &'static str = "MVS depth -> static points above the LiDAR (no moving boxes, no sky), voxel-downsampled";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(StaticMvsPoints(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
+        let cloud_from_world = i.cloud_pose.ego_to_world.then_from(&i.cloud_calib.sensor_to_ego).inverse();
+        let m = MvsInputs {
+            depth: &i.depth,
+            confidence: &i.confidence,
+            image: &i.image,
+            semantic: i.semantic.as_ref(),
+            view: &view,
+            cloud_from_world,
+            boxes: &i.boxes,
+        };
+        Ok(Outputs { points: static_points(&self.0, &m)? })
+    }
 }
 
 #[cfg(test)]

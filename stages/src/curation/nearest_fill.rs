@@ -7,10 +7,11 @@
 //! for 1600x900, which is why it is a stage of its own: pipelines run it only when a completer
 //! reads it.
 
-use crate::stage::{input, one, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::Result;
-use dist4d_graph::{PortSpec, Validate};
-use dist4d_types::artifact::{Artifact, DepthMap};
+use dist4d_graph::Validate;
+use dist4d_types::artifact::{DepthMap};
 use serde::{Deserialize, Serialize};
 
 /// No parameters.
@@ -106,24 +107,37 @@ pub fn nearest_fill(sparse: &DepthMap) -> DepthMap {
     DepthMap { width: sparse.width, height: sparse.height, data }
 }
 
-struct Op;
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        Ok(vec![nearest_fill(&one::<DepthMap>(inputs, 0)?).encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// sparse depth, 0 = none (e.g. DepthPrompt.sparse)
+        sparse: One<DepthMap>,
     }
 }
 
-pub fn def() -> StageDef {
-    StageDef::new::<Params>(
-        "NearestFill",
-        1,
-        "Sparse depth -> dense: each pixel takes its nearest sample's depth (DiST-4D's initial prompt)",
-        vec![input::<DepthMap>("sparse", "sparse depth, 0 = none (e.g. DepthPrompt.sparse)")],
-        vec![PortSpec::one("prompt", "DepthMap", "the nearest-neighbour fill (all 0 when there is no sample)")],
-        vec!["camera"],
-        |_: Params| Ok(Box::new(Op)),
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// the nearest-neighbour fill (all 0 when there is no sample)
+        prompt: One<DepthMap>,
+    }
+}
+
+pub struct NearestFill;
+
+impl Stage for NearestFill {
+    const KIND: &'static str = "NearestFill";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "Sparse depth -> dense: each pixel takes its nearest sample's depth (DiST-4D's initial prompt)";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(_: Params) -> Result<Self> {
+        Ok(NearestFill)
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        Ok(Outputs { prompt: nearest_fill(&i.sparse) })
+    }
 }
 
 #[cfg(test)]

@@ -5,9 +5,10 @@
 //! `min_depth` and they fall strictly inside the image less a `border_px` margin (devkit: 1 m,
 //! 1 px). The depth map takes, per pixel (floor(u), floor(v)), the nearest point (z-buffer).
 
-use crate::stage::{input, one, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::{anyhow, Result};
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_types::artifact::{Calibration, DepthMap, PointCloud, Pose, ProjectedPoints};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -83,42 +84,47 @@ pub fn project(
     Ok((depth, ProjectedPoints { rows }))
 }
 
-struct Op(Params);
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let (depth, uvz) = project(
-            &self.0,
-            &one::<PointCloud>(inputs, 0)?,
-            &one::<Calibration>(inputs, 1)?,
-            &one::<Pose>(inputs, 2)?,
-            &one::<Calibration>(inputs, 3)?,
-            &one::<Pose>(inputs, 4)?,
-        )?;
-        use dist4d_types::artifact::Artifact;
-        Ok(vec![depth.encode(), uvz.encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// the sweep, in the LiDAR frame
+        points: One<PointCloud>,
+        /// LiDAR mounting
+        lidar_calib: One<Calibration>,
+        /// ego pose at the LiDAR time
+        lidar_pose: One<Pose>,
+        /// camera mounting and intrinsics
+        camera_calib: One<Calibration>,
+        /// ego pose at the camera time
+        camera_pose: One<Pose>,
     }
 }
 
-pub fn def() -> StageDef {
-    StageDef::new::<Params>(
-        "ProjectLidar",
-        1,
-        "LiDAR sweep -> sparse z-buffered depth map of one camera (nuScenes devkit projection)",
-        vec![
-            input::<PointCloud>("points", "the sweep, in the LiDAR frame"),
-            input::<Calibration>("lidar_calib", "LiDAR mounting"),
-            input::<Pose>("lidar_pose", "ego pose at the LiDAR time"),
-            input::<Calibration>("camera_calib", "camera mounting and intrinsics"),
-            input::<Pose>("camera_pose", "ego pose at the camera time"),
-        ],
-        vec![
-            PortSpec::one("depth", "DepthMap", "sparse depth, 0 = none"),
-            PortSpec::one("uvz", "ProjectedPoints", "u, v, depth of every kept point"),
-        ],
-        vec!["camera"],
-        |p: Params| Ok(Box::new(Op(p))),
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// sparse depth, 0 = none
+        depth: One<DepthMap>,
+        /// u, v, depth of every kept point
+        uvz: One<ProjectedPoints>,
+    }
+}
+
+pub struct ProjectLidar(Params);
+
+impl Stage for ProjectLidar {
+    const KIND: &'static str = "ProjectLidar";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str = "LiDAR sweep -> sparse z-buffered depth map of one camera (nuScenes devkit projection)";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(ProjectLidar(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let (depth, uvz) = project(&self.0, &i.points, &i.lidar_calib, &i.lidar_pose, &i.camera_calib, &i.camera_pose)?;
+        Ok(Outputs { depth, uvz })
+    }
 }
 
 #[cfg(test)]

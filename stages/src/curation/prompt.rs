@@ -4,10 +4,11 @@
 //! `CompleteDepth` reads the sparse map).
 
 use crate::camera::{CameraView, ZBuffer};
-use crate::stage::{one, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::Result;
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
-use dist4d_types::artifact::{DepthMap, PointCloud};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_types::artifact::{Calibration, DepthMap, PointCloud, Pose};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -49,27 +50,45 @@ pub fn project_points(params: &Params, points: &PointCloud, view: &CameraView) -
     DepthMap { width: view.width, height: view.height, data: z.depth }
 }
 
-struct Op(Params);
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let view = CameraView::from_inputs(inputs)?;
-        let sparse = project_points(&self.0, &one::<PointCloud>(inputs, 0)?, &view);
-        use dist4d_types::artifact::Artifact;
-        Ok(vec![sparse.encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
+        points: One<PointCloud>,
+        /// the sensor the cloud is in (the target frame's LiDAR)
+        cloud_calib: One<Calibration>,
+        /// ego pose of that sensor's frame
+        cloud_pose: One<Pose>,
+        /// camera mounting and intrinsics
+        camera_calib: One<Calibration>,
+        /// ego pose at the camera time
+        camera_pose: One<Pose>,
     }
 }
 
-pub fn def() -> StageDef {
-    StageDef::new::<Params>(
-        "DepthPrompt",
-        2,
-        "Points -> sparse z-buffered depth of one camera (the depth prompt before its fill)",
-        crate::camera::cloud_and_camera_ports("the cloud, in the frame of `cloud_calib` at `cloud_pose`"),
-        vec![PortSpec::one("sparse", "DepthMap", "z-buffered projection, 0 = no point")],
-        vec!["camera"],
-        |p: Params| Ok(Box::new(Op(p))),
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// z-buffered projection, 0 = no point
+        sparse: One<DepthMap>,
+    }
+}
+
+pub struct DepthPrompt(Params);
+
+impl Stage for DepthPrompt {
+    const KIND: &'static str = "DepthPrompt";
+    const VERSION: u32 = 2;
+    const SUMMARY: &'static str = "Points -> sparse z-buffered depth of one camera (the depth prompt before its fill)";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(DepthPrompt(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
+        Ok(Outputs { sparse: project_points(&self.0, &i.points, &view) })
+    }
 }
 
 #[cfg(test)]

@@ -10,10 +10,11 @@
 //! overrides it for sweeps that were cropped.
 
 use crate::camera::CameraView;
-use crate::stage::{input, one, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Result};
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
-use dist4d_types::artifact::{DepthMap, PointCloud};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_types::artifact::{Calibration, DepthMap, PointCloud, Pose};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -115,42 +116,53 @@ fn above_slope(p: glam::DVec3, slope: f64) -> bool {
     }
 }
 
-struct Op(Params);
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        use dist4d_types::artifact::Artifact;
-        let depth = one::<DepthMap>(inputs, 5)?;
-        // No reference (a dataset without ground truth) or no sweep: nothing to restrict.
-        let top = top_elevation(&self.0, &one::<PointCloud>(inputs, 0)?);
-        let (Some(top), true) = (top, depth.width > 0 && depth.height > 0) else {
-            return Ok(vec![DepthMap::new(0, 0).encode()]);
-        };
-        Ok(vec![above_fov(&depth, &CameraView::from_inputs(inputs)?, top)?.encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// the target frame's sweep, in its sensor frame (for its top beam)
+        points: One<PointCloud>,
+        /// the sensor the cloud is in (the target frame's LiDAR)
+        cloud_calib: One<Calibration>,
+        /// ego pose of that sensor's frame
+        cloud_pose: One<Pose>,
+        /// camera mounting and intrinsics
+        camera_calib: One<Calibration>,
+        /// ego pose at the camera time
+        camera_pose: One<Pose>,
+        /// the depth to restrict (e.g. dataset.gt_depth; empty = none)
+        depth: One<DepthMap>,
     }
 }
 
-pub fn def() -> StageDef {
-    let mut inputs =
-        crate::camera::cloud_and_camera_ports("the target frame's sweep, in its sensor frame (for its top beam)");
-    inputs.push(input::<DepthMap>("depth", "the depth to restrict (e.g. dataset.gt_depth; empty = none)"));
-    StageDef::new::<Params>(
-        "AboveLidarFov",
-        1,
-        "Depth map -> the same depth only where its point lies above the LiDAR's vertical field of view",
-        inputs,
-        vec![PortSpec::one(
-            "depth",
-            "DepthMap",
-            "the input depth above the top beam, 0 elsewhere (empty if the input is)",
-        )],
-        vec!["camera"],
-        |p: Params| {
-            anyhow::ensure!(p.min_range >= 0.0, "min_range must not be negative");
-            anyhow::ensure!((0.0..1.0).contains(&p.outlier_share), "outlier_share must be in [0, 1)");
-            Ok(Box::new(Op(p)))
-        },
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// the input depth above the top beam, 0 elsewhere (empty if the input is)
+        depth: One<DepthMap>,
+    }
+}
+
+pub struct AboveLidarFov(Params);
+
+impl Stage for AboveLidarFov {
+    const KIND: &'static str = "AboveLidarFov";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "Depth map -> the same depth only where its point lies above the LiDAR's vertical field of view";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(AboveLidarFov(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        // No reference (a dataset without ground truth) or no sweep: nothing to restrict.
+        let top = top_elevation(&self.0, &i.points);
+        let (Some(top), true) = (top, i.depth.width > 0 && i.depth.height > 0) else {
+            return Ok(Outputs { depth: DepthMap::new(0, 0) });
+        };
+        let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
+        Ok(Outputs { depth: above_fov(&i.depth, &view, top)? })
+    }
 }
 
 #[cfg(test)]

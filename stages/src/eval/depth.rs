@@ -14,9 +14,10 @@
 //! truth only where it lies above the LiDAR's vertical field of view, from `AboveLidarFov`: where
 //! LiDAR cannot help and MVS must).
 
-use crate::stage::{maybe_one, one, optional_input, StageDef, TypedOp};
+use crate::stage::Stage;
+use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Context, Result};
-use dist4d_graph::{ParamChecks, ParamProblem, PortSpec, Validate};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_types::artifact::{DepthMap, File};
 use serde::{Deserialize, Serialize};
 
@@ -155,43 +156,56 @@ pub fn evaluate(params: &Params, pred: &DepthMap, references: &[(&str, Option<&D
     Ok(out)
 }
 
-/// The reference inputs, in port order after `depth`.
-const REFERENCES: [&str; 5] = ["gt", "lidar", "lidar_multi", "holdout", "gt_above_lidar"];
 
-struct Op(Params);
-
-impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        let pred = one::<DepthMap>(inputs, 0)?;
-        let refs: Vec<Option<DepthMap>> = (1..6).map(|i| maybe_one::<DepthMap>(inputs, i)).collect::<Result<_>>()?;
-        let list: Vec<(&str, Option<&DepthMap>)> =
-            REFERENCES.iter().zip(&refs).map(|(n, r)| (*n, r.as_ref())).collect();
-        let scores = evaluate(&self.0, &pred, &list)?;
-        use dist4d_types::artifact::Artifact;
-        Ok(vec![File(serde_json::to_vec_pretty(&scores)?).encode()])
+crate::ports! {
+    pub struct Inputs {
+        /// the depth to score
+        depth: One<DepthMap>,
+        /// dense ground truth (empty = the dataset has none)
+        gt: Optional<DepthMap>,
+        /// single-sweep LiDAR projection of the target frame
+        lidar: Optional<DepthMap>,
+        /// multi-frame aggregated LiDAR projection
+        lidar_multi: Optional<DepthMap>,
+        /// projection of held-out LiDAR points
+        holdout: Optional<DepthMap>,
+        /// the ground truth above the LiDAR's field of view (AboveLidarFov of `gt`)
+        gt_above_lidar: Optional<DepthMap>,
     }
 }
 
-pub fn def() -> StageDef {
-    StageDef::new::<Params>(
-        "EvalDepth",
-        2,
-        "Dense depth -> Abs Rel, Sq Rel, RMSE, RMSE log, delta<1.25^k (raw and median-scaled) per reference, as JSON",
-        vec![
-            crate::stage::input::<DepthMap>("depth", "the depth to score"),
-            optional_input::<DepthMap>("gt", "dense ground truth (empty = the dataset has none)"),
-            optional_input::<DepthMap>("lidar", "single-sweep LiDAR projection of the target frame"),
-            optional_input::<DepthMap>("lidar_multi", "multi-frame aggregated LiDAR projection"),
-            optional_input::<DepthMap>("holdout", "projection of held-out LiDAR points"),
-            optional_input::<DepthMap>(
-                "gt_above_lidar",
-                "the ground truth above the LiDAR's field of view (AboveLidarFov of `gt`)",
-            ),
-        ],
-        vec![PortSpec::one("json", "File", "scores per reference (JSON); `dist4d eval` tabulates them")],
-        vec!["camera"],
-        |p: Params| Ok(Box::new(Op(p))),
-    )
+crate::ports! {
+    pub struct Outputs {
+        /// scores per reference (JSON); `dist4d eval` tabulates them
+        json: One<File>,
+    }
+}
+
+pub struct EvalDepth(Params);
+
+impl Stage for EvalDepth {
+    const KIND: &'static str = "EvalDepth";
+    const VERSION: u32 = 2;
+    const SUMMARY: &'static str =
+        "Dense depth -> Abs Rel, Sq Rel, RMSE, RMSE log, delta<1.25^k (raw and median-scaled) per reference, as JSON";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(EvalDepth(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let references = [
+            ("gt", i.gt.as_ref()),
+            ("lidar", i.lidar.as_ref()),
+            ("lidar_multi", i.lidar_multi.as_ref()),
+            ("holdout", i.holdout.as_ref()),
+            ("gt_above_lidar", i.gt_above_lidar.as_ref()),
+        ];
+        let scores = evaluate(&self.0, &i.depth, &references)?;
+        Ok(Outputs { json: File(serde_json::to_vec_pretty(&scores)?) })
+    }
 }
 
 #[cfg(test)]

@@ -1,6 +1,9 @@
 //! Scoring: depth against references (ground truth, held-out LiDAR) and the region above the
 //! LiDAR's field of view.
 
-pub mod above_fov;
-pub mod depth;
 pub mod report;
+
+crate::stage_modules! {
+    above_fov::AboveLidarFov,
+    depth::EvalDepth,
+}

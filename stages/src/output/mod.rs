@@ -1,3 +1,7 @@
 //! Encoding stages: artifacts to the files of the user-facing layout (EXR, PNG, NPY, sheets).
 
-pub mod encode;
+crate::stage_modules! {
+    encode_depth::EncodeDepth,
+    encode_points::EncodePoints,
+    sheet::DepthSheet,
+}

@@ -1,0 +1,141 @@
+//! `EncodeDepth`: a depth map as the files of the user-facing layout: OpenEXR (float32 metres,
+//! channel `Z`), 16-bit PNG (depth x 256, the KITTI convention; 0 = no depth, clamped at 255.99
+//! m), NPY (float32 H x W) and a colour preview (turbo, near = warm, black = no depth).
+
+use crate::stage::Stage;
+use anyhow::{Context, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::TaskContext;
+use dist4d_types::artifact::{DepthMap, File};
+pub use dist4d_types::formats::{depth_exr, depth_png16, npy_f32};
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Depth (m) at the cold end of the preview colormap.
+    pub preview_max_depth: f32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { preview_max_depth: 80.0 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new().above("preview_max_depth", self.preview_max_depth as f64, 0.0, 1e6).done()
+    }
+}
+
+/// Turbo colormap (Mikhailov 2019, polynomial fit), t in [0, 1].
+pub fn turbo(t: f32) -> [u8; 3] {
+    let x = t.clamp(0.0, 1.0) as f64;
+    let r =
+        0.13572138 + x * (4.61539260 + x * (-42.66032258 + x * (132.13108234 + x * (-152.94239396 + x * 59.28637943))));
+    let g = 0.09140261 + x * (2.19418839 + x * (4.84296658 + x * (-14.18503333 + x * (4.27729857 + x * 2.82956604))));
+    let b =
+        0.10667330 + x * (12.64194608 + x * (-60.58204836 + x * (110.36276771 + x * (-89.90310912 + x * 27.34824973))));
+    [r, g, b].map(|c| (c.clamp(0.0, 1.0) * 255.0).round() as u8)
+}
+
+/// RGB PNG preview: turbo with near = warm (red), far = cold (blue), no depth = black.
+pub fn depth_preview(d: &DepthMap, max_depth: f32) -> Result<Vec<u8>> {
+    let mut px = Vec::with_capacity(d.data.len() * 3);
+    for &z in &d.data {
+        if z > 0.0 && z.is_finite() {
+            px.extend_from_slice(&turbo(1.0 - z / max_depth));
+        } else {
+            px.extend_from_slice(&[0, 0, 0]);
+        }
+    }
+    let img = image::RgbImage::from_raw(d.width, d.height, px).context("depth map size")?;
+    let mut out = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut out, image::ImageFormat::Png).context("encoding PNG")?;
+    Ok(out.into_inner())
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// metric depth, 0 = none
+        depth: One<DepthMap>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// OpenEXR, channel Z, float32 metres
+        exr: One<File>,
+        /// 16-bit PNG, depth x 256 (KITTI), 0 = none
+        png16: One<File>,
+        /// float32 H x W
+        npy: One<File>,
+        /// RGB PNG, turbo, near = warm
+        preview: One<File>,
+    }
+}
+
+pub struct EncodeDepth(Params);
+
+impl Stage for EncodeDepth {
+    const KIND: &'static str = "EncodeDepth";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str = "DepthMap -> OpenEXR (float32 m), 16-bit PNG (x256), NPY and a turbo colour preview";
+    const GRAINS: &'static [&'static str] = &["camera", "frame", "scene"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(EncodeDepth(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let d = i.depth;
+        Ok(Outputs {
+            exr: File(depth_exr(&d)?),
+            png16: File(depth_png16(&d)?),
+            npy: File(npy_f32(&[d.height as usize, d.width as usize], &d.data)),
+            preview: File(depth_preview(&d, self.0.preview_max_depth)?),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn npy_header_is_aligned_and_numpy_shaped() {
+        let b = npy_f32(&[2, 3], &[0.0; 6]);
+        let hlen = u16::from_le_bytes([b[8], b[9]]) as usize;
+        assert_eq!((10 + hlen) % 64, 0);
+        assert!(std::str::from_utf8(&b[10..10 + hlen]).unwrap().contains("'shape': (2, 3)"));
+        assert_eq!(b.len(), 10 + hlen + 24);
+    }
+
+    #[test]
+    fn encodings_decode_back() {
+        let d = DepthMap { width: 3, height: 2, data: vec![0.0, 1.5, 80.0, 300.0, 0.25, 10.0] };
+        let png = image::load_from_memory(&depth_png16(&d).unwrap()).unwrap().into_luma16();
+        assert_eq!(png.as_raw(), &vec![0, 384, 20480, 65535, 64, 2560]);
+        use exr::prelude::*;
+        let img = read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .all_channels()
+            .first_valid_layer()
+            .all_attributes()
+            .from_buffered(std::io::Cursor::new(depth_exr(&d).unwrap()))
+            .unwrap();
+        let ch = &img.layer_data.channel_data.list[0];
+        assert_eq!(ch.name, Text::from("Z"));
+        match &ch.sample_data {
+            FlatSamples::F32(v) => assert_eq!(v, &d.data),
+            _ => panic!("EXR depth is float32"),
+        }
+        let prev = image::load_from_memory(&depth_preview(&d, 80.0).unwrap()).unwrap().into_rgb8();
+        assert_eq!(prev.get_pixel(0, 0).0, [0, 0, 0]);
+        let near = prev.get_pixel(1, 1).0;
+        assert!(near[0] > near[2], "near is warm: {near:?}");
+    }
+}
