@@ -12,6 +12,7 @@ pub mod stage;
 pub mod stereo;
 
 use anyhow::{anyhow, Context, Result};
+use dist4d_datasets::surround::Surround;
 use dist4d_graph::{Catalog, DatasetSchema, Pipeline, StageSchema};
 use dist4d_runtime::{Dataset, Operator};
 use stage::{parse_canonical, StageDef};
@@ -62,7 +63,7 @@ impl Registry {
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }
-                Ok(Box::new(ds))
+                Ok(Box::new(Surround(ds)))
             }
             "Dgp" => {
                 let ds = dist4d_datasets::dgp::Dgp::open(parse_canonical(&p.dataset.config)?)
@@ -70,7 +71,7 @@ impl Registry {
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }
-                Ok(Box::new(ds))
+                Ok(Box::new(Surround(ds)))
             }
             other => Err(anyhow!("unknown dataset kind {other}")),
         }
