@@ -437,17 +437,12 @@ impl DatasetSchema for DgpSchema {
 mod tests {
     use super::*;
     use crate::surround::Surround;
+    use crate::testing::{load_err, shared_data};
     use dist4d_runtime::{Dataset, ItemSpace};
     use dist4d_types::artifact::Artifact;
 
     fn shared_dgp() -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/dgp-scene02");
-        if p.is_dir() {
-            Some(p)
-        } else {
-            eprintln!("SKIPPED: shared DGP data not found at {}", p.display());
-            None
-        }
+        shared_data("dgp-scene02")
     }
 
     fn open() -> Option<Surround<Dgp>> {
@@ -535,13 +530,6 @@ mod tests {
             .iter_mut()
             .find(|d| keys.iter().any(|k| d["key"] == k.as_str()) && d["id"]["name"] == sensor)
             .unwrap()
-    }
-
-    fn load_err(ds: &Surround<Dgp>, port: &str, item: &[u32]) -> String {
-        format!(
-            "{:#}",
-            ds.load_source(port, &ItemKey::new(item)).err().unwrap_or_else(|| panic!("{port} {item:?} loads"))
-        )
     }
 
     #[test]

@@ -9,3 +9,5 @@ pub mod files;
 pub mod nuscenes;
 pub mod sidecar;
 pub mod surround;
+#[cfg(test)]
+mod testing;

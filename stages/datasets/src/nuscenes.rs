@@ -801,22 +801,13 @@ impl DatasetSchema for NuScenesSchema {
 mod tests {
     use super::*;
     use crate::surround::Surround;
+    use crate::testing::{load_err, shared_data};
     use dist4d_runtime::{Dataset, ItemSpace};
     use dist4d_types::artifact::Artifact;
 
-    pub fn shared_nuscenes() -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuscenes-scene0061-kf0");
-        if p.is_dir() {
-            Some(p)
-        } else {
-            eprintln!("SKIPPED: shared nuScenes data not found at {}", p.display());
-            None
-        }
-    }
-
     #[test]
     fn reads_the_shared_keyframe() {
-        let Some(root) = shared_nuscenes() else { return };
+        let Some(root) = shared_data("nuscenes-scene0061-kf0") else { return };
         let ds = Surround(
             NuScenes::open(NuScenesConfig { root: root.display().to_string(), ..Default::default() }).unwrap(),
         );
@@ -967,13 +958,6 @@ mod tests {
     /// The sample_data token of an item's reading (`lidar` or `image` port).
     fn token_of(root: &Path, port: &str, item: &[u32]) -> String {
         open(root, FrameMode::Keyframes).unwrap().0.tree.reading(port, &ItemKey::new(item)).map(token).unwrap()
-    }
-
-    fn load_err(ds: &Surround<NuScenes>, port: &str, item: &[u32]) -> String {
-        format!(
-            "{:#}",
-            ds.load_source(port, &ItemKey::new(item)).err().unwrap_or_else(|| panic!("{port} {item:?} loads"))
-        )
     }
 
     #[test]
