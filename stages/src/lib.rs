@@ -12,6 +12,7 @@ pub mod stage;
 pub mod stereo;
 
 use anyhow::{anyhow, Context, Result};
+use dist4d_datasets::surround::Surround;
 use dist4d_graph::ParamsValue;
 use dist4d_graph::{Catalog, DatasetSchema, Pipeline, StageSchema};
 use dist4d_runtime::{Dataset, Operator};
@@ -48,7 +49,7 @@ impl Registry {
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }
-                Ok(Box::new(ds))
+                Ok(Box::new(Surround(ds)))
             }
             "Dgp" => {
                 let ds =
@@ -56,7 +57,7 @@ impl Registry {
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }
-                Ok(Box::new(ds))
+                Ok(Box::new(Surround(ds)))
             }
             other => Err(anyhow!("unknown dataset kind {other}")),
         }

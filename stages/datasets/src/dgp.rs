@@ -1,7 +1,7 @@
 //! TRI DGP reader (the DDAD format): scene dataset JSON -> scenes -> samples -> cameras.
 //!
-//! Gives the same items and artifact types as the nuScenes reader, so every pipeline runs on
-//! either. DGP stores each datum's pose as sensor -> world and the calibration as sensor ->
+//! Gives the shared surround-camera items and source ports ([`crate::surround`]), as the nuScenes
+//! reader does, so every pipeline runs on either. DGP stores each datum's pose as sensor -> world and the calibration as sensor ->
 //! vehicle; the ego pose of a datum is therefore `pose * extrinsics^-1`. Timestamps come from the
 //! file names (100 ns units; the ISO fields of the test data are not meaningful). Boxes are
 //! annotated in the LiDAR frame and returned in the world frame.
@@ -9,13 +9,13 @@
 use crate::checks::{
     check_reference, join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform,
 };
-use crate::files::{read_camera_image, read_npz};
-use crate::nuscenes::{surround_count, surround_label};
+use crate::files::read_npz;
 use crate::sidecar::Sidecars;
+use crate::surround::{Frame, Reading, Scene, SurroundReader, Tree};
 use anyhow::{anyhow, bail, ensure, Context, Result};
 use dist4d_graph::{DatasetSchema, ParamsSpec};
-use dist4d_runtime::{Dataset, Digest, FileDigests, ItemKey, ItemSpace};
-use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
+use dist4d_runtime::{Digest, FileDigests, ItemKey};
+use dist4d_types::artifact::{Box3D, Boxes3D, Calibration, PointCloud, Pose};
 use dist4d_types::geometry::Se3;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -52,32 +52,16 @@ impl Default for DgpConfig {
     }
 }
 
-/// One datum of a sample, resolved.
-#[derive(Clone, Debug)]
-struct Datum {
-    key: String,
-    file: PathBuf,
-    calib: Calibration,
-    pose: Pose,
-    /// LiDAR only: the 3D box annotation file, or why its reference is refused.
-    boxes: Option<Result<PathBuf, String>>,
-}
+/// A scene's box classes: the names of the ontology's ids.
+type Ontology = HashMap<i64, String>;
 
-struct Frame {
-    lidar: Result<Datum, String>,
-    cameras: Vec<Result<Datum, String>>,
-}
-
-struct Scene {
-    name: String,
-    frames: Vec<Frame>,
-    ontology: HashMap<i64, String>,
-}
+/// What a DGP frame keeps beside its readings: its LiDAR datum's 3D box annotation file, or why
+/// its reference is refused (none when the datum has no boxes or failed).
+type BoxFile = Option<Result<PathBuf, String>>;
 
 pub struct Dgp {
     pub config: DgpConfig,
-    scenes: Vec<Scene>,
-    sidecars: Sidecars,
+    tree: Tree<Ontology, BoxFile>,
     /// What was normalised when the dataset was opened (for the caller to print).
     pub warnings: Vec<String>,
 }
@@ -168,10 +152,11 @@ impl Dgp {
             scenes.push(Self::scene(&config, &path, &mut renormalised)?);
         }
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
-        Ok(Dgp { config, scenes, sidecars, warnings: renormalised.warnings() })
+        let tree = Tree { cameras: config.cameras.clone(), scenes, sidecars };
+        Ok(Dgp { config, tree, warnings: renormalised.warnings() })
     }
 
-    fn scene(config: &DgpConfig, path: &Path, notes: &mut Renormalised) -> Result<Scene> {
+    fn scene(config: &DgpConfig, path: &Path, notes: &mut Renormalised) -> Result<Scene<Ontology, BoxFile>> {
         let dir = path.parent().unwrap_or(Path::new("."));
         let scene = read_json(path)?;
         let name = dir.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
@@ -219,7 +204,7 @@ impl Dgp {
                 .as_array()
                 .map(|a| a.iter().filter_map(|k| k.as_str()).collect())
                 .unwrap_or_default();
-            let mut resolve = |sensor: &str| -> Result<Datum, String> {
+            let mut resolve = |sensor: &str| -> Result<(Reading, BoxFile), String> {
                 let (calib, calib_file) = calibration.as_ref().map_err(String::clone)?;
                 let d = keys
                     .iter()
@@ -229,61 +214,14 @@ impl Dgp {
                 let sources = Sources { dir, scene_file: path, sample: i, calib, calib_file };
                 datum(d, sensor, &sources, notes).map_err(|e| format!("{e:#}"))
             };
-            frames.push(Frame {
-                lidar: resolve(&config.lidar),
-                cameras: config.cameras.iter().map(|c| resolve(c)).collect(),
-            });
-        }
-        Ok(Scene { name, frames, ontology })
-    }
-
-    fn datum(&self, port: &str, item: &ItemKey) -> Result<&Datum> {
-        let frame = self
-            .scenes
-            .get(item.idx[0] as usize)
-            .and_then(|s| s.frames.get(item.idx[1] as usize))
-            .ok_or_else(|| anyhow!("no frame {:?}", item))?;
-        let d = match port {
-            "lidar" | "lidar_calib" | "lidar_pose" | "boxes" => &frame.lidar,
-            _ => frame.cameras.get(item.idx[2] as usize).ok_or_else(|| anyhow!("no camera {:?}", item))?,
-        };
-        d.as_ref().map_err(|e| anyhow!("{e}"))
-    }
-
-    /// Boxes of a LiDAR datum in the world frame, with velocities from the neighbouring samples'
-    /// boxes of the same instance (centre difference, like the nuScenes devkit).
-    fn boxes(&self, item: &ItemKey) -> Result<Boxes3D> {
-        let scene = &self.scenes[item.idx[0] as usize];
-        let f = item.idx[1] as usize;
-        let read = |frame: usize| -> Result<Option<(i64, Vec<Box3D>)>> {
-            let Some(Ok(d)) = scene.frames.get(frame).map(|fr| &fr.lidar) else { return Ok(None) };
-            let file = match &d.boxes {
-                None => return Ok(Some((d.pose.timestamp_us, Vec::new()))),
-                Some(Err(e)) => bail!("{e}"),
-                Some(Ok(file)) => file,
+            let (lidar, boxes) = match resolve(&config.lidar) {
+                Ok((reading, boxes)) => (Ok(reading), boxes),
+                Err(e) => (Err(e), None),
             };
-            let sensor_to_world = d.pose.ego_to_world.then_from(&d.calib.sensor_to_ego);
-            Ok(Some((d.pose.timestamp_us, read_boxes(file, &sensor_to_world, &scene.ontology)?)))
-        };
-        let (t, mut boxes) = read(f)?.ok_or_else(|| anyhow!("frame {f} has no LiDAR datum"))?;
-        let prev = if f > 0 { read(f - 1)? } else { None };
-        let next = read(f + 1)?;
-        for b in &mut boxes {
-            let find = |n: &Option<(i64, Vec<Box3D>)>| {
-                n.as_ref().and_then(|(t, v)| v.iter().find(|x| x.instance == b.instance).map(|x| (*t, x.center)))
-            };
-            let (p, n) = (find(&prev), find(&next));
-            if p.is_none() && n.is_none() {
-                continue;
-            }
-            let (t0, c0) = p.unwrap_or((t, b.center));
-            let (t1, c1) = n.unwrap_or((t, b.center));
-            let dt = (t1 - t0) as f64 * 1e-6;
-            if dt > 0.0 {
-                b.velocity = [0, 1, 2].map(|i| (c1[i] - c0[i]) / dt);
-            }
+            let cameras = config.cameras.iter().map(|c| resolve(c).map(|(reading, _)| reading)).collect();
+            frames.push(Frame { lidar, cameras, extra: boxes });
         }
-        Ok(Boxes3D { timestamp_us: t, boxes })
+        Ok(Scene { name, frames, extra: ontology })
     }
 }
 
@@ -297,7 +235,8 @@ struct Sources<'a> {
     calib_file: &'a Path,
 }
 
-fn datum(d: &Value, sensor: &str, src: &Sources, notes: &mut Renormalised) -> Result<Datum> {
+/// A datum as a reading, with its 3D box annotation file when it names one.
+fn datum(d: &Value, sensor: &str, src: &Sources, notes: &mut Renormalised) -> Result<(Reading, BoxFile)> {
     let scene_file = src.scene_file;
     let key = d.get("key").and_then(|k| k.as_str()).unwrap_or("?").to_string();
     let what = format!("datum {key} ({sensor})");
@@ -327,16 +266,15 @@ fn datum(d: &Value, sensor: &str, src: &Sources, notes: &mut Renormalised) -> Re
     let (width, height) = (dim("width"), dim("height"));
     // Point clouds have no intrinsics (DGP writes zeros for them); an image must have good ones.
     let intrinsics = if is_image { Some(intrinsics(src.calib, idx, &cat, width, height, &at)?) } else { None };
-    Ok(Datum {
-        key,
+    let reading = Reading {
         file,
         calib: Calibration { sensor_to_ego, intrinsics, width, height },
         pose: Pose { ego_to_world: sensor_to_world.then_from(&sensor_to_ego.inverse()), timestamp_us: timestamp },
-        boxes: body
-            .pointer("/annotations/1")
-            .and_then(|a| a.as_str())
-            .map(|a| join_inside(src.dir, &at, "annotations.1", a)),
-    })
+        what: format!("datum {key}"),
+    };
+    let boxes =
+        body.pointer("/annotations/1").and_then(|a| a.as_str()).map(|a| join_inside(src.dir, &at, "annotations.1", a));
+    Ok((reading, boxes))
 }
 
 /// Entry `idx` of a calibration's `intrinsics` as a checked pinhole matrix whose principal point
@@ -400,49 +338,59 @@ pub fn read_dgp_points(path: &Path) -> Result<PointCloud> {
     })
 }
 
-impl ItemSpace for Dgp {
-    fn count(&self, prefix: &ItemKey) -> u32 {
-        surround_count(
-            prefix,
-            self.scenes.len(),
-            |s| self.scenes.get(s).map(|s| s.frames.len()),
-            self.config.cameras.len(),
-        )
+impl SurroundReader for Dgp {
+    const FORMAT: &'static str = "DGP";
+    type Scene = Ontology;
+    type Frame = BoxFile;
+
+    fn tree(&self) -> &Tree<Ontology, BoxFile> {
+        &self.tree
     }
 
-    fn label(&self, item: &ItemKey) -> String {
-        surround_label(item, |s| self.scenes.get(s).map(|s| s.name.clone()), &self.config.cameras)
+    fn lidar_digest(&self, lidar: &Reading, _: &BoxFile, files: &dyn FileDigests) -> Result<Option<Digest>> {
+        lidar.file_digest(files)
     }
-}
 
-impl Dataset for Dgp {
-    fn source_digest(&self, port: &str, item: &ItemKey, files: &dyn FileDigests) -> Result<Option<Digest>> {
-        Ok(match port {
-            "lidar" | "image" => {
-                let d = self.datum(port, item)?;
-                files.file_digest(&d.file).with_context(|| format!("datum {}", d.key))?
+    fn read_lidar(&self, lidar: &Reading, _: &BoxFile) -> Result<PointCloud> {
+        read_dgp_points(&lidar.file).with_context(|| lidar.what.clone())
+    }
+
+    /// Boxes of a LiDAR datum in the world frame, with velocities from the neighbouring samples'
+    /// boxes of the same instance (centre difference, like the nuScenes devkit).
+    fn boxes(&self, item: &ItemKey) -> Result<Boxes3D> {
+        // The frame's LiDAR datum first: its error is the boxes' error.
+        self.tree.reading("lidar", item)?;
+        let (scene, _) = self.tree.scene_frame(item)?;
+        let f = item.idx[1] as usize;
+        let read = |frame: usize| -> Result<Option<(i64, Vec<Box3D>)>> {
+            let Some(Frame { lidar: Ok(d), extra: boxes, .. }) = scene.frames.get(frame) else { return Ok(None) };
+            let file = match boxes {
+                None => return Ok(Some((d.pose.timestamp_us, Vec::new()))),
+                Some(Err(e)) => bail!("{e}"),
+                Some(Ok(file)) => file,
+            };
+            let sensor_to_world = d.pose.ego_to_world.then_from(&d.calib.sensor_to_ego);
+            Ok(Some((d.pose.timestamp_us, read_boxes(file, &sensor_to_world, &scene.extra)?)))
+        };
+        let (t, mut boxes) = read(f)?.ok_or_else(|| anyhow!("frame {f} has no LiDAR datum"))?;
+        let prev = if f > 0 { read(f - 1)? } else { None };
+        let next = read(f + 1)?;
+        for b in &mut boxes {
+            let find = |n: &Option<(i64, Vec<Box3D>)>| {
+                n.as_ref().and_then(|(t, v)| v.iter().find(|x| x.instance == b.instance).map(|x| (*t, x.center)))
+            };
+            let (p, n) = (find(&prev), find(&next));
+            if p.is_none() && n.is_none() {
+                continue;
             }
-            "gt_depth" | "semantic" => {
-                let d = self.datum("image", item)?;
-                let camera = &self.config.cameras[item.idx[2] as usize];
-                crate::nuscenes::sidecar_digest(&self.sidecars, port, camera, &d.file, files)?
+            let (t0, c0) = p.unwrap_or((t, b.center));
+            let (t1, c1) = n.unwrap_or((t, b.center));
+            let dt = (t1 - t0) as f64 * 1e-6;
+            if dt > 0.0 {
+                b.velocity = [0, 1, 2].map(|i| (c1[i] - c0[i]) / dt);
             }
-            _ => Some(Digest::of(&self.load_source(port, item)?)),
-        })
-    }
-
-    fn load_source(&self, port: &str, item: &ItemKey) -> Result<Vec<u8>> {
-        let d = self.datum(port, item)?;
-        Ok(match port {
-            "lidar" => read_dgp_points(&d.file).with_context(|| format!("datum {}", d.key))?.encode(),
-            "image" => read_camera_image(&d.file, d.calib.width, d.calib.height, &format!("datum {}", d.key))?.encode(),
-            "boxes" => self.boxes(item)?.encode(),
-            "gt_depth" => self.sidecars.gt_depth(&self.config.cameras[item.idx[2] as usize], &d.file)?.encode(),
-            "semantic" => self.sidecars.semantic(&self.config.cameras[item.idx[2] as usize], &d.file)?.encode(),
-            "lidar_calib" | "camera_calib" => d.calib.encode(),
-            "lidar_pose" | "camera_pose" => d.pose.encode(),
-            other => bail!("DGP has no source port `{other}`"),
-        })
+        }
+        Ok(Boxes3D { timestamp_us: t, boxes })
     }
 }
 
@@ -459,8 +407,8 @@ pub fn schema() -> DatasetSchema {
     DatasetSchema {
         kind: "Dgp",
         summary: "TRI DGP scenes (DDAD): samples, six cameras, LiDAR, 3D boxes",
-        dims: crate::nuscenes::DIMS.to_vec(),
-        ports: crate::nuscenes::PORTS.to_vec(),
+        dims: crate::surround::DIMS.to_vec(),
+        ports: crate::surround::PORTS.to_vec(),
         config: ParamsSpec::of::<DgpConfig>(),
         path_fields: vec!["root"],
     }
@@ -469,26 +417,24 @@ pub fn schema() -> DatasetSchema {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::surround::Surround;
+    use crate::testing::{load_err, shared_data};
+    use dist4d_runtime::{Dataset, ItemSpace};
+    use dist4d_types::artifact::Artifact;
 
     fn shared_dgp() -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/dgp-scene02");
-        if p.is_dir() {
-            Some(p)
-        } else {
-            eprintln!("SKIPPED: shared DGP data not found at {}", p.display());
-            None
-        }
+        shared_data("dgp-scene02")
     }
 
-    fn open() -> Option<Dgp> {
+    fn open() -> Option<Surround<Dgp>> {
         let root = shared_dgp()?;
-        Some(Dgp::open(DgpConfig { root: root.display().to_string(), ..Default::default() }).unwrap())
+        Some(Surround(Dgp::open(DgpConfig { root: root.display().to_string(), ..Default::default() }).unwrap()))
     }
 
     #[test]
     fn reads_the_shared_scene() {
         let Some(ds) = open() else { return };
-        assert!(ds.warnings.is_empty(), "real data passes every check silently: {:?}", ds.warnings);
+        assert!(ds.0.warnings.is_empty(), "real data passes every check silently: {:?}", ds.0.warnings);
         assert_eq!(ds.count(&ItemKey::new(&[])), 1);
         assert_eq!(ds.count(&ItemKey::new(&[0])), 3);
         assert_eq!(ds.path(&ItemKey::new(&[0, 2, 5])), "scene_02/002/CAMERA_09");
@@ -547,8 +493,8 @@ mod tests {
         std::fs::write(path, serde_json::to_vec(v).unwrap()).unwrap();
     }
 
-    fn open_at(root: &Path) -> Result<Dgp> {
-        Dgp::open(DgpConfig { root: root.display().to_string(), ..Default::default() })
+    fn open_at(root: &Path) -> Result<Surround<Dgp>> {
+        Dgp::open(DgpConfig { root: root.display().to_string(), ..Default::default() }).map(Surround)
     }
 
     /// The datum of `sensor` in sample `sample` of a scene JSON (mutable).
@@ -565,13 +511,6 @@ mod tests {
             .iter_mut()
             .find(|d| keys.iter().any(|k| d["key"] == k.as_str()) && d["id"]["name"] == sensor)
             .unwrap()
-    }
-
-    fn load_err(ds: &Dgp, port: &str, item: &[u32]) -> String {
-        format!(
-            "{:#}",
-            ds.load_source(port, &ItemKey::new(item)).err().unwrap_or_else(|| panic!("{port} {item:?} loads"))
-        )
     }
 
     #[test]
@@ -665,8 +604,8 @@ mod tests {
         write(&calib_file, &c);
 
         let ds = open_at(&root).unwrap();
-        assert_eq!(ds.warnings.len(), 1, "{:?}", ds.warnings);
-        assert!(ds.warnings[0].contains("3 quaternion(s) off unit norm were normalised"), "{:?}", ds.warnings);
+        assert_eq!(ds.0.warnings.len(), 1, "{:?}", ds.0.warnings);
+        assert!(ds.0.warnings[0].contains("3 quaternion(s) off unit norm were normalised"), "{:?}", ds.0.warnings);
         let err = load_err(&ds, "camera_pose", &[0, 0, 1]);
         assert!(
             err.contains(&format!(

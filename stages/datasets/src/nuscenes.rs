@@ -1,17 +1,19 @@
-//! nuScenes v1.0 reader (keyframes): scenes -> keyframes (samples) -> cameras.
+//! nuScenes v1.0 reader: scenes -> keyframes (samples) or LiDAR sweeps -> cameras.
 //!
 //! Reads the tables `scene`, `sample`, `sample_data`, `ego_pose`, `calibrated_sensor` and
 //! `sensor` from `<root>/<version>/`. Quaternions are `[w, x, y, z]`, timestamps microseconds.
-//! Source ports: `lidar` (PointCloud, per frame, from the keyframe `.pcd.bin`), `lidar_calib`
-//! and `lidar_pose` (per frame), `camera_calib` and `camera_pose` (per camera).
+//! Every `sample_data` row a frame uses is resolved into the shared surround tree
+//! ([`crate::surround`], which gives the items and source ports); this module adds what is
+//! nuScenes' own: `.pcd.bin` sweeps with their lidarseg labels, and boxes from
+//! `sample_annotation` with the devkit's velocities, interpolated between keyframes for sweeps.
 
 use crate::checks::{join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform};
-use crate::files::read_camera_image;
 use crate::sidecar::Sidecars;
+use crate::surround::{Frame, Reading, Scene, SurroundReader, Tree, DIMS, PORTS};
 use anyhow::{anyhow, bail, Context, Result};
-use dist4d_graph::{DatasetSchema, DimSpec, ParamsSpec, SourcePortSpec};
-use dist4d_runtime::{Dataset, Digest, DigestBuilder, FileDigests, ItemKey, ItemSpace};
-use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
+use dist4d_graph::{DatasetSchema, ParamsSpec};
+use dist4d_runtime::{Digest, DigestBuilder, FileDigests, ItemKey};
+use dist4d_types::artifact::{Box3D, Boxes3D, Calibration, PointCloud, Pose};
 use dist4d_types::geometry::Se3;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -164,25 +166,19 @@ struct LidarsegRow {
     filename: String,
 }
 
-/// One sensor reading, resolved.
-#[derive(Clone, Debug)]
-struct Reading {
-    token: String,
-    file: PathBuf,
-    calib: Calibration,
-    pose: Pose,
-    /// nuScenes-lidarseg labels of this sweep, when the dataset has them.
-    labels: Option<PathBuf>,
-}
-
-struct Frame {
-    lidar: Result<Reading, String>,
-    cameras: Vec<Result<Reading, String>>,
+/// What a nuScenes frame keeps beside its readings.
+pub struct Sweep {
     /// The frame's time (its LiDAR timestamp) and the keyframe (sample) it is or follows.
     timestamp: i64,
     sample: Option<usize>,
     key: bool,
+    /// nuScenes-lidarseg labels of the frame's LiDAR reading, when the dataset has them.
+    labels: Option<PathBuf>,
 }
+
+/// A scene's keyframe timestamps, and the annotations of each keyframe (indices into
+/// `NuScenes::annotations`).
+type Keyframes = Vec<(i64, Vec<usize>)>;
 
 /// One box annotation with what its frame needs.
 struct Annotation {
@@ -191,22 +187,14 @@ struct Annotation {
     attributes: Vec<String>,
 }
 
-struct Scene {
-    name: String,
-    frames: Vec<Frame>,
-    /// Keyframe timestamps, and the annotations of each keyframe (indices into `annotations`).
-    samples: Vec<(i64, Vec<usize>)>,
-}
-
 pub struct NuScenes {
     pub config: NuScenesConfig,
-    scenes: Vec<Scene>,
+    tree: Tree<Keyframes, Sweep>,
     annotations: Vec<Annotation>,
     annotation_by_token: HashMap<String, usize>,
     sample_time: HashMap<String, i64>,
     /// What was missing but optional, repeated or normalised (printed when the dataset is opened).
     pub warnings: Vec<String>,
-    sidecars: Sidecars,
 }
 
 /// A table row; the tables whose rows errors cite keep their index in the file.
@@ -468,7 +456,6 @@ impl NuScenes {
                 .ok_or_else(|| dangling(&sd_file, sd.row, &sd.token, "ego_pose_token", &sd.ego_pose_token, "ego_pose"))?
                 .clone()?;
             Ok(Reading {
-                token: sd.token.clone(),
                 file,
                 calib: Calibration {
                     sensor_to_ego: mount.sensor_to_ego,
@@ -477,12 +464,16 @@ impl NuScenes {
                     height: sd.height,
                 },
                 pose: Pose { ego_to_world, timestamp_us: sd.timestamp },
-                labels: labels_by.get(sd.token.as_str()).cloned().transpose()?,
+                what: format!("sample_data {}", sd.token),
             })
         };
-        let key_reading = |sample: &str, channel: &str, camera: bool| -> Result<Reading, String> {
-            let sd = keyframe.get(&(sample, channel)).ok_or_else(|| no_keyframe(sample, channel))?;
-            resolve(sd, camera)
+        // A LiDAR reading and its lidarseg labels: a refused labels file fails the whole reading.
+        let resolve_lidar = |sd: &SampleDataRow| -> Result<(Reading, Option<PathBuf>), String> {
+            let reading = resolve(sd, false)?;
+            Ok((reading, labels_by.get(sd.token.as_str()).cloned().transpose()?))
+        };
+        let key_row = |sample: &str, channel: &str| -> Result<&SampleDataRow, String> {
+            keyframe.get(&(sample, channel)).copied().ok_or_else(|| no_keyframe(sample, channel))
         };
         // A channel's whole sample_data chain through a keyframe (prev to the start, next to the end).
         fn chain<'a>(
@@ -570,12 +561,11 @@ impl NuScenes {
                 FrameMode::Keyframes => keys
                     .iter()
                     .enumerate()
-                    .map(|(i, k)| Frame {
-                        lidar: key_reading(&k.token, &config.lidar, false),
-                        cameras: config.cameras.iter().map(|c| key_reading(&k.token, c, true)).collect(),
-                        timestamp: k.timestamp,
-                        sample: Some(i),
-                        key: true,
+                    .map(|(i, k)| {
+                        let lidar = key_row(&k.token, &config.lidar).and_then(resolve_lidar);
+                        let cameras =
+                            config.cameras.iter().map(|c| key_row(&k.token, c).and_then(|sd| resolve(sd, true)));
+                        frame(lidar, cameras.collect(), k.timestamp, Some(i), true)
                     })
                     .collect(),
                 FrameMode::Sweeps => {
@@ -599,49 +589,24 @@ impl NuScenes {
                         .map(|sd| {
                             let t = sd.timestamp;
                             let sample = keys.iter().rposition(|k| k.timestamp <= t);
-                            Frame {
-                                lidar: resolve(sd, false),
-                                cameras: camera_chains
-                                    .iter()
-                                    .zip(&config.cameras)
-                                    .map(|(ch, name)| {
-                                        let ch = ch
-                                            .as_ref()
-                                            .ok_or_else(|| format!("scene {}: no {name} images", scene.name))?;
-                                        let nearest =
-                                            ch.iter().min_by_key(|c| (c.timestamp - t).abs()).ok_or("empty chain")?;
-                                        resolve(nearest, true)
-                                    })
-                                    .collect(),
-                                timestamp: t,
-                                sample,
-                                key: sd.is_key_frame,
-                            }
+                            let cameras = camera_chains.iter().zip(&config.cameras).map(|(ch, name)| {
+                                let ch =
+                                    ch.as_ref().ok_or_else(|| format!("scene {}: no {name} images", scene.name))?;
+                                let nearest = ch.iter().min_by_key(|c| (c.timestamp - t).abs()).ok_or("empty chain")?;
+                                resolve(nearest, true)
+                            });
+                            frame(resolve_lidar(sd), cameras.collect(), t, sample, sd.is_key_frame)
                         })
                         .collect()
                 }
             };
-            out.push(Scene { name: scene.name.clone(), frames, samples: samples_of_scene });
+            out.push(Scene { name: scene.name.clone(), frames, extra: samples_of_scene });
         }
         let annotation_by_token = annotations.iter().enumerate().map(|(i, a)| (a.row.token.clone(), i)).collect();
         let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
-        Ok(NuScenes { config, scenes: out, annotations, annotation_by_token, sample_time, warnings, sidecars })
-    }
-
-    fn scene_frame(&self, item: &ItemKey) -> Result<(&Scene, &Frame)> {
-        let scene = self.scenes.get(item.idx[0] as usize).ok_or_else(|| anyhow!("no scene {:?}", item))?;
-        let frame = scene.frames.get(item.idx[1] as usize).ok_or_else(|| anyhow!("no frame {:?}", item))?;
-        Ok((scene, frame))
-    }
-
-    fn reading(&self, port: &str, item: &ItemKey) -> Result<&Reading> {
-        let (_, frame) = self.scene_frame(item)?;
-        let r = match port {
-            "lidar" | "lidar_calib" | "lidar_pose" => &frame.lidar,
-            _ => frame.cameras.get(item.idx[2] as usize).ok_or_else(|| anyhow!("no camera {:?}", item))?,
-        };
-        r.as_ref().map_err(|e| anyhow!("{e}"))
+        let tree = Tree { cameras: config.cameras.clone(), scenes: out, sidecars };
+        Ok(NuScenes { config, tree, annotations, annotation_by_token, sample_time, warnings })
     }
 
     /// The devkit's `box_velocity`: centre difference of the neighbouring annotations, NaN when
@@ -675,20 +640,77 @@ impl NuScenes {
             interpolated: false,
         }
     }
+}
+
+/// A frame from its LiDAR reading with that reading's lidarseg labels (none when it failed).
+fn frame(
+    lidar: Result<(Reading, Option<PathBuf>), String>,
+    cameras: Vec<Result<Reading, String>>,
+    timestamp: i64,
+    sample: Option<usize>,
+    key: bool,
+) -> Frame<Sweep> {
+    let (lidar, labels) = match lidar {
+        Ok((reading, labels)) => (Ok(reading), labels),
+        Err(e) => (Err(e), None),
+    };
+    Frame { lidar, cameras, extra: Sweep { timestamp, sample, key, labels } }
+}
+
+impl SurroundReader for NuScenes {
+    const FORMAT: &'static str = "nuScenes";
+    type Scene = Keyframes;
+    type Frame = Sweep;
+
+    fn tree(&self) -> &Tree<Keyframes, Sweep> {
+        &self.tree
+    }
+
+    /// The points' digest, and the labels' when the frame has them.
+    fn lidar_digest(&self, lidar: &Reading, frame: &Sweep, files: &dyn FileDigests) -> Result<Option<Digest>> {
+        let Some(points) = lidar.file_digest(files)? else { return Ok(None) };
+        let mut b = DigestBuilder::new("nuscenes.lidar");
+        b.digest(&points);
+        if let Some(labels) = &frame.labels {
+            let digest = files.file_digest(labels).with_context(|| format!("{}: {}", lidar.what, labels.display()))?;
+            let Some(l) = digest else { return Ok(None) };
+            b.digest(&l);
+        }
+        Ok(Some(b.finish()))
+    }
+
+    fn read_lidar(&self, lidar: &Reading, frame: &Sweep) -> Result<PointCloud> {
+        let mut pc = read_pcd_bin(&lidar.file).with_context(|| lidar.what.clone())?;
+        if let Some(path) = &frame.labels {
+            let labels = std::fs::read(path)
+                .with_context(|| format!("reading the lidarseg labels of {}: {}", lidar.what, path.display()))?;
+            if labels.len() != pc.points.len() {
+                bail!(
+                    "{} has {} labels but {} has {} points",
+                    path.display(),
+                    labels.len(),
+                    lidar.file.display(),
+                    pc.points.len()
+                );
+            }
+            pc.labels = labels;
+        }
+        Ok(pc)
+    }
 
     /// Boxes at the frame's time: the keyframe's own annotations, or for a sweep the tracks
     /// annotated on both neighbouring keyframes, interpolated (linear centre and velocity,
     /// slerp rotation).
     fn boxes(&self, item: &ItemKey) -> Result<Boxes3D> {
-        let (scene, frame) = self.scene_frame(item)?;
-        let t = frame.timestamp;
-        let Some(k0) = frame.sample else { return Ok(Boxes3D { timestamp_us: t, boxes: Vec::new() }) };
-        let (t0, anns0) = &scene.samples[k0];
+        let (scene, frame) = self.tree.scene_frame(item)?;
+        let t = frame.extra.timestamp;
+        let Some(k0) = frame.extra.sample else { return Ok(Boxes3D { timestamp_us: t, boxes: Vec::new() }) };
+        let (t0, anns0) = &scene.extra[k0];
         let own: Vec<Box3D> = anns0.iter().map(|&i| self.box_of(&self.annotations[i])).collect();
-        if frame.key || *t0 == t {
+        if frame.extra.key || *t0 == t {
             return Ok(Boxes3D { timestamp_us: t, boxes: own });
         }
-        let Some((t1, anns1)) = scene.samples.get(k0 + 1) else {
+        let Some((t1, anns1)) = scene.extra.get(k0 + 1) else {
             return Ok(Boxes3D { timestamp_us: t, boxes: Vec::new() });
         };
         let w = (t - t0) as f64 / (t1 - t0) as f64;
@@ -732,141 +754,6 @@ pub fn read_pcd_bin(path: &Path) -> Result<PointCloud> {
     })
 }
 
-impl ItemSpace for NuScenes {
-    fn count(&self, prefix: &ItemKey) -> u32 {
-        surround_count(
-            prefix,
-            self.scenes.len(),
-            |s| self.scenes.get(s).map(|s| s.frames.len()),
-            self.config.cameras.len(),
-        )
-    }
-
-    fn label(&self, item: &ItemKey) -> String {
-        surround_label(item, |s| self.scenes.get(s).map(|s| s.name.clone()), &self.config.cameras)
-    }
-}
-
-impl Dataset for NuScenes {
-    fn source_digest(&self, port: &str, item: &ItemKey, files: &dyn FileDigests) -> Result<Option<Digest>> {
-        let file_digest = |path: &Path, token: &str| -> Result<Option<Digest>> {
-            files.file_digest(path).with_context(|| format!("sample_data {token}: {}", path.display()))
-        };
-        Ok(match port {
-            "lidar" => {
-                let r = self.reading(port, item)?;
-                let Some(points) = file_digest(&r.file, &r.token)? else { return Ok(None) };
-                let mut b = DigestBuilder::new("nuscenes.lidar");
-                b.digest(&points);
-                if let Some(labels) = &r.labels {
-                    let Some(l) = file_digest(labels, &r.token)? else { return Ok(None) };
-                    b.digest(&l);
-                }
-                Some(b.finish())
-            }
-            "image" => {
-                let r = self.reading(port, item)?;
-                file_digest(&r.file, &r.token)?
-            }
-            "gt_depth" | "semantic" => {
-                let r = self.reading("image", item)?;
-                let camera = &self.config.cameras[item.idx[2] as usize];
-                sidecar_digest(&self.sidecars, port, camera, &r.file, files)?
-            }
-            _ => Some(Digest::of(&self.load_source(port, item)?)),
-        })
-    }
-
-    fn load_source(&self, port: &str, item: &ItemKey) -> Result<Vec<u8>> {
-        if port == "boxes" {
-            return Ok(self.boxes(item)?.encode());
-        }
-        let r = self.reading(port, item)?;
-        Ok(match port {
-            "lidar" => {
-                let mut pc = read_pcd_bin(&r.file).with_context(|| format!("sample_data {}", r.token))?;
-                if let Some(path) = &r.labels {
-                    let labels = std::fs::read(path).with_context(|| {
-                        format!("reading the lidarseg labels of sample_data {}: {}", r.token, path.display())
-                    })?;
-                    if labels.len() != pc.points.len() {
-                        bail!(
-                            "{} has {} labels but {} has {} points",
-                            path.display(),
-                            labels.len(),
-                            r.file.display(),
-                            pc.points.len()
-                        );
-                    }
-                    pc.labels = labels;
-                }
-                pc.encode()
-            }
-            "image" => {
-                read_camera_image(&r.file, r.calib.width, r.calib.height, &format!("sample_data {}", r.token))?.encode()
-            }
-            "gt_depth" => self.sidecars.gt_depth(&self.config.cameras[item.idx[2] as usize], &r.file)?.encode(),
-            "semantic" => self.sidecars.semantic(&self.config.cameras[item.idx[2] as usize], &r.file)?.encode(),
-            "lidar_calib" | "camera_calib" => r.calib.encode(),
-            "lidar_pose" | "camera_pose" => r.pose.encode(),
-            other => bail!("nuScenes has no source port `{other}`"),
-        })
-    }
-}
-
-/// Digest of a sidecar port: its file's content digest, or a fixed "none" when there is no file.
-pub(crate) fn sidecar_digest(
-    sidecars: &Sidecars,
-    port: &str,
-    camera: &str,
-    image: &Path,
-    files: &dyn FileDigests,
-) -> Result<Option<Digest>> {
-    let mut b = DigestBuilder::new(port);
-    match sidecars.path(port, camera, image) {
-        None => {
-            b.str("none");
-        }
-        Some(p) => {
-            let Some(d) = files.file_digest(&p).with_context(|| format!("{port} of {}", image.display()))? else {
-                return Ok(None);
-            };
-            b.digest(&d);
-        }
-    }
-    Ok(Some(b.finish()))
-}
-
-/// The scene / frame / camera item tree both readers share: `frames(i)` is scene i's frame count,
-/// `scene_name(i)` its name.
-pub(crate) fn surround_count(
-    prefix: &ItemKey,
-    scenes: usize,
-    frames: impl Fn(usize) -> Option<usize>,
-    cameras: usize,
-) -> u32 {
-    match prefix.depth {
-        0 => scenes as u32,
-        1 => frames(prefix.idx[0] as usize).unwrap_or(0) as u32,
-        2 => cameras as u32,
-        _ => 0,
-    }
-}
-
-/// Labels of the shared item tree: scene name, zero-padded frame index, camera channel.
-pub(crate) fn surround_label(
-    item: &ItemKey,
-    scene_name: impl Fn(usize) -> Option<String>,
-    cameras: &[String],
-) -> String {
-    let i = item.idx[item.depth as usize - 1] as usize;
-    match item.depth {
-        1 => scene_name(i).unwrap_or_else(|| format!("scene{i}")),
-        2 => format!("{i:03}"),
-        _ => cameras.get(i).cloned().unwrap_or_else(|| format!("camera{i}")),
-    }
-}
-
 /// Camera and LiDAR names become folder and file names of exports (and the version a folder
 /// under the root), so each must be one safe path component; the cameras, at least one, once each.
 impl dist4d_graph::Validate for NuScenesConfig {
@@ -878,48 +765,6 @@ impl dist4d_graph::Validate for NuScenesConfig {
             .done()
     }
 }
-
-pub(crate) const DIMS: [DimSpec; 3] = [
-    DimSpec { name: "scene", ordered: false },
-    DimSpec { name: "frame", ordered: true },
-    DimSpec { name: "camera", ordered: false },
-];
-pub(crate) const PORTS: [SourcePortSpec; 9] = [
-    SourcePortSpec {
-        name: "lidar",
-        ty: "PointCloud",
-        grain: "frame",
-        doc: "LiDAR sweep in the sensor frame, with nuScenes-lidarseg labels when present",
-    },
-    SourcePortSpec {
-        name: "boxes",
-        ty: "Boxes3D",
-        grain: "frame",
-        doc: "annotated boxes at the frame's time (world frame; interpolated for sweeps)",
-    },
-    SourcePortSpec { name: "image", ty: "Image", grain: "camera", doc: "the camera image (RGB8)" },
-    SourcePortSpec { name: "lidar_calib", ty: "Calibration", grain: "frame", doc: "LiDAR mounting (sensor -> ego)" },
-    SourcePortSpec { name: "lidar_pose", ty: "Pose", grain: "frame", doc: "ego pose at the LiDAR timestamp" },
-    SourcePortSpec {
-        name: "camera_calib",
-        ty: "Calibration",
-        grain: "camera",
-        doc: "camera mounting, intrinsics and image size",
-    },
-    SourcePortSpec { name: "camera_pose", ty: "Pose", grain: "camera", doc: "ego pose at the camera timestamp" },
-    SourcePortSpec {
-        name: "gt_depth",
-        ty: "DepthMap",
-        grain: "camera",
-        doc: "dense ground-truth depth (groundtruth/depth/, synthetic data); empty when the dataset has none",
-    },
-    SourcePortSpec {
-        name: "semantic",
-        ty: "Segmentation",
-        grain: "camera",
-        doc: "Cityscapes-id segmentation from the `semantics` folder; empty when none is configured",
-    },
-];
 
 /// The NuScenes dataset kind as pipelines see it.
 pub fn schema() -> DatasetSchema {
@@ -936,22 +781,18 @@ pub fn schema() -> DatasetSchema {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    pub fn shared_nuscenes() -> Option<PathBuf> {
-        let p = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/nuscenes-scene0061-kf0");
-        if p.is_dir() {
-            Some(p)
-        } else {
-            eprintln!("SKIPPED: shared nuScenes data not found at {}", p.display());
-            None
-        }
-    }
+    use crate::surround::Surround;
+    use crate::testing::{load_err, shared_data};
+    use dist4d_runtime::{Dataset, ItemSpace};
+    use dist4d_types::artifact::Artifact;
 
     #[test]
     fn reads_the_shared_keyframe() {
-        let Some(root) = shared_nuscenes() else { return };
-        let ds = NuScenes::open(NuScenesConfig { root: root.display().to_string(), ..Default::default() }).unwrap();
-        assert!(ds.warnings.is_empty(), "real data passes every check silently: {:?}", ds.warnings);
+        let Some(root) = shared_data("nuscenes-scene0061-kf0") else { return };
+        let ds = Surround(
+            NuScenes::open(NuScenesConfig { root: root.display().to_string(), ..Default::default() }).unwrap(),
+        );
+        assert!(ds.0.warnings.is_empty(), "real data passes every check silently: {:?}", ds.0.warnings);
         assert_eq!(ds.count(&ItemKey::new(&[])), 1);
         assert_eq!(ds.count(&ItemKey::new(&[0])), 1);
         assert_eq!(ds.label(&ItemKey::new(&[0])), "scene-0061");
@@ -975,15 +816,20 @@ mod tests {
         (dir, root)
     }
 
-    fn open(root: &Path, frames: FrameMode) -> Result<NuScenes> {
-        NuScenes::open(NuScenesConfig { root: root.display().to_string(), frames, ..Default::default() })
+    fn open(root: &Path, frames: FrameMode) -> Result<Surround<NuScenes>> {
+        NuScenes::open(NuScenesConfig { root: root.display().to_string(), frames, ..Default::default() }).map(Surround)
+    }
+
+    /// The sample_data token of a reading.
+    fn token(r: &Reading) -> String {
+        r.what.strip_prefix("sample_data ").unwrap().to_string()
     }
 
     #[test]
     fn keyframes_carry_boxes_with_devkit_velocities_images_and_lidarseg() {
         let (_tmp, root) = synthetic();
         let ds = open(&root, FrameMode::Keyframes).unwrap();
-        assert!(ds.warnings.is_empty(), "{:?}", ds.warnings);
+        assert!(ds.0.warnings.is_empty(), "{:?}", ds.0.warnings);
         assert_eq!(ds.count(&ItemKey::new(&[0])), 3);
         let boxes = Boxes3D::decode(&ds.load_source("boxes", &ItemKey::new(&[0, 1])).unwrap()).unwrap();
         assert!(!boxes.boxes.is_empty());
@@ -1049,12 +895,12 @@ mod tests {
             std::fs::remove_file(root.join(format!("v1.0-mini/{t}.json"))).unwrap();
         }
         let ds = open(&root, FrameMode::Keyframes).unwrap();
-        assert_eq!(ds.warnings.len(), 4, "{:?}", ds.warnings);
-        assert!(ds.warnings[0].contains("sample_annotation.json is missing"));
+        assert_eq!(ds.0.warnings.len(), 4, "{:?}", ds.0.warnings);
+        assert!(ds.0.warnings[0].contains("sample_annotation.json is missing"));
         let boxes = Boxes3D::decode(&ds.load_source("boxes", &ItemKey::new(&[0, 0])).unwrap()).unwrap();
         assert!(boxes.boxes.is_empty());
         // An unreadable JPEG fails that camera's image only.
-        let cam = ds.reading("image", &ItemKey::new(&[0, 1, 2])).unwrap().file.clone();
+        let cam = ds.0.tree.reading("image", &ItemKey::new(&[0, 1, 2])).unwrap().file.clone();
         std::fs::write(&cam, b"not a jpeg").unwrap();
         let err = format!("{:#}", ds.load_source("image", &ItemKey::new(&[0, 1, 2])).unwrap_err());
         assert!(err.contains("not a readable image") && err.contains(&cam.display().to_string()), "{err}");
@@ -1092,14 +938,7 @@ mod tests {
 
     /// The sample_data token of an item's reading (`lidar` or `image` port).
     fn token_of(root: &Path, port: &str, item: &[u32]) -> String {
-        open(root, FrameMode::Keyframes).unwrap().reading(port, &ItemKey::new(item)).unwrap().token.clone()
-    }
-
-    fn load_err(ds: &NuScenes, port: &str, item: &[u32]) -> String {
-        format!(
-            "{:#}",
-            ds.load_source(port, &ItemKey::new(item)).err().unwrap_or_else(|| panic!("{port} {item:?} loads"))
-        )
+        open(root, FrameMode::Keyframes).unwrap().0.tree.reading(port, &ItemKey::new(item)).map(token).unwrap()
     }
 
     #[test]
@@ -1107,10 +946,18 @@ mod tests {
         let (tmp, root) = synthetic();
         let lidar = token_of(&root, "lidar", &[0, 1]);
         let (cam, other_cam) = (token_of(&root, "image", &[0, 0, 2]), token_of(&root, "image", &[0, 2, 1]));
-        let lidar_file =
-            open(&root, FrameMode::Keyframes).unwrap().reading("lidar", &ItemKey::new(&[0, 1])).unwrap().file.clone();
+        let lidar_file = open(&root, FrameMode::Keyframes)
+            .unwrap()
+            .0
+            .tree
+            .reading("lidar", &ItemKey::new(&[0, 1]))
+            .unwrap()
+            .file
+            .clone();
         let cam_file = open(&root, FrameMode::Keyframes)
             .unwrap()
+            .0
+            .tree
             .reading("image", &ItemKey::new(&[0, 0, 2]))
             .unwrap()
             .file
@@ -1165,7 +1012,7 @@ mod tests {
         let (_tmp, root) = synthetic();
         let ds = open(&root, FrameMode::Keyframes).unwrap();
         let sd_row = |item: &[u32], port: &str| -> serde_json::Value {
-            let token = ds.reading(port, &ItemKey::new(item)).unwrap().token.clone();
+            let token = ds.0.tree.reading(port, &ItemKey::new(item)).map(token).unwrap();
             let rows: Vec<serde_json::Value> =
                 serde_json::from_slice(&std::fs::read(root.join("v1.0-mini/sample_data.json")).unwrap()).unwrap();
             rows.into_iter().find(|r| r["token"] == token.as_str()).unwrap()
@@ -1250,8 +1097,12 @@ mod tests {
             }
         });
         let ds = open(&root, FrameMode::Keyframes).unwrap();
-        assert_eq!(ds.warnings.len(), 1, "{:?}", ds.warnings);
-        assert!(ds.warnings[0].contains("ego_pose.json") && ds.warnings[0].contains("normalised"), "{:?}", ds.warnings);
+        assert_eq!(ds.0.warnings.len(), 1, "{:?}", ds.0.warnings);
+        assert!(
+            ds.0.warnings[0].contains("ego_pose.json") && ds.0.warnings[0].contains("normalised"),
+            "{:?}",
+            ds.0.warnings
+        );
         let after = Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, 1])).unwrap()).unwrap();
         assert!(after.ego_to_world.rotation.abs_diff_eq(before.ego_to_world.rotation, 1e-12));
     }
@@ -1260,7 +1111,7 @@ mod tests {
     fn duplicate_tokens_with_different_rows_are_rejected_and_identical_ones_kept_once() {
         let (_tmp, root) = synthetic();
         // Boxes of all three keyframes.
-        let boxes = |ds: &NuScenes| -> usize {
+        let boxes = |ds: &Surround<NuScenes>| -> usize {
             (0..3)
                 .map(|f| {
                     Boxes3D::decode(&ds.load_source("boxes", &ItemKey::new(&[0, f])).unwrap()).unwrap().boxes.len()
@@ -1275,9 +1126,9 @@ mod tests {
         });
         let ds = open(&root, FrameMode::Keyframes).unwrap();
         assert!(
-            ds.warnings.iter().any(|w| w.contains("sample_annotation.json: 1 row(s) repeat an earlier row exactly")),
+            ds.0.warnings.iter().any(|w| w.contains("sample_annotation.json: 1 row(s) repeat an earlier row exactly")),
             "{:?}",
-            ds.warnings
+            ds.0.warnings
         );
         // The repeated annotation is one box, not two.
         assert_eq!(boxes(&ds), n);
@@ -1352,7 +1203,7 @@ mod tests {
     fn truncated_and_wrong_size_images_fail_naming_the_file() {
         let (_tmp, root) = synthetic();
         let ds = open(&root, FrameMode::Keyframes).unwrap();
-        let file = |camera: u32| ds.reading("image", &ItemKey::new(&[0, 1, camera])).unwrap().file.clone();
+        let file = |camera: u32| ds.0.tree.reading("image", &ItemKey::new(&[0, 1, camera])).unwrap().file.clone();
         let (cut, small) = (file(2), file(3));
         let jpeg = std::fs::read(&cut).unwrap();
         std::fs::write(&cut, &jpeg[..jpeg.len() / 2]).unwrap();
@@ -1364,7 +1215,7 @@ mod tests {
             .unwrap();
         std::fs::write(&small, half).unwrap();
         let err = load_err(&ds, "image", &[0, 1, 3]);
-        let token = ds.reading("image", &ItemKey::new(&[0, 1, 3])).unwrap().token.clone();
+        let token = ds.0.tree.reading("image", &ItemKey::new(&[0, 1, 3])).map(token).unwrap();
         assert_eq!(
             err,
             format!("{} is 80x45 but sample_data {token} (fields width, height) says 160x90", small.display())
@@ -1379,12 +1230,14 @@ mod tests {
         let elsewhere = tmp.path().join("segmenter-output");
         std::fs::rename(root.join("groundtruth/semantic"), &elsewhere).unwrap();
         for semantics in [elsewhere.display().to_string(), "../segmenter-output".to_string()] {
-            let ds = NuScenes::open(NuScenesConfig {
-                root: root.display().to_string(),
-                semantics: Some(semantics.clone()),
-                ..Default::default()
-            })
-            .unwrap();
+            let ds = Surround(
+                NuScenes::open(NuScenesConfig {
+                    root: root.display().to_string(),
+                    semantics: Some(semantics.clone()),
+                    ..Default::default()
+                })
+                .unwrap(),
+            );
             let seg = dist4d_types::artifact::Segmentation::decode(
                 &ds.load_source("semantic", &ItemKey::new(&[0, 0, 0])).unwrap(),
             )

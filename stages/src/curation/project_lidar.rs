@@ -169,6 +169,7 @@ mod tests {
     #[test]
     fn projected_lidar_lands_on_plausible_geometry_in_every_camera_of_the_shared_dgp_scene() {
         use dist4d_datasets::dgp::{Dgp, DgpConfig};
+        use dist4d_datasets::surround::Surround;
         use dist4d_runtime::{Dataset, ItemKey};
         use dist4d_types::artifact::{Artifact, Calibration, PointCloud, Pose};
         let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/dgp-scene02");
@@ -176,7 +177,7 @@ mod tests {
             eprintln!("SKIPPED: shared DGP data not found at {}", root.display());
             return;
         }
-        let ds = Dgp::open(DgpConfig { root: root.display().to_string(), ..Default::default() }).unwrap();
+        let ds = Surround(Dgp::open(DgpConfig { root: root.display().to_string(), ..Default::default() }).unwrap());
         let lidar = PointCloud::decode(&ds.load_source("lidar", &ItemKey::new(&[0, 0])).unwrap()).unwrap();
         let lidar_calib = Calibration::decode(&ds.load_source("lidar_calib", &ItemKey::new(&[0, 0])).unwrap()).unwrap();
         let lidar_pose = Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, 0])).unwrap()).unwrap();

@@ -1,0 +1,224 @@
+//! The surround-camera adapter every driving-log reader shares: one item tree (scene / frame /
+//! camera), one set of source ports, and the one `ItemSpace` / `Dataset` implementation over them.
+//!
+//! A format reader (nuScenes, DGP) parses and validates its metadata into a [`Tree`] of resolved
+//! [`Reading`]s, one LiDAR reading and one reading per camera a frame, and implements
+//! [`SurroundReader`] for what differs: how a LiDAR file is read and digested, and where a frame's
+//! boxes come from. [`Surround`] turns such a reader into the runtime's dataset. (The orphan rule
+//! forbids implementing the runtime's traits for every `SurroundReader` directly, hence the wrapper.)
+
+use crate::files::read_camera_image;
+use crate::sidecar::Sidecars;
+use anyhow::{anyhow, bail, Context, Result};
+use dist4d_graph::{DimSpec, SourcePortSpec};
+use dist4d_runtime::{Dataset, Digest, DigestBuilder, FileDigests, ItemKey, ItemSpace};
+use dist4d_types::artifact::{Artifact, Boxes3D, Calibration, PointCloud, Pose};
+use std::path::{Path, PathBuf};
+
+pub(crate) const DIMS: [DimSpec; 3] = [
+    DimSpec { name: "scene", ordered: false },
+    DimSpec { name: "frame", ordered: true },
+    DimSpec { name: "camera", ordered: false },
+];
+pub(crate) const PORTS: [SourcePortSpec; 9] = [
+    SourcePortSpec {
+        name: "lidar",
+        ty: "PointCloud",
+        grain: "frame",
+        doc: "LiDAR sweep in the sensor frame, with nuScenes-lidarseg labels when present",
+    },
+    SourcePortSpec {
+        name: "boxes",
+        ty: "Boxes3D",
+        grain: "frame",
+        doc: "annotated boxes at the frame's time (world frame; interpolated for sweeps)",
+    },
+    SourcePortSpec { name: "image", ty: "Image", grain: "camera", doc: "the camera image (RGB8)" },
+    SourcePortSpec { name: "lidar_calib", ty: "Calibration", grain: "frame", doc: "LiDAR mounting (sensor -> ego)" },
+    SourcePortSpec { name: "lidar_pose", ty: "Pose", grain: "frame", doc: "ego pose at the LiDAR timestamp" },
+    SourcePortSpec {
+        name: "camera_calib",
+        ty: "Calibration",
+        grain: "camera",
+        doc: "camera mounting, intrinsics and image size",
+    },
+    SourcePortSpec { name: "camera_pose", ty: "Pose", grain: "camera", doc: "ego pose at the camera timestamp" },
+    SourcePortSpec {
+        name: "gt_depth",
+        ty: "DepthMap",
+        grain: "camera",
+        doc: "dense ground-truth depth (groundtruth/depth/, synthetic data); empty when the dataset has none",
+    },
+    SourcePortSpec {
+        name: "semantic",
+        ty: "Segmentation",
+        grain: "camera",
+        doc: "Cityscapes-id segmentation from the `semantics` folder; empty when none is configured",
+    },
+];
+
+/// One sensor reading, resolved and checked when the dataset is opened.
+#[derive(Clone, Debug)]
+pub struct Reading {
+    pub file: PathBuf,
+    pub calib: Calibration,
+    pub pose: Pose,
+    /// What the metadata calls it, for messages: `sample_data <token>`, `datum <key>`.
+    pub what: String,
+}
+
+impl Reading {
+    /// The content digest of the reading's file.
+    pub fn file_digest(&self, files: &dyn FileDigests) -> Result<Option<Digest>> {
+        files.file_digest(&self.file).with_context(|| format!("{}: {}", self.what, self.file.display()))
+    }
+}
+
+/// A frame's readings. Each is its own result, so that a bad row fails only the items that use it;
+/// `extra` is what the format keeps per frame besides.
+pub struct Frame<F> {
+    pub lidar: Result<Reading, String>,
+    /// One per camera, in the order of [`Tree::cameras`].
+    pub cameras: Vec<Result<Reading, String>>,
+    pub extra: F,
+}
+
+/// A scene: its name (the item label) and frames; `extra` is what the format keeps per scene.
+pub struct Scene<S, F> {
+    pub name: String,
+    pub frames: Vec<Frame<F>>,
+    pub extra: S,
+}
+
+/// What a surround-camera dataset resolved when it was opened: the camera names (the third item
+/// dimension), the scenes with their frames and readings, and the per-image sidecar files.
+pub struct Tree<S, F> {
+    pub cameras: Vec<String>,
+    pub scenes: Vec<Scene<S, F>>,
+    pub sidecars: Sidecars,
+}
+
+impl<S, F> Tree<S, F> {
+    pub fn scene_frame(&self, item: &ItemKey) -> Result<(&Scene<S, F>, &Frame<F>)> {
+        let scene = self.scenes.get(item.idx[0] as usize).ok_or_else(|| anyhow!("no scene {:?}", item))?;
+        let frame = scene.frames.get(item.idx[1] as usize).ok_or_else(|| anyhow!("no frame {:?}", item))?;
+        Ok((scene, frame))
+    }
+
+    /// The reading a port of `item` comes from: the frame's LiDAR for the LiDAR ports, else the
+    /// item's camera.
+    pub fn reading(&self, port: &str, item: &ItemKey) -> Result<&Reading> {
+        let (_, frame) = self.scene_frame(item)?;
+        let r = match port {
+            "lidar" | "lidar_calib" | "lidar_pose" => &frame.lidar,
+            _ => frame.cameras.get(item.idx[2] as usize).ok_or_else(|| anyhow!("no camera {:?}", item))?,
+        };
+        r.as_ref().map_err(|e| anyhow!("{e}"))
+    }
+
+    fn camera(&self, item: &ItemKey) -> &str {
+        &self.cameras[item.idx[2] as usize]
+    }
+}
+
+/// What differs between the formats of surround-camera logs; the rest is [`Surround`]'s.
+pub trait SurroundReader: Send + Sync {
+    /// The format's name in messages (`nuScenes has no source port ...`).
+    const FORMAT: &'static str;
+    /// What the format keeps per scene and per frame beyond the shared tree.
+    type Scene: Send + Sync;
+    type Frame: Send + Sync;
+
+    fn tree(&self) -> &Tree<Self::Scene, Self::Frame>;
+    /// The source digest of the `lidar` port of a frame whose LiDAR reading is `lidar`, from the
+    /// digests of the files it is read from; `Ok(None)` when `files` declined to hash one.
+    fn lidar_digest(&self, lidar: &Reading, frame: &Self::Frame, files: &dyn FileDigests) -> Result<Option<Digest>>;
+    /// The `lidar` port: the point cloud of a frame whose LiDAR reading is `lidar`.
+    fn read_lidar(&self, lidar: &Reading, frame: &Self::Frame) -> Result<PointCloud>;
+    /// The `boxes` port of a frame (`item` is a frame of the tree or fails as one).
+    fn boxes(&self, item: &ItemKey) -> Result<Boxes3D>;
+}
+
+/// A format reader as the runtime's dataset.
+pub struct Surround<R>(pub R);
+
+impl<R: SurroundReader> ItemSpace for Surround<R> {
+    fn count(&self, prefix: &ItemKey) -> u32 {
+        let tree = self.0.tree();
+        match prefix.depth {
+            0 => tree.scenes.len() as u32,
+            1 => tree.scenes.get(prefix.idx[0] as usize).map_or(0, |s| s.frames.len()) as u32,
+            2 => tree.cameras.len() as u32,
+            _ => 0,
+        }
+    }
+
+    /// Scene name, zero-padded frame index, camera name.
+    fn label(&self, item: &ItemKey) -> String {
+        let tree = self.0.tree();
+        let i = item.idx[item.depth as usize - 1] as usize;
+        match item.depth {
+            1 => tree.scenes.get(i).map(|s| s.name.clone()).unwrap_or_else(|| format!("scene{i}")),
+            2 => format!("{i:03}"),
+            _ => tree.cameras.get(i).cloned().unwrap_or_else(|| format!("camera{i}")),
+        }
+    }
+}
+
+impl<R: SurroundReader> Dataset for Surround<R> {
+    fn source_digest(&self, port: &str, item: &ItemKey, files: &dyn FileDigests) -> Result<Option<Digest>> {
+        let tree = self.0.tree();
+        Ok(match port {
+            "lidar" => {
+                let (_, frame) = tree.scene_frame(item)?;
+                self.0.lidar_digest(tree.reading(port, item)?, &frame.extra, files)?
+            }
+            "image" => tree.reading(port, item)?.file_digest(files)?,
+            "gt_depth" | "semantic" => {
+                let r = tree.reading("image", item)?;
+                sidecar_digest(&tree.sidecars, port, tree.camera(item), &r.file, files)?
+            }
+            _ => Some(Digest::of(&self.load_source(port, item)?)),
+        })
+    }
+
+    fn load_source(&self, port: &str, item: &ItemKey) -> Result<Vec<u8>> {
+        if port == "boxes" {
+            return Ok(self.0.boxes(item)?.encode());
+        }
+        let tree = self.0.tree();
+        let r = tree.reading(port, item)?;
+        Ok(match port {
+            "lidar" => self.0.read_lidar(r, &tree.scene_frame(item)?.1.extra)?.encode(),
+            "image" => read_camera_image(&r.file, r.calib.width, r.calib.height, &r.what)?.encode(),
+            "gt_depth" => tree.sidecars.gt_depth(tree.camera(item), &r.file)?.encode(),
+            "semantic" => tree.sidecars.semantic(tree.camera(item), &r.file)?.encode(),
+            "lidar_calib" | "camera_calib" => r.calib.encode(),
+            "lidar_pose" | "camera_pose" => r.pose.encode(),
+            other => bail!("{} has no source port `{other}`", R::FORMAT),
+        })
+    }
+}
+
+/// Digest of a sidecar port: its file's content digest, or a fixed "none" when there is no file.
+fn sidecar_digest(
+    sidecars: &Sidecars,
+    port: &str,
+    camera: &str,
+    image: &Path,
+    files: &dyn FileDigests,
+) -> Result<Option<Digest>> {
+    let mut b = DigestBuilder::new(port);
+    match sidecars.path(port, camera, image) {
+        None => {
+            b.str("none");
+        }
+        Some(p) => {
+            let Some(d) = files.file_digest(&p).with_context(|| format!("{port} of {}", image.display()))? else {
+                return Ok(None);
+            };
+            b.digest(&d);
+        }
+    }
+    Ok(Some(b.finish()))
+}
