@@ -8,6 +8,7 @@ pub mod eval;
 pub mod hull;
 pub mod middlebury;
 pub mod output;
+pub mod reference;
 pub mod stage;
 pub mod stereo;
 
@@ -36,6 +37,11 @@ impl Default for Registry {
 }
 
 impl Registry {
+    /// Every dataset kind, in registry order.
+    pub fn dataset_schemas(&self) -> [&DatasetSchema; 2] {
+        [&self.nuscenes, &self.dgp]
+    }
+
     pub fn stage_defs(&self) -> &[StageDef] {
         &self.stages
     }
