@@ -233,6 +233,29 @@ fn explain_says_what_changed() {
     assert_eq!(a.reasons["input `x` (from `dataset.camera_value`) changed"].1, "s0/000/cam0");
 }
 
+/// Explain walks the key layer a run walks, so it predicts what the next run executes (up to
+/// early cutoff, which only running can find: it counts a task downstream of one that will run).
+#[test]
+fn explain_predicts_what_the_next_run_executes() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    let predicted = |p: &Pipeline| -> BTreeMap<String, u64> {
+        let s = Store::open(dir.path(), Access::Shared).unwrap();
+        let ops = testkit::operators(p);
+        let e =
+            crate::explain::explain(&Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }, None, None);
+        e.unwrap().into_iter().map(|s| (s.stage, s.will_run)).collect()
+    };
+    grid.bump("camera_value", ItemKey::new(&[1, 2, 0]));
+    let changed = testkit::load(CHAIN, &["window.salt=5"]);
+    let will_run = predicted(&changed);
+    assert_eq!(will_run, executed(&run(&changed, &grid, dir.path())));
+    assert_eq!(will_run, counts(&[("a", 1), ("b", 1), ("per_frame", 1), ("window", 8), ("next", 1), ("file", 8)]));
+    assert!(predicted(&changed).values().all(|&n| n == 0));
+}
+
 #[test]
 fn gc_keeps_what_recent_runs_use() {
     let dir = tempfile::tempdir().unwrap();

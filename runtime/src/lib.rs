@@ -8,6 +8,7 @@ pub mod explain;
 pub mod export;
 pub mod gc;
 pub mod item;
+pub mod keys;
 pub mod operator;
 pub mod plan;
 pub mod progress;
