@@ -11,7 +11,7 @@ use crate::digest::{Digest, DigestBuilder};
 use crate::export::{ExportJob, Exporter, FileStat};
 use crate::item::{ItemKey, ItemSpace};
 use crate::keys::{Decision, Input, Keys, Unknown};
-use crate::operator::{Artifact, Blob, Dataset, Operator, TaskContext};
+use crate::operator::{Artifact, Blob, Dataset, Operator, Output, TaskContext};
 use crate::plan::{plan_scene, InputSrc, ScenePlan, View};
 use crate::progress::{Counters, ProgressMode, Reporter};
 use crate::record::{OutputRef, RecordInput, TaskRecord, INLINE_MAX};
@@ -445,16 +445,29 @@ impl<'a> Engine<'a> {
             .with_context(|| format!("{} ({})", node.name, stage.kind))?;
         if outs.len() != node.outputs.len() {
             bail!(
-                "stage `{}` ({}) returned {} outputs, its kind declares {}",
+                "stage `{}` ({}) returned {} outputs, its kind declares {}; nothing was stored",
                 node.name,
                 stage.kind,
                 outs.len(),
                 node.outputs.len()
             );
         }
+        // Before anything enters the cache: a mistyped output would fail only in a reader downstream.
+        for (out, port) in outs.iter().zip(&node.outputs) {
+            if out.ty != port.ty {
+                bail!(
+                    "stage `{}` ({}) returned a {} for output `{}`, which is declared {}; nothing was stored",
+                    node.name,
+                    stage.kind,
+                    out.ty,
+                    port.name,
+                    port.ty
+                );
+            }
+        }
         let micros = t0.elapsed().as_micros() as u64;
         let mut produced = Vec::with_capacity(outs.len());
-        for bytes in outs {
+        for Output { bytes, .. } in outs {
             let digest = Digest::of(&bytes);
             let size = bytes.len() as u64;
             let inline = if bytes.len() <= INLINE_MAX {

@@ -124,6 +124,29 @@ fn a_failing_item_skips_its_dependents_and_the_rest_goes_on() {
 }
 
 #[test]
+fn an_output_of_the_wrong_type_fails_its_task_before_it_is_cached() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &["b.mistag=true"]);
+    let grid = testkit::grid_of(&p);
+    let r = run(&p, &grid, dir.path());
+    assert_eq!(r.status, RunStatus::Failed);
+    assert_eq!(r.failures.len(), 24);
+    assert!(r.failures.iter().all(|f| f.stage == "b"));
+    let err = &r.failures[0].error;
+    assert!(
+        err.contains(
+            "stage `b` (Echo) returned a Mistagged for output `y`, which is declared Bytes; nothing was stored"
+        ),
+        "{err}"
+    );
+    // Nothing of b was cached: the same run again runs (and fails) every b task again.
+    let again = run(&p, &grid, dir.path());
+    assert_eq!(stat(&again, "b").failed, 24);
+    assert_eq!(stat(&again, "b").cached, 0);
+    assert_eq!(stat(&again, "a").cached, 24);
+}
+
+#[test]
 fn fail_fast_stops_at_the_first_failure() {
     let dir = tempfile::tempdir().unwrap();
     let p = testkit::load(CHAIN, &["a.fail_on=[\"s0/000/cam0\"]"]);

@@ -219,34 +219,80 @@ impl FileDigests for StoreFiles<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testkit;
+    use dist4d_graph::{Input as Wire, Selector};
+    use serde::Serialize;
+
+    #[derive(Serialize)]
+    struct PinnedParams {
+        radius: f32,
+        max_depth: f64,
+        steps: u32,
+        names: Vec<String>,
+        window: Option<(i32, i32)>,
+        mode: Mode,
+    }
+
+    #[derive(Serialize)]
+    enum Mode {
+        Nearest,
+    }
+
+    /// A stage node written out in full, so that nothing but the key layer and the canonical
+    /// printer can move its key.
+    fn pinned_stage() -> StageNode {
+        let params = PinnedParams {
+            radius: 0.1,
+            max_depth: 80.0,
+            steps: 3,
+            names: vec!["a \"b\"".into()],
+            window: Some((-1, 1)),
+            mode: Mode::Nearest,
+        };
+        let wire = |port: &str, selector, many| Wire {
+            port: port.into(),
+            ty: "Bytes".into(),
+            from: 0,
+            from_port: 0,
+            selector,
+            many,
+        };
+        StageNode {
+            kind: "Pinned".into(),
+            version: 3,
+            params: ParamsValue::new(params).unwrap(),
+            seeded: true,
+            inputs: vec![
+                wire("one", Selector::Same, false),
+                wire("window", Selector::Window { dim: 1, before: -1, after: 1 }, true),
+            ],
+        }
+    }
 
     /// The key of a pinned task. It changes when the key layout, the canonical params printer or
     /// the digest framing changes: then every cached result is invalidated, so such a change must
-    /// be deliberate, with [`TASK_KEY_DOMAIN`] bumped and this value re-pinned.
+    /// be deliberate, with [`TASK_KEY_DOMAIN`] bumped and these values re-pinned.
     #[test]
-    fn a_pinned_task_has_a_pinned_key() {
-        let p = testkit::load(
-            r#"Pipeline(
-                dataset: Grid(scenes: 1, frames: 2, cameras: 1),
-                stages: {
-                    "a": Merge(
-                        inputs: {"xs": Window("dataset.frame_value", frame, -1, 1)},
-                        params: (salt: 7, note: "pinned \"key\"", size: 64, fail_on: ["s0/000"], sleep_ms: 0),
-                    ),
-                },
-            )"#,
-            &[],
-        );
-        let stage = p.nodes[p.node_by_name("a").unwrap()].stage().unwrap();
-        assert_eq!(stage.params.canonical, r#"(salt:7,note:"pinned \"key\"",size:64,fail_on:["s0/000"],sleep_ms:0)"#);
-        let params = params_digest(&stage.params);
-        let inputs = vec![vec![(-1, Digest::of(b"previous")), (0, Digest::of(b"this")), (1, Digest::of(b"next"))]];
-        let item = ItemKey::new(&[0, 1]);
+    fn a_pinned_task_has_a_pinned_key_and_seed() {
+        let stage = pinned_stage();
         assert_eq!(
-            task_key(stage, &params, &item, &inputs).hex(),
-            "bd4c5a0f99fe90c8a5234d152f20ab792ef8d0ad1ece5cf8f5b24ec8a04c8552"
+            stage.params.canonical,
+            r#"(radius:0.1,max_depth:80.0,steps:3,names:["a \"b\""],window:Some((-1,1)),mode:Nearest)"#
         );
-        assert_eq!(task_seed(&stage.kind, &params, &item), 15161136282316645672);
+        let params = params_digest(&stage.params);
+        let inputs = vec![
+            vec![(0, Digest::of(b"one"))],
+            vec![(-1, Digest::of(b"previous")), (0, Digest::of(b"this")), (1, Digest::of(b"next"))],
+        ];
+        let item = ItemKey::new(&[0, 1, 2]);
+        assert_eq!(
+            task_key(&stage, &params, &item, &inputs).hex(),
+            "a8a0f368b9ea2f61cf7f9afbfcc29d925dbf2fbeef2c1127e9716eaf0ba9226f"
+        );
+        assert_eq!(task_seed(&stage.kind, &params, &item), 8360173915529016704);
+        // The item enters the key of a seeded stage only.
+        let other = ItemKey::new(&[0, 1, 3]);
+        assert_ne!(task_key(&stage, &params, &item, &inputs), task_key(&stage, &params, &other, &inputs));
+        let unseeded = StageNode { seeded: false, ..pinned_stage() };
+        assert_eq!(task_key(&unseeded, &params, &item, &inputs), task_key(&unseeded, &params, &other, &inputs));
     }
 }

@@ -20,7 +20,7 @@ pub mod store;
 pub use digest::{Digest, DigestBuilder};
 pub use exec::{Engine, RunOptions, RunSummary};
 pub use item::{ItemKey, ItemSpace};
-pub use operator::{Artifact, Blob, Dataset, FileDigests, Operator, TaskContext};
+pub use operator::{Artifact, Blob, Dataset, FileDigests, Operator, Output, TaskContext};
 pub use progress::ProgressMode;
 pub use runs::{RunRecord, RunStatus};
 pub use store::{Access, Store};

@@ -2,34 +2,44 @@
 //! checked params) and helpers to decode typed inputs.
 
 use crate::artifact::Artifact;
-use anyhow::{anyhow, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{ParamsSpec, ParamsValue, PortSpec, StageSchema, Validate};
-use dist4d_runtime::{Operator, TaskContext};
+use dist4d_runtime::{Operator, Output, TaskContext};
 use serde::{de::DeserializeOwned, Serialize};
 
-/// A stage's work on decoded params; the context is rarely needed, so it is left out.
+/// A stage's work on decoded params: input artifacts (per input port, in schema order) to the
+/// encoded bytes of each output port, in schema order. `ctx` says which item the task is for and
+/// gives its seed (see [`StageDef::seeded`]).
 pub trait TypedOp: Send + Sync {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>>;
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>>;
 }
 
 /// Runs a [`TypedOp`]. `slots[i]` is the schema position of the i-th wired input, so that an
-/// operator always sees its inputs in schema order, unwired optional ones as empty lists.
+/// operator always sees its inputs in schema order, unwired optional ones as empty lists. Each
+/// output is tagged with the artifact type its port declares, which the runtime checks.
 struct OpAdapter {
     op: Box<dyn TypedOp>,
+    kind: &'static str,
     slots: Vec<usize>,
     schema_len: usize,
+    output_types: Vec<&'static str>,
 }
 
 impl Operator for OpAdapter {
-    fn run(&self, _ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
-        if self.slots.len() == self.schema_len {
-            return self.op.run(inputs);
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Output>> {
+        let outs = if self.slots.len() == self.schema_len {
+            self.op.run(ctx, inputs)?
+        } else {
+            let mut full = vec![Vec::new(); self.schema_len];
+            for (slot, artifacts) in self.slots.iter().zip(inputs) {
+                full[*slot] = artifacts.clone();
+            }
+            self.op.run(ctx, &full)?
+        };
+        if outs.len() != self.output_types.len() {
+            bail!("{} returned {} outputs, it declares {}", self.kind, outs.len(), self.output_types.len());
         }
-        let mut full = vec![Vec::new(); self.schema_len];
-        for (slot, artifacts) in self.slots.iter().zip(inputs) {
-            full[*slot] = artifacts.clone();
-        }
-        self.op.run(&full)
+        Ok(outs.into_iter().zip(&self.output_types).map(|(bytes, ty)| Output { ty, bytes }).collect())
     }
 }
 
@@ -75,6 +85,13 @@ impl StageDef {
         }
     }
 
+    /// Declares that the stage draws random numbers from `TaskContext::seed`: its task keys then
+    /// include the item key, since its output depends on the item and not only on its inputs.
+    pub fn seeded(mut self) -> StageDef {
+        self.schema.seeded = true;
+        self
+    }
+
     /// The operator for checked params (as the graph produced them) and the names of the
     /// wired input ports, in schema order.
     pub fn build(&self, params: &ParamsValue, wired: &[&str]) -> Result<Box<dyn Operator>> {
@@ -89,7 +106,13 @@ impl StageDef {
                     .ok_or_else(|| anyhow!("{} has no input `{w}`", schema.kind))
             })
             .collect::<Result<Vec<_>>>()?;
-        Ok(Box::new(OpAdapter { op: (self.build)(params)?, slots, schema_len: schema.inputs.len() }))
+        Ok(Box::new(OpAdapter {
+            op: (self.build)(params)?,
+            kind: schema.kind,
+            slots,
+            schema_len: schema.inputs.len(),
+            output_types: schema.outputs.iter().map(|p| p.ty).collect(),
+        }))
     }
 }
 
@@ -137,4 +160,49 @@ pub fn each<A: Artifact>(inputs: &[Vec<dist4d_runtime::Artifact>], i: usize) -> 
 pub fn one<A: Artifact>(inputs: &[Vec<dist4d_runtime::Artifact>], i: usize) -> Result<A> {
     let a = inputs.get(i).and_then(|v| v.first()).ok_or_else(|| anyhow!("input {i} is missing"))?;
     A::decode(&a.bytes).with_context(|| format!("decoding input {i} as {}", A::TYPE))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dist4d_runtime::ItemKey;
+
+    /// Returns its seed and how many artifacts each input port got.
+    struct Probe;
+
+    impl TypedOp for Probe {
+        fn run(&self, ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+            Ok(vec![ctx.seed.to_le_bytes().to_vec(), inputs.iter().map(|i| i.len() as u8).collect()])
+        }
+    }
+
+    fn def() -> StageDef {
+        StageDef::new::<crate::stages::encode::NoParams>(
+            "Probe",
+            1,
+            "",
+            vec![PortSpec::optional("a", "Image", ""), PortSpec::one("b", "Pose", "")],
+            vec![PortSpec::one("seed", "Bytes", ""), PortSpec::one("counts", "Counts", "")],
+            vec!["camera"],
+            |_| Ok(Box::new(Probe)),
+        )
+    }
+
+    #[test]
+    fn the_adapter_passes_the_task_context_and_tags_outputs_with_their_declared_types() {
+        let params = def().schema.params.check(None).unwrap();
+        let op = def().build(&params, &["b"]).unwrap();
+        let ctx = TaskContext { item: ItemKey::new(&[0, 1]), seed: 42, label: "s/1" };
+        let artifact = dist4d_runtime::Artifact { item: ctx.item, pos: 0, bytes: Default::default() };
+        let outs = op.run(&ctx, &[vec![artifact]]).unwrap();
+        assert_eq!(
+            outs,
+            vec![
+                Output { ty: "Bytes", bytes: 42u64.to_le_bytes().to_vec() },
+                Output { ty: "Counts", bytes: vec![0, 1] }
+            ]
+        );
+        assert!(!def().schema.seeded);
+        assert!(def().seeded().schema.seeded);
+    }
 }

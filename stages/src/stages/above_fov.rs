@@ -118,7 +118,11 @@ fn above_slope(p: glam::DVec3, slope: f64) -> bool {
 struct Op(Params);
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         use crate::artifact::Artifact;
         let depth = one::<DepthMap>(inputs, 5)?;
         // No reference (a dataset without ground truth) or no sweep: nothing to restrict.

@@ -169,7 +169,11 @@ pub fn aggregate(params: &Params, sweeps: &[Sweep]) -> Result<(PointCloud, Point
 struct Op(Params);
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let points = each::<PointCloud>(inputs, 0)?;
         let calibs = each::<Calibration>(inputs, 1)?;
         let poses = each::<Pose>(inputs, 2)?;

@@ -377,7 +377,11 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, semantic: Option<&
 struct Op(Params);
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let image = one::<Image>(inputs, 0)?;
         let sparse = one::<DepthMap>(inputs, 1)?;
         // An empty map is a dataset without segmentations.

@@ -108,7 +108,11 @@ pub fn depth_preview(d: &DepthMap, max_depth: f32) -> Result<Vec<u8>> {
 struct DepthOp(DepthParams);
 
 impl TypedOp for DepthOp {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let d = one::<DepthMap>(inputs, 0)?;
         Ok(vec![
             depth_exr(&d)?,
@@ -145,7 +149,11 @@ impl Validate for NoParams {}
 struct PointsOp;
 
 impl TypedOp for PointsOp {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let p = one::<ProjectedPoints>(inputs, 0)?;
         Ok(vec![npy_f32(&[p.rows.len(), 3], p.rows.as_flattened())])
     }
@@ -247,7 +255,11 @@ fn sheet_row(p: &SheetParams, image: &Image, sparse: &DepthMap, dense: &DepthMap
 struct SheetOp(SheetParams);
 
 impl TypedOp for SheetOp {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         use crate::stage::each;
         let images = each::<Image>(inputs, 0)?;
         let sparse = each::<DepthMap>(inputs, 1)?;

@@ -161,7 +161,11 @@ const REFERENCES: [&str; 5] = ["gt", "lidar", "lidar_multi", "holdout", "gt_abov
 struct Op(Params);
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let pred = one::<DepthMap>(inputs, 0)?;
         let refs: Vec<Option<DepthMap>> = (1..6).map(|i| maybe_one::<DepthMap>(inputs, i)).collect::<Result<_>>()?;
         let list: Vec<(&str, Option<&DepthMap>)> =

@@ -81,7 +81,11 @@ pub fn fuse(params: &Params, lidar: &PointCloud, mvs: &PointCloud, view: &Camera
 struct Op(Params);
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let lidar = one::<PointCloud>(inputs, 0)?;
         let mvs = one::<PointCloud>(inputs, 5)?;
         let view = CameraView::from_inputs(inputs)?;

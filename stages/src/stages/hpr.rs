@@ -183,7 +183,11 @@ fn restore_unoccluded(params: &Params, xyz: &[DVec3], visible: &mut [bool], view
 struct Op(Params);
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let points = one::<PointCloud>(inputs, 0)?;
         let view = CameraView::from_inputs(inputs)?;
         use crate::artifact::Artifact;

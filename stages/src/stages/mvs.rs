@@ -202,7 +202,11 @@ pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap,
 struct Op(Params);
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let images = each::<Image>(inputs, 0)?;
         let calibs = each::<Calibration>(inputs, 1)?;
         let poses = each::<Pose>(inputs, 2)?;

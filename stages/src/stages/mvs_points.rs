@@ -255,7 +255,11 @@ pub fn static_points(params: &Params, m: &MvsInputs) -> Result<PointCloud> {
 struct Op(Params);
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let depth = one::<DepthMap>(inputs, 0)?;
         let confidence = one::<DepthMap>(inputs, 1)?;
         let image = one::<Image>(inputs, 2)?;

@@ -109,7 +109,11 @@ pub fn nearest_fill(sparse: &DepthMap) -> DepthMap {
 struct Op;
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         Ok(vec![nearest_fill(&one::<DepthMap>(inputs, 0)?).encode()])
     }
 }

@@ -52,7 +52,11 @@ pub fn project_points(params: &Params, points: &PointCloud, view: &CameraView) -
 struct Op(Params);
 
 impl TypedOp for Op {
-    fn run(&self, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(
+        &self,
+        _ctx: &dist4d_runtime::TaskContext,
+        inputs: &[Vec<dist4d_runtime::Artifact>],
+    ) -> Result<Vec<Vec<u8>>> {
         let view = CameraView::from_inputs(inputs)?;
         let sparse = project_points(&self.0, &one::<PointCloud>(inputs, 0)?, &view);
         use crate::artifact::Artifact;
