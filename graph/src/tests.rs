@@ -289,6 +289,24 @@ fn cycles_name_their_stages() {
 }
 
 #[test]
+fn all_reads_every_upstream_item_under_the_outer_item() {
+    let text = GOOD.replace(
+        r#""window": Fuse("#,
+        r#""all": Fuse(inputs: {"depths": All("project.depth")}, grain: frame),
+        "window": Fuse("#,
+    );
+    let p = load(&text, &[]).unwrap();
+    let all = p.nodes[p.node_by_name("all").unwrap()].stage().unwrap();
+    assert_eq!(all.inputs[0].selector, Selector::All);
+    assert!(p.to_dot().contains("depth -> depths All"), "{}", p.to_dot());
+    // The selector names no dimension; the usage note speaks the dataset's own dimension names.
+    let out = errors(&text.replace("All(", "Scene("), &[]);
+    assert!(out.contains("unknown selector `Scene`"), "{out}");
+    assert!(out.contains(r#"Window("stage.port", frame, -1, 1)"#), "{out}");
+    assert!(out.contains(r#"Gather("stage.port", camera) or All("stage.port")"#), "{out}");
+}
+
+#[test]
 fn selectors_must_fit_the_grains() {
     let text = r#"Pipeline(
     dataset: NuScenes(root: "d"),

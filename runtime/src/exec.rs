@@ -1,18 +1,19 @@
 //! The scheduler: runs a pipeline's tasks over the dataset's items.
 //!
-//! One coordinator thread owns all task state. It plans scenes lazily (a task budget bounds how
-//! many are in flight), resolves cache hits itself when every input digest is known cheaply,
-//! and sends the rest to a rayon pool. Workers compute what needs reading (raw-file digests,
-//! input blobs), run the operator, store outputs and the task record, and report back on a
-//! crossbeam channel. Ready tasks are taken in (scene, frame, stage) order, so items stream
-//! through the stages and a frame can finish before later frames start.
+//! One coordinator thread owns all task state. It plans the items of the outermost dimension
+//! lazily, one at a time (a task budget bounds how many are in flight), resolves cache hits itself
+//! when every input digest is known cheaply (through [`crate::keys`]), and sends the rest to a
+//! rayon pool. Workers compute what needs reading (raw-file digests, input blobs), run the
+//! operator, store outputs and the task record, and report back on a crossbeam channel. Ready
+//! tasks are taken in (outer item, position along the second dimension, stage) order, so items
+//! stream through the stages: an item can finish before later items start.
 
 use crate::digest::{Digest, DigestBuilder};
 use crate::export::{ExportJob, Exporter, FileStat};
 use crate::item::{ItemKey, ItemSpace};
 use crate::keys::{Decision, Input, Keys, Unknown};
 use crate::operator::{Artifact, Blob, Dataset, Operator, Output, TaskContext};
-use crate::plan::{plan_scene, InputSrc, ScenePlan, View};
+use crate::plan::{plan_outer, InputSrc, OuterPlan, View};
 use crate::progress::{Counters, ProgressMode, Reporter};
 use crate::record::{OutputRef, RecordInput, TaskRecord, INLINE_MAX};
 use crate::runs::{self, Failure, RunRecord, RunStatus, StageStats};
@@ -35,10 +36,10 @@ pub struct RunOptions {
     pub jobs: usize,
     /// Stop at the first failing task.
     pub fail_fast: bool,
-    /// Only these scenes (by label); all when `None`.
-    pub scenes: Option<Vec<String>>,
-    /// Only the first N frames (items of the second dimension) of each scene.
-    pub frame_limit: Option<u32>,
+    /// Only these items of the outermost dimension (by label); all when `None`.
+    pub outer_items: Option<Vec<String>>,
+    /// Only the first N items along the second dimension under each outer item.
+    pub second_dim_limit: Option<u32>,
     /// Where exported files go; nothing is exported when `None`.
     pub out_dir: Option<PathBuf>,
     /// Set (by a Ctrl-C handler) to stop cleanly: running tasks finish, nothing new starts.
@@ -51,8 +52,8 @@ impl Default for RunOptions {
         RunOptions {
             jobs: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             fail_fast: false,
-            scenes: None,
-            frame_limit: None,
+            outer_items: None,
+            second_dim_limit: None,
             out_dir: None,
             cancel: Arc::new(AtomicBool::new(false)),
             progress: ProgressMode::Off,
@@ -89,8 +90,9 @@ pub fn pipeline_digest(p: &Pipeline) -> Digest {
     b.finish()
 }
 
-/// Scene indices selected by label (all when `names` is `None`).
-pub fn select_scenes(space: &dyn ItemSpace, names: Option<&[String]>) -> Result<Vec<u32>> {
+/// Indices of the items of the outermost dimension (named `dim`) selected by label (all when
+/// `names` is `None`).
+pub fn select_outer(space: &dyn ItemSpace, dim: &str, names: Option<&[String]>) -> Result<Vec<u32>> {
     let n = space.count(&ItemKey::new(&[]));
     let Some(names) = names else { return Ok((0..n).collect()) };
     let labels: Vec<String> = (0..n).map(|i| space.label(&ItemKey::new(&[i]))).collect();
@@ -101,7 +103,7 @@ pub fn select_scenes(space: &dyn ItemSpace, names: Option<&[String]>) -> Result<
             None => {
                 let some: Vec<&str> = labels.iter().take(8).map(|s| s.as_str()).collect();
                 bail!(
-                    "the dataset has no scene `{name}` (it has {n}: {}{})",
+                    "the dataset has no {dim} `{name}` (it has {n}: {}{})",
                     some.join(", "),
                     if n > 8 { ", ..." } else { "" }
                 );
@@ -134,15 +136,15 @@ enum State {
     Skipped,
 }
 
-struct SceneRun {
-    plan: ScenePlan,
+struct OuterRun {
+    plan: OuterPlan,
     seq: u64,
     state: Vec<State>,
     waiting: Vec<u32>,
     readers_left: Vec<u32>,
     outputs: Vec<Option<Arc<Vec<Produced>>>>,
     open: usize,
-    /// Export writes of this scene still running: the scene stays active until they end, so that
+    /// Export writes of this outer item still running: it stays active until they end, so that
     /// a task whose blob turns out corrupt when exported can still be run again.
     exports_pending: usize,
     /// Finished tasks being run again because a blob of theirs was found missing or corrupt, with
@@ -152,7 +154,7 @@ struct SceneRun {
     redone: HashMap<u32, u32>,
 }
 
-impl SceneRun {
+impl OuterRun {
     fn closed(&self) -> bool {
         self.open == 0 && self.exports_pending == 0 && self.redoing.is_empty()
     }
@@ -198,7 +200,8 @@ enum Msg {
     Exported { slot: u32, task: u32, rel: String, result: Result<FileStat> },
 }
 
-/// Heap entry: lower sorts first (earlier scene, earlier frame, earlier stage).
+/// Heap entry: lower sorts first (earlier outer item, earlier position along the second dimension,
+/// earlier stage).
 type ReadyEntry = Reverse<(u64, u32, u32, u32, u32)>;
 
 impl<'a> Engine<'a> {
@@ -210,8 +213,8 @@ impl<'a> Engine<'a> {
         let millis =
             std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis()).unwrap_or(0);
         let run_id = format!("{millis:013}-{}", self.store.writer_id());
-        let scenes = select_scenes(self.dataset, opts.scenes.as_deref())?;
-        let view = View { space: self.dataset, frame_limit: opts.frame_limit };
+        let outers = select_outer(self.dataset, &p.dims[0].name, opts.outer_items.as_deref())?;
+        let view = View { space: self.dataset, second_dim_limit: opts.second_dim_limit };
 
         let keys = Keys::new(p, self.dataset, self.store);
         // Canonical params are stored as blobs so that explain can show what changed.
@@ -233,10 +236,10 @@ impl<'a> Engine<'a> {
             }
             v
         };
-        // Expected totals, corrected as scenes are planned.
+        // Expected totals, corrected as outer items are planned.
         for (i, &n) in stage_nodes.iter().enumerate() {
             let mut total = 0u64;
-            for &s in &scenes {
+            for &s in &outers {
                 total += count_items(&view, ItemKey::new(&[s]), p.nodes[n].grain);
             }
             counters.total[i].store(total, Ordering::Relaxed);
@@ -285,7 +288,7 @@ impl<'a> Engine<'a> {
             export_jobs: Vec::new(),
         };
         let ctx = Ctx { engine: self, keys: &keys };
-        let mut next_scene = 0usize;
+        let mut next_outer = 0usize;
         let mut inflight = 0usize;
         let mut stopping: Option<RunStatus> = None;
 
@@ -295,10 +298,10 @@ impl<'a> Engine<'a> {
                 if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
                     stopping = Some(RunStatus::Interrupted);
                 }
-                // Admit scenes while there is room.
-                while stopping.is_none() && next_scene < scenes.len() && c.live_tasks < task_budget {
-                    c.admit(p, &view, scenes[next_scene], next_scene as u64, &stage_nodes);
-                    next_scene += 1;
+                // Admit outer items while there is room.
+                while stopping.is_none() && next_outer < outers.len() && c.live_tasks < task_budget {
+                    c.admit(p, &view, outers[next_outer], next_outer as u64, &stage_nodes);
+                    next_outer += 1;
                 }
 
                 // Start ready tasks: cache hits complete here, the rest go to the pool.
@@ -331,9 +334,9 @@ impl<'a> Engine<'a> {
                     inflight += c.spawn_exports(scope, &tx);
                 }
 
-                let scenes_left = stopping.is_none() && next_scene < scenes.len();
+                let outers_left = stopping.is_none() && next_outer < outers.len();
                 let ready_left = stopping.is_none() && !c.ready.is_empty();
-                if inflight == 0 && !scenes_left && !ready_left {
+                if inflight == 0 && !outers_left && !ready_left {
                     return Ok(());
                 }
                 if inflight == 0 {
@@ -524,7 +527,7 @@ impl<'a> Engine<'a> {
 
 /// The coordinator's state: only the coordinator thread touches it.
 struct Coord {
-    active: Vec<Option<SceneRun>>,
+    active: Vec<Option<OuterRun>>,
     ready: BinaryHeap<ReadyEntry>,
     stats: Vec<StageStats>,
     counters: Arc<Counters>,
@@ -539,12 +542,12 @@ struct Coord {
 }
 
 impl Coord {
-    /// Plans a scene and queues its tasks that have no upstream tasks.
-    fn admit(&mut self, p: &Pipeline, view: &View, scene: u32, seq: u64, stage_nodes: &[usize]) {
-        let plan = plan_scene(p, view, scene);
-        // Tasks that could not be planned (offsets past the scene's end) leave the totals.
+    /// Plans an outer item and queues its tasks that have no upstream tasks.
+    fn admit(&mut self, p: &Pipeline, view: &View, outer: u32, seq: u64, stage_nodes: &[usize]) {
+        let plan = plan_outer(p, view, outer);
+        // Tasks that could not be planned (offsets past the end of a dimension) leave the totals.
         for (i, &n) in stage_nodes.iter().enumerate() {
-            let expected = count_items(view, ItemKey::new(&[scene]), p.nodes[n].grain);
+            let expected = count_items(view, ItemKey::new(&[outer]), p.nodes[n].grain);
             let planned = plan.tasks.iter().filter(|t| t.node as usize == n).count() as u64;
             self.counters.total[i].fetch_sub(expected - planned, Ordering::Relaxed);
         }
@@ -560,7 +563,7 @@ impl Coord {
                 self.active.len() - 1
             }
         };
-        let run = SceneRun {
+        let run = OuterRun {
             seq,
             state: vec![State::Waiting; n],
             waiting: plan.tasks.iter().map(|t| t.upstream).collect(),
@@ -706,7 +709,7 @@ impl Coord {
     }
 
     /// A blob that finished task `u` produced is missing or corrupt, found by its reader `t`:
-    /// runs `u` again and makes `t` wait for it. False when no task of the scene made that blob,
+    /// runs `u` again and makes `t` wait for it. False when no task of the outer item made that blob,
     /// or `u` was already run again [`MAX_REDO`] times.
     fn heal(&mut self, slot: u32, t: usize, digest: Digest) -> bool {
         let run = self.active[slot as usize].as_ref().unwrap();
@@ -833,7 +836,7 @@ struct Ctx<'e, 'a> {
 impl Ctx<'_, '_> {
     /// Resolves a ready task's inputs without hashing raw files, and decides through the key
     /// layer whether it is cached; otherwise makes the job a worker runs.
-    fn prepare(&self, run: &SceneRun, slot: u32, task: u32) -> Result<Prepared> {
+    fn prepare(&self, run: &OuterRun, slot: u32, task: u32) -> Result<Prepared> {
         let p = self.engine.pipeline;
         let t = &run.plan.tasks[task as usize];
         let node = t.node as usize;
@@ -885,14 +888,15 @@ fn take_unreadable(inputs: &mut [Vec<Input>]) -> Option<anyhow::Error> {
     None
 }
 
-fn entry(run: &SceneRun, slot: u32, task: u32, rank: &[u32]) -> ReadyEntry {
+fn entry(run: &OuterRun, slot: u32, task: u32, rank: &[u32]) -> ReadyEntry {
     let t = &run.plan.tasks[task as usize];
-    let frame = if t.item.depth >= 2 { t.item.idx[1] } else { u32::MAX };
-    Reverse((run.seq, frame, rank[t.node as usize], slot, task))
+    // Items without a second coordinate (per outer item) come after those with one.
+    let second = if t.item.depth >= 2 { t.item.idx[1] } else { u32::MAX };
+    Reverse((run.seq, second, rank[t.node as usize], slot, task))
 }
 
 /// A task no longer needs its inputs: upstream outputs nobody else will read drop their bytes.
-fn release_inputs(run: &mut SceneRun, t: usize) {
+fn release_inputs(run: &mut OuterRun, t: usize) {
     let mut seen: Vec<u32> = Vec::new();
     for srcs in &run.plan.tasks[t].inputs {
         for src in srcs {

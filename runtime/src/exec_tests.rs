@@ -214,10 +214,11 @@ fn scene_and_frame_filters_restrict_the_items() {
     let dir = tempfile::tempdir().unwrap();
     let p = testkit::load(CHAIN, &[]);
     let grid = testkit::grid_of(&p);
-    let opts = RunOptions { jobs: 2, scenes: Some(vec!["s1".into()]), frame_limit: Some(2), ..Default::default() };
+    let opts =
+        RunOptions { jobs: 2, outer_items: Some(vec!["s1".into()]), second_dim_limit: Some(2), ..Default::default() };
     let r = run_with(&p, &grid, dir.path(), &opts);
     assert_eq!(r.stages[0].executed, 6);
-    let bad = RunOptions { scenes: Some(vec!["nope".into()]), ..Default::default() };
+    let bad = RunOptions { outer_items: Some(vec!["nope".into()]), ..Default::default() };
     let store = Store::open(dir.path(), Access::Shared).unwrap();
     let ops = testkit::operators(&p);
     let err =

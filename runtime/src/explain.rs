@@ -3,10 +3,10 @@
 //! what, which input changed, or an upstream task will run.
 
 use crate::digest::Digest;
-use crate::exec::{select_scenes, Engine};
+use crate::exec::{select_outer, Engine};
 use crate::item::ItemKey;
 use crate::keys::{known_digests, Decision, Keys, Unknown};
-use crate::plan::{plan_scene, InputSrc, View};
+use crate::plan::{plan_outer, InputSrc, View};
 use crate::record::TaskRecord;
 use crate::runs::list_runs;
 use anyhow::Result;
@@ -32,11 +32,17 @@ struct Previous {
     inputs: Vec<(String, Vec<Digest>)>,
 }
 
-pub fn explain(engine: &Engine, scenes: Option<&[String]>, frame_limit: Option<u32>) -> Result<Vec<StageExplain>> {
+/// Explains the tasks under the selected outer items (all when `outer_items` is `None`), with the
+/// first `second_dim_limit` items along the second dimension, as [`crate::RunOptions`] selects them.
+pub fn explain(
+    engine: &Engine,
+    outer_items: Option<&[String]>,
+    second_dim_limit: Option<u32>,
+) -> Result<Vec<StageExplain>> {
     let p = engine.pipeline;
     let store = engine.store;
-    let view = View { space: engine.dataset, frame_limit };
-    let scenes = select_scenes(engine.dataset, scenes)?;
+    let view = View { space: engine.dataset, second_dim_limit };
+    let outers = select_outer(engine.dataset, &p.dims[0].name, outer_items)?;
 
     // The latest record of every (stage, item), for saying what changed.
     let mut previous: HashMap<(String, ItemKey), Previous> = HashMap::new();
@@ -78,8 +84,8 @@ pub fn explain(engine: &Engine, scenes: Option<&[String]>, frame_limit: Option<u
         out[n].stage = p.nodes[n].name.clone();
         out[n].kind = p.nodes[n].stage().unwrap().kind.clone();
     }
-    for scene in scenes {
-        let plan = plan_scene(p, &view, scene);
+    for outer in outers {
+        let plan = plan_outer(p, &view, outer);
         // Output digests of tasks known to be cached; None = will run.
         let mut outputs: Vec<Option<Vec<Digest>>> = vec![None; plan.tasks.len()];
         for (t, task) in plan.tasks.iter().enumerate() {

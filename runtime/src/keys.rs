@@ -11,7 +11,7 @@
 use crate::digest::{Digest, DigestBuilder};
 use crate::item::ItemKey;
 use crate::operator::{Dataset, FileDigests};
-use crate::plan::{InputSrc, ScenePlan};
+use crate::plan::{InputSrc, OuterPlan};
 use crate::record::OutputRef;
 use crate::store::Store;
 use anyhow::{Context, Result};
@@ -129,7 +129,7 @@ impl<'a> Keys<'a> {
     /// `hash` is set (the memo answers for unchanged files either way).
     pub fn resolve(
         &self,
-        plan: &ScenePlan,
+        plan: &OuterPlan,
         task: u32,
         upstream: impl Fn(u32, u16) -> Option<Digest>,
         hash: bool,

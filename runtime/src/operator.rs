@@ -1,6 +1,6 @@
 //! What the runtime runs: datasets (items and raw sources) and operators (stage functions).
 //!
-//! The runtime knows nothing of driving; the `stages` crate implements these traits.
+//! The runtime knows nothing of any domain; the `stages` crate implements these traits.
 
 use crate::digest::Digest;
 use crate::item::{ItemKey, ItemSpace};
@@ -12,7 +12,7 @@ use std::sync::Arc;
 pub type Blob = Arc<Vec<u8>>;
 
 /// One artifact given to a task: the upstream item it belongs to, its position in the selection
-/// (window/offset: the offset along the dimension; gather: the child index; scene: the running
+/// (window/offset: the offset along the dimension; gather: the child index; all: the running
 /// index), and its bytes.
 #[derive(Clone, Debug)]
 pub struct Artifact {
@@ -44,7 +44,7 @@ pub struct TaskContext<'a> {
     /// item key ([`crate::keys::task_seed`]), so it is the same whatever the thread count or run
     /// order. A stage that uses it must be declared seeded (its task keys then include the item).
     pub seed: u64,
-    /// The item's path of labels (`a/003/x`), for messages.
+    /// The item's path of labels (`s0/003/cam2`), for messages.
     pub label: &'a str,
 }
 
