@@ -1016,6 +1016,11 @@ impl<'c> Checker<'c> {
                 continue;
             }
             let grain = nodes[node].grain;
+            if grain == 0 {
+                // The stage's grain was refused (and reported) already: there is no grain to check
+                // the template's placeholders against.
+                continue;
+            }
             match parse_template(template, dims, grain) {
                 Ok(parts) => {
                     if out.iter().any(|e| e.template == template) {
@@ -1088,7 +1093,8 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
         match dims.iter().position(|d| d.name == name) {
             Some(k) if k < grain => parts.push(TemplatePart::Dim(k)),
             Some(_) => {
-                return Err(format!("`{{{name}}}` is finer than the stage's grain (per {})", dims[grain - 1].name))
+                let per = grain.checked_sub(1).and_then(|g| dims.get(g)).map_or("?", |d| d.name.as_str());
+                return Err(format!("`{{{name}}}` is finer than the stage's grain (per {per})"));
             }
             None => {
                 return Err(format!(

@@ -334,6 +334,21 @@ fn selectors_must_fit_the_grains() {
     assert!(out.contains("stage `bad_grain` (Project) cannot run per `frame`"), "{out}");
 }
 
+/// An exported stage whose grain is refused used to crash the check (the export template was read
+/// against grain 0); the grain is reported and the export left unchecked.
+#[test]
+fn an_exported_stage_with_a_bad_grain_is_a_diagnostic() {
+    for grain in ["scene", "nosuch", "42"] {
+        let text = GOOD.replace(
+            r#""encode": Encode(inputs: {"depth": "project.depth"}),"#,
+            &format!(r#""encode": Encode(inputs: {{"depth": "project.depth"}}, grain: {grain}),"#),
+        );
+        let out = errors(&text, &[]);
+        assert!(out.contains("stage `encode` (Encode) cannot run per"), "{grain}: {out}");
+        assert!(out.contains("1 problem found"), "{grain}: {out}");
+    }
+}
+
 #[test]
 fn exports_need_files_and_every_dimension_of_the_grain() {
     let text = GOOD.replace(
