@@ -417,8 +417,8 @@ fn run_pipeline(
     let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
     let mut opts = RunOptions {
         fail_fast,
-        scenes: p.scenes.clone(),
-        frame_limit: p.limit,
+        outer_items: p.scenes.clone(),
+        second_dim_limit: p.limit,
         out_dir: Some(out_dir.clone()),
         progress: progress_mode(progress),
         ..Default::default()

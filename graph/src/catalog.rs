@@ -9,7 +9,7 @@ use crate::params::ParamsSpec;
 #[derive(Clone, Copy, Debug)]
 pub struct PortSpec {
     pub name: &'static str,
-    /// Artifact type name, e.g. `DepthMap`. Wiring requires equal type names.
+    /// Artifact type name, e.g. `Image`. Wiring requires equal type names.
     pub ty: &'static str,
     /// An input that takes several artifacts (a window, a gather) rather than one.
     pub many: bool,
@@ -30,11 +30,12 @@ impl PortSpec {
     }
 }
 
-/// One dimension of a dataset's items, outermost first (e.g. scene, frame, camera).
+/// One dimension of a dataset's items, outermost first (e.g. a recording, its time steps, its
+/// sensors).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DimSpec {
     pub name: &'static str,
-    /// Whether `Window` and `Offset` selectors may move along it (frames yes, cameras no).
+    /// Whether `Window` and `Offset` selectors may move along it (time steps yes, a set of sensors no).
     pub ordered: bool,
 }
 

@@ -9,7 +9,7 @@ pub struct ParamProblem {
     pub field: &'static str,
     /// For a list field, the element at fault.
     pub index: Option<usize>,
-    /// The other field of a relation (`min_depth` must be below `max_depth`): when only that one
+    /// The other field of a relation (`min` must be below `max`): when only that one
     /// was written, the diagnostic points there.
     pub other: Option<&'static str>,
     /// What is wrong, as a predicate of the field: "must be in [0, 1], found NaN".

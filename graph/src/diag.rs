@@ -36,12 +36,12 @@ impl Diagnostic {
     /// Renders like rustc:
     ///
     /// ```text
-    /// error: unknown param `min_dept` of stage `project` (ProjectLidar)
-    ///   --> pipelines/lidar_depth.ron:12:13
+    /// error: unknown param `min_dept` of stage `project` (Project)
+    ///   --> pipelines/example.ron:12:13
     ///    |
     /// 12 |             min_dept: 1.0,
-    ///    |             ^^^^^^^^ not a param of ProjectLidar
-    ///    = note: ProjectLidar params: min_depth (default 1.0)
+    ///    |             ^^^^^^^^ not a param of this kind
+    ///    = note: params: min_depth (default 1.0)
     /// ```
     pub fn render(&self, sources: &Sources) -> String {
         let mut out = format!("error: {}\n", self.message);

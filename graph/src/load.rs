@@ -38,7 +38,7 @@ impl std::error::Error for LoadError {}
 
 /// Reads, overrides and checks a pipeline file.
 ///
-/// `overrides` are `target.field=value` strings (`project.min_depth=2`, `dataset.root=/data`);
+/// `overrides` are `target.field=value` strings (`stage.param=2`, `dataset.root=/data`);
 /// relative paths given through them resolve against `cwd`.
 pub fn load_file(path: &Path, overrides: &[String], cwd: &Path, catalog: &dyn Catalog) -> Result<Pipeline, LoadError> {
     let bytes = match std::fs::read(path) {
@@ -428,7 +428,11 @@ impl<'c> Checker<'c> {
         let Some(kind) = v.type_name() else {
             self.err(
                 Diagnostic::error(
-                    format!("`dataset` must name its kind, e.g. `NuScenes(root: \"..\")`, found {}", v.describe()),
+                    format!(
+                        "`dataset` must name its kind, e.g. `{}(..)`, found {}",
+                        self.catalog.dataset_kinds().first().unwrap_or(&"Kind"),
+                        v.describe()
+                    ),
                     v.span,
                 )
                 .with_note(format!("dataset kinds: {}", self.catalog.dataset_kinds().join(", "))),
@@ -507,7 +511,8 @@ impl<'c> Checker<'c> {
             self.err(
                 Diagnostic::error(
                     format!(
-                        "stage `{name}` must name its kind, e.g. `ProjectLidar(inputs: {{..}})`, found {}",
+                        "stage `{name}` must name its kind, e.g. `{}(inputs: {{..}})`, found {}",
+                        self.catalog.stage_kinds().first().unwrap_or(&"Kind"),
                         value.describe()
                     ),
                     value.span,
@@ -741,12 +746,12 @@ impl<'c> Checker<'c> {
         let _ = d.name_span;
     }
 
-    /// Parses `"stage.port"`, `Window("stage.port", frame, -1, 1)`, `Offset(..)`, `Gather(..)`, `Scene(..)`.
+    /// Parses `"stage.port"`, `Same(..)`, `Window("stage.port", dim, -1, 1)`, `Offset(..)`, `Gather(..)`, `All(..)`.
     fn selector(&mut self, v: &Value, dims: Option<&[Dim]>) -> Option<(String, Span, Selector)> {
         if let Some(s) = v.as_str() {
             return Some((s.to_string(), v.span, Selector::Same));
         }
-        let usage = "an input is \"stage.port\", Same(\"stage.port\"), Window(\"stage.port\", frame, -1, 1), Offset(\"stage.port\", frame, 2), Gather(\"stage.port\", camera) or Scene(\"stage.port\")";
+        let usage = selector_usage(dims);
         let ValueKind::Tuple(Some(name), items) = &v.kind else {
             self.err(
                 Diagnostic::error(format!("expected an input reference, found {}", v.describe()), v.span)
@@ -762,12 +767,12 @@ impl<'c> Checker<'c> {
             return None;
         };
         let arity = match name.text.as_str() {
-            "Same" | "Scene" => 1,
+            "Same" | "All" => 1,
             "Gather" => 2,
             "Offset" => 3,
             "Window" => 4,
             _ => {
-                self.err(Diagnostic::error(format!("unknown selector `{}`", name.text), name.span).with_note(usage));
+                self.err(Diagnostic::error(format!("unknown selector `{}`", name.text), name.span).with_note(&usage));
                 return None;
             }
         };
@@ -840,7 +845,7 @@ impl<'c> Checker<'c> {
         };
         let sel = match name.text.as_str() {
             "Same" => Selector::Same,
-            "Scene" => Selector::Scene,
+            "All" => Selector::All,
             "Gather" => Selector::Gather { dim: dim(self, 1, false)? },
             "Offset" => Selector::Offset { dim: dim(self, 1, true)?, by: int(self, 2)? },
             _ => {
@@ -848,7 +853,7 @@ impl<'c> Checker<'c> {
                 if before > after {
                     self.err(
                         Diagnostic::error(format!("the window {before}..{after} is empty"), v.span)
-                            .with_note("write Window(\"s.p\", frame, -1, 1) for t-1..t+1"),
+                            .with_note(format!("write Window(\"s.p\", {}, -1, 1) for i-1..i+1", dim_name(dims, dim))),
                     );
                     return None;
                 }
@@ -966,7 +971,8 @@ impl<'c> Checker<'c> {
         let ValueKind::Map(entries) = &v.kind else {
             self.err(Diagnostic::error(
                 format!(
-                    "`export` must be a map `{{\"stage.port\": \"{{scene}}/{{frame}}.ext\"}}`, found {}",
+                    "`export` must be a map `{{\"stage.port\": \"{}.ext\"}}`, found {}",
+                    dims.iter().map(|d| format!("{{{}}}", d.name)).collect::<Vec<_>>().join("/"),
                     v.describe()
                 ),
                 v.span,
@@ -1005,11 +1011,16 @@ impl<'c> Checker<'c> {
             if !self.catalog.exportable(ty) {
                 self.err(
                     Diagnostic::error(format!("`{reference}` gives {ty}, which is not an encoded file"), key.span)
-                        .with_note("export takes outputs of encoding stages (e.g. EncodeDepth.exr); add one between"),
+                        .with_note(format!("export writes encoded files; add a stage that encodes the {ty} between")),
                 );
                 continue;
             }
             let grain = nodes[node].grain;
+            if grain == 0 {
+                // The stage's grain was refused (and reported) already: there is no grain to check
+                // the template's placeholders against.
+                continue;
+            }
             match parse_template(template, dims, grain) {
                 Ok(parts) => {
                     if out.iter().any(|e| e.template == template) {
@@ -1027,8 +1038,23 @@ impl<'c> Checker<'c> {
     }
 }
 
+/// How inputs are written, with the dataset's dimension names when it is known.
+fn selector_usage(dims: Option<&[Dim]>) -> String {
+    let ordered = dims.and_then(|d| d.iter().position(|d| d.ordered)).map_or("dim", |k| dim_name(dims, k));
+    let innermost = dims.map_or("dim", |d| dim_name(dims, d.len().saturating_sub(1)));
+    format!(
+        "an input is \"stage.port\", Same(\"stage.port\"), Window(\"stage.port\", {ordered}, -1, 1), \
+         Offset(\"stage.port\", {ordered}, 2), Gather(\"stage.port\", {innermost}) or All(\"stage.port\")"
+    )
+}
+
+/// The name of dimension `k`, or `dim` when the dataset (and so its dimensions) is unknown.
+fn dim_name(dims: Option<&[Dim]>, k: usize) -> &str {
+    dims.and_then(|d| d.get(k)).map_or("dim", |d| d.name.as_str())
+}
+
 /// Largest offset a `Window` or `Offset` selector may take along a dimension: far beyond any
-/// scene's length (a 20 Hz log of an hour has 72,000 frames), small enough for `i32` positions.
+/// dimension's length (an hour at 20 Hz is 72,000 steps), small enough for `i32` positions.
 const MAX_SELECTOR_OFFSET: i32 = 999_999;
 
 /// Why a selector cannot connect an upstream grain `u` to a downstream grain `d` (depths, 1-based).
@@ -1045,11 +1071,11 @@ fn grain_allows(sel: Selector, u: usize, d: usize, dims: &[Dim]) -> Result<(), S
             "cannot be gathered over `{}`: Gather needs the upstream one grain finer than the stage, along that dimension",
             dims[dim].name
         )),
-        Selector::Scene => Ok(()),
+        Selector::All => Ok(()),
     }
 }
 
-/// `{scene}/{camera}/{frame}.exr` -> parts; the template must name every dimension of the grain.
+/// `{a}/{c}/{b}.exr` -> parts; the template must name every dimension of the grain (here a, b, c).
 fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<TemplatePart>, String> {
     if template.starts_with('/') || template.split('/').any(|s| s == ".." || s.is_empty()) {
         return Err("the path must be relative, without empty or `..` parts".into());
@@ -1067,7 +1093,8 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
         match dims.iter().position(|d| d.name == name) {
             Some(k) if k < grain => parts.push(TemplatePart::Dim(k)),
             Some(_) => {
-                return Err(format!("`{{{name}}}` is finer than the stage's grain (per {})", dims[grain - 1].name))
+                let per = grain.checked_sub(1).and_then(|g| dims.get(g)).map_or("?", |d| d.name.as_str());
+                return Err(format!("`{{{name}}}` is finer than the stage's grain (per {per})"));
             }
             None => {
                 return Err(format!(

@@ -11,23 +11,25 @@ pub type NodeId = usize;
 /// Which upstream items feed one task of a stage.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum Selector {
-    /// The item itself, or the enclosing item when the upstream grain is coarser
-    /// (a per-frame LiDAR sweep feeds each camera of its frame).
+    /// The item itself, or the enclosing item when the upstream grain is coarser (an upstream
+    /// item per `(a, b)` feeds each `(a, b, c)` under it).
     Same,
-    /// Items whose coordinate along `dim` lies in `i+before ..= i+after`, clipped to the scene.
+    /// Items whose coordinate along `dim` lies in `i+before ..= i+after`, clipped to the items
+    /// that exist.
     Window { dim: usize, before: i32, after: i32 },
-    /// The one item at `i+by` along `dim`; tasks whose offset falls outside the scene are not planned.
+    /// The one item at `i+by` along `dim`; tasks whose offset falls outside the items that exist
+    /// are not planned.
     Offset { dim: usize, by: i32 },
-    /// Every item of the next-finer grain `dim` under this item (all cameras of a frame).
+    /// Every item of the next-finer grain `dim` under this item.
     Gather { dim: usize },
-    /// Every upstream item of the scene (outermost dimension).
-    Scene,
+    /// Every upstream item under the same outer item (the item of the outermost dimension).
+    All,
 }
 
 impl Selector {
     /// Whether the selector can give more than one artifact.
     pub fn gives_many(self) -> bool {
-        matches!(self, Selector::Window { .. } | Selector::Gather { .. } | Selector::Scene)
+        matches!(self, Selector::Window { .. } | Selector::Gather { .. } | Selector::All)
     }
 
     /// RON form, for `graph` output and messages.
@@ -39,7 +41,7 @@ impl Selector {
             }
             Selector::Offset { dim, by } => format!("Offset({}, {by})", dims[dim].name),
             Selector::Gather { dim } => format!("Gather({})", dims[dim].name),
-            Selector::Scene => "Scene".into(),
+            Selector::All => "All".into(),
         }
     }
 }
@@ -91,7 +93,8 @@ pub enum NodeKind {
 pub struct Node {
     /// `dataset.<port>` for sources, the stage name for stages.
     pub name: String,
-    /// Number of dimensions of this node's items: 1 = per scene, 2 = per frame, 3 = per camera.
+    /// Number of dimensions of this node's items: 1 = per item of the outermost dimension, 2 = per
+    /// item of the second, and so on (0 only in a pipeline that did not load).
     pub grain: usize,
     pub outputs: Vec<OutPort>,
     pub kind: NodeKind,
@@ -118,7 +121,7 @@ pub enum TemplatePart {
 pub struct Export {
     pub node: NodeId,
     pub port: usize,
-    /// The template as written, e.g. `{scene}/{camera}/{frame}.exr`.
+    /// The template as written, with one `{dimension}` placeholder per dimension of the grain.
     pub template: String,
     pub parts: Vec<TemplatePart>,
 }

@@ -27,7 +27,7 @@ pub enum ValueKind {
     Float(f64),
     Str(String),
     Char(char),
-    /// A bare identifier: a unit enum variant such as `None` or `frame`.
+    /// A bare identifier: a unit enum variant such as `None`, or a dimension name.
     Ident(String),
     List(Vec<Value>),
     Map(Vec<(Value, Value)>),

@@ -289,6 +289,24 @@ fn cycles_name_their_stages() {
 }
 
 #[test]
+fn all_reads_every_upstream_item_under_the_outer_item() {
+    let text = GOOD.replace(
+        r#""window": Fuse("#,
+        r#""all": Fuse(inputs: {"depths": All("project.depth")}, grain: frame),
+        "window": Fuse("#,
+    );
+    let p = load(&text, &[]).unwrap();
+    let all = p.nodes[p.node_by_name("all").unwrap()].stage().unwrap();
+    assert_eq!(all.inputs[0].selector, Selector::All);
+    assert!(p.to_dot().contains("depth -> depths All"), "{}", p.to_dot());
+    // The selector names no dimension; the usage note speaks the dataset's own dimension names.
+    let out = errors(&text.replace("All(", "Scene("), &[]);
+    assert!(out.contains("unknown selector `Scene`"), "{out}");
+    assert!(out.contains(r#"Window("stage.port", frame, -1, 1)"#), "{out}");
+    assert!(out.contains(r#"Gather("stage.port", camera) or All("stage.port")"#), "{out}");
+}
+
+#[test]
 fn selectors_must_fit_the_grains() {
     let text = r#"Pipeline(
     dataset: NuScenes(root: "d"),
@@ -314,6 +332,21 @@ fn selectors_must_fit_the_grains() {
     );
     assert!(out.contains("the dataset has no dimension `time`"), "{out}");
     assert!(out.contains("stage `bad_grain` (Project) cannot run per `frame`"), "{out}");
+}
+
+/// An exported stage whose grain is refused used to crash the check (the export template was read
+/// against grain 0); the grain is reported and the export left unchecked.
+#[test]
+fn an_exported_stage_with_a_bad_grain_is_a_diagnostic() {
+    for grain in ["scene", "nosuch", "42"] {
+        let text = GOOD.replace(
+            r#""encode": Encode(inputs: {"depth": "project.depth"}),"#,
+            &format!(r#""encode": Encode(inputs: {{"depth": "project.depth"}}, grain: {grain}),"#),
+        );
+        let out = errors(&text, &[]);
+        assert!(out.contains("stage `encode` (Encode) cannot run per"), "{grain}: {out}");
+        assert!(out.contains("1 problem found"), "{grain}: {out}");
+    }
 }
 
 #[test]

@@ -1,28 +1,30 @@
 //! The scheduler: runs a pipeline's tasks over the dataset's items.
 //!
-//! One coordinator thread owns all task state. It plans scenes lazily (a task budget bounds how
-//! many are in flight), resolves cache hits itself when every input digest is known cheaply,
-//! and sends the rest to a rayon pool. Workers compute what needs reading (raw-file digests,
-//! input blobs), run the operator, store outputs and the task record, and report back on a
-//! crossbeam channel. Ready tasks are taken in (scene, frame, stage) order, so items stream
-//! through the stages and a frame can finish before later frames start.
+//! One coordinator thread owns all task state. It plans the items of the outermost dimension
+//! lazily, one at a time (a task budget bounds how many are in flight), resolves cache hits itself
+//! when every input digest is known cheaply (through [`crate::keys`]), and sends the rest to a
+//! rayon pool. Workers compute what needs reading (raw-file digests, input blobs), run the
+//! operator, store outputs and the task record, and report back on a crossbeam channel. Ready
+//! tasks are taken in (outer item, position along the second dimension, stage) order, so items
+//! stream through the stages: an item can finish before later items start.
 
 use crate::digest::{Digest, DigestBuilder};
 use crate::export::{ExportJob, Exporter, FileStat};
 use crate::item::{ItemKey, ItemSpace};
-use crate::operator::{Artifact, Blob, Dataset, FileDigests, Operator, TaskContext};
-use crate::plan::{plan_scene, InputSrc, ScenePlan, View};
+use crate::keys::{Decision, Input, Keys, Unknown};
+use crate::operator::{Artifact, Blob, Dataset, Operator, Output, TaskContext};
+use crate::plan::{plan_outer, InputSrc, OuterPlan, View};
 use crate::progress::{Counters, ProgressMode, Reporter};
 use crate::record::{OutputRef, RecordInput, TaskRecord, INLINE_MAX};
 use crate::runs::{self, Failure, RunRecord, RunStatus, StageStats};
 use crate::store::{BlobError, Store};
 use anyhow::{anyhow, bail, Context, Result};
 use crossbeam_channel::{unbounded, Receiver, RecvTimeoutError, Sender};
-use dist4d_graph::{NodeKind, Pipeline, StageNode};
+use dist4d_graph::{NodeKind, Pipeline};
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap};
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -34,10 +36,10 @@ pub struct RunOptions {
     pub jobs: usize,
     /// Stop at the first failing task.
     pub fail_fast: bool,
-    /// Only these scenes (by label); all when `None`.
-    pub scenes: Option<Vec<String>>,
-    /// Only the first N frames (items of the second dimension) of each scene.
-    pub frame_limit: Option<u32>,
+    /// Only these items of the outermost dimension (by label); all when `None`.
+    pub outer_items: Option<Vec<String>>,
+    /// Only the first N items along the second dimension under each outer item.
+    pub second_dim_limit: Option<u32>,
     /// Where exported files go; nothing is exported when `None`.
     pub out_dir: Option<PathBuf>,
     /// Set (by a Ctrl-C handler) to stop cleanly: running tasks finish, nothing new starts.
@@ -50,8 +52,8 @@ impl Default for RunOptions {
         RunOptions {
             jobs: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
             fail_fast: false,
-            scenes: None,
-            frame_limit: None,
+            outer_items: None,
+            second_dim_limit: None,
             out_dir: None,
             cancel: Arc::new(AtomicBool::new(false)),
             progress: ProgressMode::Off,
@@ -88,26 +90,9 @@ pub fn pipeline_digest(p: &Pipeline) -> Digest {
     b.finish()
 }
 
-/// The task key: stage kind and version, canonical params, the digests of the exact inputs (with
-/// their positions), and the item for seeded stages. Not the upstream task identity: a rerun
-/// upstream task that yields the same bytes leaves downstream keys unchanged (early cutoff).
-pub fn task_key(stage: &StageNode, params: &Digest, item: &ItemKey, inputs: &[Vec<(i64, Digest)>]) -> Digest {
-    let mut b = DigestBuilder::new("dist4d-task-v1");
-    b.str(&stage.kind).u64(stage.version as u64).digest(params);
-    for (spec, got) in stage.inputs.iter().zip(inputs) {
-        b.str(&spec.port).u64(got.len() as u64);
-        for (pos, d) in got {
-            b.u64(*pos as u64).digest(d);
-        }
-    }
-    if stage.seeded {
-        b.bytes(&item.to_bytes());
-    }
-    b.finish()
-}
-
-/// Scene indices selected by label (all when `names` is `None`).
-pub fn select_scenes(space: &dyn ItemSpace, names: Option<&[String]>) -> Result<Vec<u32>> {
+/// Indices of the items of the outermost dimension (named `dim`) selected by label (all when
+/// `names` is `None`).
+pub fn select_outer(space: &dyn ItemSpace, dim: &str, names: Option<&[String]>) -> Result<Vec<u32>> {
     let n = space.count(&ItemKey::new(&[]));
     let Some(names) = names else { return Ok((0..n).collect()) };
     let labels: Vec<String> = (0..n).map(|i| space.label(&ItemKey::new(&[i]))).collect();
@@ -118,7 +103,7 @@ pub fn select_scenes(space: &dyn ItemSpace, names: Option<&[String]>) -> Result<
             None => {
                 let some: Vec<&str> = labels.iter().take(8).map(|s| s.as_str()).collect();
                 bail!(
-                    "the dataset has no scene `{name}` (it has {n}: {}{})",
+                    "the dataset has no {dim} `{name}` (it has {n}: {}{})",
                     some.join(", "),
                     if n > 8 { ", ..." } else { "" }
                 );
@@ -151,15 +136,15 @@ enum State {
     Skipped,
 }
 
-struct SceneRun {
-    plan: ScenePlan,
+struct OuterRun {
+    plan: OuterPlan,
     seq: u64,
     state: Vec<State>,
     waiting: Vec<u32>,
     readers_left: Vec<u32>,
     outputs: Vec<Option<Arc<Vec<Produced>>>>,
     open: usize,
-    /// Export writes of this scene still running: the scene stays active until they end, so that
+    /// Export writes of this outer item still running: it stays active until they end, so that
     /// a task whose blob turns out corrupt when exported can still be run again.
     exports_pending: usize,
     /// Finished tasks being run again because a blob of theirs was found missing or corrupt, with
@@ -169,7 +154,7 @@ struct SceneRun {
     redone: HashMap<u32, u32>,
 }
 
-impl SceneRun {
+impl OuterRun {
     fn closed(&self) -> bool {
         self.open == 0 && self.exports_pending == 0 && self.redoing.is_empty()
     }
@@ -179,7 +164,7 @@ impl SceneRun {
 /// that keeps losing blobs (a failing disk) must not make a run loop.
 const MAX_REDO: u32 = 2;
 
-/// Where a worker finds one input artifact.
+/// Where a worker finds the bytes of one input artifact.
 enum Src {
     Mem(Blob),
     Inline(Arc<[u8]>),
@@ -187,20 +172,22 @@ enum Src {
     Source { port: String },
 }
 
-struct InputJob {
-    item: ItemKey,
-    pos: i64,
-    digest: Option<Digest>,
-    src: Src,
-}
-
 struct Job {
     slot: u32,
     task: u32,
     node: usize,
     item: ItemKey,
+    /// Known when the coordinator could compute it without hashing raw files.
     key: Option<Digest>,
-    inputs: Vec<Vec<InputJob>>,
+    inputs: Vec<Vec<Input>>,
+    /// Where the bytes of each input are, in the shape of `inputs`.
+    srcs: Vec<Vec<Src>>,
+}
+
+/// A ready task, as the coordinator found it.
+enum Prepared {
+    Cached(Digest, Vec<OutputRef>),
+    Job(Job),
 }
 
 enum Outcome {
@@ -213,7 +200,8 @@ enum Msg {
     Exported { slot: u32, task: u32, rel: String, result: Result<FileStat> },
 }
 
-/// Heap entry: lower sorts first (earlier scene, earlier frame, earlier stage).
+/// Heap entry: lower sorts first (earlier outer item, earlier position along the second dimension,
+/// earlier stage).
 type ReadyEntry = Reverse<(u64, u32, u32, u32, u32)>;
 
 impl<'a> Engine<'a> {
@@ -225,15 +213,14 @@ impl<'a> Engine<'a> {
         let millis =
             std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis()).unwrap_or(0);
         let run_id = format!("{millis:013}-{}", self.store.writer_id());
-        let scenes = select_scenes(self.dataset, opts.scenes.as_deref())?;
-        let view = View { space: self.dataset, frame_limit: opts.frame_limit };
+        let outers = select_outer(self.dataset, &p.dims[0].name, opts.outer_items.as_deref())?;
+        let view = View { space: self.dataset, second_dim_limit: opts.second_dim_limit };
 
+        let keys = Keys::new(p, self.dataset, self.store);
         // Canonical params are stored as blobs so that explain can show what changed.
-        let mut params_digest = vec![Digest::default(); p.nodes.len()];
         for n in p.stage_order() {
             let text = &p.nodes[n].stage().unwrap().params.canonical;
-            params_digest[n] = Digest::of(text.as_bytes());
-            self.store.put_blob(&params_digest[n], text.as_bytes())?;
+            self.store.put_blob(&keys.params(n), text.as_bytes())?;
         }
 
         let stage_nodes: Vec<usize> = p.stage_order().collect();
@@ -249,10 +236,10 @@ impl<'a> Engine<'a> {
             }
             v
         };
-        // Expected totals, corrected as scenes are planned.
+        // Expected totals, corrected as outer items are planned.
         for (i, &n) in stage_nodes.iter().enumerate() {
             let mut total = 0u64;
-            for &s in &scenes {
+            for &s in &outers {
                 total += count_items(&view, ItemKey::new(&[s]), p.nodes[n].grain);
             }
             counters.total[i].store(total, Ordering::Relaxed);
@@ -303,8 +290,8 @@ impl<'a> Engine<'a> {
             live_tasks: 0,
             export_jobs: Vec::new(),
         };
-        let ctx = Ctx { engine: self, params_digest: &params_digest };
-        let mut next_scene = 0usize;
+        let ctx = Ctx { engine: self, keys: &keys };
+        let mut next_outer = 0usize;
         let mut inflight = 0usize;
         let mut stopping: Option<RunStatus> = None;
 
@@ -314,34 +301,32 @@ impl<'a> Engine<'a> {
                 if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
                     stopping = Some(RunStatus::Interrupted);
                 }
-                // Admit scenes while there is room.
-                while stopping.is_none() && next_scene < scenes.len() && c.live_tasks < task_budget {
-                    c.admit(p, &view, scenes[next_scene], next_scene as u64, &stage_nodes);
-                    next_scene += 1;
+                // Admit outer items while there is room.
+                while stopping.is_none() && next_outer < outers.len() && c.live_tasks < task_budget {
+                    c.admit(p, &view, outers[next_outer], next_outer as u64, &stage_nodes);
+                    next_outer += 1;
                 }
 
                 // Start ready tasks: cache hits complete here, the rest go to the pool.
                 while stopping.is_none() && inflight < max_inflight {
                     let Some(Reverse((_, _, _, slot, task))) = c.ready.pop() else { break };
-                    let prepared = ctx.prepare(c.active[slot as usize].as_ref().unwrap(), slot, task);
-                    let hit = match &prepared {
-                        Ok(Job { key: Some(key), .. }) => self.cache_hit(key).map(|outs| (*key, outs)),
-                        _ => None,
-                    };
-                    match (prepared, hit) {
-                        (Err(e), _) => c.finish(self, slot, task, Err(e))?,
-                        (Ok(_), Some((key, outs))) => c.finish(self, slot, task, Ok(Outcome::Cached(key, outs)))?,
-                        (Ok(job), None) => {
+                    match ctx.prepare(c.active[slot as usize].as_ref().unwrap(), slot, task) {
+                        Err(e) => c.finish(self, slot, task, Err(e))?,
+                        Ok(Prepared::Cached(key, outs)) => {
+                            c.finish(self, slot, task, Ok(Outcome::Cached(key, outs)))?
+                        }
+                        Ok(Prepared::Job(job)) => {
                             c.active[slot as usize].as_mut().unwrap().state[task as usize] = State::Running;
                             inflight += 1;
                             let tx = tx.clone();
-                            let params = params_digest[job.node];
+                            let keys = &keys;
                             scope.spawn(move |_| {
                                 let (slot, task) = (job.slot, job.task);
-                                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                                    self.execute(job, params)
-                                }))
-                                .unwrap_or_else(|panic| Err(anyhow!("the stage panicked: {}", panic_message(&panic))));
+                                let result =
+                                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.execute(job, keys)))
+                                        .unwrap_or_else(|panic| {
+                                            Err(anyhow!("the stage panicked: {}", panic_message(&panic)))
+                                        });
                                 let _ = tx.send(Msg::Task { slot, task, result });
                             });
                         }
@@ -352,9 +337,9 @@ impl<'a> Engine<'a> {
                     inflight += c.spawn_exports(scope, &tx);
                 }
 
-                let scenes_left = stopping.is_none() && next_scene < scenes.len();
+                let outers_left = stopping.is_none() && next_outer < outers.len();
                 let ready_left = stopping.is_none() && !c.ready.is_empty();
-                if inflight == 0 && !scenes_left && !ready_left {
+                if inflight == 0 && !outers_left && !ready_left {
                     return Ok(());
                 }
                 if inflight == 0 {
@@ -417,59 +402,32 @@ impl<'a> Engine<'a> {
         Ok(RunSummary { record })
     }
 
-    /// The outputs of a finished task with this key, if all of them can still be read.
-    fn cache_hit(&self, key: &Digest) -> Option<Vec<OutputRef>> {
-        let rec = self.store.lookup(key)?;
-        // A record whose blob was removed (by hand, or found corrupt) is not a hit: recompute.
-        rec.outputs.iter().all(|o| o.inline.is_some() || self.store.has_blob(&o.digest)).then_some(rec.outputs)
-    }
-
-    /// Worker side: resolve the key if the coordinator could not, check the cache, else run.
-    fn execute(&self, mut job: Job, params: Digest) -> Result<Outcome> {
+    /// Worker side: key the task if the coordinator could not (hashing raw files), check the
+    /// cache, else run it and store its outputs and record.
+    fn execute(&self, mut job: Job, keys: &Keys) -> Result<Outcome> {
         let node = &self.pipeline.nodes[job.node];
         let stage = node.stage().expect("jobs are for stages");
         let label = self.dataset.path(&job.item);
-        let files = StoreFiles { store: self.store, allow_hash: true };
         let key = match job.key {
             Some(k) => k,
             None => {
-                for (input, spec) in job.inputs.iter_mut().zip(&stage.inputs) {
-                    for a in input.iter_mut() {
-                        if a.digest.is_none() {
-                            if let Src::Source { port } = &a.src {
-                                let d = self
-                                    .dataset
-                                    .source_digest(port, &a.item, &files)
-                                    .with_context(|| {
-                                        format!("fingerprinting dataset.{port} for {}", self.dataset.path(&a.item))
-                                    })?
-                                    .ok_or_else(|| {
-                                        anyhow!(
-                                            "dataset.{port}: no digest for {} (input `{}`)",
-                                            self.dataset.path(&a.item),
-                                            spec.port
-                                        )
-                                    })?;
-                                a.digest = Some(d);
-                            }
-                        }
-                    }
+                keys.hash_sources(&mut job.inputs);
+                if let Some(e) = take_unreadable(&mut job.inputs) {
+                    return Err(e);
                 }
-                let digests: Vec<Vec<(i64, Digest)>> =
-                    job.inputs.iter().map(|i| i.iter().map(|a| (a.pos, a.digest.unwrap())).collect()).collect();
-                let key = task_key(stage, &params, &job.item, &digests);
-                if let Some(outputs) = self.cache_hit(&key) {
-                    return Ok(Outcome::Cached(key, outputs));
+                match keys.decide(job.node, &job.item, &job.inputs) {
+                    Decision::Cached { key, outputs } => return Ok(Outcome::Cached(key, outputs)),
+                    Decision::Run { key } => key,
+                    Decision::Unknown => bail!("{}", self.unknown_inputs(&job)),
                 }
-                key
             }
         };
         let t0 = Instant::now();
         let mut artifacts: Vec<Vec<Artifact>> = Vec::with_capacity(job.inputs.len());
-        for (input, spec) in job.inputs.iter().zip(&stage.inputs) {
+        for ((input, srcs), spec) in job.inputs.iter().zip(&job.srcs).zip(&stage.inputs) {
             let mut list = Vec::with_capacity(input.len());
-            for a in input {
-                let bytes: Blob = match &a.src {
+            for (a, src) in input.iter().zip(srcs) {
+                let bytes: Blob = match src {
                     Src::Mem(b) => b.clone(),
                     Src::Inline(b) => Arc::new(b.to_vec()),
                     Src::Cas(d) => {
@@ -481,14 +439,11 @@ impl<'a> Engine<'a> {
                             .with_context(|| format!("reading dataset.{port} for {}", self.dataset.path(&a.item)))?,
                     ),
                 };
-                list.push(Artifact { item: a.item, pos: a.pos, bytes });
+                list.push(Artifact { item: a.item, pos: a.pos(), bytes });
             }
             artifacts.push(list);
         }
-        let seed = u64::from_le_bytes(
-            DigestBuilder::new("seed").bytes(&job.item.to_bytes()).finish().0[..8].try_into().unwrap(),
-        );
-        let ctx = TaskContext { item: job.item, seed, label: &label };
+        let ctx = TaskContext { item: job.item, seed: keys.seed(job.node, &job.item), label: &label };
         let outs = self.operators[job.node]
             .as_ref()
             .ok_or_else(|| anyhow!("no operator for stage `{}`", node.name))?
@@ -496,16 +451,29 @@ impl<'a> Engine<'a> {
             .with_context(|| format!("{} ({})", node.name, stage.kind))?;
         if outs.len() != node.outputs.len() {
             bail!(
-                "stage `{}` ({}) returned {} outputs, its kind declares {}",
+                "stage `{}` ({}) returned {} outputs, its kind declares {}; nothing was stored",
                 node.name,
                 stage.kind,
                 outs.len(),
                 node.outputs.len()
             );
         }
+        // Before anything enters the cache: a mistyped output would fail only in a reader downstream.
+        for (out, port) in outs.iter().zip(&node.outputs) {
+            if out.ty != port.ty {
+                bail!(
+                    "stage `{}` ({}) returned a {} for output `{}`, which is declared {}; nothing was stored",
+                    node.name,
+                    stage.kind,
+                    out.ty,
+                    port.name,
+                    port.ty
+                );
+            }
+        }
         let micros = t0.elapsed().as_micros() as u64;
         let mut produced = Vec::with_capacity(outs.len());
-        for bytes in outs {
+        for Output { bytes, .. } in outs {
             let digest = Digest::of(&bytes);
             let size = bytes.len() as u64;
             let inline = if bytes.len() <= INLINE_MAX {
@@ -522,14 +490,14 @@ impl<'a> Engine<'a> {
             item: job.item,
             kind: stage.kind.clone(),
             version: stage.version,
-            params,
+            params: keys.params(job.node),
             inputs: stage
                 .inputs
                 .iter()
                 .zip(&job.inputs)
                 .map(|(spec, got)| RecordInput {
                     port: spec.port.clone(),
-                    digests: got.iter().map(|a| a.digest.unwrap_or_default()).collect(),
+                    digests: got.iter().map(|a| a.digest.as_ref().copied().unwrap_or_default()).collect(),
                 })
                 .collect(),
             outputs: produced.iter().map(|p| p.r.clone()).collect(),
@@ -542,11 +510,27 @@ impl<'a> Engine<'a> {
         self.store.append_record(&record)?;
         Ok(Outcome::Executed(key, produced, micros))
     }
+
+    /// Which inputs of a job still have no digest after hashing, for the error.
+    fn unknown_inputs(&self, job: &Job) -> String {
+        let stage = self.pipeline.nodes[job.node].stage().expect("jobs are for stages");
+        let mut missing = Vec::new();
+        for (input, spec) in job.inputs.iter().zip(&stage.inputs) {
+            for a in input.iter().filter(|a| a.digest.is_err()) {
+                let from = match a.src {
+                    InputSrc::Task { task, .. } => format!("upstream task {task}"),
+                    InputSrc::Source { node, .. } => self.pipeline.nodes[node as usize].name.clone(),
+                };
+                missing.push(format!("input `{}` ({from} for {})", spec.port, self.dataset.path(&a.item)));
+            }
+        }
+        format!("no digest for {}", missing.join(", "))
+    }
 }
 
 /// The coordinator's state: only the coordinator thread touches it.
 struct Coord {
-    active: Vec<Option<SceneRun>>,
+    active: Vec<Option<OuterRun>>,
     ready: BinaryHeap<ReadyEntry>,
     stats: Vec<StageStats>,
     counters: Arc<Counters>,
@@ -561,12 +545,12 @@ struct Coord {
 }
 
 impl Coord {
-    /// Plans a scene and queues its tasks that have no upstream tasks.
-    fn admit(&mut self, p: &Pipeline, view: &View, scene: u32, seq: u64, stage_nodes: &[usize]) {
-        let plan = plan_scene(p, view, scene);
-        // Tasks that could not be planned (offsets past the scene's end) leave the totals.
+    /// Plans an outer item and queues its tasks that have no upstream tasks.
+    fn admit(&mut self, p: &Pipeline, view: &View, outer: u32, seq: u64, stage_nodes: &[usize]) {
+        let plan = plan_outer(p, view, outer);
+        // Tasks that could not be planned (offsets past the end of a dimension) leave the totals.
         for (i, &n) in stage_nodes.iter().enumerate() {
-            let expected = count_items(view, ItemKey::new(&[scene]), p.nodes[n].grain);
+            let expected = count_items(view, ItemKey::new(&[outer]), p.nodes[n].grain);
             let planned = plan.tasks.iter().filter(|t| t.node as usize == n).count() as u64;
             self.counters.total[i].fetch_sub(expected - planned, Ordering::Relaxed);
         }
@@ -582,7 +566,7 @@ impl Coord {
                 self.active.len() - 1
             }
         };
-        let run = SceneRun {
+        let run = OuterRun {
             seq,
             state: vec![State::Waiting; n],
             waiting: plan.tasks.iter().map(|t| t.upstream).collect(),
@@ -728,7 +712,7 @@ impl Coord {
     }
 
     /// A blob that finished task `u` produced is missing or corrupt, found by its reader `t`:
-    /// runs `u` again and makes `t` wait for it. False when no task of the scene made that blob,
+    /// runs `u` again and makes `t` wait for it. False when no task of the outer item made that blob,
     /// or `u` was already run again [`MAX_REDO`] times.
     fn heal(&mut self, slot: u32, t: usize, digest: Digest) -> bool {
         let run = self.active[slot as usize].as_ref().unwrap();
@@ -849,77 +833,73 @@ impl Coord {
 
 struct Ctx<'e, 'a> {
     engine: &'e Engine<'a>,
-    params_digest: &'e [Digest],
+    keys: &'e Keys<'e>,
 }
 
 impl Ctx<'_, '_> {
-    /// Gathers a task's inputs; computes its key when every digest is known without hashing files.
-    fn prepare(&self, run: &SceneRun, slot: u32, task: u32) -> Result<Job> {
-        let e = self.engine;
-        let p = e.pipeline;
+    /// Resolves a ready task's inputs without hashing raw files, and decides through the key
+    /// layer whether it is cached; otherwise makes the job a worker runs.
+    fn prepare(&self, run: &OuterRun, slot: u32, task: u32) -> Result<Prepared> {
+        let p = self.engine.pipeline;
         let t = &run.plan.tasks[task as usize];
         let node = t.node as usize;
-        let stage = p.nodes[node].stage().unwrap();
-        let files = StoreFiles { store: e.store, allow_hash: false };
-        let mut known = true;
-        let mut inputs = Vec::with_capacity(t.inputs.len());
-        for srcs in &t.inputs {
-            let mut list = Vec::with_capacity(srcs.len());
-            for src in srcs {
-                list.push(match *src {
-                    InputSrc::Task { task: u, port, pos } => {
-                        let outs = run.outputs[u as usize]
-                            .as_ref()
-                            .expect("upstream finished before its dependents are ready");
-                        let o = &outs[port as usize];
-                        let src = match (&o.mem, &o.r.inline) {
-                            (Some(m), _) => Src::Mem(m.clone()),
-                            (None, Some(b)) => Src::Inline(b.clone()),
-                            (None, None) => Src::Cas(o.r.digest),
-                        };
-                        InputJob { item: run.plan.tasks[u as usize].item, pos, digest: Some(o.r.digest), src }
-                    }
-                    InputSrc::Source { node: sn, item, pos } => {
-                        let NodeKind::Source { port } = &p.nodes[sn as usize].kind else { unreachable!("source node") };
-                        let digest = e
-                            .dataset
-                            .source_digest(port, &item, &files)
-                            .with_context(|| format!("fingerprinting dataset.{port} for {}", e.dataset.path(&item)))?;
-                        known &= digest.is_some();
-                        InputJob { item, pos, digest, src: Src::Source { port: port.clone() } }
-                    }
-                });
-            }
-            inputs.push(list);
+        let output = |u: u32, port: u16| run.outputs[u as usize].as_ref().map(|o| &o[port as usize]);
+        let mut inputs = self.keys.resolve(&run.plan, task, |u, port| output(u, port).map(|o| o.r.digest), false);
+        if let Some(e) = take_unreadable(&mut inputs) {
+            return Err(e);
         }
-        let key = known.then(|| {
-            let digests: Vec<Vec<(i64, Digest)>> =
-                inputs.iter().map(|i: &Vec<InputJob>| i.iter().map(|a| (a.pos, a.digest.unwrap())).collect()).collect();
-            task_key(stage, &self.params_digest[node], &t.item, &digests)
-        });
-        Ok(Job { slot, task, node, item: t.item, key, inputs })
+        let key = match self.keys.decide(node, &t.item, &inputs) {
+            Decision::Cached { key, outputs } => return Ok(Prepared::Cached(key, outputs)),
+            Decision::Run { key } => Some(key),
+            Decision::Unknown => None,
+        };
+        let srcs = t
+            .inputs
+            .iter()
+            .map(|srcs| {
+                srcs.iter()
+                    .map(|src| match *src {
+                        InputSrc::Task { task: u, port, .. } => {
+                            let o = output(u, port).expect("upstream finished before its dependents are ready");
+                            match (&o.mem, &o.r.inline) {
+                                (Some(m), _) => Src::Mem(m.clone()),
+                                (None, Some(b)) => Src::Inline(b.clone()),
+                                (None, None) => Src::Cas(o.r.digest),
+                            }
+                        }
+                        InputSrc::Source { node: sn, .. } => match &p.nodes[sn as usize].kind {
+                            NodeKind::Source { port } => Src::Source { port: port.clone() },
+                            NodeKind::Stage(_) => unreachable!("source inputs come from source nodes"),
+                        },
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok(Prepared::Job(Job { slot, task, node, item: t.item, key, inputs, srcs }))
     }
 }
 
-struct StoreFiles<'s> {
-    store: &'s Store,
-    allow_hash: bool,
-}
-
-impl FileDigests for StoreFiles<'_> {
-    fn file_digest(&self, path: &Path) -> Result<Option<Digest>> {
-        self.store.file_digest(path, self.allow_hash)
+/// The error of the first input whose dataset source could not be fingerprinted, if any.
+fn take_unreadable(inputs: &mut [Vec<Input>]) -> Option<anyhow::Error> {
+    for input in inputs.iter_mut().flatten() {
+        if matches!(input.digest, Err(Unknown::Unreadable(_))) {
+            if let Err(Unknown::Unreadable(e)) = std::mem::replace(&mut input.digest, Err(Unknown::Unhashed)) {
+                return Some(e);
+            }
+        }
     }
+    None
 }
 
-fn entry(run: &SceneRun, slot: u32, task: u32, rank: &[u32]) -> ReadyEntry {
+fn entry(run: &OuterRun, slot: u32, task: u32, rank: &[u32]) -> ReadyEntry {
     let t = &run.plan.tasks[task as usize];
-    let frame = if t.item.depth >= 2 { t.item.idx[1] } else { u32::MAX };
-    Reverse((run.seq, frame, rank[t.node as usize], slot, task))
+    // Items without a second coordinate (per outer item) come after those with one.
+    let second = if t.item.depth >= 2 { t.item.idx[1] } else { u32::MAX };
+    Reverse((run.seq, second, rank[t.node as usize], slot, task))
 }
 
 /// A task no longer needs its inputs: upstream outputs nobody else will read drop their bytes.
-fn release_inputs(run: &mut SceneRun, t: usize) {
+fn release_inputs(run: &mut OuterRun, t: usize) {
     let mut seen: Vec<u32> = Vec::new();
     for srcs in &run.plan.tasks[t].inputs {
         for src in srcs {

@@ -124,6 +124,29 @@ fn a_failing_item_skips_its_dependents_and_the_rest_goes_on() {
 }
 
 #[test]
+fn an_output_of_the_wrong_type_fails_its_task_before_it_is_cached() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &["b.mistag=true"]);
+    let grid = testkit::grid_of(&p);
+    let r = run(&p, &grid, dir.path());
+    assert_eq!(r.status, RunStatus::Failed);
+    assert_eq!(r.failures.len(), 24);
+    assert!(r.failures.iter().all(|f| f.stage == "b"));
+    let err = &r.failures[0].error;
+    assert!(
+        err.contains(
+            "stage `b` (Echo) returned a Mistagged for output `y`, which is declared Bytes; nothing was stored"
+        ),
+        "{err}"
+    );
+    // Nothing of b was cached: the same run again runs (and fails) every b task again.
+    let again = run(&p, &grid, dir.path());
+    assert_eq!(stat(&again, "b").failed, 24);
+    assert_eq!(stat(&again, "b").cached, 0);
+    assert_eq!(stat(&again, "a").cached, 24);
+}
+
+#[test]
 fn fail_fast_stops_at_the_first_failure() {
     let dir = tempfile::tempdir().unwrap();
     let p = testkit::load(CHAIN, &["a.fail_on=[\"s0/000/cam0\"]"]);
@@ -191,10 +214,11 @@ fn scene_and_frame_filters_restrict_the_items() {
     let dir = tempfile::tempdir().unwrap();
     let p = testkit::load(CHAIN, &[]);
     let grid = testkit::grid_of(&p);
-    let opts = RunOptions { jobs: 2, scenes: Some(vec!["s1".into()]), frame_limit: Some(2), ..Default::default() };
+    let opts =
+        RunOptions { jobs: 2, outer_items: Some(vec!["s1".into()]), second_dim_limit: Some(2), ..Default::default() };
     let r = run_with(&p, &grid, dir.path(), &opts);
     assert_eq!(r.stages[0].executed, 6);
-    let bad = RunOptions { scenes: Some(vec!["nope".into()]), ..Default::default() };
+    let bad = RunOptions { outer_items: Some(vec!["nope".into()]), ..Default::default() };
     let store = Store::open(dir.path(), Access::Shared).unwrap();
     let ops = testkit::operators(&p);
     let err =
@@ -231,6 +255,29 @@ fn explain_says_what_changed() {
     let a = e.iter().find(|s| s.stage == "a").unwrap();
     assert_eq!((a.cached, a.will_run), (23, 1));
     assert_eq!(a.reasons["input `x` (from `dataset.camera_value`) changed"].1, "s0/000/cam0");
+}
+
+/// Explain walks the key layer a run walks, so it predicts what the next run executes (up to
+/// early cutoff, which only running can find: it counts a task downstream of one that will run).
+#[test]
+fn explain_predicts_what_the_next_run_executes() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    let predicted = |p: &Pipeline| -> BTreeMap<String, u64> {
+        let s = Store::open(dir.path(), Access::Shared).unwrap();
+        let ops = testkit::operators(p);
+        let e =
+            crate::explain::explain(&Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }, None, None);
+        e.unwrap().into_iter().map(|s| (s.stage, s.will_run)).collect()
+    };
+    grid.bump("camera_value", ItemKey::new(&[1, 2, 0]));
+    let changed = testkit::load(CHAIN, &["window.salt=5"]);
+    let will_run = predicted(&changed);
+    assert_eq!(will_run, executed(&run(&changed, &grid, dir.path())));
+    assert_eq!(will_run, counts(&[("a", 1), ("b", 1), ("per_frame", 1), ("window", 8), ("next", 1), ("file", 8)]));
+    assert!(predicted(&changed).values().all(|&n| n == 0));
 }
 
 #[test]

@@ -3,16 +3,14 @@
 //! what, which input changed, or an upstream task will run.
 
 use crate::digest::Digest;
-use crate::exec::{select_scenes, task_key, Engine};
+use crate::exec::{select_outer, Engine};
 use crate::item::ItemKey;
-use crate::operator::FileDigests;
-use crate::plan::{plan_scene, InputSrc, View};
+use crate::keys::{known_digests, Decision, Keys, Unknown};
+use crate::plan::{plan_outer, InputSrc, View};
 use crate::record::TaskRecord;
 use crate::runs::list_runs;
 use anyhow::Result;
-use dist4d_graph::NodeKind;
 use std::collections::{BTreeMap, HashMap};
-use std::path::Path;
 
 #[derive(Debug, Default, Clone)]
 pub struct StageExplain {
@@ -26,14 +24,6 @@ pub struct StageExplain {
     pub reasons: BTreeMap<String, (u64, String)>,
 }
 
-struct Files<'s>(&'s crate::store::Store);
-
-impl FileDigests for Files<'_> {
-    fn file_digest(&self, path: &Path) -> Result<Option<Digest>> {
-        self.0.file_digest(path, true)
-    }
-}
-
 /// What the previous task for the same stage and item looked like.
 struct Previous {
     finished_ms: u64,
@@ -42,11 +32,17 @@ struct Previous {
     inputs: Vec<(String, Vec<Digest>)>,
 }
 
-pub fn explain(engine: &Engine, scenes: Option<&[String]>, frame_limit: Option<u32>) -> Result<Vec<StageExplain>> {
+/// Explains the tasks under the selected outer items (all when `outer_items` is `None`), with the
+/// first `second_dim_limit` items along the second dimension, as [`crate::RunOptions`] selects them.
+pub fn explain(
+    engine: &Engine,
+    outer_items: Option<&[String]>,
+    second_dim_limit: Option<u32>,
+) -> Result<Vec<StageExplain>> {
     let p = engine.pipeline;
     let store = engine.store;
-    let view = View { space: engine.dataset, frame_limit };
-    let scenes = select_scenes(engine.dataset, scenes)?;
+    let view = View { space: engine.dataset, second_dim_limit };
+    let outers = select_outer(engine.dataset, &p.dims[0].name, outer_items)?;
 
     // The latest record of every (stage, item), for saying what changed.
     let mut previous: HashMap<(String, ItemKey), Previous> = HashMap::new();
@@ -82,61 +78,48 @@ pub fn explain(engine: &Engine, scenes: Option<&[String]>, frame_limit: Option<u
         .map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect())
         .unwrap_or_default();
 
-    let mut params_digest = vec![Digest::default(); p.nodes.len()];
+    let keys = Keys::new(p, engine.dataset, store);
     let mut out: Vec<StageExplain> = vec![StageExplain::default(); p.nodes.len()];
     for n in p.stage_order() {
-        let s = p.nodes[n].stage().unwrap();
-        params_digest[n] = Digest::of(s.params.canonical.as_bytes());
         out[n].stage = p.nodes[n].name.clone();
-        out[n].kind = s.kind.clone();
+        out[n].kind = p.nodes[n].stage().unwrap().kind.clone();
     }
-    let files = Files(store);
-    for scene in scenes {
-        let plan = plan_scene(p, &view, scene);
+    for outer in outers {
+        let plan = plan_outer(p, &view, outer);
         // Output digests of tasks known to be cached; None = will run.
         let mut outputs: Vec<Option<Vec<Digest>>> = vec![None; plan.tasks.len()];
         for (t, task) in plan.tasks.iter().enumerate() {
             let node = task.node as usize;
             let stage = p.nodes[node].stage().unwrap();
             let label = engine.dataset.path(&task.item);
-            let mut digests: Vec<Vec<(i64, Digest)>> = Vec::new();
-            let mut unknown_inputs: Vec<String> = Vec::new();
-            for (srcs, spec) in task.inputs.iter().zip(&stage.inputs) {
-                let mut list = Vec::new();
-                for src in srcs {
-                    match *src {
-                        InputSrc::Task { task: u, port, pos } => match &outputs[u as usize] {
-                            Some(o) => list.push((pos, o[port as usize])),
-                            None => {
-                                let up = &p.nodes[plan.tasks[u as usize].node as usize].name;
-                                if !unknown_inputs.contains(up) {
-                                    unknown_inputs.push(up.clone());
-                                }
-                            }
-                        },
-                        InputSrc::Source { node: sn, item, pos } => {
-                            let NodeKind::Source { port } = &p.nodes[sn as usize].kind else { unreachable!() };
-                            match engine.dataset.source_digest(port, &item, &files) {
-                                Ok(Some(d)) => list.push((pos, d)),
-                                _ => unknown_inputs.push(format!("dataset.{port} (unreadable)")),
-                            }
-                        }
-                    }
-                }
-                let _ = spec;
-                digests.push(list);
-            }
+            // The same resolution and decision as a run, hashing changed raw files as a run would.
+            let upstream = |u: u32, port: u16| outputs[u as usize].as_ref().map(|o| o[port as usize]);
+            let inputs = keys.resolve(&plan, t as u32, upstream, true);
             let e = &mut out[node];
-            if unknown_inputs.is_empty() {
-                let key = task_key(stage, &params_digest[node], &task.item, &digests);
-                if let Some(rec) = store.lookup(&key) {
-                    if rec.outputs.iter().all(|o| o.inline.is_some() || store.has_blob(&o.digest)) {
-                        e.cached += 1;
-                        outputs[t] = Some(rec.outputs.iter().map(|o| o.digest).collect());
-                        continue;
+            if let Decision::Cached { outputs: outs, .. } = keys.decide(node, &task.item, &inputs) {
+                e.cached += 1;
+                outputs[t] = Some(outs.iter().map(|o| o.digest).collect());
+                continue;
+            }
+            let mut unknown_inputs: Vec<String> = Vec::new();
+            for (input, spec) in inputs.iter().zip(&stage.inputs) {
+                for a in input {
+                    let why = match (&a.digest, a.src) {
+                        (Ok(_), _) => continue,
+                        (Err(Unknown::Upstream { task: u }), _) => {
+                            format!("upstream `{}` will run", p.nodes[plan.tasks[*u as usize].node as usize].name)
+                        }
+                        (Err(_), InputSrc::Source { node: sn, .. }) => {
+                            format!("input `{}` cannot be read from `{}`", spec.port, p.nodes[sn as usize].name)
+                        }
+                        (Err(_), InputSrc::Task { .. }) => format!("input `{}` is unknown", spec.port),
+                    };
+                    if !unknown_inputs.contains(&why) {
+                        unknown_inputs.push(why);
                     }
                 }
             }
+            let digests = known_digests(&inputs);
             e.will_run += 1;
             let mut reasons = Vec::new();
             if let Some(err) = last_failures.get(&(p.nodes[node].name.clone(), label.clone())) {
@@ -149,15 +132,13 @@ pub fn explain(engine: &Engine, scenes: Option<&[String]>, frame_limit: Option<u
                     if prev.version != stage.version {
                         reasons.push(format!("stage version changed: {} -> {}", prev.version, stage.version));
                     }
-                    if prev.params != params_digest[node] {
+                    if prev.params != keys.params(node) {
                         let old = store.get_blob(&prev.params).ok().and_then(|b| String::from_utf8(b).ok());
                         reasons.extend(param_changes(old.as_deref(), &stage.params.canonical));
                     }
-                    for up in &unknown_inputs {
-                        reasons.push(format!("upstream `{up}` will run"));
-                    }
-                    if unknown_inputs.is_empty() {
-                        for ((spec, now), (port, then)) in stage.inputs.iter().zip(&digests).zip(&prev.inputs) {
+                    reasons.extend(unknown_inputs.iter().cloned());
+                    if let Some(digests) = &digests {
+                        for ((spec, now), (port, then)) in stage.inputs.iter().zip(digests).zip(&prev.inputs) {
                             let now: Vec<Digest> = now.iter().map(|(_, d)| *d).collect();
                             if port == &spec.port && &now != then {
                                 let from = &p.nodes[spec.from].name;

@@ -9,7 +9,7 @@
 //!
 //! Files are written whole (temp file, fsync, rename). What is written where is confined:
 //! every dimension label put into a path is checked to be one plain path component, and the
-//! joined path must stay inside the output folder, so a dataset naming a scene `../../x` cannot
+//! joined path must stay inside the output folder, so a dataset labelling an item `../../x` cannot
 //! write outside it. An output folder belongs to one pipeline (by name): its manifest says which,
 //! and another pipeline refuses to write there instead of overwriting its files.
 //!

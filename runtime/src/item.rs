@@ -1,12 +1,12 @@
-//! Items: keys along a dataset's dimensions (for driving data: scene, frame, camera).
+//! Items: keys along a dataset's dimensions, outermost first.
 
 use std::fmt;
 
 /// The most dimensions an item key may have.
 pub const MAX_DIMS: usize = 4;
 
-/// A key of `depth` coordinates, outermost first. A depth-2 key names a frame of a scene;
-/// a depth-3 key names one camera of that frame.
+/// A key of `depth` coordinates, outermost first. A depth-2 key names an item of the second
+/// dimension under an outer item; a depth-3 key names an item of the third under that one.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Default)]
 pub struct ItemKey {
     pub depth: u8,
@@ -24,7 +24,7 @@ impl ItemKey {
         &self.idx[..self.depth as usize]
     }
 
-    /// The enclosing key of depth `depth` (a frame's scene, a camera's frame).
+    /// The enclosing key of depth `depth`.
     pub fn prefix(&self, depth: usize) -> ItemKey {
         let mut k = ItemKey { depth: depth as u8, idx: [0; MAX_DIMS] };
         k.idx[..depth].copy_from_slice(&self.idx[..depth]);
@@ -66,14 +66,15 @@ impl fmt::Debug for ItemKey {
     }
 }
 
-/// The items of a dataset, as a tree: scenes, the frames of each scene, the cameras of each frame.
+/// The items of a dataset, as a tree: the items of the outermost dimension, the items of the
+/// second under each of them, and so on.
 pub trait ItemSpace: Send + Sync {
-    /// How many children `prefix` has along the next dimension (scenes for the empty key).
+    /// How many children `prefix` has along the next dimension (outer items for the empty key).
     fn count(&self, prefix: &ItemKey) -> u32;
-    /// The printable name of the last coordinate of `item` (`scene-0061`, `003`, `CAM_FRONT`).
+    /// The printable name of the last coordinate of `item` (`s0`, `003`, `cam2`).
     fn label(&self, item: &ItemKey) -> String;
 
-    /// `scene-0061/003/CAM_FRONT`.
+    /// The labels of every coordinate joined by `/`: `s0/003/cam2`.
     fn path(&self, item: &ItemKey) -> String {
         (1..=item.depth as usize).map(|d| self.label(&item.prefix(d))).collect::<Vec<_>>().join("/")
     }

@@ -1,6 +1,6 @@
 //! What the runtime runs: datasets (items and raw sources) and operators (stage functions).
 //!
-//! The runtime knows nothing of driving; the `stages` crate implements these traits.
+//! The runtime knows nothing of any domain; the `stages` crate implements these traits.
 
 use crate::digest::Digest;
 use crate::item::{ItemKey, ItemSpace};
@@ -12,7 +12,7 @@ use std::sync::Arc;
 pub type Blob = Arc<Vec<u8>>;
 
 /// One artifact given to a task: the upstream item it belongs to, its position in the selection
-/// (window/offset: the offset along the dimension; gather: the child index; scene: the running
+/// (window/offset: the offset along the dimension; gather: the child index; all: the running
 /// index), and its bytes.
 #[derive(Clone, Debug)]
 pub struct Artifact {
@@ -40,15 +40,25 @@ pub trait Dataset: ItemSpace {
 /// What a task knows about itself.
 pub struct TaskContext<'a> {
     pub item: ItemKey,
-    /// Seed for stages that draw random numbers: derived from the item key, so it is the same
-    /// whatever the thread count or run order.
+    /// Seed for stages that draw random numbers: derived from the stage kind, its params and the
+    /// item key ([`crate::keys::task_seed`]), so it is the same whatever the thread count or run
+    /// order. A stage that uses it must be declared seeded (its task keys then include the item).
     pub seed: u64,
-    /// `scene-0061/000/CAM_FRONT`, for messages.
+    /// The item's path of labels (`s0/003/cam2`), for messages.
     pub label: &'a str,
 }
 
-/// A stage's work on one item: input artifacts (per input port, in port order) to output bytes
-/// (per output port). Must be deterministic: same inputs, same bytes.
+/// One output of a task: its bytes and the artifact type they are encoded as. The runtime checks
+/// the type against the one the output port declares before anything is stored, so a wrongly
+/// encoded output fails its own task instead of a reader downstream.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Output {
+    pub ty: &'static str,
+    pub bytes: Vec<u8>,
+}
+
+/// A stage's work on one item: input artifacts (per input port, in port order) to its outputs
+/// (per output port, in port order). Must be deterministic: same inputs, same bytes.
 pub trait Operator: Send + Sync {
-    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Vec<Vec<u8>>>;
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Vec<Output>>;
 }

@@ -1,8 +1,9 @@
-//! Tasks of one scene: which (stage, item) pairs exist and which upstream artifacts feed each.
+//! Tasks under one item of the outermost dimension (an "outer item"): which (stage, item) pairs
+//! exist and which upstream artifacts feed each.
 //!
-//! Planning is per scene (the outermost dimension) and lazy: the scheduler plans a scene when it
-//! has room, so memory depends on the scenes in flight, not on the dataset size. The scene is the
-//! natural unit because `Scene` selectors may read any item of it.
+//! Planning is per outer item and lazy: the scheduler plans one when it has room, so memory
+//! depends on the outer items in flight, not on the dataset size. The outer item is the natural
+//! unit because selectors never reach across it (`All` reads every item under it).
 
 use crate::item::{ItemKey, ItemSpace};
 use dist4d_graph::{NodeKind, Pipeline, Selector};
@@ -11,7 +12,7 @@ use std::collections::HashMap;
 /// Where one input artifact of a task comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum InputSrc {
-    /// Output `port` of task `task` of the same scene plan.
+    /// Output `port` of task `task` of the same plan.
     Task { task: u32, port: u16, pos: i64 },
     /// A dataset source node, read from raw files.
     Source { node: u32, item: ItemKey, pos: i64 },
@@ -29,21 +30,22 @@ pub struct Task {
     pub upstream: u32,
 }
 
-pub struct ScenePlan {
-    pub scene: u32,
+pub struct OuterPlan {
+    /// The index of the outer item along the outermost dimension.
+    pub outer: u32,
     pub tasks: Vec<Task>,
 }
 
-/// The item tree seen through the run's filters: a frame limit applies to dimension 1.
+/// The item tree seen through the run's filters: a limit on the second dimension (index 1).
 pub struct View<'a> {
     pub space: &'a dyn ItemSpace,
-    pub frame_limit: Option<u32>,
+    pub second_dim_limit: Option<u32>,
 }
 
 impl View<'_> {
     pub fn count(&self, prefix: &ItemKey) -> u32 {
         let n = self.space.count(prefix);
-        match (prefix.depth, self.frame_limit) {
+        match (prefix.depth, self.second_dim_limit) {
             (1, Some(limit)) => n.min(limit),
             _ => n,
         }
@@ -76,7 +78,7 @@ impl View<'_> {
                 self.shifted(item.prefix(up), dim, by).map(|k| vec![(k, by as i64)]).unwrap_or_default()
             }
             Selector::Gather { .. } => (0..self.count(&item)).map(|j| (item.child(j), j as i64)).collect(),
-            Selector::Scene => {
+            Selector::All => {
                 let mut all = Vec::new();
                 self.items_under(item.prefix(1), up, &mut all);
                 all.into_iter().enumerate().map(|(i, k)| (k, i as i64)).collect()
@@ -94,18 +96,18 @@ impl View<'_> {
     }
 }
 
-/// Plans every task of one scene. Tasks whose single input does not exist (an `Offset` past the
-/// end of the scene) are not planned, nor are tasks that depend on them.
-pub fn plan_scene(pipeline: &Pipeline, view: &View, scene: u32) -> ScenePlan {
+/// Plans every task under outer item `outer`. Tasks whose single input does not exist (an `Offset`
+/// past the end of a dimension) are not planned, nor are tasks that depend on them.
+pub fn plan_outer(pipeline: &Pipeline, view: &View, outer: u32) -> OuterPlan {
     let mut tasks: Vec<Task> = Vec::new();
     let mut index: HashMap<(u32, ItemKey), u32> = HashMap::new();
-    let scene_key = ItemKey::new(&[scene]);
+    let outer_key = ItemKey::new(&[outer]);
     let mut items = Vec::new();
     for node_id in pipeline.stage_order() {
         let node = &pipeline.nodes[node_id];
         let stage = node.stage().expect("stage_order yields stages");
         items.clear();
-        view.items_under(scene_key, node.grain, &mut items);
+        view.items_under(outer_key, node.grain, &mut items);
         'items: for &item in &items {
             let mut inputs = Vec::with_capacity(stage.inputs.len());
             let mut ups: Vec<u32> = Vec::new();
@@ -140,5 +142,5 @@ pub fn plan_scene(pipeline: &Pipeline, view: &View, scene: u32) -> ScenePlan {
             tasks.push(Task { node: node_id as u32, item, inputs, dependents: Vec::new(), upstream: ups.len() as u32 });
         }
     }
-    ScenePlan { scene, tasks }
+    OuterPlan { outer, tasks }
 }

@@ -143,7 +143,7 @@ mod tests {
             key: Digest::of(b"k"),
             stage: "project".into(),
             item: ItemKey::new(&[0, 3, 5]),
-            kind: "ProjectLidar".into(),
+            kind: "Project".into(),
             version: 2,
             params: Digest::of(b"p"),
             inputs: vec![RecordInput { port: "points".into(), digests: vec![Digest::of(b"a"), Digest::of(b"b")] }],

@@ -27,7 +27,7 @@ pub struct StageStats {
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Failure {
     pub stage: String,
-    /// `scene-0061/000/CAM_FRONT`.
+    /// The item's path of labels, e.g. `s0/003/cam2`.
     pub item: String,
     /// The error and its causes, outermost first, joined by `: `.
     pub error: String,

@@ -7,7 +7,7 @@
 
 use crate::digest::{Digest, DigestBuilder};
 use crate::item::{ItemKey, ItemSpace};
-use crate::operator::{Artifact, Dataset, FileDigests, Operator, TaskContext};
+use crate::operator::{Artifact, Dataset, FileDigests, Operator, Output, TaskContext};
 use anyhow::{bail, Result};
 use dist4d_graph::{Catalog, DatasetSchema, DimSpec, ParamsSpec, Pipeline, PortSpec, SourcePortSpec, StageSchema};
 use serde::{Deserialize, Serialize};
@@ -95,6 +95,8 @@ pub struct EchoParams {
     pub fail_on: Vec<String>,
     /// Sleep this long per task (for kill tests).
     pub sleep_ms: u64,
+    /// Tag the output with a type no port declares (for the runtime's output type check).
+    pub mistag: bool,
 }
 
 // Test params: any value is usable.
@@ -173,26 +175,32 @@ impl Catalog for TestCatalog {
     }
 }
 
-struct EchoOp(EchoParams);
+struct EchoOp {
+    params: EchoParams,
+    /// The artifact type of its one output port.
+    ty: &'static str,
+}
 
 impl Operator for EchoOp {
-    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Vec<Vec<u8>>> {
-        if self.0.sleep_ms > 0 {
-            std::thread::sleep(std::time::Duration::from_millis(self.0.sleep_ms));
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Vec<Output>> {
+        let params = &self.params;
+        if params.sleep_ms > 0 {
+            std::thread::sleep(std::time::Duration::from_millis(params.sleep_ms));
         }
-        if self.0.fail_on.iter().any(|f| f == ctx.label) {
+        if params.fail_on.iter().any(|f| f == ctx.label) {
             bail!("asked to fail on {}", ctx.label);
         }
         let mut b = DigestBuilder::new("echo");
-        b.u64(self.0.salt as u64);
+        b.u64(params.salt as u64);
         for input in inputs {
             for a in input {
                 b.u64(a.pos as u64).bytes(&a.bytes);
             }
         }
         let d = b.finish().0;
-        let n = if self.0.size == 0 { 32 } else { self.0.size };
-        Ok(vec![d.iter().copied().cycle().take(n).collect()])
+        let n = if params.size == 0 { 32 } else { params.size };
+        let ty = if params.mistag { "Mistagged" } else { self.ty };
+        Ok(vec![Output { ty, bytes: d.iter().copied().cycle().take(n).collect() }])
     }
 }
 
@@ -203,12 +211,14 @@ pub fn grid_of(p: &Pipeline) -> Grid {
 
 /// Operators for a pipeline of test stages.
 pub fn operators(p: &Pipeline) -> Vec<Option<Box<dyn Operator>>> {
+    let catalog = TestCatalog::default();
     p.nodes
         .iter()
         .map(|n| {
             n.stage().map(|s| {
                 let params = s.params.get::<EchoParams>().expect("test stages take EchoParams").clone();
-                Box::new(EchoOp(params)) as Box<dyn Operator>
+                let ty = catalog.stage(&s.kind).expect("a test stage kind").outputs[0].ty;
+                Box::new(EchoOp { params, ty }) as Box<dyn Operator>
             })
         })
         .collect()

@@ -17,7 +17,7 @@
 //! }
 //! ```
 
-use anyhow::{anyhow, bail, ensure, Context, Result};
+use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{ParamsSpec, ParamsValue, PortSpec, StageSchema, Validate};
 use dist4d_runtime::{Operator, TaskContext};
 use dist4d_types::artifact::Artifact;
@@ -60,11 +60,9 @@ impl InputSet<'_> {
     }
 }
 
-/// An encoded output with its artifact type tag.
-pub struct Encoded {
-    pub ty: &'static str,
-    pub bytes: Vec<u8>,
-}
+/// An encoded output with its artifact type tag (the runtime checks it against the port's type
+/// before the output enters the store).
+pub use dist4d_runtime::Output as Encoded;
 
 /// A struct of ports, as [`crate::ports!`] declares it.
 pub trait Ports: Sized {
@@ -234,7 +232,7 @@ impl StageDef {
                 // `check` refused invalid params already; params that reach here another way are checked too.
                 ensure_valid(params).with_context(|| format!("params of {}", S::KIND))?;
                 let stage = S::new(params.clone()).with_context(|| format!("building {}", S::KIND))?;
-                Ok(Box::new(StageOp { stage, wired: wired.to_vec(), outputs: S::Outputs::specs() }))
+                Ok(Box::new(StageOp { stage, wired: wired.to_vec() }))
             }),
         }
     }
@@ -261,25 +259,12 @@ impl StageDef {
 struct StageOp<S> {
     stage: S,
     wired: Vec<&'static str>,
-    outputs: Vec<PortSpec>,
 }
 
 impl<S: Stage> Operator for StageOp<S> {
-    fn run(&self, ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Vec<u8>>> {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Encoded>> {
         let inputs = S::Inputs::decode(&InputSet { wired: &self.wired, lists: inputs })?;
-        let encoded = self.stage.run(ctx, inputs)?.encode()?;
-        ensure!(encoded.len() == self.outputs.len(), "{} encoded {} outputs", S::KIND, encoded.len());
-        for (e, spec) in encoded.iter().zip(&self.outputs) {
-            ensure!(
-                e.ty == spec.ty,
-                "{} output `{}` was encoded as {}, declared {}",
-                S::KIND,
-                spec.name,
-                e.ty,
-                spec.ty
-            );
-        }
-        Ok(encoded.into_iter().map(|e| e.bytes).collect())
+        self.stage.run(ctx, inputs)?.encode()
     }
 }
 

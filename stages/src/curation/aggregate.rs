@@ -40,10 +40,9 @@ pub struct Params {
     pub ego_box_min: [f64; 3],
     /// ... and max corner. Default: a nuScenes Renault Zoe with a little room.
     pub ego_box_max: [f64; 3],
-    /// Fraction of the target sweep's points held out for evaluation (0 = none).
+    /// Fraction of the target sweep's points held out for evaluation (0 = none). Which points is
+    /// drawn from the task's seed (its item and params), mixed with the point index.
     pub holdout: f64,
-    /// Seed of the hold-out draw (mixed with the target timestamp and the point index).
-    pub holdout_seed: u64,
 }
 
 impl Default for Params {
@@ -56,7 +55,6 @@ impl Default for Params {
             ego_box_min: [-1.0, -1.0, -1.0],
             ego_box_max: [3.4, 1.0, 2.0],
             holdout: 0.0,
-            holdout_seed: 0,
         }
     }
 }
@@ -106,8 +104,9 @@ pub struct Sweep<'a> {
     pub boxes: &'a Boxes3D,
 }
 
-/// The aggregate (in the target LiDAR frame) and the held-out target points (same frame).
-pub fn aggregate(params: &Params, sweeps: &[Sweep]) -> Result<(PointCloud, PointCloud)> {
+/// The aggregate (in the target LiDAR frame) and the held-out target points (same frame), drawn
+/// with `seed`.
+pub fn aggregate(params: &Params, seed: u64, sweeps: &[Sweep]) -> Result<(PointCloud, PointCloud)> {
     let target = sweeps
         .iter()
         .find(|s| s.position == 0)
@@ -152,7 +151,7 @@ pub fn aggregate(params: &Params, sweeps: &[Sweep]) -> Result<(PointCloud, Point
             let row = [t.x as f32, t.y as f32, t.z as f32, p[3]];
             let dest = if s.position == 0
                 && threshold > 0
-                && mix(params.holdout_seed ^ mix(s.pose.timestamp_us as u64 ^ mix(i as u64))) < threshold
+                && mix(seed ^ mix(i as u64)) < threshold
             {
                 &mut held
             } else {
@@ -193,17 +192,19 @@ pub struct AggregateLidar(Params);
 
 impl Stage for AggregateLidar {
     const KIND: &'static str = "AggregateLidar";
-    const VERSION: u32 = 1;
+    // 2: the hold-out draw comes from the task's seed, not a param of its own.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str =
         "LiDAR sweeps of a window of frames -> one static-scene cloud in the target frame's LiDAR frame";
     const GRAINS: &'static [&'static str] = &["frame"];
+    const SEEDED: bool = true;
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;
     fn new(params: Params) -> Result<Self> {
         Ok(AggregateLidar(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
         let (points, calibs, poses, boxes) = (&i.sweeps, &i.calibs, &i.poses, &i.boxes);
         ensure!(
             calibs.len() == points.len() && poses.len() == points.len() && boxes.len() == points.len(),
@@ -228,7 +229,7 @@ impl Stage for AggregateLidar {
                 boxes: &boxes[i].1,
             });
         }
-        let (points, holdout) = aggregate(&self.0, &sweeps)?;
+        let (points, holdout) = aggregate(&self.0, ctx.seed, &sweeps)?;
         Ok(Outputs { points, holdout })
     }
 }
@@ -291,7 +292,7 @@ mod tests {
             Sweep { position: 0, points: &target, calib: &calib, pose: &p1, boxes: &moving },
             Sweep { position: 1, points: &far_prev, calib: &calib, pose: &p0, boxes: &parked },
         ];
-        let (agg, held) = aggregate(&Params::default(), &sweeps).unwrap();
+        let (agg, held) = aggregate(&Params::default(), 0, &sweeps).unwrap();
         assert!(held.points.is_empty());
         let got: Vec<[f32; 4]> = agg.points.clone();
         assert_eq!(
@@ -314,13 +315,13 @@ mod tests {
             Sweep { position: 1, points: &pts, calib: &calib, pose: &p, boxes: &none },
         ];
         let params = Params { holdout: 0.2, ..Params::default() };
-        let (agg, held) = aggregate(&params, &sweeps).unwrap();
+        let (agg, held) = aggregate(&params, 0, &sweeps).unwrap();
         let frac = held.points.len() as f64 / 10_000.0;
         assert!((frac - 0.2).abs() < 0.02, "{frac}");
         assert_eq!(agg.points.len() + held.points.len(), 20_000);
-        let (_, again) = aggregate(&params, &sweeps).unwrap();
+        let (_, again) = aggregate(&params, 0, &sweeps).unwrap();
         assert_eq!(again, held);
-        let (_, other) = aggregate(&Params { holdout_seed: 7, ..params }, &sweeps).unwrap();
+        let (_, other) = aggregate(&params, 7, &sweeps).unwrap();
         assert_ne!(other, held);
     }
 
@@ -331,6 +332,6 @@ mod tests {
         let none = Boxes3D::default();
         let pts = PointCloud::default();
         let sweeps = [Sweep { position: 1, points: &pts, calib: &calib, pose: &p, boxes: &none }];
-        assert!(aggregate(&Params::default(), &sweeps).unwrap_err().to_string().contains("position 0"));
+        assert!(aggregate(&Params::default(), 0, &sweeps).unwrap_err().to_string().contains("position 0"));
     }
 }
