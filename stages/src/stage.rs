@@ -78,7 +78,8 @@ impl StageDef {
                 let params = checked.get::<P>().ok_or_else(|| {
                     anyhow!("params of {kind}: checked as another type, not {}", std::any::type_name::<P>())
                 })?;
-                // `check` refused invalid params already; params that reach here another way are checked too.
+                // `check` refused invalid params already; params made another way (`ParamsValue::new`)
+                // are checked here.
                 ensure_valid(params).with_context(|| format!("params of {kind}"))?;
                 build(params.clone())
             }),
