@@ -38,7 +38,8 @@ pub struct ParamsValue {
 }
 
 impl ParamsValue {
-    /// Checked params of type `P` (as [`ParamsSpec::of::<P>`] makes them).
+    /// Params of type `P` with their canonical text, as [`ParamsSpec::check`] makes them after
+    /// validating; made directly (tools, tests), they are not range-checked.
     pub fn new<P: Serialize + Send + Sync + 'static>(params: P) -> Result<ParamsValue, ParamsError> {
         let canonical = to_canonical(&params).map_err(|e| {
             ParamsError::Type(DeError { message: format!("cannot write the params canonically: {e}"), span: None })
