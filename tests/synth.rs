@@ -240,14 +240,17 @@ fn demo_synthesizes_once_runs_the_shipped_pipeline_and_says_where_outputs_are() 
     let t = text(&o);
     assert!(t.contains("148 executed"), "2 frames x 6 cameras x 12 stages + 2 x 2 per-frame stages: {t}");
     assert!(t.contains("gt (raw)"), "the demo prints its scores against ground truth: {t}");
-    assert!(t.contains(&dir.join("out/synth-0000/sheets/001.png").display().to_string()), "{t}");
-    assert!(dir.join("out/synth-0000/sheets/001.png").is_file());
+    let sheet = dir.join("pipelines/out/curation/synth-0000/sheets/001.png");
+    assert!(t.contains(&sheet.display().to_string()), "{t}");
+    assert!(sheet.is_file());
     // Second time: the dataset is reused and everything is cached.
     let o = dist4d(&args);
     let t = text(&o);
     assert!(o.status.success() && t.contains("already there") && t.contains("0 executed, 148 cached"), "{t}");
-    // The pipeline written beside the data runs on its own.
-    let o = dist4d(&["run", dir.join("curation.ron").to_str().unwrap(), "--progress", "off"]);
+    // The shipped pipeline, written unchanged beside the data, finds it and its store on its own.
+    let written = std::fs::read_to_string(dir.join("pipelines/curation.ron")).unwrap();
+    assert_eq!(written, std::fs::read_to_string(repo().join("pipelines/curation.ron")).unwrap());
+    let o = dist4d(&["run", dir.join("pipelines/curation.ron").to_str().unwrap(), "--progress", "off"]);
     assert!(o.status.success() && text(&o).contains("0 executed"), "{}", text(&o));
 }
 
