@@ -236,3 +236,34 @@ fn the_shipped_pipelines_pass_check() {
     }
     assert!(checked >= 2, "{checked}");
 }
+
+#[test]
+fn a_pipeline_name_and_export_paths_are_plain_path_names() {
+    let tmp = tempfile::tempdir().unwrap();
+    // The name is the default output folder `out/<name>/`: it may not climb out of `out/`.
+    for (i, bad) in [r#"name: "../../victim""#, r#"name: "a\nb""#].iter().enumerate() {
+        let file = curation_with(tmp.path(), &format!("name{i}.ron"), r#"name: "curation""#, bad);
+        let out = assert_refused(&dist4d(&["check", file.to_str().unwrap()]));
+        assert!(out.contains("the pipeline `name`") && out.contains(&position(&file, &bad[6..])), "{out}");
+    }
+    // Export templates: no `.` parts, no backslash, no control character (a newline would break
+    // the manifest, one file per line).
+    for (i, bad) in
+        [r#""./{scene}/sheets/{frame}.png""#, r#""{scene}/she\nets/{frame}.png""#, r#""{scene}\\sheets\\{frame}.png""#]
+            .iter()
+            .enumerate()
+    {
+        let file = curation_with(tmp.path(), &format!("export{i}.ron"), r#""{scene}/sheets/{frame}.png""#, bad);
+        let out = assert_refused(&dist4d(&["check", file.to_str().unwrap()]));
+        assert!(out.contains("bad export path for `sheet.png`"), "{out}");
+    }
+    // Camera names with a control character (a terminal escape) are not file names either.
+    let out = assert_refused(&dist4d(&["check", &curation(), "--set", "dataset.cameras=[\"CAM\\u{1b}[31mX\"]"]));
+    assert!(out.contains("cameras"), "{out}");
+    // A byte-order mark at the start of the file is not an error.
+    let shipped = std::fs::read(curation()).unwrap();
+    let bom = tmp.path().join("bom.ron");
+    std::fs::write(&bom, [&[0xEF, 0xBB, 0xBF][..], &shipped].concat()).unwrap();
+    let o = dist4d(&["check", bom.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+}

@@ -121,14 +121,14 @@ impl ParamChecks {
 
 /// Why `name` cannot be one path component, if it cannot: joined to a folder, it must name an
 /// entry of that folder and nothing outside it.
-fn path_component_problem(name: &str) -> Option<String> {
+pub fn path_component_problem(name: &str) -> Option<String> {
     if name.is_empty() {
         return Some("must not be empty (it becomes a file or folder name)".into());
     }
     if name == "." || name == ".." {
         return Some(format!("must not be `{name}` (it becomes a file or folder name)"));
     }
-    if let Some(c) = name.chars().find(|c| matches!(c, '/' | '\\' | '\0')) {
+    if let Some(c) = name.chars().find(|c| matches!(c, '/' | '\\') || c.is_control()) {
         return Some(format!(
             "must be one file or folder name, without `{}`, found `{}`",
             c.escape_default(),

@@ -53,6 +53,8 @@ pub fn load_file(path: &Path, overrides: &[String], cwd: &Path, catalog: &dyn Ca
             })
         }
     };
+    // A byte-order mark some editors write is not part of the pipeline.
+    let bytes = bytes.strip_prefix("\u{feff}".as_bytes()).map(<[u8]>::to_vec).unwrap_or(bytes);
     let text = match String::from_utf8(bytes) {
         Ok(t) => t,
         Err(e) => return Err(not_utf8(&path.display().to_string(), e)),
@@ -367,7 +369,14 @@ impl<'c> Checker<'c> {
         self.known_fields(fields, &["name", "dataset", "stages", "export"], "Pipeline");
         let name = match root.field("name") {
             Some(f) => match f.value.as_str() {
-                Some(s) => s.to_string(),
+                // The name is the default output folder (`out/<name>/`) and owns it.
+                Some(s) => match crate::checks::path_component_problem(s) {
+                    Some(problem) => {
+                        self.err(Diagnostic::error(format!("the pipeline `name` {problem}"), f.value.span));
+                        default_name
+                    }
+                    None => s.to_string(),
+                },
                 None => {
                     self.err(Diagnostic::error(
                         format!("`name` must be a string, found {}", f.value.describe()),
@@ -1077,8 +1086,11 @@ fn grain_allows(sel: Selector, u: usize, d: usize, dims: &[Dim]) -> Result<(), S
 
 /// `{a}/{c}/{b}.exr` -> parts; the template must name every dimension of the grain (here a, b, c).
 fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<TemplatePart>, String> {
-    if template.starts_with('/') || template.split('/').any(|s| s == ".." || s.is_empty()) {
-        return Err("the path must be relative, without empty or `..` parts".into());
+    if template.starts_with('/') || template.split('/').any(|s| s == ".." || s == "." || s.is_empty()) {
+        return Err("the path must be relative, without empty, `.` or `..` parts".into());
+    }
+    if let Some(c) = template.chars().find(|c| *c == '\\' || c.is_control()) {
+        return Err(format!("the path must not hold `{}` (folders are separated by `/`)", c.escape_default()));
     }
     let mut parts = Vec::new();
     let mut rest = template;
