@@ -130,7 +130,7 @@ pub fn aggregate(params: &Params, seed: u64, sweeps: &[Sweep]) -> Result<(PointC
                 .boxes
                 .iter()
                 .filter(|b| b.is_moving(params.moving_speed))
-                .map(|b| BoxTest::new(b, &sweep_from_world, params.box_margin, params.ground_clearance))
+                .map(|b| b.test(&sweep_from_world, params.box_margin, params.ground_clearance))
                 .collect()
         };
         let sensor_to_ego = &s.calib.sensor_to_ego;

@@ -217,7 +217,7 @@ pub fn static_points(params: &Params, m: &MvsInputs) -> Result<PointCloud> {
         .boxes
         .iter()
         .filter(|b| b.is_moving(params.moving_speed))
-        .map(|b| BoxTest::new(b, &m.cloud_from_world, params.box_margin, 0.0))
+        .map(|b| b.test(&m.cloud_from_world, params.box_margin, 0.0))
         .collect();
     // Depth pixels are 1/downscale of image pixels.
     let (sx, sy) = (iw as f64 / w.max(1) as f64, ih as f64 / h.max(1) as f64);

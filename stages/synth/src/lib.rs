@@ -4,6 +4,7 @@
 //!
 //! Everything is a pure function of [`SynthConfig`]: the same config gives byte-identical files.
 
+pub mod material;
 pub mod render;
 pub mod shapes;
 pub mod world;

@@ -2,7 +2,8 @@
 //! LiDAR sweeps. This is the renderer API evaluation uses for novel views: any pose, any time.
 
 use super::shapes::{Grid, Prim};
-use super::world::{class, ego_body, Material, World, LANE_WIDTH, ROAD_HALF_WIDTH};
+use crate::material::{class, Material};
+use crate::world::{ego_body, World, LANE_WIDTH, ROAD_HALF_WIDTH};
 use dist4d_types::geometry::Se3;
 use dist4d_types::rng::{mix, Rng};
 use glam::DVec3;

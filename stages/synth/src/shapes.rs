@@ -3,8 +3,8 @@
 //! so a grid over x, y with a height bound per cell prunes almost everything.
 
 #[cfg(test)]
-use super::world::class;
-use super::world::Material;
+use crate::material::class;
+use crate::material::Material;
 use glam::DVec3;
 
 #[derive(Clone, Copy, Debug)]

@@ -2,42 +2,10 @@
 //! buildings, poles, trees, parked and moving cars, pedestrians. Everything is a function of the
 //! seed, so the world (and any rendering of it) can be rebuilt exactly from `synth.json`.
 
-use super::shapes::{Prim, Shape};
+use crate::material::{class, Material};
+use crate::shapes::{Prim, Shape};
 use dist4d_types::rng::Rng;
 use glam::DVec3;
-
-/// Cityscapes ids of the ground-truth semantic PNGs.
-pub mod class {
-    pub const ROAD: u8 = 7;
-    pub const SIDEWALK: u8 = 8;
-    pub const BUILDING: u8 = 11;
-    pub const POLE: u8 = 17;
-    pub const VEGETATION: u8 = 21;
-    pub const TERRAIN: u8 = 22;
-    pub const SKY: u8 = 23;
-    pub const PERSON: u8 = 24;
-    pub const CAR: u8 = 26;
-    /// Only in LiDAR labels: the ego vehicle's own body.
-    pub const EGO: u8 = 255;
-}
-
-/// What a surface looks like; [`super::render`] turns it into colour and LiDAR intensity.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Material {
-    Road,
-    Sidewalk,
-    Kerb,
-    Facade { hue: [f32; 3], floor_height: f32, window_width: f32 },
-    Roof,
-    Metal,
-    Bark,
-    Foliage,
-    CarPaint([f32; 3]),
-    Glass,
-    Cloth([f32; 3]),
-    Skin,
-    EgoBody,
-}
 
 /// Street cross-section, in metres from the centre line (positive to the left of travel).
 pub const LANE_WIDTH: f64 = 3.5;

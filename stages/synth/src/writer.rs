@@ -6,8 +6,9 @@
 //! killed run never leaves something that looks like a finished dataset.
 
 use super::render::{PinholeCamera, Snapshot};
-use super::world::{class, AgentKind, World, ROAD_HALF_WIDTH};
 use super::{SynthConfig, CAMERA_RIG, GENERATOR_VERSION, GROUND_TRUTH_DIR, LIDAR_TOP};
+use crate::material::class;
+use crate::world::{AgentKind, World, ROAD_HALF_WIDTH};
 use anyhow::{bail, Context, Result};
 use dist4d_types::artifact::DepthMap;
 use dist4d_types::formats::depth_exr;

@@ -3,7 +3,7 @@
 //! Each encoding starts with a 4-byte tag and is little-endian; decoding checks sizes and never
 //! panics on bad bytes.
 
-use crate::geometry::Se3;
+use crate::geometry::{BoxTest, Se3};
 use anyhow::{bail, ensure, Context, Result};
 
 /// A type that can be a port's artifact.
@@ -129,6 +129,17 @@ pub struct Box3D {
 }
 
 impl Box3D {
+    /// A point-inside test of this box in another frame (see [`BoxTest`]).
+    pub fn test(&self, frame_from_world: &Se3, margin: f64, ground_clearance: f64) -> BoxTest {
+        BoxTest::new(
+            self.size,
+            &Se3::from_wxyz_t(self.rotation, self.center),
+            frame_from_world,
+            margin,
+            ground_clearance,
+        )
+    }
+
     /// Moving by attribute (`*.moving`), or faster than `min_speed` m/s.
     pub fn is_moving(&self, min_speed: f64) -> bool {
         self.attributes.iter().any(|a| a.ends_with(".moving")) || self.velocity[0].hypot(self.velocity[1]) > min_speed

@@ -73,14 +73,21 @@ pub struct BoxTest {
 }
 
 impl BoxTest {
+    /// A box of `size` ([width, length, height], nuScenes order) at `box_to_world`;
     /// `frame_from_world`: the frame the tested points are in.
-    pub fn new(b: &crate::artifact::Box3D, frame_from_world: &Se3, margin: f64, ground_clearance: f64) -> BoxTest {
-        let box_to_frame = frame_from_world.then_from(&Se3::from_wxyz_t(b.rotation, b.center));
+    pub fn new(
+        size: [f64; 3],
+        box_to_world: &Se3,
+        frame_from_world: &Se3,
+        margin: f64,
+        ground_clearance: f64,
+    ) -> BoxTest {
+        let box_to_frame = frame_from_world.then_from(box_to_world);
         // nuScenes size is [width, length, height]; the box x axis runs along its length.
-        let half = DVec3::new(b.size[1] / 2.0, b.size[0] / 2.0, b.size[2] / 2.0) + DVec3::splat(margin);
+        let half = DVec3::new(size[1] / 2.0, size[0] / 2.0, size[2] / 2.0) + DVec3::splat(margin);
         BoxTest {
             to_box: box_to_frame.inverse(),
-            z_min: -b.size[2] / 2.0 + ground_clearance,
+            z_min: -size[2] / 2.0 + ground_clearance,
             radius2: half.length_squared(),
             center: box_to_frame.translation,
             half,
