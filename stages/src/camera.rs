@@ -147,3 +147,24 @@ mod tests {
         assert!(view.to_camera(centre).length() < 1e-9);
     }
 }
+
+crate::ports! {
+    /// The inputs a [`CameraView`] is made from, shared by the stages that look at a point cloud
+    /// from one camera (declare a field `view: Group<ViewPorts>` after the cloud).
+    pub struct ViewPorts {
+        /// the sensor the cloud is in (the target frame's LiDAR)
+        cloud_calib: One<Calibration>,
+        /// ego pose of that sensor's frame
+        cloud_pose: One<Pose>,
+        /// camera mounting and intrinsics
+        camera_calib: One<Calibration>,
+        /// ego pose at the camera time
+        camera_pose: One<Pose>,
+    }
+}
+
+impl ViewPorts {
+    pub fn view(&self) -> Result<CameraView> {
+        CameraView::new(&self.cloud_calib, &self.cloud_pose, &self.camera_calib, &self.camera_pose)
+    }
+}

@@ -73,13 +73,16 @@ pub trait Ports: Sized {
 
 /// How many artifacts a port carries: the field types of a [`crate::ports!`] struct.
 pub trait Port {
-    type Artifact: Artifact;
     /// What the field holds.
     type Value;
-    const MANY: bool;
-    const OPTIONAL: bool;
+    /// The schema entries of field `name` documented `doc` (one port, or a group's ports).
+    fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec>;
     fn decode(port: &str, inputs: &InputSet) -> Result<Self::Value>;
-    fn encode(port: &str, value: Self::Value) -> Result<Encoded>;
+    fn encode(port: &str, value: Self::Value) -> Result<Vec<Encoded>>;
+}
+
+fn port_spec<A: Artifact>(name: &'static str, doc: &'static str, many: bool, optional: bool) -> Vec<PortSpec> {
+    vec![PortSpec { name, ty: A::TYPE, many, optional, doc: doc.trim() }]
 }
 
 /// Exactly one artifact (the field is the artifact).
@@ -89,16 +92,32 @@ pub struct Optional<A>(PhantomData<A>);
 /// Several artifacts (a window, a gather), each with its position (the offset along the window's
 /// dimension, the index of a gathered item): the field is a `Vec<(i64, A)>`.
 pub struct Many<A>(PhantomData<A>);
+/// The ports of another [`crate::ports!`] struct, under their own names (inputs several stages
+/// share, such as the four a camera view is made from): the field is that struct.
+pub struct Group<P>(PhantomData<P>);
+
+impl<P: Ports> Port for Group<P> {
+    type Value = P;
+    fn specs(_: &'static str, _: &'static str) -> Vec<PortSpec> {
+        P::specs()
+    }
+    fn decode(_: &str, inputs: &InputSet) -> Result<P> {
+        P::decode(inputs)
+    }
+    fn encode(_: &str, value: P) -> Result<Vec<Encoded>> {
+        value.encode()
+    }
+}
 
 fn decode_one<A: Artifact>(port: &str, a: &dist4d_runtime::Artifact) -> Result<A> {
     A::decode(&a.bytes).with_context(|| format!("decoding input `{port}` as {}", A::TYPE))
 }
 
 impl<A: Artifact> Port for One<A> {
-    type Artifact = A;
     type Value = A;
-    const MANY: bool = false;
-    const OPTIONAL: bool = false;
+    fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
+        port_spec::<A>(name, doc, false, false)
+    }
     fn decode(port: &str, inputs: &InputSet) -> Result<A> {
         match inputs.get(port) {
             Some([a]) => decode_one(port, a),
@@ -106,16 +125,16 @@ impl<A: Artifact> Port for One<A> {
             None => bail!("input `{port}` is not wired"),
         }
     }
-    fn encode(_: &str, value: A) -> Result<Encoded> {
-        Ok(Encoded { ty: A::TYPE, bytes: value.encode() })
+    fn encode(_: &str, value: A) -> Result<Vec<Encoded>> {
+        Ok(vec![Encoded { ty: A::TYPE, bytes: value.encode() }])
     }
 }
 
 impl<A: Artifact> Port for Optional<A> {
-    type Artifact = A;
     type Value = Option<A>;
-    const MANY: bool = false;
-    const OPTIONAL: bool = true;
+    fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
+        port_spec::<A>(name, doc, false, true)
+    }
     fn decode(port: &str, inputs: &InputSet) -> Result<Option<A>> {
         match inputs.get(port) {
             None | Some([]) => Ok(None),
@@ -123,16 +142,16 @@ impl<A: Artifact> Port for Optional<A> {
             Some(list) => bail!("input `{port}` takes one {}, it was given {}", A::TYPE, list.len()),
         }
     }
-    fn encode(port: &str, _: Option<A>) -> Result<Encoded> {
+    fn encode(port: &str, _: Option<A>) -> Result<Vec<Encoded>> {
         bail!("output `{port}`: outputs are `One`, not `Optional`")
     }
 }
 
 impl<A: Artifact> Port for Many<A> {
-    type Artifact = A;
     type Value = Vec<(i64, A)>;
-    const MANY: bool = true;
-    const OPTIONAL: bool = false;
+    fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
+        port_spec::<A>(name, doc, true, false)
+    }
     fn decode(port: &str, inputs: &InputSet) -> Result<Vec<(i64, A)>> {
         let list = inputs.get(port).ok_or_else(|| anyhow!("input `{port}` is not wired"))?;
         list.iter()
@@ -143,14 +162,9 @@ impl<A: Artifact> Port for Many<A> {
             })
             .collect()
     }
-    fn encode(port: &str, _: Vec<(i64, A)>) -> Result<Encoded> {
+    fn encode(port: &str, _: Vec<(i64, A)>) -> Result<Vec<Encoded>> {
         bail!("output `{port}`: outputs are `One`, not `Many`")
     }
-}
-
-/// The schema entry of a port declared as field `name: P` with doc comment `doc`.
-pub fn spec<P: Port>(name: &'static str, doc: &'static str) -> PortSpec {
-    PortSpec { name, ty: P::Artifact::TYPE, many: P::MANY, optional: P::OPTIONAL, doc: doc.trim() }
 }
 
 /// Declares a struct of typed ports: each field `name: One<T>`, `Optional<T>` or `Many<T>` with
@@ -170,7 +184,9 @@ macro_rules! ports {
 
         impl $crate::stage::Ports for $name {
             fn specs() -> Vec<dist4d_graph::PortSpec> {
-                vec![$( $crate::stage::spec::<$crate::stage::$port<$ty>>(stringify!($field), concat!($($doc),*)) ),*]
+                let mut specs = Vec::new();
+                $( specs.extend(<$crate::stage::$port<$ty> as $crate::stage::Port>::specs(stringify!($field), concat!($($doc),*))); )*
+                specs
             }
             #[allow(unused_variables)]
             fn decode(inputs: &$crate::stage::InputSet) -> anyhow::Result<Self> {
@@ -178,8 +194,11 @@ macro_rules! ports {
                     $( $field: <$crate::stage::$port<$ty> as $crate::stage::Port>::decode(stringify!($field), inputs)?, )*
                 })
             }
+            #[allow(unused_mut)]
             fn encode(self) -> anyhow::Result<Vec<$crate::stage::Encoded>> {
-                Ok(vec![$( <$crate::stage::$port<$ty> as $crate::stage::Port>::encode(stringify!($field), self.$field)? ),*])
+                let mut out = Vec::new();
+                $( out.extend(<$crate::stage::$port<$ty> as $crate::stage::Port>::encode(stringify!($field), self.$field)?); )*
+                Ok(out)
             }
         }
     };

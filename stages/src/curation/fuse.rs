@@ -7,12 +7,12 @@
 //! stays at least one cell away from the LiDAR's coverage). Both clouds are in the same frame
 //! (the target LiDAR's); the output is the whole LiDAR cloud followed by the kept MVS points.
 
-use crate::camera::CameraView;
+use crate::camera::{CameraView, ViewPorts};
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_types::artifact::{Calibration, PointCloud, Pose};
+use dist4d_types::artifact::PointCloud;
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -83,14 +83,8 @@ crate::ports! {
     pub struct Inputs {
         /// the LiDAR cloud (has priority), e.g. aggregate.points
         points: One<PointCloud>,
-        /// the sensor the cloud is in (the target frame's LiDAR)
-        cloud_calib: One<Calibration>,
-        /// ego pose of that sensor's frame
-        cloud_pose: One<Pose>,
-        /// camera mounting and intrinsics
-        camera_calib: One<Calibration>,
-        /// ego pose at the camera time
-        camera_pose: One<Pose>,
+        /// the cloud's sensor and pose, the camera's calibration and pose
+        view: Group<ViewPorts>,
         /// static MVS points in the same frame, e.g. StaticMvsPoints
         mvs: One<PointCloud>,
     }
@@ -117,7 +111,7 @@ impl Stage for FusePoints {
         Ok(FusePoints(params))
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
+        let view = i.view.view()?;
         Ok(Outputs { points: fuse(&self.0, &i.points, &i.mvs, &view)? })
     }
 }

@@ -22,13 +22,13 @@
 //! go into the hull: the others never reach the image, and leaving them out makes the hull 5-6x
 //! smaller for a surround rig.
 
-use crate::camera::CameraView;
+use crate::camera::{CameraView, ViewPorts};
 use crate::hull::hull_vertices;
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_types::artifact::{Calibration, PointCloud, Pose};
+use dist4d_types::artifact::PointCloud;
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -185,14 +185,8 @@ crate::ports! {
     pub struct Inputs {
         /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
         points: One<PointCloud>,
-        /// the sensor the cloud is in (the target frame's LiDAR)
-        cloud_calib: One<Calibration>,
-        /// ego pose of that sensor's frame
-        cloud_pose: One<Pose>,
-        /// camera mounting and intrinsics
-        camera_calib: One<Calibration>,
-        /// ego pose at the camera time
-        camera_pose: One<Pose>,
+        /// the cloud's sensor and pose, the camera's calibration and pose
+        view: Group<ViewPorts>,
     }
 }
 
@@ -218,7 +212,7 @@ impl Stage for HiddenPointRemoval {
         Ok(HiddenPointRemoval(params))
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
+        let view = i.view.view()?;
         Ok(Outputs { points: visible_points(&self.0, &i.points, &view) })
     }
 }

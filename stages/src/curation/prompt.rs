@@ -4,11 +4,12 @@
 //! `CompleteDepth` reads the sparse map).
 
 use crate::camera::{CameraView, ZBuffer};
+use crate::camera::ViewPorts;
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_types::artifact::{Calibration, DepthMap, PointCloud, Pose};
+use dist4d_types::artifact::{DepthMap, PointCloud};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -54,14 +55,8 @@ crate::ports! {
     pub struct Inputs {
         /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
         points: One<PointCloud>,
-        /// the sensor the cloud is in (the target frame's LiDAR)
-        cloud_calib: One<Calibration>,
-        /// ego pose of that sensor's frame
-        cloud_pose: One<Pose>,
-        /// camera mounting and intrinsics
-        camera_calib: One<Calibration>,
-        /// ego pose at the camera time
-        camera_pose: One<Pose>,
+        /// the cloud's sensor and pose, the camera's calibration and pose
+        view: Group<ViewPorts>,
     }
 }
 
@@ -86,7 +81,7 @@ impl Stage for DepthPrompt {
         Ok(DepthPrompt(params))
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
+        let view = i.view.view()?;
         Ok(Outputs { sparse: project_points(&self.0, &i.points, &view) })
     }
 }

@@ -9,12 +9,12 @@
 //! the highest `outlier_share` of them), so no sensor table is needed; `top_elevation_deg`
 //! overrides it for sweeps that were cropped.
 
-use crate::camera::CameraView;
+use crate::camera::{CameraView, ViewPorts};
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_types::artifact::{Calibration, DepthMap, PointCloud, Pose};
+use dist4d_types::artifact::{DepthMap, PointCloud};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -120,14 +120,8 @@ crate::ports! {
     pub struct Inputs {
         /// the target frame's sweep, in its sensor frame (for its top beam)
         points: One<PointCloud>,
-        /// the sensor the cloud is in (the target frame's LiDAR)
-        cloud_calib: One<Calibration>,
-        /// ego pose of that sensor's frame
-        cloud_pose: One<Pose>,
-        /// camera mounting and intrinsics
-        camera_calib: One<Calibration>,
-        /// ego pose at the camera time
-        camera_pose: One<Pose>,
+        /// the cloud's sensor and pose, the camera's calibration and pose
+        view: Group<ViewPorts>,
         /// the depth to restrict (e.g. dataset.gt_depth; empty = none)
         depth: One<DepthMap>,
     }
@@ -160,7 +154,7 @@ impl Stage for AboveLidarFov {
         let (Some(top), true) = (top, i.depth.width > 0 && i.depth.height > 0) else {
             return Ok(Outputs { depth: DepthMap::new(0, 0) });
         };
-        let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
+        let view = i.view.view()?;
         Ok(Outputs { depth: above_fov(&i.depth, &view, top)? })
     }
 }
