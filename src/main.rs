@@ -298,7 +298,7 @@ fn execute(
     let recomputed: u64 = rec.stages.iter().map(|s| s.recomputed).sum();
     if recomputed > 0 {
         eprintln!(
-            "note: {recomputed} finished tasks were run again because the store had lost or corrupted their outputs"
+            "note: finished tasks were run again {recomputed} times because the store had lost or corrupted their outputs"
         );
     }
     for f in &rec.failures {
