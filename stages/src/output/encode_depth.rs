@@ -1,5 +1,5 @@
 //! `EncodeDepth`: a depth map as the files of the user-facing layout: OpenEXR (float32 metres,
-//! channel `Z`), 16-bit PNG (depth x 256, the KITTI convention; 0 = no depth, clamped at 255.99
+//! channel `Y`, which OpenCV reads), 16-bit PNG (depth x 256, the KITTI convention; 0 = no depth, clamped at 255.99
 //! m), NPY (float32 H x W) and a colour preview (turbo, near = warm, black = no depth).
 
 use crate::stage::Stage;
@@ -65,7 +65,7 @@ crate::ports! {
 
 crate::ports! {
     pub struct Outputs {
-        /// OpenEXR, channel Z, float32 metres
+        /// OpenEXR, channel Y, float32 metres
         exr: One<File>,
         /// 16-bit PNG, depth x 256 (KITTI), 0 = none
         png16: One<File>,
@@ -80,7 +80,8 @@ pub struct EncodeDepth(Params);
 
 impl Stage for EncodeDepth {
     const KIND: &'static str = "EncodeDepth";
-    const VERSION: u32 = 1;
+    // 2: the EXR channel is `Y` (OpenCV reads it), not `Z`.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str = "DepthMap -> OpenEXR (float32 m), 16-bit PNG (x256), NPY and a turbo colour preview";
     const GRAINS: &'static [&'static str] = &["camera", "frame", "scene"];
     type Params = Params;
@@ -128,7 +129,7 @@ mod tests {
             .from_buffered(std::io::Cursor::new(depth_exr(&d).unwrap()))
             .unwrap();
         let ch = &img.layer_data.channel_data.list[0];
-        assert_eq!(ch.name, Text::from("Z"));
+        assert_eq!(ch.name, Text::from("Y"));
         match &ch.sample_data {
             FlatSamples::F32(v) => assert_eq!(v, &d.data),
             _ => panic!("EXR depth is float32"),

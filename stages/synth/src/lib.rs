@@ -19,8 +19,9 @@ use dist4d_types::geometry::Se3;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// Bumped whenever the same config would produce different data.
-pub const GENERATOR_VERSION: u32 = 1;
+/// Bumped whenever the same config would produce different data. 2: ground-truth depth EXRs
+/// have their channel named `Y` (which OpenCV reads), not `Z`.
+pub const GENERATOR_VERSION: u32 = 2;
 
 /// Where the ground truth sits inside a synthetic dataset root.
 pub const GROUND_TRUTH_DIR: &str = "groundtruth";

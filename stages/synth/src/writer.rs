@@ -205,7 +205,7 @@ const GROUND_TRUTH_README: &str = "\
 # Ground truth of a dist4d synthetic dataset
 
 - `depth/<CHANNEL>/<image name>.exr`: dense metric depth of every camera image, OpenEXR, one
-  float32 channel `Z`: distance along the optical axis in metres (what the nuScenes devkit calls
+  float32 channel `Y` (the name OpenCV reads): distance along the optical axis in metres (what the nuScenes devkit calls
   depth). Sky (no surface within 1000 m) is +inf. Pixel (col, row) is the ray through image point
   (col + 0.5, row + 0.5).
 - `semantic/<CHANNEL>/<image name>.png`: 8-bit Cityscapes ids: road 7, sidewalk 8, building 11,

@@ -4,10 +4,13 @@
 use crate::artifact::DepthMap;
 use anyhow::{Context, Result};
 
-/// OpenEXR, one float32 channel `Z`, ZIP-compressed.
+/// OpenEXR, one float32 channel `Y`, ZIP-compressed. `Y`, not `Z`: OpenCV (`cv2.imread(path,
+/// IMREAD_UNCHANGED)`, how most users open an EXR) reads a lone `Y` channel as a grey float image
+/// and returns zeros for a lone `Z`; the OpenEXR bindings and readers that take the first channel
+/// read either.
 pub fn depth_exr(d: &DepthMap) -> Result<Vec<u8>> {
     use exr::prelude::*;
-    let channel = AnyChannel::new("Z", FlatSamples::F32(d.data.clone()));
+    let channel = AnyChannel::new("Y", FlatSamples::F32(d.data.clone()));
     let layer = Layer::new(
         (d.width as usize, d.height as usize),
         LayerAttributes::named("depth"),
