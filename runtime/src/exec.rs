@@ -617,28 +617,17 @@ impl Coord {
         let ci = self.counter_of[node];
         match result {
             Ok(outcome) => {
-                let (key, produced) = match outcome {
-                    Outcome::Cached(key, outs) => {
-                        self.stats[ci].cached += 1;
-                        (key, outs.into_iter().map(|r| Produced { r, mem: None }).collect::<Vec<_>>())
-                    }
-                    Outcome::Executed(key, produced, micros) => {
+                match &outcome {
+                    Outcome::Cached(..) => self.stats[ci].cached += 1,
+                    Outcome::Executed(_, _, micros) => {
                         self.stats[ci].executed += 1;
-                        self.stats[ci].seconds += micros as f64 / 1e6;
-                        (key, produced)
-                    }
-                };
-                self.keys_out.write_all(&key.0)?;
-                self.counters.done[ci].fetch_add(1, Ordering::Relaxed);
-                self.store_outputs(e, slot, t, produced);
-                let run = self.active[slot as usize].as_mut().unwrap();
-                for i in 0..run.plan.tasks[t].dependents.len() {
-                    let d = run.plan.tasks[t].dependents[i] as usize;
-                    run.waiting[d] -= 1;
-                    if run.waiting[d] == 0 && run.state[d] == State::Waiting {
-                        self.ready.push(entry(run, slot, d as u32, &self.rank));
+                        self.stats[ci].seconds += *micros as f64 / 1e6;
                     }
                 }
+                self.counters.done[ci].fetch_add(1, Ordering::Relaxed);
+                self.complete(e, slot, t, outcome)?;
+                let dependents = run_of(&self.active, slot).plan.tasks[t].dependents.clone();
+                self.release(slot, &dependents);
             }
             Err(err) => {
                 self.stats[ci].failed += 1;
@@ -657,10 +646,38 @@ impl Coord {
         release_inputs(run, t);
         run.open -= 1;
         self.live_tasks -= 1;
-        if run.closed() {
+        self.close_if_done(slot);
+        Ok(())
+    }
+
+    /// Records a finished task's key and keeps its outputs (first run or run again alike).
+    fn complete(&mut self, e: &Engine, slot: u32, t: usize, outcome: Outcome) -> Result<()> {
+        let (key, produced) = match outcome {
+            Outcome::Cached(key, outs) => (key, outs.into_iter().map(|r| Produced { r, mem: None }).collect()),
+            Outcome::Executed(key, produced, _) => (key, produced),
+        };
+        self.keys_out.write_all(&key.0)?;
+        self.store_outputs(e, slot, t, produced);
+        Ok(())
+    }
+
+    /// One input of each of `tasks` is now there: those that wait for nothing more are ready.
+    fn release(&mut self, slot: u32, tasks: &[u32]) {
+        let run = self.active[slot as usize].as_mut().unwrap();
+        for &d in tasks {
+            let d = d as usize;
+            run.waiting[d] -= 1;
+            if run.waiting[d] == 0 && run.state[d] == State::Waiting {
+                self.ready.push(entry(run, slot, d as u32, &self.rank));
+            }
+        }
+    }
+
+    /// Frees the slot of an outer item whose tasks, exports and reruns have all ended.
+    fn close_if_done(&mut self, slot: u32) {
+        if run_of(&self.active, slot).closed() {
             self.active[slot as usize] = None;
         }
-        Ok(())
     }
 
     /// Marks the tasks of `stack` and everything downstream of them that still waits as skipped:
@@ -766,20 +783,8 @@ impl Coord {
     ) -> Result<()> {
         match result {
             Ok(outcome) => {
-                let (key, produced) = match outcome {
-                    Outcome::Cached(key, outs) => (key, outs.into_iter().map(|r| Produced { r, mem: None }).collect()),
-                    Outcome::Executed(key, produced, _) => (key, produced),
-                };
-                self.keys_out.write_all(&key.0)?;
-                self.store_outputs(e, slot, t, produced);
-                let run = self.active[slot as usize].as_mut().unwrap();
-                for w in waiters {
-                    let w = w as usize;
-                    run.waiting[w] -= 1;
-                    if run.waiting[w] == 0 && run.state[w] == State::Waiting {
-                        self.ready.push(entry(run, slot, w as u32, &self.rank));
-                    }
-                }
+                self.complete(e, slot, t, outcome)?;
+                self.release(slot, &waiters);
             }
             Err(err) => {
                 let run = self.active[slot as usize].as_mut().unwrap();
@@ -793,9 +798,7 @@ impl Coord {
                 self.skip_all(slot, waiters.into_iter().map(|w| w as usize).collect());
             }
         }
-        if self.active[slot as usize].as_ref().unwrap().closed() {
-            self.active[slot as usize] = None;
-        }
+        self.close_if_done(slot);
         Ok(())
     }
 
@@ -812,12 +815,12 @@ impl Coord {
         match result {
             Ok(stat) => {
                 if let Some(x) = self.exporter.as_mut() {
-                    x.job_done(rel, Ok(stat));
+                    x.job_done(rel, Some(stat));
                 }
             }
             Err(err) => {
                 if let Some(x) = self.exporter.as_mut() {
-                    x.job_done(rel, Err(()));
+                    x.job_done(rel, None);
                 }
                 let healed = BlobError::find(&err).is_some() && self.redo(slot, t);
                 if !healed {
@@ -825,9 +828,7 @@ impl Coord {
                 }
             }
         }
-        if self.active[slot as usize].as_ref().unwrap().closed() {
-            self.active[slot as usize] = None;
-        }
+        self.close_if_done(slot);
     }
 }
 
@@ -940,4 +941,9 @@ fn panic_message(p: &Box<dyn std::any::Any + Send>) -> String {
         .map(|s| s.to_string())
         .or_else(|| p.downcast_ref::<String>().cloned())
         .unwrap_or_else(|| "unknown panic".into())
+}
+
+/// The active outer item in `slot` (the coordinator only asks for slots it holds).
+fn run_of(active: &[Option<OuterRun>], slot: u32) -> &OuterRun {
+    active[slot as usize].as_ref().expect("an active slot")
 }

@@ -26,7 +26,7 @@ use crate::store::{write_atomic_via, BlobError, Store};
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{Dim, Export, TemplatePart};
 use serde::{Deserialize, Serialize};
-use std::collections::{BTreeMap, HashSet};
+use std::collections::BTreeMap;
 use std::os::unix::fs::MetadataExt;
 use std::path::{Component, Path, PathBuf};
 use std::sync::Arc;
@@ -182,10 +182,9 @@ pub struct Exporter {
     counter: u64,
     /// The manifest as earlier runs left it, owned by this pipeline.
     manifest: Manifest,
-    /// This run's files: planned, then confirmed or written (with their stat) or failed.
+    /// This run's files as planned, and those of them confirmed or written (with their stat).
     entries: BTreeMap<String, IndexEntry>,
     done: BTreeMap<String, FileStat>,
-    failed: HashSet<String>,
 }
 
 /// One file to write.
@@ -296,7 +295,6 @@ impl Exporter {
             manifest,
             entries: BTreeMap::new(),
             done: BTreeMap::new(),
-            failed: HashSet::new(),
         };
         if exporter.manifest.owner.as_deref() != Some(pipeline) {
             exporter.manifest.owner = Some(pipeline.to_string());
@@ -356,17 +354,12 @@ impl Exporter {
         Ok(Some(ExportJob { rel, dest, tmp, digest: out.digest, size: out.size, bytes }))
     }
 
-    /// A job ended: its file is in place with `stat`, or it failed.
-    pub fn job_done(&mut self, rel: &str, result: Result<FileStat, ()>) {
-        match result {
-            Ok(stat) => {
-                self.failed.remove(rel);
-                self.done.insert(rel.to_string(), stat);
-            }
-            Err(()) => {
-                self.failed.insert(rel.to_string());
-            }
-        }
+    /// A job ended: its file is in place with `stat`, or (None) it failed.
+    pub fn job_done(&mut self, rel: &str, stat: Option<FileStat>) {
+        match stat {
+            Some(stat) => self.done.insert(rel.to_string(), stat),
+            None => self.done.remove(rel),
+        };
     }
 
     /// Writes the manifest and `index.json`; returns how many files the run exported or confirmed.
@@ -385,12 +378,8 @@ impl Exporter {
             None => false,
             Some(now) => held.stat.is_none_or(|s| s == now) || self.done.contains_key(rel),
         });
-        let files: Vec<&IndexEntry> = self
-            .entries
-            .iter()
-            .filter(|(rel, _)| self.done.contains_key(*rel) && !self.failed.contains(*rel))
-            .map(|(_, e)| e)
-            .collect();
+        let files: Vec<&IndexEntry> =
+            self.entries.iter().filter(|(rel, _)| self.done.contains_key(*rel)).map(|(_, e)| e).collect();
         let count = files.len() as u64;
         // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
         let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files }))?;
