@@ -168,3 +168,13 @@ impl ViewPorts {
         CameraView::new(&self.cloud_calib, &self.cloud_pose, &self.camera_calib, &self.camera_pose)
     }
 }
+
+crate::ports! {
+    /// The inputs of a stage that looks at a point cloud from one camera: the cloud and its view.
+    pub struct CloudInView {
+        /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
+        points: One<dist4d_types::artifact::PointCloud>,
+        /// the cloud's sensor and pose, the camera's calibration and pose
+        view: Group<ViewPorts>,
+    }
+}

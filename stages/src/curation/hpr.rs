@@ -22,7 +22,7 @@
 //! go into the hull: the others never reach the image, and leaving them out makes the hull 5-6x
 //! smaller for a surround rig.
 
-use crate::camera::{CameraView, ViewPorts};
+use crate::camera::{CameraView, CloudInView};
 use crate::hull::hull_vertices;
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
@@ -182,15 +182,6 @@ fn restore_unoccluded(params: &Params, xyz: &[DVec3], visible: &mut [bool], view
 }
 
 crate::ports! {
-    pub struct Inputs {
-        /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
-        points: One<PointCloud>,
-        /// the cloud's sensor and pose, the camera's calibration and pose
-        view: Group<ViewPorts>,
-    }
-}
-
-crate::ports! {
     pub struct Outputs {
         /// the visible points, same frame, in input order
         points: One<PointCloud>,
@@ -206,12 +197,12 @@ impl Stage for HiddenPointRemoval {
         "Point cloud -> the points one camera can see (Katz et al. 2007 spherical flip + convex hull)";
     const GRAINS: &'static [&'static str] = &["camera"];
     type Params = Params;
-    type Inputs = Inputs;
+    type Inputs = CloudInView;
     type Outputs = Outputs;
     fn new(params: Params) -> Result<Self> {
         Ok(HiddenPointRemoval(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: CloudInView) -> Result<Outputs> {
         let view = i.view.view()?;
         Ok(Outputs { points: visible_points(&self.0, &i.points, &view) })
     }

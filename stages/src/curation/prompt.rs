@@ -3,8 +3,7 @@
 //! `NearestFill`, so that only pipelines whose completer reads it pay for it (the built-in
 //! `CompleteDepth` reads the sparse map).
 
-use crate::camera::{CameraView, ZBuffer};
-use crate::camera::ViewPorts;
+use crate::camera::{CameraView, CloudInView, ZBuffer};
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::Result;
@@ -52,15 +51,6 @@ pub fn project_points(params: &Params, points: &PointCloud, view: &CameraView) -
 }
 
 crate::ports! {
-    pub struct Inputs {
-        /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
-        points: One<PointCloud>,
-        /// the cloud's sensor and pose, the camera's calibration and pose
-        view: Group<ViewPorts>,
-    }
-}
-
-crate::ports! {
     pub struct Outputs {
         /// z-buffered projection, 0 = no point
         sparse: One<DepthMap>,
@@ -75,12 +65,12 @@ impl Stage for DepthPrompt {
     const SUMMARY: &'static str = "Points -> sparse z-buffered depth of one camera (the depth prompt before its fill)";
     const GRAINS: &'static [&'static str] = &["camera"];
     type Params = Params;
-    type Inputs = Inputs;
+    type Inputs = CloudInView;
     type Outputs = Outputs;
     fn new(params: Params) -> Result<Self> {
         Ok(DepthPrompt(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: CloudInView) -> Result<Outputs> {
         let view = i.view.view()?;
         Ok(Outputs { sparse: project_points(&self.0, &i.points, &view) })
     }
