@@ -255,15 +255,7 @@ impl Exporter {
                 _ => m,
             },
             None => {
-                let foreign: Vec<String> = match std::fs::read_dir(dir) {
-                    Ok(entries) => entries
-                        .filter_map(|e| e.ok())
-                        .map(|e| e.file_name().to_string_lossy().into_owned())
-                        .filter(|n| n != TMP)
-                        .take(3)
-                        .collect(),
-                    Err(_) => Vec::new(),
-                };
+                let foreign = not_bookkeeping(dir, 3);
                 if !foreign.is_empty() {
                     bail!(
                         "{} is not empty (it holds {}) and has no {MANIFEST}, so dist4d did not make it; \
@@ -397,7 +389,7 @@ impl Exporter {
 fn adopt_legacy(dir: &Path, pipeline: &str, stages: &[&str]) -> Result<()> {
     let index = match read_index(dir) {
         Ok(files) => files,
-        Err(_) if only_bookkeeping(dir) => return Ok(()),
+        Err(_) if not_bookkeeping(dir, 1).is_empty() => return Ok(()),
         Err(e) => {
             return Err(e.context(format!(
                 "{} has a manifest without an owner and no readable index, so dist4d cannot tell which pipeline \
@@ -421,14 +413,16 @@ fn adopt_legacy(dir: &Path, pipeline: &str, stages: &[&str]) -> Result<()> {
     Ok(())
 }
 
-/// Whether `dir` holds nothing but dist4d's own bookkeeping (manifest, temp folder).
-fn only_bookkeeping(dir: &Path) -> bool {
-    std::fs::read_dir(dir).map_or(true, |entries| {
-        entries.filter_map(|e| e.ok()).all(|e| {
-            let name = e.file_name();
-            name == MANIFEST || name == TMP
-        })
-    })
+/// Up to `most` names in `dir` other than dist4d's own bookkeeping (manifest, temp folder);
+/// none for a folder that does not exist.
+fn not_bookkeeping(dir: &Path, most: usize) -> Vec<String> {
+    let Ok(entries) = std::fs::read_dir(dir) else { return Vec::new() };
+    entries
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n != MANIFEST && n != TMP)
+        .take(most)
+        .collect()
 }
 
 /// Why `label` cannot be one path component, if it cannot.
