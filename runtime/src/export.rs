@@ -196,6 +196,10 @@ pub struct ExportJob {
     digest: Digest,
     size: u64,
     bytes: Source,
+    /// Whether a file already there may hold these bytes and is worth hashing before writing:
+    /// not when the manifest says it holds other bytes (a param changed), so that an
+    /// incremental run reads each stale export no more than it writes it.
+    confirm: bool,
 }
 
 enum Source {
@@ -207,7 +211,7 @@ enum Source {
 impl ExportJob {
     /// Writes the file unless it already holds the right bytes; returns its stat afterwards.
     pub fn write(self) -> Result<FileStat> {
-        if let Some(stat) = FileStat::of(&self.dest).filter(|s| s.size == self.size) {
+        if let Some(stat) = FileStat::of(&self.dest).filter(|s| self.confirm && s.size == self.size) {
             // Same size: maybe the same bytes (a copied folder, a touched file, a v1 manifest).
             if file_digest(&self.dest) == Some(self.digest) {
                 return Ok(stat);
@@ -329,21 +333,21 @@ impl Exporter {
             },
         );
         // In place: the manifest says the path holds these bytes, and the file is untouched since.
-        if let Some(held) = self.manifest.files.get(&rel) {
-            if held.digest == out.digest && held.size == out.size {
-                if let Some(stat) = held.stat.filter(|s| FileStat::of(&dest).as_ref() == Some(s)) {
-                    self.done.insert(rel, stat);
-                    return Ok(None);
-                }
-            }
+        let held = self.manifest.files.get(&rel);
+        let same_bytes = held.is_some_and(|h| h.digest == out.digest && h.size == out.size);
+        if let Some(stat) = held.and_then(|h| h.stat).filter(|s| same_bytes && FileStat::of(&dest).as_ref() == Some(s))
+        {
+            self.done.insert(rel, stat);
+            return Ok(None);
         }
+        let confirm = held.is_none() || same_bytes;
         let tmp = self.tmp_path("");
         let bytes = match (mem, &out.inline) {
             (Some(m), _) => Source::Mem(m),
             (None, Some(b)) => Source::Inline(b.clone()),
             (None, None) => Source::Blob { path: store.blob_path(&out.digest) },
         };
-        Ok(Some(ExportJob { rel, dest, tmp, digest: out.digest, size: out.size, bytes }))
+        Ok(Some(ExportJob { rel, dest, tmp, digest: out.digest, size: out.size, bytes, confirm }))
     }
 
     /// A job ended: its file is in place with `stat`, or (None) it failed.
