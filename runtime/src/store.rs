@@ -105,9 +105,7 @@ impl Store {
 
         let writer_id = unique_writer_id();
         let writer_lock_path = root.join("tmp").join(format!("{writer_id}.lock"));
-        let writer_lock =
-            File::create(&writer_lock_path).with_context(|| format!("creating {}", writer_lock_path.display()))?;
-        writer_lock.lock().with_context(|| format!("locking {}", writer_lock_path.display()))?;
+        let writer_lock = lock_writer_file(&writer_lock_path)?;
         remove_dead_writers_temps(&root.join("tmp"), &writer_id)?;
 
         let mut segments = Vec::new();
@@ -327,6 +325,25 @@ fn unique_writer_id() -> String {
     format!("{}-{}", std::process::id(), &d.hex()[..10])
 }
 
+/// Creates and locks this writer's lock file. Between creating the file and locking it, another
+/// process opening the store may take the still-free lock, judge the writer dead and unlink the
+/// file; we would then hold a lock on a file nobody can find, and our temp files would be removed
+/// as a dead writer's. So after locking, the path must still name the file we locked, or we retry.
+fn lock_writer_file(path: &Path) -> Result<File> {
+    use std::os::unix::fs::MetadataExt;
+    loop {
+        let f = File::create(path).with_context(|| format!("creating {}", path.display()))?;
+        f.lock().with_context(|| format!("locking {}", path.display()))?;
+        let locked = f.metadata().with_context(|| format!("reading {}", path.display()))?;
+        match fs::metadata(path) {
+            Ok(m) if m.dev() == locked.dev() && m.ino() == locked.ino() => return Ok(f),
+            Ok(_) => continue,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+            Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+        }
+    }
+}
+
 /// Removes temp files of writers that are gone. A live writer holds the lock on its
 /// `tmp/<writer>.lock`; if we can take it, its process has exited or been killed.
 fn remove_dead_writers_temps(tmp: &Path, me: &str) -> Result<()> {
@@ -462,5 +479,26 @@ mod tests {
         let _other = Store::open(dir.path(), Access::Shared).unwrap();
         assert!(live_tmp.exists(), "a live writer's temp files stay");
         assert!(Store::open(dir.path(), Access::Exclusive).is_err(), "gc waits for runs to end");
+    }
+
+    #[test]
+    fn stores_opened_at_once_each_keep_their_lock_file() {
+        // A store opening judges writers whose lock it can take dead and unlinks their lock
+        // files; one that had created its file but not yet locked it used to lose it, and then
+        // its temp files (in the store and in output folders) were removed under it.
+        let dir = tempfile::tempdir().unwrap();
+        std::thread::scope(|scope| {
+            for _ in 0..4 {
+                scope.spawn(|| {
+                    for _ in 0..100 {
+                        let s = Store::open(dir.path(), Access::Shared).unwrap();
+                        let lock = dir.path().join("tmp").join(format!("{}.lock", s.writer_id()));
+                        assert!(lock.exists(), "{} lost its lock file", s.writer_id());
+                        let other = Store::open(dir.path(), Access::Shared).unwrap();
+                        assert!(other.writer_alive(s.writer_id()), "{} judged dead while open", s.writer_id());
+                    }
+                });
+            }
+        });
     }
 }
