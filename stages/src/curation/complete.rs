@@ -8,12 +8,8 @@
 //! edge: it is split at the strongest luminance edge of the image inside the gap, each side taking
 //! its end's depth (the image guides where the object ends). Below a column's lowest sample the
 //! ground continues (inverse depth extrapolated from the last two samples when they agree); above
-//! its highest sample a vertical surface continues (constant depth) unless the pixel is sky. Sky
-//! is read from a semantic map when one is wired (Cityscapes id 23); otherwise a built-in estimate
-//! takes, per column, the run of smooth (down the column and along the row), bright, not-reddish
-//! pixels from the top of the image that lies above every depth sample and ends at a luminance
-//! edge (a run that fades into what is below it is a smooth facade). A baseline: it fails on
-//! sky-coloured flat walls that end at an edge with no depth above them. Sky pixels get
+//! its highest sample a vertical surface continues (constant depth). Pixels of the `sky` mask
+//! (from `EstimateSky`, or a segmentation through it) get
 //! `sky_depth` (paper: 100 m). Columns with no sample take their nearest filled column.
 //!
 //! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
@@ -22,7 +18,7 @@ use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_types::artifact::{DepthMap, Image, Segmentation};
+use dist4d_types::artifact::{DepthMap, Image, Mask};
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -36,8 +32,6 @@ pub struct Params {
     pub tolerance: f32,
     /// Depth given to sky pixels (m); the paper uses 100 m.
     pub sky_depth: f32,
-    /// Whether to estimate sky when no semantic map is wired.
-    pub detect_sky: bool,
     /// Empty pixels within this distance (square window) of samples first take the nearest
     /// depth among them, so that 1-px LiDAR rings become bands the row pass can follow. In mean
     /// sample spacings (sqrt(image area / samples)), rounded to whole pixels: sparse input (one
@@ -48,7 +42,7 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, detect_sky: true, grow: 0.13 }
+        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, grow: 0.13 }
     }
 }
 
@@ -70,14 +64,14 @@ impl Validate for Params {
 
 /// A depth completer: image + sparse metric depth (0 = unknown) -> dense metric depth.
 pub trait DepthCompleter {
-    fn complete(&self, image: &Image, sparse: &DepthMap, semantic: Option<&Segmentation>) -> Result<DepthMap>;
+    fn complete(&self, image: &Image, sparse: &DepthMap, sky: Option<&Mask>) -> Result<DepthMap>;
 }
 
 /// The built-in, image-guided inverse-depth interpolation described in the module docs.
 pub struct ScanlineCompleter(pub Params);
 
 impl DepthCompleter for ScanlineCompleter {
-    fn complete(&self, image: &Image, sparse: &DepthMap, semantic: Option<&Segmentation>) -> Result<DepthMap> {
+    fn complete(&self, image: &Image, sparse: &DepthMap, sky: Option<&Mask>) -> Result<DepthMap> {
         ensure!(
             image.width == sparse.width && image.height == sparse.height,
             "the image is {}x{} but the sparse depth is {}x{}",
@@ -86,17 +80,17 @@ impl DepthCompleter for ScanlineCompleter {
             sparse.width,
             sparse.height
         );
-        if let Some(s) = semantic {
+        if let Some(s) = sky {
             ensure!(
                 s.width == image.width && s.height == image.height,
-                "the semantic map is {}x{} but the image is {}x{}",
+                "the sky mask is {}x{} but the image is {}x{}",
                 s.width,
                 s.height,
                 image.width,
                 image.height
             );
         }
-        Ok(complete(&self.0, image, sparse, semantic))
+        Ok(complete(&self.0, image, sparse, sky))
     }
 }
 
@@ -161,50 +155,6 @@ fn continues_a_plane(c: &[f32], s: usize, samples: &[u32], j: usize, tol: f32) -
     let sl = slope(j);
     let close = |t: f32| (t - sl).abs() <= tol * sl.abs().max(t.abs()) && t * sl > 0.0;
     (j > 0 && close(slope(j - 1))) || (j + 2 < samples.len() && close(slope(j + 1)))
-}
-
-/// The built-in sky estimate: per column, the smooth bright not-reddish run from the top that
-/// stays above `top[x]` (the column's highest sample; `h` when none) and ends at a luminance edge
-/// (or the bottom of the image): a run that fades into what lies below it, sample or not, is a
-/// smooth facade, not sky.
-fn estimate_sky(image: &Image, lum: &[f32], top: &[usize], w: usize) -> Vec<bool> {
-    let mut sky = vec![false; lum.len()];
-    for x in 0..w {
-        let mut end = 0;
-        while end < top[x] {
-            let i = end * w + x;
-            let px = &image.rgb[3 * i..3 * i + 3];
-            // Smooth down the column and along the row: facade texture is rarely smooth both ways.
-            let smooth = (end == 0 || (lum[i] - lum[i - w]).abs() < SKY_SMOOTH)
-                && (x == 0 || (lum[i] - lum[i - 1]).abs() < SKY_SMOOTH)
-                && (x + 1 == w || (lum[i] - lum[i + 1]).abs() < SKY_SMOOTH);
-            let skyish = lum[i] > 90.0 && px[2] as i32 + 12 >= px[0] as i32;
-            if !(smooth && skyish) {
-                break;
-            }
-            end += 1;
-        }
-        let h = lum.len() / w;
-        let bounded = end == h || (end > 0 && (lum[end * w + x] - lum[(end - 1) * w + x]).abs() >= SKY_EDGE);
-        if bounded {
-            for y in 0..end {
-                sky[y * w + x] = true;
-            }
-        }
-    }
-    sky
-}
-
-/// Largest luminance step (0-255) between neighbours inside sky.
-const SKY_SMOOTH: f32 = 6.0;
-/// Smallest luminance step where sky meets what is below it.
-const SKY_EDGE: f32 = 2.0 * SKY_SMOOTH;
-
-/// The built-in sky estimate with no depth samples to bound it (every column may be sky down to
-/// the bottom): what `StaticMvsPoints` uses when the dataset has no segmentation.
-pub fn estimate_sky_from_top(image: &Image) -> Vec<bool> {
-    let (w, h) = (image.width as usize, image.height as usize);
-    estimate_sky(image, &luminance(image), &vec![h; w], w)
 }
 
 /// `grow` (in mean sample spacings) in whole pixels for `samples` samples in a `w` x `h` image.
@@ -279,7 +229,7 @@ fn column_samples(inv: &[f32], w: usize) -> ColumnSamples {
     ColumnSamples { start, rows }
 }
 
-pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, semantic: Option<&Segmentation>) -> DepthMap {
+pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>) -> DepthMap {
     let (w, h) = (sparse.width as usize, sparse.height as usize);
     let lum = luminance(image);
     let mut inv: Vec<f32> = sparse.data.iter().map(|&z| if z > 0.0 && z.is_finite() { 1.0 / z } else { 0.0 }).collect();
@@ -359,14 +309,9 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, semantic: Option<&
             top[x] = top[near];
         }
     }
-    let sky: Option<Vec<bool>> = match semantic {
-        Some(s) => Some(s.ids.iter().map(|&id| id == Segmentation::SKY).collect()),
-        None if p.detect_sky => Some(estimate_sky(image, &lum, &top, w)),
-        None => None,
-    };
     if let Some(sky) = sky {
-        for (d, s) in depth.iter_mut().zip(sky) {
-            if s {
+        for (d, &s) in depth.iter_mut().zip(&sky.data) {
+            if s != 0 {
                 *d = p.sky_depth;
             }
         }
@@ -381,8 +326,8 @@ crate::ports! {
         image: One<Image>,
         /// sparse metric depth (the z-buffered prompt)
         sparse: One<DepthMap>,
-        /// Cityscapes-id segmentation; sky = 23
-        semantic: Optional<Segmentation>,
+        /// sky pixels (e.g. from EstimateSky), set to sky_depth
+        sky: Optional<Mask>,
     }
 }
 
@@ -408,9 +353,7 @@ impl Stage for CompleteDepth {
         Ok(CompleteDepth(params))
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        // An empty map is a dataset without segmentations.
-        let semantic = i.semantic.filter(|s| s.width > 0 && s.height > 0);
-        let depth = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, semantic.as_ref())?;
+        let depth = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, i.sky.as_ref())?;
         Ok(Outputs { depth })
     }
 }
@@ -445,6 +388,8 @@ mod tests {
         }
     }
 
+    use crate::curation::sky::{estimate_sky, Params as SkyParams};
+
     fn grey(w: u32, h: u32, f: impl Fn(usize, usize) -> [u8; 3]) -> Image {
         let mut rgb = Vec::new();
         for y in 0..h as usize {
@@ -469,7 +414,7 @@ mod tests {
         let image = grey(w, h, |_, _| [90, 90, 90]);
         // Without growth (which copies a sample's depth to its neighbours, a small error on a
         // slanted surface), interpolation in inverse depth is exact on a plane.
-        let d = complete(&Params { detect_sky: false, grow: 0.0, ..Params::default() }, &image, &sparse, None);
+        let d = complete(&Params { grow: 0.0, ..Params::default() }, &image, &sparse, None);
         for y in 24..h as usize {
             for x in 0..w as usize {
                 let z = d.data[y * w as usize + x];
@@ -499,16 +444,17 @@ mod tests {
                 [120, 110, 100]
             }
         });
-        let d = complete(&Params::default(), &image, &sparse, None);
+        let sky = estimate_sky(&SkyParams::default(), &image, Some(&sparse));
+        let sky = Mask { width: w, height: h, data: sky.into_iter().map(u8::from).collect() };
+        let d = complete(&Params::default(), &image, &sparse, Some(&sky));
         let at = |x: usize, y: usize| d.data[y * w as usize + x];
         assert_eq!(at(15, 32), 5.0);
         assert_eq!(at(15, 33), 20.0);
         assert_eq!(at(15, 5), 5.0, "the wall continues up");
         assert_eq!(at(3, 5), 100.0, "sky");
         assert_eq!(at(3, 15), 20.0, "not sky: below the sky colour");
-        // With a segmentation, sky comes from it.
-        let seg = Segmentation { width: w, height: h, ids: vec![0; (w * h) as usize] };
-        let d = complete(&Params::default(), &image, &sparse, Some(&seg));
+        // Without a sky mask, nothing is sky.
+        let d = complete(&Params::default(), &image, &sparse, None);
         assert_eq!(d.data[5 * w as usize + 3], 20.0);
     }
 
@@ -532,11 +478,11 @@ mod tests {
                 [60, 60, 60]
             }
         });
-        let d = complete(&Params::default(), &image, &sparse, None);
-        let at = |x: usize, y: usize| d.data[y * w as usize + x];
-        assert_eq!(at(5, 2), 10.0, "facade, not sky");
-        assert_eq!(at(15, 2), 100.0, "sky above an edge");
-        assert_eq!(at(15, 12), 10.0, "the wall below the edge");
+        let sky = estimate_sky(&SkyParams { min_area: 0.0, ..SkyParams::default() }, &image, Some(&sparse));
+        let at = |x: usize, y: usize| sky[y * w as usize + x];
+        assert!(!at(5, 2), "facade, not sky");
+        assert!(at(15, 2), "sky above an edge");
+        assert!(!at(15, 12), "the wall below the edge");
     }
 
     #[test]

@@ -11,4 +11,5 @@ crate::stage_modules! {
     nearest_fill::NearestFill,
     project_lidar::ProjectLidar,
     prompt::DepthPrompt,
+    sky::EstimateSky,
 }

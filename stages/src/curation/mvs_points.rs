@@ -5,9 +5,8 @@
 //! into the target frame's LiDAR frame, then dropped when it is
 //! - inside a box of the target frame that is moving (attribute or speed above `moving_speed`;
 //!   grown by `box_margin`): moving objects break the multi-view constraint;
-//! - sky: a Cityscapes-id segmentation (`semantic`, id 23) when the dataset has one, otherwise
-//!   the built-in estimate of `CompleteDepth` (the bright, smooth, not reddish run of each column
-//!   from the top of the image that ends at an edge);
+//! - sky, when a sky mask is wired (`EstimateSky`, which follows the dataset's segmentation when
+//!   it has one);
 //! - not more than `min_height` above the LiDAR (z in the LiDAR frame): "we only keep MVS points
 //!   above the ego LiDAR", where LiDAR has no returns;
 //! - without support: fewer than `min_support` confident neighbours agree with its depth (see
@@ -22,7 +21,7 @@ use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_types::artifact::{Boxes3D, Calibration, DepthMap, Image, PointCloud, Pose, Segmentation};
+use dist4d_types::artifact::{Boxes3D, Calibration, DepthMap, Mask, PointCloud, Pose};
 use dist4d_types::geometry::BoxTest;
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -40,8 +39,6 @@ pub struct Params {
     pub min_height: f64,
     /// Voxel edge (m) of the downsampling; 0 keeps every point.
     pub voxel: f64,
-    /// Without a segmentation, estimate sky from the image.
-    pub detect_sky: bool,
     /// A pixel needs at least `min_support` confident neighbours within `support_radius`
     /// (working-resolution px, square window) whose depth is within `support_tolerance` of its own.
     pub min_support: u32,
@@ -57,7 +54,6 @@ impl Default for Params {
             box_margin: 0.2,
             min_height: 0.0,
             voxel: 0.1,
-            detect_sky: true,
             min_support: 8,
             support_radius: 2,
             support_tolerance: 0.03,
@@ -167,8 +163,8 @@ pub fn supported(depth: &[f32], w: usize, h: usize, radius: usize, tolerance: f3
 pub struct MvsInputs<'a> {
     pub depth: &'a DepthMap,
     pub confidence: &'a DepthMap,
-    pub image: &'a Image,
-    pub semantic: Option<&'a Segmentation>,
+    /// Sky pixels at full image size, if known.
+    pub sky: Option<&'a Mask>,
     /// Target LiDAR frame -> camera (the camera at full image size).
     pub view: &'a CameraView,
     /// World -> target LiDAR frame.
@@ -185,31 +181,21 @@ pub fn static_points(params: &Params, m: &MvsInputs) -> Result<PointCloud> {
         m.confidence.width,
         m.confidence.height
     );
-    ensure!(
-        (m.image.width, m.image.height) == (m.view.width, m.view.height),
-        "image is {}x{} but the camera calibration says {}x{}",
-        m.image.width,
-        m.image.height,
-        m.view.width,
-        m.view.height
-    );
     let (iw, ih) = (m.view.width as usize, m.view.height as usize);
     if w == 0 || h == 0 {
         return Ok(PointCloud::default());
     }
     ensure!(iw > 0 && ih > 0, "the camera calibration has no image size but the MVS depth is {w}x{h}");
-    let semantic = m.semantic.filter(|s| s.width > 0 && s.height > 0);
-    if let Some(s) = semantic {
-        ensure!(
-            (s.width as usize, s.height as usize) == (iw, ih),
-            "semantic map is {}x{} but the image is {iw}x{ih}",
-            s.width,
-            s.height
-        );
-    }
-    let sky: Vec<bool> = match semantic {
-        Some(s) => s.ids.iter().map(|&id| id == Segmentation::SKY).collect(),
-        None if params.detect_sky => crate::curation::complete::estimate_sky_from_top(m.image),
+    let sky: Vec<bool> = match m.sky {
+        Some(s) => {
+            ensure!(
+                (s.width as usize, s.height as usize) == (iw, ih),
+                "the sky mask is {}x{} but the camera calibration says {iw}x{ih}",
+                s.width,
+                s.height
+            );
+            s.data.iter().map(|&v| v != 0).collect()
+        }
         None => vec![false; iw * ih],
     };
     let boxes: Vec<BoxTest> = m
@@ -259,8 +245,6 @@ crate::ports! {
         depth: One<DepthMap>,
         /// MultiViewStereo confidence (same size)
         confidence: One<DepthMap>,
-        /// the camera image (for the built-in sky estimate)
-        image: One<Image>,
         /// the sensor of the output frame (the target frame's LiDAR)
         cloud_calib: One<Calibration>,
         /// ego pose of that sensor's frame
@@ -271,8 +255,8 @@ crate::ports! {
         camera_pose: One<Pose>,
         /// the target frame's boxes
         boxes: One<Boxes3D>,
-        /// Cityscapes ids (sky = 23); empty or unwired: built-in sky
-        semantic: Optional<Segmentation>,
+        /// sky pixels (EstimateSky); MVS depth there is dropped
+        sky: Optional<Mask>,
     }
 }
 
@@ -287,7 +271,7 @@ pub struct StaticMvsPoints(Params);
 
 impl Stage for StaticMvsPoints {
     const KIND: &'static str = "StaticMvsPoints";
-    const VERSION: u32 = 3;
+    const VERSION: u32 = 4;
     const SUMMARY: &'static str = "MVS depth -> static points above the LiDAR (no moving boxes, no sky), voxel-downsampled";
     const GRAINS: &'static [&'static str] = &["camera"];
     type Params = Params;
@@ -302,8 +286,7 @@ impl Stage for StaticMvsPoints {
         let m = MvsInputs {
             depth: &i.depth,
             confidence: &i.confidence,
-            image: &i.image,
-            semantic: i.semantic.as_ref(),
+            sky: i.sky.as_ref(),
             view: &view,
             cloud_from_world,
             boxes: &i.boxes,
@@ -352,7 +335,7 @@ mod tests {
     }
 
     /// A forward camera at the LiDAR's position; depth 20 m everywhere at 1/2 size.
-    fn setup() -> (Calibration, Pose, Calibration, Image, DepthMap) {
+    fn setup() -> (Calibration, Pose, Calibration, DepthMap) {
         let lidar = Calibration {
             sensor_to_ego: Se3::from_yaw(0.0, DVec3::new(0.0, 0.0, 1.8)),
             intrinsics: None,
@@ -367,15 +350,13 @@ mod tests {
             width: 80,
             height: 60,
         };
-        // Dark, textured image: no sky.
-        let image = Image { width: 80, height: 60, rgb: (0..80 * 60 * 3).map(|i| (i * 7 % 50) as u8).collect() };
         let depth = DepthMap { width: 40, height: 30, data: vec![20.0; 1200] };
-        (lidar, pose, cam, image, depth)
+        (lidar, pose, cam, depth)
     }
 
     #[test]
     fn keeps_only_static_points_above_the_lidar_outside_sky() {
-        let (lidar, pose, cam, image, depth) = setup();
+        let (lidar, pose, cam, depth) = setup();
         // Confident everywhere but in the left half of row 10 (below the default 0.4).
         let mut conf = DepthMap { width: 40, height: 30, data: vec![0.8; 1200] };
         conf.data[10 * 40..10 * 40 + 20].fill(0.3);
@@ -393,13 +374,12 @@ mod tests {
             interpolated: false,
         };
         let boxes = Boxes3D { timestamp_us: 0, boxes: vec![car(5.0)] };
-        let mut sky = Segmentation { width: 80, height: 60, ids: vec![0; 4800] };
-        sky.ids[..80 * 4].fill(Segmentation::SKY);
+        let mut sky = Mask { width: 80, height: 60, data: vec![0; 4800] };
+        sky.data[..80 * 4].fill(1);
         let m = MvsInputs {
             depth: &depth,
             confidence: &conf,
-            image: &image,
-            semantic: Some(&sky),
+            sky: Some(&sky),
             view: &view,
             cloud_from_world,
             boxes: &boxes,

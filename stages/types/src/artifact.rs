@@ -292,6 +292,31 @@ impl Artifact for Segmentation {
     }
 }
 
+/// A per-pixel yes/no map (e.g. sky), row-major, one byte a pixel: 1 = yes, 0 = no.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct Mask {
+    pub width: u32,
+    pub height: u32,
+    pub data: Vec<u8>,
+}
+
+impl Artifact for Mask {
+    const TYPE: &'static str = "Mask";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"MSK1".to_vec();
+        out.extend_from_slice(&self.width.to_le_bytes());
+        out.extend_from_slice(&self.height.to_le_bytes());
+        out.extend_from_slice(&self.data);
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"MSK1", Self::TYPE)?;
+        let (width, height) = (r.u32()?, r.u32()?);
+        let data = r.take(width as usize * height as usize)?.to_vec();
+        Ok(Mask { width, height, data })
+    }
+}
+
 /// Points projected into an image: (u, v, depth) rows in the order of the source points.
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct ProjectedPoints {

@@ -1,0 +1,406 @@
+//! `EstimateSky`: which pixels of a camera image are sky, without a segmenter.
+//!
+//! DiST-4D sets sky to a fixed far depth and takes the sky from a segmentation. Without one, a
+//! depth completer must still tell the sky from a structure it has no depth for (a facade above
+//! the LiDAR's field of view), or the sky gets completed as walls. The estimate combines geometry
+//! and colour, in the spirit of classical sky detection (border detection from the top of the
+//! image through smooth pixels, then a colour test; Shen and Wang 2013, "Sky region detection in
+//! a single image for autonomous ground robot navigation"):
+//!
+//! - **Regions**: pixels join their 4-neighbours while the colour of the 3x3-smoothed image
+//!   changes by at most `step` (0-255, largest channel difference): the sky is smooth, and where
+//!   it meets a building, a tree or a pole the colour jumps; clouds join because their edges are
+//!   soft. Only pixels that are bright enough (luminance at least half `min_luminance`), not
+//!   distinctly red or green (blue within `hue_slack` of both) and without a depth sample take
+//!   part. Regions are found everywhere, not only from the top edge: sky seen under a tree crown
+//!   or a lamp arm is sky too.
+//! - **Geometry**: LiDAR gets no return from the sky. A region touched by more than
+//!   `max_samples` depth samples per pixel (`support`, e.g. the aggregated LiDAR projection) is
+//!   a measured structure (a bright facade between LiDAR rings), not sky.
+//! - **Appearance**: a sky region is bright (mean luminance >= `min_luminance`) and smooth (mean
+//!   |dx| + |dy| of the unsmoothed luminance <= `max_texture`; a facade is textured) and not
+//!   tiny (>= `min_area` of the image).
+//! - **Holes**: non-sky specks enclosed by sky, without a depth sample and smaller than
+//!   `max_hole` of the image (JPEG blocks, a distant bird), become sky.
+//!
+//! A semantic map, when wired, takes precedence (Cityscapes id 23 = sky).
+//!
+//! It fails on smooth, bright, untextured walls that no depth sample touches (a white facade far
+//! above the LiDAR with no MVS support), on dark skies (dusk, night) and on red or green skies.
+//! Figures are in docs/BENCHMARKS.md.
+
+use crate::stage::Stage;
+use anyhow::{ensure, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::TaskContext;
+use dist4d_types::artifact::{DepthMap, Image, Mask, Segmentation};
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Largest colour step (0-255, largest channel difference of the 3x3-smoothed image) between
+    /// neighbouring sky pixels.
+    pub step: f32,
+    /// Darkest mean luminance (0-255) of a sky region; no pixel of it is darker than half this.
+    pub min_luminance: f32,
+    /// Largest mean luminance texture (|dx| + |dy| of the unsmoothed image, 0-255) of a sky region.
+    pub max_texture: f32,
+    /// Most depth samples touching a sky region, per pixel of the region.
+    pub max_samples: f32,
+    /// How far (0-255) red or green may exceed blue in a sky pixel.
+    pub hue_slack: f32,
+    /// Smallest sky region kept, as a fraction of the image area.
+    pub min_area: f32,
+    /// Largest enclosed non-sky speck without depth that becomes sky, as a fraction of the image area.
+    pub max_hole: f32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            step: 6.0,
+            min_luminance: 150.0,
+            max_texture: 2.0,
+            max_samples: 0.0002,
+            hue_slack: 12.0,
+            min_area: 0.0003,
+            max_hole: 0.0005,
+        }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new()
+            .within("step", self.step as f64, 0.0, 255.0)
+            .within("min_luminance", self.min_luminance as f64, 0.0, 255.0)
+            .within("max_texture", self.max_texture as f64, 0.0, 510.0)
+            .within("max_samples", self.max_samples as f64, 0.0, 1.0)
+            .within("hue_slack", self.hue_slack as f64, 0.0, 255.0)
+            .within("min_area", self.min_area as f64, 0.0, 1.0)
+            .within("max_hole", self.max_hole as f64, 0.0, 1.0)
+            .done()
+    }
+}
+
+/// The image smoothed by a 3x3 box (edges replicated), per channel.
+fn smoothed(image: &Image) -> Vec<[u8; 3]> {
+    let (w, h) = (image.width as usize, image.height as usize);
+    let px = |x: usize, y: usize, c: usize| image.rgb[3 * (y * w + x) + c] as u32;
+    // Rows first into sums of three, then columns.
+    let mut across = vec![[0u32; 3]; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (l, r) = (x.saturating_sub(1), (x + 1).min(w - 1));
+            for c in 0..3 {
+                across[y * w + x][c] = px(l, y, c) + px(x, y, c) + px(r, y, c);
+            }
+        }
+    }
+    let mut out = vec![[0u8; 3]; w * h];
+    for y in 0..h {
+        let (u, d) = (y.saturating_sub(1), (y + 1).min(h - 1));
+        for x in 0..w {
+            for c in 0..3 {
+                let s = across[u * w + x][c] + across[y * w + x][c] + across[d * w + x][c];
+                out[y * w + x][c] = ((s + 4) / 9) as u8;
+            }
+        }
+    }
+    out
+}
+
+/// Which pixels hold a depth sample.
+fn samples(support: Option<&DepthMap>, n: usize) -> Vec<bool> {
+    match support {
+        Some(s) => s.data.iter().map(|&z| z > 0.0 && z.is_finite()).collect(),
+        None => vec![false; n],
+    }
+}
+
+/// The sky estimate described in the module docs. `support` (same size as the image, 0 = no
+/// depth) bounds the sky from below in each column; without it the whole image may be sky.
+pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Vec<bool> {
+    let (w, h) = (image.width as usize, image.height as usize);
+    if w == 0 || h == 0 {
+        return Vec::new();
+    }
+    let rgb = smoothed(image);
+    let sampled = samples(support, w * h);
+    let plausible = |i: usize| {
+        let [r, g, b] = rgb[i].map(|v| v as f32);
+        0.299 * r + 0.587 * g + 0.114 * b >= 0.5 * p.min_luminance && b + p.hue_slack >= r && b + p.hue_slack >= g
+    };
+    let candidate = |i: usize| !sampled[i] && plausible(i);
+    let close = |a: usize, b: usize| {
+        let (ca, cb) = (rgb[a], rgb[b]);
+        (0..3).all(|c| (ca[c] as f32 - cb[c] as f32).abs() <= p.step)
+    };
+
+    // Luminance texture of the unsmoothed image: |dx| + |dy| (sky is smooth, walls are not).
+    let lum: Vec<f32> = image.rgb.chunks_exact(3).map(|c| 0.299 * c[0] as f32 + 0.587 * c[1] as f32 + 0.114 * c[2] as f32).collect();
+    let texture = |i: usize| {
+        let (x, y) = (i % w, i / w);
+        let dx = if x + 1 < w { (lum[i + 1] - lum[i]).abs() } else { 0.0 };
+        let dy = if y + 1 < h { (lum[i + w] - lum[i]).abs() } else { 0.0 };
+        dx + dy
+    };
+
+    // Regions of candidate pixels joined through small colour steps; each gathers what decides
+    // whether it is sky.
+    #[derive(Default, Clone)]
+    struct Region {
+        size: usize,
+        luminance: f64,
+        texture: f64,
+    }
+    let mut label = vec![0u32; w * h];
+    let mut regions = vec![Region::default()]; // label 0 = not a candidate
+    let mut stack = Vec::new();
+    for start in 0..w * h {
+        if label[start] != 0 || !candidate(start) {
+            continue;
+        }
+        let id = regions.len() as u32;
+        let mut r = Region::default();
+        label[start] = id;
+        stack.push(start);
+        while let Some(i) = stack.pop() {
+            r.size += 1;
+            r.luminance += lum[i] as f64;
+            r.texture += texture(i) as f64;
+            let (x, y) = (i % w, i / w);
+            for (j, inside) in [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)] {
+                if inside && label[j] == 0 && candidate(j) && close(i, j) {
+                    label[j] = id;
+                    stack.push(j);
+                }
+            }
+        }
+        regions.push(r);
+    }
+    // Depth samples touching a region: sky has none (LiDAR gets no return from it), a facade
+    // between LiDAR rings or beside MVS points has many.
+    let mut touching = vec![0usize; regions.len()];
+    let mut seen = Vec::with_capacity(4);
+    for i in (0..w * h).filter(|&i| sampled[i]) {
+        let (x, y) = (i % w, i / w);
+        seen.clear();
+        for (j, inside) in [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)] {
+            let l = if inside { label[j] } else { 0 };
+            if l != 0 && !seen.contains(&l) {
+                seen.push(l);
+                touching[l as usize] += 1;
+            }
+        }
+    }
+    let min_size = (p.min_area as f64 * (w * h) as f64).ceil().max(1.0) as usize;
+    let keep: Vec<bool> = regions
+        .iter()
+        .enumerate()
+        .map(|(l, r)| {
+            l != 0
+                && r.size >= min_size
+                && r.luminance / r.size as f64 >= p.min_luminance as f64
+                && r.texture / r.size as f64 <= p.max_texture as f64
+                && touching[l] as f64 <= p.max_samples as f64 * r.size as f64
+        })
+        .collect();
+    let mut sky: Vec<bool> = label.iter().map(|&l| keep[l as usize]).collect();
+    fill_holes(&mut sky, &sampled, w, h, (p.max_hole as f64 * (w * h) as f64) as usize);
+    sky
+}
+
+/// Makes sky of the non-sky components (4-way) that do not touch the image border, hold no
+/// depth sample and have at most `max` pixels.
+fn fill_holes(sky: &mut [bool], sampled: &[bool], w: usize, h: usize, max: usize) {
+    if max == 0 {
+        return;
+    }
+    let mut seen = vec![false; w * h];
+    let mut stack = Vec::new();
+    let mut members = Vec::new();
+    for start in 0..w * h {
+        if sky[start] || seen[start] {
+            continue;
+        }
+        seen[start] = true;
+        stack.push(start);
+        members.clear();
+        let mut enclosed = true;
+        while let Some(i) = stack.pop() {
+            let (x, y) = (i % w, i / w);
+            members.push(i);
+            if x == 0 || y == 0 || x + 1 == w || y + 1 == h || sampled[i] {
+                enclosed = false;
+            }
+            for (j, ok) in [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)] {
+                if ok && !sky[j] && !seen[j] {
+                    seen[j] = true;
+                    stack.push(j);
+                }
+            }
+        }
+        if enclosed && members.len() <= max {
+            for &i in &members {
+                sky[i] = true;
+            }
+        }
+    }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// the camera image
+        image: One<Image>,
+        /// depth samples of structures (e.g. the aggregated LiDAR projection); sky lies above the highest in each column
+        support: Optional<DepthMap>,
+        /// Cityscapes-id segmentation (sky = 23); when given, it is the answer
+        semantic: Optional<Segmentation>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// 1 = sky
+        sky: One<Mask>,
+    }
+}
+
+pub struct EstimateSky(Params);
+
+impl Stage for EstimateSky {
+    const KIND: &'static str = "EstimateSky";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "Image (+ structure depth samples) -> sky mask: smooth bright region grown from the top, above all depth";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(EstimateSky(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let (w, h) = (i.image.width, i.image.height);
+        // Empty maps stand for a dataset without segmentations or a missing reference.
+        if let Some(s) = i.semantic.filter(|s| s.width > 0 && s.height > 0) {
+            ensure!(
+                (s.width, s.height) == (w, h),
+                "the semantic map is {}x{} but the image is {w}x{h}",
+                s.width,
+                s.height
+            );
+            let data = s.ids.iter().map(|&id| (id == Segmentation::SKY) as u8).collect();
+            return Ok(Outputs { sky: Mask { width: w, height: h, data } });
+        }
+        let support = i.support.filter(|s| s.width > 0 && s.height > 0);
+        if let Some(s) = &support {
+            ensure!(
+                (s.width, s.height) == (w, h),
+                "the support depth is {}x{} but the image is {w}x{h}",
+                s.width,
+                s.height
+            );
+        }
+        let sky = estimate_sky(&self.0, &i.image, support.as_ref());
+        Ok(Outputs { sky: Mask { width: w, height: h, data: sky.into_iter().map(u8::from).collect() } })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 60x40 image: a blue gradient sky over a grey wall whose top edge is `skyline[x]`.
+    fn scene(skyline: impl Fn(usize) -> usize) -> Image {
+        let (w, h) = (60usize, 40usize);
+        let mut rgb = Vec::with_capacity(w * h * 3);
+        for y in 0..h {
+            for x in 0..w {
+                if y < skyline(x) {
+                    rgb.extend_from_slice(&[140 + (y as u8) / 2, 175, 225]);
+                } else {
+                    let t = ((x * 7 + y * 13) % 5) as u8 * 8; // texture
+                    rgb.extend_from_slice(&[90 + t, 80 + t, 70 + t]);
+                }
+            }
+        }
+        Image { width: w as u32, height: h as u32, rgb }
+    }
+
+    #[test]
+    fn the_sky_above_a_skyline_is_found_to_the_pixel() {
+        let skyline = |x: usize| if x < 30 { 12 } else { 20 };
+        let sky = estimate_sky(&Params::default(), &scene(skyline), None);
+        for y in 0..40 {
+            for x in 0..60 {
+                // The 3x3 smoothing blurs the skyline by one pixel.
+                if y + 1 < skyline(x) {
+                    assert!(sky[y * 60 + x], "({x}, {y}) is sky");
+                } else if y > skyline(x) {
+                    assert!(!sky[y * 60 + x], "({x}, {y}) is wall");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_sky_coloured_facade_with_depth_samples_is_not_sky() {
+        // The whole image is smooth and sky-coloured, but the left half holds LiDAR-like rows
+        // of samples (every 4th pixel of every 6th row): a bright facade, not sky.
+        let img = scene(|_| 40);
+        let mut support = DepthMap { width: 60, height: 40, data: vec![0.0; 2400] };
+        for y in (3..40).step_by(6) {
+            for x in (0..28).step_by(4) {
+                support.data[y * 60 + x] = 20.0;
+            }
+        }
+        // A thin dark pole at column 29 separates the two halves.
+        let mut img = img;
+        for y in 0..40 {
+            img.rgb[3 * (y * 60 + 29)..3 * (y * 60 + 29) + 3].copy_from_slice(&[30, 30, 30]);
+        }
+        let sky = estimate_sky(&Params::default(), &img, Some(&support));
+        assert!((0..40).all(|y| (0..28).all(|x| !sky[y * 60 + x])), "the measured half is not sky");
+        assert!((0..40).all(|y| (31..60).all(|x| sky[y * 60 + x])), "the unmeasured half is sky");
+    }
+
+    #[test]
+    fn dark_green_or_small_regions_are_not_sky() {
+        let mut img = scene(|_| 10);
+        for p in img.rgb.chunks_exact_mut(3).take(60 * 10) {
+            p.copy_from_slice(&[60, 140, 50]); // a tree crown at the top
+        }
+        assert!(estimate_sky(&Params::default(), &img, None).iter().all(|&s| !s));
+        // A 3x3 bright patch at the top is too small to be sky (at 1% of the image).
+        let mut img = scene(|_| 0);
+        for y in 0..3 {
+            for x in 0..3 {
+                img.rgb[3 * (y * 60 + x)..3 * (y * 60 + x) + 3].copy_from_slice(&[200, 210, 230]);
+            }
+        }
+        assert!(estimate_sky(&Params { min_area: 0.01, ..Params::default() }, &img, None).iter().all(|&s| !s));
+    }
+
+    #[test]
+    fn a_dark_speck_inside_the_sky_becomes_sky_but_a_supported_one_does_not() {
+        let mut img = scene(|_| 30);
+        let speck = |img: &mut Image, x0: usize| {
+            for y in 5..8 {
+                for x in x0..x0 + 3 {
+                    img.rgb[3 * (y * 60 + x)..3 * (y * 60 + x) + 3].copy_from_slice(&[20, 20, 20]);
+                }
+            }
+        };
+        speck(&mut img, 10);
+        speck(&mut img, 40);
+        let mut support = DepthMap { width: 60, height: 40, data: vec![0.0; 2400] };
+        support.data[6 * 60 + 41] = 50.0; // the second speck is a measured lamp
+        let p = Params { max_hole: 0.01, ..Params::default() };
+        let sky = estimate_sky(&p, &img, Some(&support));
+        assert!(sky[6 * 60 + 11], "an unsupported speck is a hole in the sky");
+        assert!(!sky[6 * 60 + 41], "a measured one is a structure");
+    }
+}
