@@ -14,12 +14,14 @@
 //!   distinctly red or green (blue within `hue_slack` of both) and without a depth sample take
 //!   part. Regions are found everywhere, not only from the top edge: sky seen under a tree crown
 //!   or a lamp arm is sky too.
-//! - **Geometry**: LiDAR gets no return from the sky. A region touched by more than
-//!   `max_samples` depth samples per pixel (`support`, e.g. the aggregated LiDAR projection) is
-//!   a measured structure (a bright facade between LiDAR rings), not sky.
+//! - **Geometry**: LiDAR gets no return from the sky. A region with more than `max_samples`
+//!   depth samples per pixel inside it (samples whose four neighbours all belong to it; `support`,
+//!   e.g. the aggregated LiDAR projection) is a measured structure (a bright facade between
+//!   LiDAR rings), not sky. Samples on a silhouette against the sky do not count.
 //! - **Appearance**: a sky region is bright (mean luminance >= `min_luminance`) and smooth (mean
 //!   |dx| + |dy| of the unsmoothed luminance <= `max_texture`; a facade is textured) and not
-//!   tiny (>= `min_area` of the image).
+//!   tiny (>= `min_area` of the image), and it reaches into the upper part of the image (above
+//!   `max_first_row` of its height).
 //! - **Holes**: non-sky specks enclosed by sky, without a depth sample and smaller than
 //!   `max_hole` of the image (JPEG blocks, a distant bird), become sky.
 //!
@@ -46,10 +48,13 @@ pub struct Params {
     pub min_luminance: f32,
     /// Largest mean luminance texture (|dx| + |dy| of the unsmoothed image, 0-255) of a sky region.
     pub max_texture: f32,
-    /// Most depth samples touching a sky region, per pixel of the region.
+    /// Most depth samples inside a sky region, per pixel of the region.
     pub max_samples: f32,
     /// How far (0-255) red or green may exceed blue in a sky pixel.
     pub hue_slack: f32,
+    /// A sky region reaches above this fraction of the image height (white road markings and
+    /// kerbs low in the image are bright and smooth too).
+    pub max_first_row: f32,
     /// Smallest sky region kept, as a fraction of the image area.
     pub min_area: f32,
     /// Largest enclosed non-sky speck without depth that becomes sky, as a fraction of the image area.
@@ -64,6 +69,7 @@ impl Default for Params {
             max_texture: 2.0,
             max_samples: 0.0002,
             hue_slack: 12.0,
+            max_first_row: 0.5,
             min_area: 0.0003,
             max_hole: 0.0005,
         }
@@ -78,6 +84,7 @@ impl Validate for Params {
             .within("max_texture", self.max_texture as f64, 0.0, 510.0)
             .within("max_samples", self.max_samples as f64, 0.0, 1.0)
             .within("hue_slack", self.hue_slack as f64, 0.0, 255.0)
+            .within("max_first_row", self.max_first_row as f64, 0.0, 1.0)
             .within("min_area", self.min_area as f64, 0.0, 1.0)
             .within("max_hole", self.max_hole as f64, 0.0, 1.0)
             .done()
@@ -132,10 +139,16 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
         let [r, g, b] = rgb[i].map(|v| v as f32);
         0.299 * r + 0.587 * g + 0.114 * b >= 0.5 * p.min_luminance && b + p.hue_slack >= r && b + p.hue_slack >= g
     };
-    let candidate = |i: usize| !sampled[i] && plausible(i);
     let close = |a: usize, b: usize| {
         let (ca, cb) = (rgb[a], rgb[b]);
         (0..3).all(|c| (ca[c] as f32 - cb[c] as f32).abs() <= p.step)
+    };
+    // A candidate is smooth towards its right and lower neighbours (so, with theirs, in all four
+    // directions): pixels beside an edge take no part, and a region cannot creep through a
+    // gradual transition into a neighbouring surface.
+    let candidate = |i: usize| {
+        let (x, y) = (i % w, i / w);
+        !sampled[i] && plausible(i) && (x + 1 == w || close(i, i + 1)) && (y + 1 == h || close(i, i + w))
     };
 
     // Luminance texture of the unsmoothed image: |dx| + |dy| (sky is smooth, walls are not).
@@ -152,6 +165,7 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
     #[derive(Default, Clone)]
     struct Region {
         size: usize,
+        first_row: usize,
         luminance: f64,
         texture: f64,
     }
@@ -163,16 +177,17 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
             continue;
         }
         let id = regions.len() as u32;
-        let mut r = Region::default();
+        let mut r = Region { first_row: h, ..Region::default() };
         label[start] = id;
         stack.push(start);
         while let Some(i) = stack.pop() {
             r.size += 1;
+            r.first_row = r.first_row.min(i / w);
             r.luminance += lum[i] as f64;
             r.texture += texture(i) as f64;
             let (x, y) = (i % w, i / w);
             for (j, inside) in [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)] {
-                if inside && label[j] == 0 && candidate(j) && close(i, j) {
+                if inside && label[j] == 0 && candidate(j) {
                     label[j] = id;
                     stack.push(j);
                 }
@@ -180,19 +195,18 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
         }
         regions.push(r);
     }
-    // Depth samples touching a region: sky has none (LiDAR gets no return from it), a facade
-    // between LiDAR rings or beside MVS points has many.
-    let mut touching = vec![0usize; regions.len()];
-    let mut seen = Vec::with_capacity(4);
+    // Depth samples inside a region (all four neighbours in it): sky has none, as LiDAR gets no
+    // return from it; a facade between LiDAR rings or beside MVS points has many. (Samples on
+    // a silhouette against the sky have a neighbour outside and do not count.)
+    let mut inside = vec![0usize; regions.len()];
     for i in (0..w * h).filter(|&i| sampled[i]) {
         let (x, y) = (i % w, i / w);
-        seen.clear();
-        for (j, inside) in [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)] {
-            let l = if inside { label[j] } else { 0 };
-            if l != 0 && !seen.contains(&l) {
-                seen.push(l);
-                touching[l as usize] += 1;
-            }
+        if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
+            continue;
+        }
+        let l = label[i - 1];
+        if l != 0 && label[i + 1] == l && label[i - w] == l && label[i + w] == l {
+            inside[l as usize] += 1;
         }
     }
     let min_size = (p.min_area as f64 * (w * h) as f64).ceil().max(1.0) as usize;
@@ -202,12 +216,24 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
         .map(|(l, r)| {
             l != 0
                 && r.size >= min_size
+                && (r.first_row as f32) < p.max_first_row * h as f32
                 && r.luminance / r.size as f64 >= p.min_luminance as f64
                 && r.texture / r.size as f64 <= p.max_texture as f64
-                && touching[l] as f64 <= p.max_samples as f64 * r.size as f64
+                && inside[l] as f64 <= p.max_samples as f64 * r.size as f64
         })
         .collect();
     let mut sky: Vec<bool> = label.iter().map(|&l| keep[l as usize]).collect();
+    // Sky pixels beside an edge were left out above; each sky pixel takes in its neighbours of
+    // (nearly) its colour that have no depth sample.
+    let core = sky.clone();
+    for i in (0..w * h).filter(|&i| core[i]) {
+        let (x, y) = (i % w, i / w);
+        for (j, inside) in [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)] {
+            if inside && !core[j] && !sampled[j] && close(i, j) {
+                sky[j] = true;
+            }
+        }
+    }
     fill_holes(&mut sky, &sampled, w, h, (p.max_hole as f64 * (w * h) as f64) as usize);
     sky
 }
