@@ -86,7 +86,7 @@ def lean(text):
     return text[:at] + '    export: {\n        "eval.json": "{scene}/{camera}/{frame}_metrics.json",\n    },\n)\n'
 
 
-def variant(base, name, tmp, prompt_points=None, visible_points=None, semantic=True, slim=True):
+def variant(base, name, tmp, prompt_points=None, visible_points=None, sky=True, slim=True):
     t = lean(base) if slim else base
     if visible_points:
         t = edit(t, '"visible": HiddenPointRemoval(\n            inputs: {\n                "points": "fuse.points",',
@@ -94,8 +94,8 @@ def variant(base, name, tmp, prompt_points=None, visible_points=None, semantic=T
     if prompt_points:
         t = edit(t, '"prompt": DepthPrompt(\n            inputs: {\n                "points": "visible.points",',
                  f'"prompt": DepthPrompt(\n            inputs: {{\n                "points": "{prompt_points}",')
-    if not semantic:
-        t = edit(t, ', "semantic": "dataset.semantic"}', "}")
+    if not sky:  # the completion gets no sky mask
+        t = edit(t, '"sparse": "prompt.sparse", "sky": "sky.sky"}', '"sparse": "prompt.sparse"}')
     path = tmp / f"{name}.ron"
     path.write_text(t)
     return path
@@ -117,10 +117,10 @@ def section_accuracy(data, tmp, base):
     print("| --- | --- | --- | ---: |")
     rows = [
         ("LiDAR only (aggregate -> prompt -> completion, no sky)",
-         dict(prompt_points="aggregate.points", semantic=False), ["--set", "complete.detect_sky=false"]),
+         dict(prompt_points="aggregate.points", sky=False), []),
         ("+ MVS (fused points -> prompt, no sky)",
-         dict(prompt_points="fuse.points", semantic=False), ["--set", "complete.detect_sky=false"]),
-        ("+ HPR (no sky)", dict(semantic=False), ["--set", "complete.detect_sky=false"]),
+         dict(prompt_points="fuse.points", sky=False), []),
+        ("+ HPR (no sky)", dict(sky=False), []),
         ("+ sky, built-in estimate (the shipped pipeline on data without segmentations)", dict(), []),
         ("+ sky from the ground-truth segmentation", dict(), ["--set", 'dataset.semantics="groundtruth/semantic"']),
         ("shipped pipeline without MVS (HPR + built-in sky)", dict(visible_points="aggregate.points"), []),
