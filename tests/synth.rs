@@ -238,7 +238,7 @@ fn demo_synthesizes_once_runs_the_shipped_pipeline_and_says_where_outputs_are() 
     let o = dist4d(&args);
     assert!(o.status.success(), "{}", text(&o));
     let t = text(&o);
-    assert!(t.contains("148 executed"), "2 frames x 6 cameras x 12 stages + 2 x 2 per-frame stages: {t}");
+    assert!(t.contains("172 executed"), "2 frames x 6 cameras x 14 stages + 2 x 2 per-frame stages: {t}");
     assert!(t.contains("gt (raw)"), "the demo prints its scores against ground truth: {t}");
     let sheet = dir.join("pipelines/out/curation/synth-0000/sheets/001.png");
     assert!(t.contains(&sheet.display().to_string()), "{t}");
