@@ -246,7 +246,7 @@ fn demo_synthesizes_once_runs_the_shipped_pipeline_and_says_where_outputs_are() 
     // Second time: the dataset is reused and everything is cached.
     let o = dist4d(&args);
     let t = text(&o);
-    assert!(o.status.success() && t.contains("already there") && t.contains("0 executed, 148 cached"), "{t}");
+    assert!(o.status.success() && t.contains("already there") && t.contains("0 executed, 172 cached"), "{t}");
     // The shipped pipeline, written unchanged beside the data, finds it and its store on its own.
     let written = std::fs::read_to_string(dir.join("pipelines/curation.ron")).unwrap();
     assert_eq!(written, std::fs::read_to_string(repo().join("pipelines/curation.ron")).unwrap());
