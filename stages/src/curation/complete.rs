@@ -105,7 +105,8 @@ impl DepthCompleter for ScanlineCompleter {
     }
 }
 
-fn luminance(image: &Image) -> Vec<f32> {
+/// Luma (ITU-R BT.601 weights, 0-255) of every pixel.
+pub(crate) fn luminance(image: &Image) -> Vec<f32> {
     image.rgb.chunks_exact(3).map(|p| 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32).collect()
 }
 
@@ -343,6 +344,8 @@ pub struct Completion {
 
 /// Distance (px) from every pixel to the nearest valid sample: the 3-4 chamfer distance
 /// (Borgefors 1986) divided by 3, within 8% of the Euclidean one; `f32::MAX` with no sample.
+/// (NearestFill's exact transform costs about 40 ms per 1600x900 image, twice this whole
+/// completion; a confidence needs no better than 8%.)
 fn support_distance(sparse: &[f32], w: usize, h: usize) -> Vec<f32> {
     const FAR: u32 = u32::MAX / 2;
     let mut d: Vec<u32> = sparse.iter().map(|&z| if z > 0.0 && z.is_finite() { 0 } else { FAR }).collect();

@@ -118,6 +118,14 @@ fn smoothed(image: &Image) -> Vec<[u8; 3]> {
     out
 }
 
+/// The 4-neighbours of pixel `i` inside a `w` x `h` image.
+fn neighbours(i: usize, w: usize, h: usize) -> impl Iterator<Item = usize> {
+    let (x, y) = (i % w, i / w);
+    [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)]
+        .into_iter()
+        .filter_map(|(j, inside)| inside.then_some(j))
+}
+
 /// Which pixels hold a depth sample.
 fn samples(support: Option<&DepthMap>, n: usize) -> Vec<bool> {
     match support {
@@ -152,7 +160,7 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
     };
 
     // Luminance texture of the unsmoothed image: |dx| + |dy| (sky is smooth, walls are not).
-    let lum: Vec<f32> = image.rgb.chunks_exact(3).map(|c| 0.299 * c[0] as f32 + 0.587 * c[1] as f32 + 0.114 * c[2] as f32).collect();
+    let lum = super::complete::luminance(image);
     let texture = |i: usize| {
         let (x, y) = (i % w, i / w);
         let dx = if x + 1 < w { (lum[i + 1] - lum[i]).abs() } else { 0.0 };
@@ -185,9 +193,8 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
             r.first_row = r.first_row.min(i / w);
             r.luminance += lum[i] as f64;
             r.texture += texture(i) as f64;
-            let (x, y) = (i % w, i / w);
-            for (j, inside) in [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)] {
-                if inside && label[j] == 0 && candidate(j) {
+            for j in neighbours(i, w, h) {
+                if label[j] == 0 && candidate(j) {
                     label[j] = id;
                     stack.push(j);
                 }
@@ -227,9 +234,8 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
     // (nearly) its colour that have no depth sample.
     let core = sky.clone();
     for i in (0..w * h).filter(|&i| core[i]) {
-        let (x, y) = (i % w, i / w);
-        for (j, inside) in [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)] {
-            if inside && !core[j] && !sampled[j] && close(i, j) {
+        for j in neighbours(i, w, h) {
+            if !core[j] && !sampled[j] && close(i, j) {
                 sky[j] = true;
             }
         }
@@ -261,8 +267,8 @@ fn fill_holes(sky: &mut [bool], sampled: &[bool], w: usize, h: usize, max: usize
             if x == 0 || y == 0 || x + 1 == w || y + 1 == h || sampled[i] {
                 enclosed = false;
             }
-            for (j, ok) in [(i.wrapping_sub(1), x > 0), (i + 1, x + 1 < w), (i.wrapping_sub(w), y > 0), (i + w, y + 1 < h)] {
-                if ok && !sky[j] && !seen[j] {
+            for j in neighbours(i, w, h) {
+                if !sky[j] && !seen[j] {
                     seen[j] = true;
                     stack.push(j);
                 }
