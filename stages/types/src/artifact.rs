@@ -278,18 +278,28 @@ impl Segmentation {
 impl Artifact for Segmentation {
     const TYPE: &'static str = "Segmentation";
     fn encode(&self) -> Vec<u8> {
-        let mut out = b"SEG1".to_vec();
-        out.extend_from_slice(&self.width.to_le_bytes());
-        out.extend_from_slice(&self.height.to_le_bytes());
-        out.extend_from_slice(&self.ids);
-        out
+        encode_byte_map(b"SEG1", self.width, self.height, &self.ids)
     }
     fn decode(bytes: &[u8]) -> Result<Self> {
-        let mut r = Reader::new(bytes, b"SEG1", Self::TYPE)?;
-        let (width, height) = (r.u32()?, r.u32()?);
-        let ids = r.take(width as usize * height as usize)?.to_vec();
+        let (width, height, ids) = decode_byte_map(bytes, b"SEG1", Self::TYPE)?;
         Ok(Segmentation { width, height, ids })
     }
+}
+
+/// A map of one byte a pixel: magic, width and height (u32 LE), then the bytes row-major.
+fn encode_byte_map(magic: &[u8; 4], width: u32, height: u32, bytes: &[u8]) -> Vec<u8> {
+    let mut out = magic.to_vec();
+    out.extend_from_slice(&width.to_le_bytes());
+    out.extend_from_slice(&height.to_le_bytes());
+    out.extend_from_slice(bytes);
+    out
+}
+
+fn decode_byte_map(bytes: &[u8], magic: &[u8; 4], ty: &'static str) -> Result<(u32, u32, Vec<u8>)> {
+    let mut r = Reader::new(bytes, magic, ty)?;
+    let (width, height) = (r.u32()?, r.u32()?);
+    let data = r.take(width as usize * height as usize)?.to_vec();
+    Ok((width, height, data))
 }
 
 /// A per-pixel yes/no map (e.g. sky), row-major, one byte a pixel: 1 = yes, 0 = no.
@@ -303,16 +313,10 @@ pub struct Mask {
 impl Artifact for Mask {
     const TYPE: &'static str = "Mask";
     fn encode(&self) -> Vec<u8> {
-        let mut out = b"MSK1".to_vec();
-        out.extend_from_slice(&self.width.to_le_bytes());
-        out.extend_from_slice(&self.height.to_le_bytes());
-        out.extend_from_slice(&self.data);
-        out
+        encode_byte_map(b"MSK1", self.width, self.height, &self.data)
     }
     fn decode(bytes: &[u8]) -> Result<Self> {
-        let mut r = Reader::new(bytes, b"MSK1", Self::TYPE)?;
-        let (width, height) = (r.u32()?, r.u32()?);
-        let data = r.take(width as usize * height as usize)?.to_vec();
+        let (width, height, data) = decode_byte_map(bytes, b"MSK1", Self::TYPE)?;
         Ok(Mask { width, height, data })
     }
 }
@@ -463,6 +467,12 @@ mod tests {
         assert_eq!(Pose::decode(&p.encode()).unwrap(), p);
         assert!(DepthMap::decode(&d.encode()[..10]).is_err());
         assert!(DepthMap::decode(b"PCL1....").is_err());
+        let m = Mask { width: 3, height: 1, data: vec![0, 1, 1] };
+        assert_eq!(Mask::decode(&m.encode()).unwrap(), m);
+        assert!(Mask::decode(&m.encode()[..13]).is_err(), "truncated");
+        let seg = Segmentation { width: 1, height: 2, ids: vec![23, 7] };
+        assert_eq!(Segmentation::decode(&seg.encode()).unwrap(), seg);
+        assert!(Segmentation::decode(&m.encode()).is_err(), "a mask is not a segmentation");
     }
 }
 
