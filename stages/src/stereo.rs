@@ -246,10 +246,37 @@ fn plane_inverse_depths(reference: &StereoView, warps: &[Warp], p: &SweepParams)
     (0..n).map(|i| rho_far + (rho_near - rho_far) * i as f64 / (n - 1) as f64).collect()
 }
 
+/// The large buffers of a sweep, kept from one sweep to the next: the cost volume and the
+/// forward SGM sums take tens of megabytes at MultiViewStereo's size, and fresh ones cost page
+/// faults and zeroing every time. A sweep overwrites every entry it reads.
+#[derive(Default)]
+pub struct SweepBuffers {
+    cost: Vec<u8>,
+    sums: Vec<u16>,
+}
+
+/// The first `len` entries of `v`, which grows (never shrinks) to hold them.
+fn first<T: Copy + Default>(v: &mut Vec<T>, len: usize) -> &mut [T] {
+    if v.len() < len {
+        *v = vec![T::default(); len];
+    }
+    &mut v[..len]
+}
+
 /// Depth of `reference` from `sources` by plane sweep, census and 8-path SGM, with uniqueness
 /// and sub-plane (parabola) refinement. No source: no depth. Refused, before the cost volume is
 /// allocated, when that volume would exceed `p.max_volume_bytes`.
 pub fn sweep_depth(
+    reference: &StereoView,
+    sources: &[&StereoView],
+    p: &SweepParams,
+) -> Result<StereoDepth, VolumeTooLarge> {
+    sweep_depth_with(&mut SweepBuffers::default(), reference, sources, p)
+}
+
+/// [`sweep_depth`] in `buffers` that earlier sweeps may have grown.
+pub fn sweep_depth_with(
+    buffers: &mut SweepBuffers,
     reference: &StereoView,
     sources: &[&StereoView],
     p: &SweepParams,
@@ -269,9 +296,9 @@ pub fn sweep_depth(
     let ref_census = &reference.census;
 
     // Cost volume, [pixel][plane]; COST_MAX where no source sees the sample. Every entry is
-    // written below, so the allocation need not be filled first.
+    // written below.
     let isa = Isa::best();
-    let mut cost = vec![0u8; w * h * planes];
+    let cost = first(&mut buffers.cost, w * h * planes);
     let rhos32: Vec<f32> = rhos.iter().map(|&r| r as f32).collect();
     // f32 is ample for pixel coordinates and keeps the inner loop cheap.
     let rays = |s: usize, x: usize, y: usize| {
@@ -290,7 +317,8 @@ pub fn sweep_depth(
     let step = rhos[1] - rhos[0];
     // Each pixel's summed costs are complete when the backward pass leaves it: the winner is
     // chosen there, so the sums are never written back and read again.
-    aggregate(isa, &cost, w, h, planes, p.p1, p.p2, |i, s| {
+    let sums = first(&mut buffers.sums, w * h * planes);
+    aggregate(isa, cost, sums, w, h, planes, p.p1, p.p2, |i, s| {
         let (best, sb) = kernels::argmin(isa, s);
         // At the ends of the range the minimum may lie beyond it: no depth.
         if best == 0 || best == planes - 1 {
@@ -336,14 +364,25 @@ pub fn sweep_depth(
 }
 
 /// Semi-global aggregation over 8 paths (Hirschmüller 2008) of a [pixel][plane] cost volume:
-/// `done(pixel, sums)` receives each pixel's summed path costs, once. Two scanline passes
+/// `done(pixel, sums)` receives each pixel's summed path costs, once; `scratch` (the volume's
+/// size, any content) holds the first pass's sums. Two scanline passes
 /// (forward: paths from the left, top-left, top, top-right; backward: their mirrors), each
 /// keeping one row of path costs per direction; each path follows
 /// L(p, d) = C(p, d) + min(L(q, d), L(q, d +- 1) + P1, min L(q) + P2) - min L(q), in 16 bits
 /// (8 paths of at most 96 + P2 each cannot overflow them, see `mvs::MAX_PENALTY`).
 #[allow(clippy::too_many_arguments)]
-fn aggregate(isa: Isa, cost: &[u8], w: usize, h: usize, n: usize, p1: u16, p2: u16, done: impl FnMut(usize, &[u16])) {
-    kernels::aggregate(isa, cost, w, h, n, p1, p2, done)
+fn aggregate(
+    isa: Isa,
+    cost: &[u8],
+    scratch: &mut [u16],
+    w: usize,
+    h: usize,
+    n: usize,
+    p1: u16,
+    p2: u16,
+    done: impl FnMut(usize, &[u16]),
+) {
+    kernels::aggregate(isa, cost, scratch, w, h, n, p1, p2, done)
 }
 
 /// Keeps the depths of `reference` that at least one of the `checks` (another view and its own

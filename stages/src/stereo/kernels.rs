@@ -87,11 +87,13 @@ pub(crate) fn pixel_costs(
 
 /// Semi-global aggregation over 8 paths of a `w` x `h` x `n` cost volume ([pixel][plane]):
 /// `done(pixel, sums)` receives each pixel's summed path costs, once, in the order the backward
-/// pass reaches them. See `stereo::aggregate` for the recurrence.
+/// pass reaches them; `scratch` (as large as the volume, any content) holds the forward pass's
+/// sums. See `stereo::aggregate` for the recurrence.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn aggregate(
     isa: Isa,
     cost: &[u8],
+    scratch: &mut [u16],
     w: usize,
     h: usize,
     n: usize,
@@ -100,11 +102,12 @@ pub(crate) fn aggregate(
     done: impl FnMut(usize, &[u16]),
 ) {
     assert_eq!(cost.len(), w * h * n);
+    assert_eq!(scratch.len(), w * h * n);
     match isa.for_planes(n) {
-        Isa::Portable => portable::aggregate(cost, w, h, n, p1, p2, done),
-        // SAFETY: AVX2 is present (see `Isa`), the volume's size is checked above, n >= 16.
+        Isa::Portable => portable::aggregate(cost, scratch, w, h, n, p1, p2, done),
+        // SAFETY: AVX2 is present (see `Isa`), the volumes' sizes are checked above, n >= 16.
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => unsafe { avx2::aggregate(cost, w, h, n, p1, p2, done) },
+        Isa::Avx2 => unsafe { avx2::aggregate(cost, scratch, w, h, n, p1, p2, done) },
     }
 }
 
@@ -228,8 +231,10 @@ mod portable {
 
     /// Two scanline passes (forward: paths from the left, top-left, top, top-right; backward:
     /// their mirrors), each keeping one row of path costs per direction.
+    #[allow(clippy::too_many_arguments)]
     pub(super) fn aggregate(
         cost: &[u8],
+        total: &mut [u16],
         w: usize,
         h: usize,
         n: usize,
@@ -237,7 +242,7 @@ mod portable {
         p2: u16,
         mut done: impl FnMut(usize, &[u16]),
     ) {
-        let mut total = vec![0u16; w * h * n];
+        total.fill(0);
         for backward in [false, true] {
             // Directions by neighbour offset in iteration order: left, up-left, up, up-right.
             let mut prev_rows = vec![vec![0u16; w * n]; 3];
@@ -421,13 +426,18 @@ mod avx2 {
                 sum = _mm256_add_epi32(sum, _mm256_and_si256(bits, inside));
                 count = _mm256_sub_epi32(count, inside);
             }
-            // 2 sum / count, exactly: 2 sum <= 2 x 48 x 16 sources, so the f32 quotient is
-            // within 2^-13 of the true one, whose fraction is at most 1 - 1/16: truncation
-            // gives the integer quotient.
-            let q = _mm256_cvttps_epi32(_mm256_div_ps(
-                _mm256_cvtepi32_ps(_mm256_add_epi32(sum, sum)),
-                _mm256_cvtepi32_ps(count),
-            ));
+            let q = if rays.len() <= 2 {
+                // 2 sum / count with count 1 or 2 where seen: a shift.
+                _mm256_srlv_epi32(_mm256_add_epi32(sum, sum), _mm256_sub_epi32(count, _mm256_set1_epi32(1)))
+            } else {
+                // 2 sum / count, exactly: 2 sum <= 2 x 48 x 16 sources, so the f32 quotient is
+                // within 2^-13 of the true one, whose fraction is at most 1 - 1/16: truncation
+                // gives the integer quotient.
+                _mm256_cvttps_epi32(_mm256_div_ps(
+                    _mm256_cvtepi32_ps(_mm256_add_epi32(sum, sum)),
+                    _mm256_cvtepi32_ps(count),
+                ))
+            };
             let seen = _mm256_cmpgt_epi32(count, _mm256_setzero_si256());
             let q = _mm256_blendv_epi8(max, q, seen);
             let packed =
@@ -528,8 +538,10 @@ mod avx2 {
     /// The forward pass stores its four paths' sums per pixel; the backward pass adds its own
     /// into one pixel's scratch and hands that to `done`: the complete sums never go to memory.
     #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
     pub(super) unsafe fn aggregate(
         cost: &[u8],
+        forward: &mut [u16],
         w: usize,
         h: usize,
         n: usize,
@@ -537,7 +549,6 @@ mod avx2 {
         p2: u16,
         mut done: impl FnMut(usize, &[u16]),
     ) {
-        let mut forward = vec![0u16; w * h * n];
         let mut sums = vec![0u16; n];
         let ps = path_stride(n);
         let p1v = _mm256_set1_epi16(p1 as i16);
@@ -717,7 +728,7 @@ mod tests {
         let (mut seen, mut planes) = (0, 0);
         for case in 0..40usize {
             let n = [16, 17, 23, 64, 126, 256][case % 6];
-            let sources: Vec<(usize, usize, Vec<u64>)> = (0..1 + case % 3)
+            let sources: Vec<(usize, usize, Vec<u64>)> = (0..1 + case % 4)
                 .map(|_| {
                     let (w, h) = (40 + (rng.next_u64() % 30) as usize, 20 + (rng.next_u64() % 20) as usize);
                     (w, h, (0..w * h).map(|_| rng.next_u64() & ((1 << 48) - 1)).collect())
@@ -768,7 +779,9 @@ mod tests {
                 .collect();
             each_isa("aggregate", |isa| {
                 let mut sums = vec![None; w * h];
-                aggregate(isa, &cost, w, h, n, p1, p2, |i, s| {
+                // Scratch with stale content, as a reused buffer has.
+                let mut scratch = vec![7u16; w * h * n];
+                aggregate(isa, &cost, &mut scratch, w, h, n, p1, p2, |i, s| {
                     assert!(sums[i].replace(s.to_vec()).is_none(), "pixel {i} twice");
                 });
                 sums
