@@ -67,15 +67,18 @@ impl StereoView {
         let (w, h) = (width / f, height / f);
         let mut out = vec![0u8; w * h];
         let area = (f * f) as u32;
-        for y in 0..h {
-            for x in 0..w {
-                let mut sum = 0u32;
-                for yy in y * f..(y + 1) * f {
-                    for xx in x * f..(x + 1) * f {
-                        sum += grey[yy * width + xx] as u32;
-                    }
+        // Per output row: the block rows summed down each column (whole rows at a time, which
+        // vectorises), then f columns at a time across.
+        let mut columns = vec![0u32; w * f];
+        for (y, out_row) in out.chunks_exact_mut(w.max(1)).enumerate() {
+            columns.fill(0);
+            for yy in y * f..(y + 1) * f {
+                for (c, &g) in columns.iter_mut().zip(&grey[yy * width..][..w * f]) {
+                    *c += g as u32;
                 }
-                out[y * w + x] = ((sum + area / 2) / area) as u8;
+            }
+            for (o, block) in out_row.iter_mut().zip(columns.chunks_exact(f)) {
+                *o = ((block.iter().sum::<u32>() + area / 2) / area) as u8;
             }
         }
         let s = 1.0 / f as f64;

@@ -454,32 +454,72 @@ mod avx2 {
         _mm_extract_epi16::<0>(_mm_minpos_epu16(m)) as u16
     }
 
-    /// A pixel's path costs in a path buffer start `PAD` lanes in, after a `u16::MAX` sentinel
-    /// (plane -1) and before another (plane n): the neighbours d +- 1 of every plane are then
-    /// plain loads, and a missing one never wins a minimum.
-    const PAD: usize = 8;
+    /// 16 lanes of path costs, aligned for whole-vector loads and stores.
+    #[derive(Clone, Copy)]
+    #[repr(C, align(32))]
+    struct Block([u16; 16]);
 
-    /// Lanes one pixel takes in a path buffer.
+    /// Rows of path costs, one pixel every [`path_stride`] lanes. A pixel's costs start `PAD`
+    /// lanes in, after a `u16::MAX` sentinel (plane -1) and before another (plane n): the
+    /// neighbours d +- 1 of every plane are then plain loads, and a missing one never wins a
+    /// minimum. Every pixel starts on a vector boundary.
+    struct PathRows(Vec<Block>);
+
+    const PAD: usize = 16;
+
+    /// Lanes one pixel takes in a path buffer: a multiple of 16.
     fn path_stride(n: usize) -> usize {
-        n + 2 * PAD
+        n.div_ceil(16) * 16 + 2 * PAD
     }
 
-    fn path_buffer(pixels: usize, n: usize) -> Vec<u16> {
-        vec![u16::MAX; pixels * path_stride(n)]
+    impl PathRows {
+        fn new(pixels: usize, n: usize) -> PathRows {
+            PathRows(vec![Block([u16::MAX; 16]); pixels * path_stride(n) / 16])
+        }
+
+        fn pixel(&self, x: usize, n: usize) -> *const u16 {
+            (self.0.as_ptr() as *const u16).wrapping_add(x * path_stride(n))
+        }
+
+        fn pixel_mut(&mut self, x: usize, n: usize) -> *mut u16 {
+            (self.0.as_mut_ptr() as *mut u16).wrapping_add(x * path_stride(n))
+        }
+    }
+
+    /// A vector load, from a 32-byte aligned address if `ALIGNED` (the compiler splits
+    /// unaligned 256-bit loads and stores in two for the x86-64-v2 baseline's tuning).
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn load<const ALIGNED: bool>(p: *const u16) -> __m256i {
+        if ALIGNED {
+            _mm256_load_si256(p as *const __m256i)
+        } else {
+            _mm256_loadu_si256(p as *const __m256i)
+        }
+    }
+
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn store<const ALIGNED: bool>(p: *mut u16, v: __m256i) {
+        if ALIGNED {
+            _mm256_store_si256(p as *mut __m256i, v)
+        } else {
+            _mm256_storeu_si256(p as *mut __m256i, v)
+        }
     }
 
     /// One pixel's step of the four paths a scanline pass carries (left, and from the previous
     /// row up-left, up, up-right). `prev[k]` is the path's previous pixel (null: the path starts
     /// here, L = C) with its minimum `prev_min[k]`; `out[k]` receives L. `sums` receives the
     /// four L added (to `earlier`, the other pass's sums, unless null). Returns the minima of
-    /// the four new L.
+    /// the four new L. `ALIGNED`: n is a multiple of 16 and `earlier`, `sums` are 32-byte aligned.
     ///
     /// A last block overlapping the one before recomputes its lanes to the same values, so
     /// every store here may be repeated.
     #[inline]
     #[target_feature(enable = "avx2")]
     #[allow(clippy::too_many_arguments)]
-    unsafe fn pixel_paths(
+    unsafe fn pixel_paths<const ALIGNED: bool>(
         c: *const u8,
         n: usize,
         prev: [*const u16; 4],
@@ -495,36 +535,28 @@ mod avx2 {
         let mut mins = [_mm256_set1_epi16(-1); 4];
         for d in blocks(n, 16) {
             let cv = _mm256_cvtepu8_epi16(_mm_loadu_si128(c.add(d) as *const __m128i));
-            let mut acc = if earlier.is_null() {
-                _mm256_setzero_si256()
-            } else {
-                _mm256_loadu_si256(earlier.add(d) as *const __m256i)
-            };
+            let mut acc = if earlier.is_null() { _mm256_setzero_si256() } else { load::<ALIGNED>(earlier.add(d)) };
             for k in 0..4 {
                 let l = if prev[k].is_null() {
                     cv
                 } else {
                     let p = prev[k].add(PAD + d);
-                    let (below, same, above) = (
-                        _mm256_loadu_si256(p.sub(1) as *const __m256i),
-                        _mm256_loadu_si256(p as *const __m256i),
-                        _mm256_loadu_si256(p.add(1) as *const __m256i),
-                    );
+                    let (below, same, above) = (load::<false>(p.sub(1)), load::<ALIGNED>(p), load::<false>(p.add(1)));
                     let near = _mm256_adds_epu16(_mm256_min_epu16(below, above), p1);
                     let v = _mm256_min_epu16(_mm256_min_epu16(same, near), jump[k]);
                     _mm256_add_epi16(_mm256_sub_epi16(v, pm[k]), cv)
                 };
-                _mm256_storeu_si256(out[k].add(PAD + d) as *mut __m256i, l);
+                store::<ALIGNED>(out[k].add(PAD + d), l);
                 mins[k] = _mm256_min_epu16(mins[k], l);
                 acc = _mm256_add_epi16(acc, l);
             }
-            _mm256_storeu_si256(sums.add(d) as *mut __m256i, acc);
+            store::<ALIGNED>(sums.add(d), acc);
         }
         [hmin(mins[0]), hmin(mins[1]), hmin(mins[2]), hmin(mins[3])]
     }
 
     /// How many pixels ahead the backward pass prefetches.
-    const AHEAD: usize = 4;
+    const AHEAD: usize = 2;
 
     /// Asks for the cache lines of `bytes` bytes from `p` into every cache level.
     #[inline]
@@ -547,20 +579,40 @@ mod avx2 {
         n: usize,
         p1: u16,
         p2: u16,
+        done: impl FnMut(usize, &[u16]),
+    ) {
+        // Whole aligned vectors when every pixel's sums start on a vector boundary (the usual
+        // 256 planes in a page-aligned buffer); the same arithmetic either way.
+        if n % 16 == 0 && forward.as_ptr() as usize % 32 == 0 {
+            aggregate_as::<true>(cost, forward, w, h, n, p1, p2, done)
+        } else {
+            aggregate_as::<false>(cost, forward, w, h, n, p1, p2, done)
+        }
+    }
+
+    #[target_feature(enable = "avx2")]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn aggregate_as<const ALIGNED: bool>(
+        cost: &[u8],
+        forward: &mut [u16],
+        w: usize,
+        h: usize,
+        n: usize,
+        p1: u16,
+        p2: u16,
         mut done: impl FnMut(usize, &[u16]),
     ) {
-        let mut sums = vec![0u16; n];
-        let ps = path_stride(n);
+        let mut sums = vec![Block([0; 16]); n.div_ceil(16)];
         let p1v = _mm256_set1_epi16(p1 as i16);
         for backward in [false, true] {
             // Path costs of the previous and the current row for up-left, up, up-right, with
             // their minima, and of the previous and the current pixel for the path from the left.
-            let mut prev_rows = [path_buffer(w, n), path_buffer(w, n), path_buffer(w, n)];
-            let mut cur_rows = [path_buffer(w, n), path_buffer(w, n), path_buffer(w, n)];
+            let mut prev_rows = [PathRows::new(w, n), PathRows::new(w, n), PathRows::new(w, n)];
+            let mut cur_rows = [PathRows::new(w, n), PathRows::new(w, n), PathRows::new(w, n)];
             let mut prev_mins = [vec![0u16; w], vec![0u16; w], vec![0u16; w]];
             let mut cur_mins = [vec![0u16; w], vec![0u16; w], vec![0u16; w]];
-            let mut left = path_buffer(1, n);
-            let mut here = path_buffer(1, n);
+            let mut left = PathRows::new(1, n);
+            let mut here = PathRows::new(1, n);
             for yi in 0..h {
                 let y = if backward { h - 1 - yi } else { yi };
                 let mut left_min = 0u16;
@@ -570,24 +622,20 @@ mod avx2 {
                     let mut prev = [std::ptr::null(); 4];
                     let mut prev_min = [0u16; 4];
                     if xi > 0 {
-                        prev[0] = left.as_ptr();
+                        prev[0] = left.pixel(0, n);
                         prev_min[0] = left_min;
                     }
                     for dir in 0..3 {
                         let nx = xi as i64 + dir as i64 - 1;
                         if yi > 0 && nx >= 0 && nx < w as i64 {
-                            prev[dir + 1] = prev_rows[dir].as_ptr().add(nx as usize * ps);
+                            prev[dir + 1] = prev_rows[dir].pixel(nx as usize, n);
                             prev_min[dir + 1] = prev_mins[dir][nx as usize];
                         }
                     }
-                    let out = [
-                        here.as_mut_ptr(),
-                        cur_rows[0].as_mut_ptr().add(xi * ps),
-                        cur_rows[1].as_mut_ptr().add(xi * ps),
-                        cur_rows[2].as_mut_ptr().add(xi * ps),
-                    ];
+                    let [r0, r1, r2] = &mut cur_rows;
+                    let out = [here.pixel_mut(0, n), r0.pixel_mut(xi, n), r1.pixel_mut(xi, n), r2.pixel_mut(xi, n)];
                     let (earlier, to) = if backward {
-                        (forward.as_ptr().add(pixel * n), sums.as_mut_ptr())
+                        (forward.as_ptr().add(pixel * n), sums.as_mut_ptr() as *mut u16)
                     } else {
                         (std::ptr::null(), forward.as_mut_ptr().add(pixel * n))
                     };
@@ -598,9 +646,9 @@ mod avx2 {
                         prefetch(cost.as_ptr().add((pixel - AHEAD) * n), n);
                         prefetch(forward.as_ptr().add((pixel - AHEAD) * n) as *const u8, 2 * n);
                     }
-                    let m = pixel_paths(c, n, prev, prev_min, out, earlier, to, p1v, p2);
+                    let m = pixel_paths::<ALIGNED>(c, n, prev, prev_min, out, earlier, to, p1v, p2);
                     if backward {
-                        done(pixel, &sums);
+                        done(pixel, std::slice::from_raw_parts(sums.as_ptr() as *const u16, n));
                     }
                     std::mem::swap(&mut left, &mut here);
                     left_min = m[0];
@@ -777,15 +825,20 @@ mod tests {
             let cost: Vec<u8> = (0..w * h * n)
                 .map(|i| if (i / n) % 3 == 0 { ((i % n) * 2).min(96) as u8 } else { (rng.next_u64() % 97) as u8 })
                 .collect();
-            each_isa("aggregate", |isa| {
-                let mut sums = vec![None; w * h];
-                // Scratch with stale content, as a reused buffer has.
-                let mut scratch = vec![7u16; w * h * n];
-                aggregate(isa, &cost, &mut scratch, w, h, n, p1, p2, |i, s| {
-                    assert!(sums[i].replace(s.to_vec()).is_none(), "pixel {i} twice");
+            // Scratch with stale content, as a reused buffer has, starting on a vector boundary
+            // and off it (the AVX2 kernel's aligned and unaligned variants).
+            for misaligned in [0, 1] {
+                each_isa("aggregate", |isa| {
+                    let mut sums = vec![None; w * h];
+                    let mut buffer = vec![7u16; w * h * n + 32];
+                    let start = buffer.as_ptr().align_offset(32) + misaligned;
+                    let scratch = &mut buffer[start..start + w * h * n];
+                    aggregate(isa, &cost, scratch, w, h, n, p1, p2, |i, s| {
+                        assert!(sums[i].replace(s.to_vec()).is_none(), "pixel {i} twice");
+                    });
+                    sums
                 });
-                sums
-            });
+            }
         }
     }
 
