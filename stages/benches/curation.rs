@@ -139,7 +139,7 @@ fn bench_hpr(tmp: &Path) {
 /// StereoSGBM on the shared Middlebury Motorcycle pair: bad-pixel rate (> 2 px) and time.
 fn bench_stereo(tmp: &Path) {
     use dist4d_stages::middlebury::{bad_pixels, read_motorcycle, PairCalibration};
-    use dist4d_stages::stereo::{keep_consistent, sweep_depth};
+    use dist4d_stages::stereo::{keep_consistent, sweep_depth_with, SweepBuffers};
     let dir = workspace().join("../shared/data/middlebury-motorcycle");
     if !dir.is_dir() {
         println!("(stereo: {} is absent, skipped)", dir.display());
@@ -153,8 +153,11 @@ fn bench_stereo(tmp: &Path) {
     let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     let (ours, depth) = one.install(|| {
         best_of(3, || {
-            let mut d = sweep_depth(&left, &[&right], &p).expect("the benchmark sweep fits the budget");
-            let back = sweep_depth(&right, &[&left], &p).expect("the benchmark sweep fits the budget");
+            let mut buffers = SweepBuffers::default();
+            let mut d =
+                sweep_depth_with(&mut buffers, &left, &[&right], &p).expect("the benchmark sweep fits the budget");
+            let back =
+                sweep_depth_with(&mut buffers, &right, &[&left], &p).expect("the benchmark sweep fits the budget");
             keep_consistent(&left, &mut d, &[(&right, &back)], mvs.consistency_px, mvs.consistency_depth);
             d
         })

@@ -18,11 +18,15 @@ use glam::Vec3;
 pub(crate) enum Isa {
     /// Plain Rust, any target.
     Portable,
-    /// 256-bit vectors; only ever made by [`Isa::best`] / [`Isa::available`] on a CPU that has
-    /// AVX2, which is what makes calling its `unsafe` kernels sound.
+    /// 256-bit vectors, on a CPU that has AVX2: what makes calling the `unsafe` AVX2 kernels
+    /// sound. Only [`Isa::available`] can make one (see [`Detected`]).
     #[cfg(target_arch = "x86_64")]
-    Avx2,
+    Avx2(Detected),
 }
+
+/// Proof that the CPU was found to have the feature; made nowhere but in this module.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Detected(());
 
 /// Fewest planes the AVX2 kernels handle: one full vector of 16-bit path costs.
 pub(crate) const AVX2_MIN_PLANES: usize = 16;
@@ -39,7 +43,7 @@ impl Isa {
         let mut all = vec![Isa::Portable];
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
-            all.push(Isa::Avx2);
+            all.push(Isa::Avx2(Detected(())));
         }
         all
     }
@@ -76,12 +80,14 @@ pub(crate) fn pixel_costs(
 ) {
     assert_eq!(rhos.len(), out.len());
     assert_eq!(rays.len(), sources.len());
+    // What the AVX2 gathers rely on: every in-image sample indexes the census, in i32.
+    assert!(sources.iter().all(|s| s.census.len() >= s.width * s.height && s.width * s.height <= i32::MAX as usize));
     match isa.for_planes(out.len()) {
         Isa::Portable => portable::pixel_costs(c0, rays, sources, rhos, cost_max, out),
         // SAFETY: `Isa::Avx2` exists only where the CPU has AVX2; the lengths are checked above
         // and `for_planes` guarantees at least 16 planes.
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => unsafe { avx2::pixel_costs(c0, rays, sources, rhos, cost_max, out) },
+        Isa::Avx2(_) => unsafe { avx2::pixel_costs(c0, rays, sources, rhos, cost_max, out) },
     }
 }
 
@@ -107,7 +113,7 @@ pub(crate) fn aggregate(
         Isa::Portable => portable::aggregate(cost, scratch, w, h, n, p1, p2, done),
         // SAFETY: AVX2 is present (see `Isa`), the volumes' sizes are checked above, n >= 16.
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => unsafe { avx2::aggregate(cost, scratch, w, h, n, p1, p2, done) },
+        Isa::Avx2(_) => unsafe { avx2::aggregate(cost, scratch, w, h, n, p1, p2, done) },
     }
 }
 
@@ -118,7 +124,7 @@ pub(crate) fn argmin(isa: Isa, s: &[u16]) -> (usize, u16) {
         Isa::Portable => portable::argmin(s),
         // SAFETY: AVX2 is present (see `Isa`), s.len() >= 16.
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => unsafe { avx2::argmin(s) },
+        Isa::Avx2(_) => unsafe { avx2::argmin(s) },
     }
 }
 
@@ -128,7 +134,7 @@ pub(crate) fn min_outside(isa: Isa, s: &[u16], lo: usize, hi: usize) -> u16 {
         Isa::Portable => portable::min_outside(s, lo, hi),
         // SAFETY: AVX2 is present (see `Isa`), s.len() >= 16.
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => unsafe { avx2::min_outside(s, lo, hi) },
+        Isa::Avx2(_) => unsafe { avx2::min_outside(s, lo, hi) },
     }
 }
 
@@ -153,7 +159,7 @@ pub(crate) fn census(isa: Isa, grey: &[u8], w: usize, h: usize) -> Vec<u64> {
             Isa::Portable => census_row(&padded, w, y, planes, row),
             // SAFETY: AVX2 is present (see `Isa`).
             #[cfg(target_arch = "x86_64")]
-            Isa::Avx2 => unsafe { avx2::census_row(&padded, w, y, planes, row) },
+            Isa::Avx2(_) => unsafe { avx2::census_row(&padded, w, y, planes, row) },
         },
     );
     out
@@ -164,9 +170,9 @@ fn pad3(grey: &[u8], w: usize, h: usize) -> Vec<u8> {
     let mut out = Vec::with_capacity((w + 6) * (h + 6));
     for py in 0..h + 6 {
         let row = &grey[py.saturating_sub(3).min(h - 1) * w..][..w];
-        out.extend(std::iter::repeat(row[0]).take(3));
+        out.extend(std::iter::repeat_n(row[0], 3));
         out.extend_from_slice(row);
-        out.extend(std::iter::repeat(row[w - 1]).take(3));
+        out.extend(std::iter::repeat_n(row[w - 1], 3));
     }
     out
 }
@@ -225,7 +231,7 @@ mod portable {
                     count += 1;
                 }
             }
-            *o = if count > 0 { (2 * sum / count) as u8 } else { cost_max };
+            *o = (2 * sum).checked_div(count).map_or(cost_max, |q| q as u8);
         }
     }
 
@@ -652,8 +658,8 @@ mod avx2 {
                     }
                     std::mem::swap(&mut left, &mut here);
                     left_min = m[0];
-                    for dir in 0..3 {
-                        cur_mins[dir][xi] = m[dir + 1];
+                    for (mins, &m) in cur_mins.iter_mut().zip(&m[1..]) {
+                        mins[xi] = m;
                     }
                 }
                 std::mem::swap(&mut prev_rows, &mut cur_rows);
