@@ -11,6 +11,12 @@
 //!
 //! The number of planes follows the geometry: planes are spaced so that the sample moves about
 //! `plane_step_px` pixels along the longest epipolar line, capped at `max_planes`.
+//!
+//! Speed: the inner loops (census costs along each pixel's samples, the SGM passes, the winner
+//! search, the census) are in `kernels`, as AVX2 code chosen at run time with a portable
+//! fallback that gives the same bytes. A view's census is computed once, when it is made; the
+//! winner is picked as the backward SGM pass completes each pixel, so the summed costs are never
+//! stored; [`SweepBuffers`] carries the cost volume from one sweep to the next.
 
 mod kernels;
 
