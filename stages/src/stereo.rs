@@ -264,9 +264,11 @@ pub struct SweepBuffers {
     sums: Vec<u16>,
 }
 
-/// The first `len` entries of `v`, which grows (never shrinks) to hold them.
+/// The first `len` entries of `v`, which grows (never shrinks) to hold them; the old buffer is
+/// freed before the new one is allocated, so the peak stays within the sweep's budget.
 fn first<T: Copy + Default>(v: &mut Vec<T>, len: usize) -> &mut [T] {
     if v.len() < len {
+        *v = Vec::new();
         *v = vec![T::default(); len];
     }
     &mut v[..len]
