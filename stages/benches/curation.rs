@@ -1,6 +1,6 @@
 //! Curation stages against their peer programs, on the same inputs, in the same run.
 //!
-//!   cargo bench -p dist4d-stages --bench curation -- [hpr] [stereo] [voxel]
+//!   cargo bench -p dist4d-stages --bench curation -- [hpr] [stereo] [voxel] [mvs]
 //!
 //! Peers run from the venv made by ../shared/bench/peers/setup.sh (`.venv-peers/` in the
 //! workspace, or DIST4D_PEERS_PYTHON); without it only dist4d's figures are printed.
@@ -53,6 +53,31 @@ fn best_of<T>(n: usize, mut f: impl FnMut() -> T) -> (f64, T) {
         out = Some(r);
     }
     (best, out.unwrap())
+}
+
+/// CPU seconds this process has used (user + system, from /proc/self/stat; 0 elsewhere): on a
+/// shared machine a busy neighbour stretches wall time but not the CPU time of the work itself.
+fn cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else { return 0.0 };
+    // Fields after the command name (which may hold spaces, closed by the last ')'): utime and
+    // stime are the 12th and 13th, in clock ticks (100 per second on Linux).
+    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<f64> = rest.split_whitespace().map(|v| v.parse().unwrap_or(0.0)).collect();
+    (f.get(11).unwrap_or(&0.0) + f.get(12).unwrap_or(&0.0)) / 100.0
+}
+
+/// Like [`best_of`], with the CPU seconds of the fastest run by CPU too: (wall, cpu, output).
+fn best_of_cpu<T>(n: usize, mut f: impl FnMut() -> T) -> (f64, f64, T) {
+    let (mut wall, mut cpu) = (f64::INFINITY, f64::INFINITY);
+    let mut out = None;
+    for _ in 0..n {
+        let (t, c) = (Instant::now(), cpu_seconds());
+        let r = f();
+        cpu = cpu.min(cpu_seconds() - c);
+        wall = wall.min(t.elapsed().as_secs_f64());
+        out = Some(r);
+    }
+    (wall, cpu, out.unwrap())
 }
 
 fn read_npy_i64(path: &Path) -> Vec<i64> {
@@ -114,7 +139,7 @@ fn bench_hpr(tmp: &Path) {
 /// StereoSGBM on the shared Middlebury Motorcycle pair: bad-pixel rate (> 2 px) and time.
 fn bench_stereo(tmp: &Path) {
     use dist4d_stages::middlebury::{bad_pixels, read_motorcycle, PairCalibration};
-    use dist4d_stages::stereo::{keep_consistent, sweep_depth};
+    use dist4d_stages::stereo::{keep_consistent, sweep_depth_with, SweepBuffers};
     let dir = workspace().join("../shared/data/middlebury-motorcycle");
     if !dir.is_dir() {
         println!("(stereo: {} is absent, skipped)", dir.display());
@@ -128,8 +153,11 @@ fn bench_stereo(tmp: &Path) {
     let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
     let (ours, depth) = one.install(|| {
         best_of(3, || {
-            let mut d = sweep_depth(&left, &[&right], &p).expect("the benchmark sweep fits the budget");
-            let back = sweep_depth(&right, &[&left], &p).expect("the benchmark sweep fits the budget");
+            let mut buffers = SweepBuffers::default();
+            let mut d =
+                sweep_depth_with(&mut buffers, &left, &[&right], &p).expect("the benchmark sweep fits the budget");
+            let back =
+                sweep_depth_with(&mut buffers, &right, &[&left], &p).expect("the benchmark sweep fits the budget");
             keep_consistent(&left, &mut d, &[(&right, &back)], mvs.consistency_px, mvs.consistency_depth);
             d
         })
@@ -243,6 +271,68 @@ fn bench_voxel(tmp: &Path) {
     }
 }
 
+/// MultiViewStereo as the stage runs it, on full-size synthetic camera triples (frames t-1, t,
+/// t+1 of each camera of the middle keyframe), one thread: seconds per image, and a digest of
+/// the depth and confidence outputs so that two builds can be compared for both speed and bytes.
+/// Data: `DIST4D_MVS_DATA`, else /tmp/syn8s0 (`dist4d synth --keyframes 8 --seed 0 --out
+/// /tmp/syn8s0`); `DIST4D_MVS_REPS` repetitions per image (best taken, default 3).
+fn bench_mvs() {
+    use dist4d_datasets::files::read_camera_image;
+    use dist4d_datasets::nuscenes::{NuScenes, NuScenesConfig};
+    use dist4d_datasets::surround::SurroundReader;
+    use dist4d_stages::curation::mvs::{multi_view_stereo, Frame, Params};
+    let root = std::env::var("DIST4D_MVS_DATA").unwrap_or_else(|_| "/tmp/syn8s0".into());
+    if !Path::new(&root).is_dir() {
+        println!("(mvs: {root} is absent, skipped; make it with `dist4d synth --keyframes 8 --seed 0 --out {root}`)");
+        return;
+    }
+    let reps: usize = std::env::var("DIST4D_MVS_REPS").ok().and_then(|r| r.parse().ok()).unwrap_or(3);
+    let data = NuScenes::open(NuScenesConfig { root: root.clone(), ..NuScenesConfig::default() }).unwrap();
+    let tree = data.tree();
+    let scene = &tree.scenes[0];
+    let t = scene.frames.len() / 2;
+    assert!(t >= 1 && t + 1 < scene.frames.len(), "{root}: the scene needs 3 keyframes or more");
+    let params = Params::default();
+    let one = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
+    println!("## MultiViewStereo, {root} keyframes {}..{}, 1 thread, best of {reps}", t - 1, t + 1);
+    println!("| camera | size | wall | CPU | depth pixels | digest of depth + confidence |");
+    println!("| --- | ---: | ---: | ---: | ---: | --- |");
+    let (mut total, mut total_cpu) = (0.0, 0.0);
+    for (c, camera) in tree.cameras.iter().enumerate() {
+        let readings: Vec<_> = (t - 1..=t + 1).map(|f| scene.frames[f].cameras[c].as_ref().unwrap()).collect();
+        let images: Vec<_> = readings
+            .iter()
+            .map(|r| read_camera_image(&r.file, r.calib.width, r.calib.height, &r.what).unwrap())
+            .collect();
+        let frames: Vec<Frame> = readings
+            .iter()
+            .zip(&images)
+            .zip(-1i64..)
+            .map(|((r, image), position)| Frame { position, image, calib: &r.calib, pose: &r.pose })
+            .collect();
+        let (secs, cpu, (depth, confidence)) =
+            one.install(|| best_of_cpu(reps, || multi_view_stereo(&params, &frames).unwrap()));
+        total += secs;
+        total_cpu += cpu;
+        let mut h = blake3::Hasher::new();
+        for v in depth.data.iter().chain(&confidence.data) {
+            h.update(&v.to_le_bytes());
+        }
+        let valid = depth.data.iter().filter(|&&z| z > 0.0).count() as f64 / depth.data.len() as f64;
+        println!(
+            "| {camera} | {}x{} | {:.0} ms | {:.0} ms | {:.1}% | {} |",
+            images[1].width,
+            images[1].height,
+            secs * 1e3,
+            cpu * 1e3,
+            valid * 100.0,
+            &h.finalize().to_hex()[..16]
+        );
+    }
+    let n = tree.cameras.len() as f64;
+    println!("mean per image: {:.0} ms wall, {:.0} ms CPU", total / n * 1e3, total_cpu / n * 1e3);
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().skip(1).filter(|a| !a.starts_with("--")).collect();
     let all = args.is_empty();
@@ -255,5 +345,8 @@ fn main() {
     }
     if all || args.iter().any(|a| a == "voxel") {
         bench_voxel(tmp.path());
+    }
+    if all || args.iter().any(|a| a == "mvs") {
+        bench_mvs();
     }
 }

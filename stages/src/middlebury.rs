@@ -40,12 +40,9 @@ impl PairCalibration {
     /// The pair as two views: the right camera `baseline` to the right, its principal point
     /// `doffs` further right.
     pub fn views(&self, left: (usize, usize, Vec<u8>), right: (usize, usize, Vec<u8>)) -> (StereoView, StereoView) {
-        let view = |(width, height, grey): (usize, usize, Vec<u8>), cx: f64, x: f64| StereoView {
-            width,
-            height,
-            grey,
-            k: [[self.f, 0.0, cx], [0.0, self.f, self.cy], [0.0, 0.0, 1.0]],
-            world_from_cam: Se3::from_yaw(0.0, DVec3::new(x, 0.0, 0.0)),
+        let view = |(width, height, grey): (usize, usize, Vec<u8>), cx: f64, x: f64| {
+            let k = [[self.f, 0.0, cx], [0.0, self.f, self.cy], [0.0, 0.0, 1.0]];
+            StereoView::new(width, height, grey, k, Se3::from_yaw(0.0, DVec3::new(x, 0.0, 0.0)))
         };
         (view(left, self.cx, 0.0), view(right, self.cx + self.doffs, self.baseline))
     }

@@ -11,16 +11,28 @@
 //!
 //! The number of planes follows the geometry: planes are spaced so that the sample moves about
 //! `plane_step_px` pixels along the longest epipolar line, capped at `max_planes`.
+//!
+//! Speed: the inner loops (census costs along each pixel's samples, the SGM passes, the winner
+//! search, the census) are in `kernels`, as AVX2 code chosen at run time with a portable
+//! fallback that gives the same bytes. A view's census is computed once, when it is made; the
+//! winner is picked as the backward SGM pass completes each pixel, so the summed costs are never
+//! stored; [`SweepBuffers`] carries the cost volume from one sweep to the next.
+
+mod kernels;
 
 use dist4d_types::geometry::Se3;
 use glam::{DMat3, DVec3};
+use kernels::{Isa, SourceCensus};
 use rayon::prelude::*;
 
-/// A grey image with its pinhole intrinsics and pose.
+/// A grey image with its pinhole intrinsics and pose, and the image's census transform: a view
+/// takes part in several sweeps (as the reference of one, a source of others), and its census
+/// is computed once, when it is made.
 pub struct StereoView {
-    pub width: usize,
-    pub height: usize,
-    pub grey: Vec<u8>,
+    width: usize,
+    height: usize,
+    grey: Vec<u8>,
+    census: Vec<u64>,
     /// Intrinsics for continuous pixel coordinates (pixel (i, j) covers [i, i+1) x [j, j+1)).
     pub k: [[f64; 3]; 3],
     /// Camera frame -> world (any common frame).
@@ -28,6 +40,25 @@ pub struct StereoView {
 }
 
 impl StereoView {
+    /// The view of a `width` x `height` grey image (row-major).
+    pub fn new(width: usize, height: usize, grey: Vec<u8>, k: [[f64; 3]; 3], world_from_cam: Se3) -> StereoView {
+        assert_eq!(grey.len(), width * height, "a {width}x{height} view needs {} grey levels", width * height);
+        let census = census(&grey, width, height);
+        StereoView { width, height, grey, census, k, world_from_cam }
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    pub fn grey(&self) -> &[u8] {
+        &self.grey
+    }
+
     /// The view at 1/`factor` of the resolution: grey levels averaged over factor x factor blocks
     /// (partial blocks at the right and bottom edges dropped), intrinsics scaled to match.
     pub fn downscaled(
@@ -42,15 +73,18 @@ impl StereoView {
         let (w, h) = (width / f, height / f);
         let mut out = vec![0u8; w * h];
         let area = (f * f) as u32;
-        for y in 0..h {
-            for x in 0..w {
-                let mut sum = 0u32;
-                for yy in y * f..(y + 1) * f {
-                    for xx in x * f..(x + 1) * f {
-                        sum += grey[yy * width + xx] as u32;
-                    }
+        // Per output row: the block rows summed down each column (whole rows at a time, which
+        // vectorises), then f columns at a time across.
+        let mut columns = vec![0u32; w * f];
+        for (y, out_row) in out.chunks_exact_mut(w.max(1)).enumerate() {
+            columns.fill(0);
+            for yy in y * f..(y + 1) * f {
+                for (c, &g) in columns.iter_mut().zip(&grey[yy * width..][..w * f]) {
+                    *c += g as u32;
                 }
-                out[y * w + x] = ((sum + area / 2) / area) as u8;
+            }
+            for (o, block) in out_row.iter_mut().zip(columns.chunks_exact(f)) {
+                *o = ((block.iter().sum::<u32>() + area / 2) / area) as u8;
             }
         }
         let s = 1.0 / f as f64;
@@ -60,7 +94,7 @@ impl StereoView {
                 *v *= s;
             }
         }
-        StereoView { width: w, height: h, grey: out, k: ks, world_from_cam }
+        StereoView::new(w, h, out, ks, world_from_cam)
     }
 
     fn k_inv(&self) -> DMat3 {
@@ -148,25 +182,7 @@ const COST_MAX: u8 = (2 * CENSUS_BITS) as u8;
 
 /// 7x7 census transform (48 bits: neighbour darker than the centre), edges clamped.
 pub fn census(grey: &[u8], w: usize, h: usize) -> Vec<u64> {
-    let mut out = vec![0u64; w * h];
-    out.par_chunks_mut(w.max(1)).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            let c = grey[y * w + x];
-            let mut bits = 0u64;
-            for dy in -3i32..=3 {
-                let yy = (y as i32 + dy).clamp(0, h as i32 - 1) as usize;
-                for dx in -3i32..=3 {
-                    if dx == 0 && dy == 0 {
-                        continue;
-                    }
-                    let xx = (x as i32 + dx).clamp(0, w as i32 - 1) as usize;
-                    bits = (bits << 1) | (grey[yy * w + xx] < c) as u64;
-                }
-            }
-            *o = bits;
-        }
-    });
-    out
+    kernels::census(Isa::best(), grey, w, h)
 }
 
 /// How a reference pixel moves in one source as inverse depth changes: source pixel =
@@ -239,10 +255,39 @@ fn plane_inverse_depths(reference: &StereoView, warps: &[Warp], p: &SweepParams)
     (0..n).map(|i| rho_far + (rho_near - rho_far) * i as f64 / (n - 1) as f64).collect()
 }
 
+/// The large buffers of a sweep, kept from one sweep to the next: the cost volume and the
+/// forward SGM sums take tens of megabytes at MultiViewStereo's size, and fresh ones cost page
+/// faults and zeroing every time. A sweep overwrites every entry it reads.
+#[derive(Default)]
+pub struct SweepBuffers {
+    cost: Vec<u8>,
+    sums: Vec<u16>,
+}
+
+/// The first `len` entries of `v`, which grows (never shrinks) to hold them; the old buffer is
+/// freed before the new one is allocated, so the peak stays within the sweep's budget.
+fn first<T: Copy + Default>(v: &mut Vec<T>, len: usize) -> &mut [T] {
+    if v.len() < len {
+        *v = Vec::new();
+        *v = vec![T::default(); len];
+    }
+    &mut v[..len]
+}
+
 /// Depth of `reference` from `sources` by plane sweep, census and 8-path SGM, with uniqueness
 /// and sub-plane (parabola) refinement. No source: no depth. Refused, before the cost volume is
 /// allocated, when that volume would exceed `p.max_volume_bytes`.
 pub fn sweep_depth(
+    reference: &StereoView,
+    sources: &[&StereoView],
+    p: &SweepParams,
+) -> Result<StereoDepth, VolumeTooLarge> {
+    sweep_depth_with(&mut SweepBuffers::default(), reference, sources, p)
+}
+
+/// [`sweep_depth`] in `buffers` that earlier sweeps may have grown.
+pub fn sweep_depth_with(
+    buffers: &mut SweepBuffers,
     reference: &StereoView,
     sources: &[&StereoView],
     p: &SweepParams,
@@ -259,50 +304,33 @@ pub fn sweep_depth(
     if bytes > p.max_volume_bytes {
         return Err(VolumeTooLarge { width: w, height: h, planes, bytes, budget: p.max_volume_bytes });
     }
-    let ref_census = census(&reference.grey, w, h);
-    let src_census: Vec<Vec<u64>> = sources.iter().map(|s| census(&s.grey, s.width, s.height)).collect();
+    let ref_census = &reference.census;
 
-    // Cost volume, [pixel][plane]; COST_MAX where no source sees the sample.
-    let mut cost = vec![COST_MAX; w * h * planes];
+    // Cost volume, [pixel][plane]; COST_MAX where no source sees the sample. Every entry is
+    // written below.
+    let isa = Isa::best();
+    let cost = first(&mut buffers.cost, w * h * planes);
     let rhos32: Vec<f32> = rhos.iter().map(|&r| r as f32).collect();
     // f32 is ample for pixel coordinates and keeps the inner loop cheap.
     let rays = |s: usize, x: usize, y: usize| {
         ((warps[s].m * DVec3::new(x as f64 + 0.5, y as f64 + 0.5, 1.0)).as_vec3(), warps[s].b.as_vec3())
     };
+    let views: Vec<SourceCensus> =
+        sources.iter().map(|s| SourceCensus { census: &s.census, width: s.width, height: s.height }).collect();
     cost.par_chunks_mut(w * planes).enumerate().for_each(|(y, row)| {
-        // Per plane: summed Hamming distance and number of sources that saw the sample.
-        let mut sum = vec![0u16; planes];
-        let mut count = vec![0u8; planes];
-        for x in 0..w {
-            let c0 = ref_census[y * w + x];
-            sum.fill(0);
-            count.fill(0);
-            for (s, src) in sources.iter().enumerate() {
-                let (a, b) = rays(s, x, y);
-                let (sw, sh) = (src.width as f32, src.height as f32);
-                let census = &src_census[s];
-                for ((&rho, sm), cn) in rhos32.iter().zip(sum.iter_mut()).zip(count.iter_mut()) {
-                    if let Some((u, v)) = sample_at(a, b, rho, sw, sh) {
-                        *sm += (c0 ^ census[v * src.width + u]).count_ones() as u16;
-                        *cn += 1;
-                    }
-                }
-            }
-            let cost_px = &mut row[x * planes..(x + 1) * planes];
-            for d in 0..planes {
-                if count[d] > 0 {
-                    cost_px[d] = (2 * sum[d] / count[d] as u16) as u8;
-                }
-            }
+        let mut pixel_rays = Vec::with_capacity(sources.len());
+        for (x, cost_px) in row.chunks_exact_mut(planes).enumerate() {
+            pixel_rays.clear();
+            pixel_rays.extend((0..sources.len()).map(|s| rays(s, x, y)));
+            kernels::pixel_costs(isa, ref_census[y * w + x], &pixel_rays, &views, &rhos32, COST_MAX, cost_px);
         }
     });
-    let total = aggregate(&cost, w, h, planes, p.p1, p.p2);
-    drop(cost);
-
     let step = rhos[1] - rhos[0];
-    out.depth.par_iter_mut().zip(out.confidence.par_iter_mut()).enumerate().for_each(|(i, (depth, conf))| {
-        let s = &total[i * planes..(i + 1) * planes];
-        let (best, &sb) = s.iter().enumerate().min_by_key(|(_, &v)| v).expect("planes >= 8");
+    // Each pixel's summed costs are complete when the backward pass leaves it: the winner is
+    // chosen there, so the sums are never written back and read again.
+    let sums = first(&mut buffers.sums, w * h * planes);
+    aggregate(isa, cost, sums, w, h, planes, p.p1, p.p2, |i, s| {
+        let (best, sb) = kernels::argmin(isa, s);
         // At the ends of the range the minimum may lie beyond it: no depth.
         if best == 0 || best == planes - 1 {
             return;
@@ -330,8 +358,7 @@ pub fn sweep_depth(
         // sample the same pixels and cost the same.
         // (Less a hair, so that exactly one pixel per plane, as in a rectified pair, is one plane.)
         let apart = ((p.distinct_px / motion as f64 - 1e-3).ceil() as usize).clamp(1, planes / 4);
-        let second =
-            s.iter().enumerate().filter(|(d, _)| d.abs_diff(best) > apart).map(|(_, &v)| v).min().unwrap_or(u16::MAX);
+        let second = kernels::min_outside(isa, s, best.saturating_sub(apart), best + apart);
         if (sb as f64) >= (1.0 - p.uniqueness) * second as f64 {
             return;
         }
@@ -340,95 +367,33 @@ pub fn sweep_depth(
         let offset = if curvature > 0.0 { ((l - r) / (2.0 * curvature)).clamp(-0.5, 0.5) } else { 0.0 };
         let rho = rhos[best] + offset * step;
         if rho > 0.0 {
-            *depth = (1.0 / rho) as f32;
-            *conf = (1.0 - sb as f64 / second.max(1) as f64) as f32;
+            out.depth[i] = (1.0 / rho) as f32;
+            out.confidence[i] = (1.0 - sb as f64 / second.max(1) as f64) as f32;
         }
     });
     Ok(out)
 }
 
-/// Semi-global aggregation over 8 paths (Hirschmüller 2008): the summed path costs per pixel
-/// and plane. Two scanline passes (forward: paths from the left, top-left, top, top-right;
-/// backward: their mirrors), each keeping one row of path costs per direction.
-fn aggregate(cost: &[u8], w: usize, h: usize, n: usize, p1: u16, p2: u16) -> Vec<u16> {
-    let mut total = vec![0u16; w * h * n];
-    for backward in [false, true] {
-        // Directions by neighbour offset in iteration order: left, up-left, up, up-right.
-        let mut prev_rows = vec![vec![0u16; w * n]; 3];
-        let mut cur_rows = vec![vec![0u16; w * n]; 3];
-        let mut prev_mins = vec![vec![0u16; w]; 3];
-        let mut cur_mins = vec![vec![0u16; w]; 3];
-        let mut left = vec![0u16; n];
-        let mut here = vec![0u16; n];
-        for yi in 0..h {
-            let y = if backward { h - 1 - yi } else { yi };
-            let mut left_min = 0u16;
-            for xi in 0..w {
-                let x = if backward { w - 1 - xi } else { xi };
-                let pixel = y * w + x;
-                let c = &cost[pixel * n..(pixel + 1) * n];
-                let t = &mut total[pixel * n..(pixel + 1) * n];
-                // From the left (in iteration order).
-                let m = if xi == 0 { start(c, &mut here) } else { step(c, &left, left_min, p1, p2, &mut here) };
-                add(t, &here);
-                std::mem::swap(&mut left, &mut here);
-                left_min = m;
-                // From the previous row: up-left (dx = -1), up (0), up-right (+1).
-                for (dir, dx) in [-1i64, 0, 1].into_iter().enumerate() {
-                    let nx = xi as i64 + dx;
-                    let out = &mut cur_rows[dir][xi * n..(xi + 1) * n];
-                    let m = if yi == 0 || nx < 0 || nx >= w as i64 {
-                        start(c, out)
-                    } else {
-                        let nx = nx as usize;
-                        step(c, &prev_rows[dir][nx * n..(nx + 1) * n], prev_mins[dir][nx], p1, p2, out)
-                    };
-                    cur_mins[dir][xi] = m;
-                    add(t, out);
-                }
-            }
-            std::mem::swap(&mut prev_rows, &mut cur_rows);
-            std::mem::swap(&mut prev_mins, &mut cur_mins);
-        }
-    }
-    total
-}
-
-#[inline]
-fn start(c: &[u8], out: &mut [u16]) -> u16 {
-    let mut m = u16::MAX;
-    for (o, &v) in out.iter_mut().zip(c) {
-        *o = v as u16;
-        m = m.min(*o);
-    }
-    m
-}
-
-/// One SGM path step: L(p, d) = C(p, d) + min(L(q, d), L(q, d +- 1) + P1, min L(q) + P2) - min L(q).
-#[inline]
-fn step(c: &[u8], prev: &[u16], prev_min: u16, p1: u16, p2: u16, out: &mut [u16]) -> u16 {
-    let n = c.len();
-    let jump = prev_min + p2;
-    let mut m = u16::MAX;
-    let edge = |v: u16, nb: u16, c: u8| (v.min(nb + p1).min(jump) - prev_min) + c as u16;
-    out[0] = edge(prev[0], prev[1], c[0]);
-    out[n - 1] = edge(prev[n - 1], prev[n - 2], c[n - 1]);
-    let (lo, mid, hi) = (&prev[..n - 2], &prev[1..n - 1], &prev[2..]);
-    for (((o, &cv), (&a, &b)), &d) in out[1..n - 1].iter_mut().zip(&c[1..n - 1]).zip(lo.iter().zip(mid)).zip(hi) {
-        let v = b.min(a.min(d) + p1).min(jump);
-        *o = v - prev_min + cv as u16;
-    }
-    for &o in out.iter() {
-        m = m.min(o);
-    }
-    m
-}
-
-#[inline]
-fn add(t: &mut [u16], v: &[u16]) {
-    for (a, &b) in t.iter_mut().zip(v) {
-        *a += b;
-    }
+/// Semi-global aggregation over 8 paths (Hirschmüller 2008) of a [pixel][plane] cost volume:
+/// `done(pixel, sums)` receives each pixel's summed path costs, once; `scratch` (the volume's
+/// size, any content) holds the first pass's sums. Two scanline passes
+/// (forward: paths from the left, top-left, top, top-right; backward: their mirrors), each
+/// keeping one row of path costs per direction; each path follows
+/// L(p, d) = C(p, d) + min(L(q, d), L(q, d +- 1) + P1, min L(q) + P2) - min L(q), in 16 bits
+/// (8 paths of at most 96 + P2 each cannot overflow them, see `mvs::MAX_PENALTY`).
+#[allow(clippy::too_many_arguments)]
+fn aggregate(
+    isa: Isa,
+    cost: &[u8],
+    scratch: &mut [u16],
+    w: usize,
+    h: usize,
+    n: usize,
+    p1: u16,
+    p2: u16,
+    done: impl FnMut(usize, &[u16]),
+) {
+    kernels::aggregate(isa, cost, scratch, w, h, n, p1, p2, done)
 }
 
 /// Keeps the depths of `reference` that at least one of the `checks` (another view and its own
@@ -551,10 +516,7 @@ pub(crate) mod tests {
                 depth[y * w + x] = z as f32;
             }
         }
-        (
-            StereoView { width: w, height: h, grey, k, world_from_cam: Se3::from_yaw(0.0, DVec3::new(cx, 0.0, 0.0)) },
-            depth,
-        )
+        (StereoView::new(w, h, grey, k, Se3::from_yaw(0.0, DVec3::new(cx, 0.0, 0.0))), depth)
     }
 
     /// A textured wall at z = 30 seen by a camera at (0, 0, `cz`) looking along +z: driving
@@ -571,7 +533,7 @@ pub(crate) mod tests {
             }
         }
         let pose = Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, cz]);
-        StereoView { width: w, height: h, grey, k, world_from_cam: pose }
+        StereoView::new(w, h, grey, k, pose)
     }
 
     #[test]

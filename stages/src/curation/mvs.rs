@@ -18,7 +18,9 @@
 
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
-use crate::stereo::{keep_consistent, sweep_depth, StereoDepth, StereoView, SweepParams, VolumeTooLarge};
+use crate::stereo::{
+    keep_consistent, sweep_depth_with, StereoDepth, StereoView, SweepBuffers, SweepParams, VolumeTooLarge,
+};
 use anyhow::{anyhow, ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_types::artifact::{Calibration, DepthMap, Image, Pose};
@@ -186,13 +188,14 @@ pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap,
         frames.iter().filter(|f| f.position != 0).map(|f| view(f, params.downscale)).collect::<Result<Vec<_>>>()?;
     let sweep = params.sweep();
     let refs: Vec<&StereoView> = sources.iter().collect();
-    let mut depth = sweep_depth(&reference, &refs, &sweep).map_err(|e| params.too_large(e))?;
+    let mut buffers = SweepBuffers::default();
+    let mut depth = sweep_depth_with(&mut buffers, &reference, &refs, &sweep).map_err(|e| params.too_large(e))?;
     // Each neighbour, matched back against the target alone, checks the depths it sees; one
     // confirmation keeps a depth. (Checking only the longest baseline lost what that neighbour
     // does not see: the side of a side camera's image that the other frame has left behind.)
     let backs: Vec<StereoDepth> = sources
         .iter()
-        .map(|s| sweep_depth(s, &[&reference], &sweep).map_err(|e| params.too_large(e)))
+        .map(|s| sweep_depth_with(&mut buffers, s, &[&reference], &sweep).map_err(|e| params.too_large(e)))
         .collect::<Result<_>>()?;
     let checks: Vec<(&StereoView, &StereoDepth)> = sources.iter().zip(&backs).collect();
     keep_consistent(&reference, &mut depth, &checks, params.consistency_px, params.consistency_depth);
