@@ -180,7 +180,11 @@ mod tests {
             ("DepthSheet", "(scale: 0)", &["scale"]),
             ("EncodeDepth", "(preview_max_depth: 0)", &["preview_max_depth"]),
             ("EvalDepth", "(min_depth: 0)", &["min_depth"]),
-            ("EvalDepth", "(min_depth: 90)", &["min_depth"]),
+            // Below the scored range's end and the structure range's end: two relations broken.
+            ("EvalDepth", "(min_depth: 90)", &["min_depth", "min_depth"]),
+            // The edge search visits pi * max^2 offsets per edge pixel.
+            ("EvalDepth", "(structure_depth: 120, edge_max_distance: 1000)", &["structure_depth", "edge_max_distance"]),
+            ("EvalDepth", "(edge_low_step: 1, edge_high_step: 1.05)", &["edge_low_step"]),
             ("DepthPrompt", "(max_depth: NaN)", &["max_depth"]),
             ("ProjectLidar", "(border_px: -1)", &["border_px"]),
             (
