@@ -78,8 +78,9 @@ fn curation_on_synthetic_data_is_scored_against_ground_truth_and_reruns_only_wha
     {
         assert!(out.join(f).is_file(), "{f}");
     }
+    // Four panels per camera: the synthetic dataset has ground truth, so the error column too.
     let sheet = image::open(out.join("sheets/001.png")).unwrap();
-    assert_eq!((sheet.width(), sheet.height()), (3 * 320, 6 * 180));
+    assert_eq!((sheet.width(), sheet.height()), (4 * 320, 6 * 180));
 
     // A completion parameter reruns completion and what reads it, nothing upstream.
     let o = curation(&data, tmp.path(), None, &["--set", "complete.sky_depth=90"]);

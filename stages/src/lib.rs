@@ -178,6 +178,7 @@ mod tests {
             ("StaticMvsPoints", "(min_confidence: -0.1, voxel: NaN)", &["min_confidence", "voxel"]),
             ("DepthSheet", "(scale: 1000)", &["scale"]),
             ("DepthSheet", "(scale: 0)", &["scale"]),
+            ("DepthSheet", "(error_cap: 0, sky_threshold: NaN)", &["sky_threshold", "error_cap"]),
             ("EncodeDepth", "(preview_max_depth: 0)", &["preview_max_depth"]),
             ("EvalDepth", "(min_depth: 0)", &["min_depth"]),
             // Below the scored range's end and the structure range's end: two relations broken.

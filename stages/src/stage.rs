@@ -315,3 +315,19 @@ pub fn ensure_valid<P: Validate>(params: &P) -> Result<()> {
     let list: Vec<String> = problems.iter().map(|p| format!("`{}` {}", p.field, p.message)).collect();
     Err(anyhow!("{}", list.join("; ")))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dist4d_types::artifact::DepthMap;
+
+    #[test]
+    fn an_unwired_optional_many_input_is_an_empty_list_and_an_unwired_many_an_error() {
+        let inputs = InputSet { wired: &[], lists: &[] };
+        assert!(<OptionalMany<DepthMap> as Port>::decode("gt", &inputs).unwrap().is_empty());
+        let err = <Many<DepthMap> as Port>::decode("gt", &inputs).unwrap_err();
+        assert!(err.to_string().contains("`gt` is not wired"), "{err}");
+        let spec = &<OptionalMany<DepthMap> as Port>::specs("gt", "ground truth")[0];
+        assert!(spec.many && spec.optional && spec.ty == DepthMap::TYPE);
+    }
+}
