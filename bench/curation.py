@@ -36,16 +36,28 @@ def run(args, **kw):
     return out, wall, cpu
 
 
+# Column headers of `dist4d eval`'s tables -> the keys `mean_row` gives them (others as printed).
+HEADER_KEYS = {
+    "d<1.25": "d1", "d<1.25^2": "d2", "d<1.25^3": "d3", "rel>10%": "bad10", "rel>25%": "bad25",
+    "sky IoU": "sky_iou", "sky as structure": "sky_as_structure", "structure as sky": "structure_as_sky",
+    "boundary acc (px)": "boundary_acc", "boundary comp (px)": "boundary_comp",
+}
+
+
 def mean_row(report, title):
-    """The `mean` row of table `title` as a dict of floats."""
+    """The `mean` row of table `title` (e.g. "gt (raw)", "gt (sky, boundaries)") as a dict keyed by
+    its header (see HEADER_KEYS): floats, None where the table shows `-` (no value)."""
     at = report.find(f"\n{title}\n")
     if at < 0:
         return None
-    for line in report[at:].splitlines():
+    lines = report[at + len(title) + 2:].splitlines()
+    cells = lambda line: [c.strip() for c in line.strip().strip("|").split("|")]
+    keys = [HEADER_KEYS.get(h, h) for h in cells(lines[0])]
+    for line in lines[2:]:
+        if not line.startswith("|"):
+            break
         if line.startswith("| mean |"):
-            cells = [c.strip() for c in line.strip("|").split("|")]
-            keys = ["images", "abs_rel", "sq_rel", "rmse", "rmse_log", "d1", "d2", "d3"]
-            return dict(zip(keys, map(float, cells[1:])))
+            return {k: None if v == "-" else float(v) for k, v in zip(keys[1:], cells(line)[1:])}
     return None
 
 
@@ -105,6 +117,20 @@ def fmt(m):
     return f"{m['abs_rel']:.4f} | {m['rmse']:.2f} m | {m['d1']:.3f}"
 
 
+def num(v, spec, unit=""):
+    return "-" if v is None else f"{v:{spec}}{unit}"
+
+
+def fmt_new(raw, dense):
+    """rel>10% / >25%, sky IoU / ground-truth sky given a structure depth, boundary accuracy /
+    completeness (the figures `dist4d eval` added for issue 14)."""
+    pct = lambda v: num(None if v is None else 100 * v, ".2f", "%")
+    dense = dense or {}
+    return (f"{pct(raw.get('bad10'))} / {pct(raw.get('bad25'))} | "
+            f"{num(dense.get('sky_iou'), '.3f')} / {pct(dense.get('sky_as_structure'))} | "
+            f"{num(dense.get('boundary_acc'), '.2f')} / {num(dense.get('boundary_comp'), '.2f')} px")
+
+
 def section_accuracy(data, tmp, base):
     cache = tmp / "cache-accuracy"
     print("## Curation vs synthetic ground truth, and ablations\n")
@@ -112,9 +138,14 @@ def section_accuracy(data, tmp, base):
           "`dist4d eval` of a variant of pipelines/curation.ron sharing one cache, so only the "
           "stages a variant changes rerun. Scores: mean over cameras of the per-camera means, "
           "valid range 0.1-80 m, no median scaling. \"Above the LiDAR's field of view\": pixels whose "
-          "ground-truth point lies above the top beam seen from the LiDAR (`AboveLidarFov`).\n")
-    print("| variant | all pixels: Abs Rel / RMSE / d<1.25 | above the LiDAR's field of view: Abs Rel / RMSE / d<1.25 | wall |")
-    print("| --- | --- | --- | ---: |")
+          "ground-truth point lies above the top beam seen from the LiDAR (`AboveLidarFov`). Bad pixels: "
+          "share of the scored pixels off by more than 10% / 25%. Sky: IoU of predicted sky (>= 99 m) and "
+          "ground-truth sky, and the share of ground-truth sky given a structure depth (< 80 m). Boundaries: "
+          "iBims-1 depth-boundary accuracy / completeness (Canny edges of log depth, sky at 100 m, px capped "
+          "at 10; docs/stages.md).\n")
+    print("| variant | all pixels: Abs Rel / RMSE / d<1.25 | bad pixels >10% / >25% | sky IoU / sky as structure "
+          "| boundary acc / comp | above the LiDAR's field of view: Abs Rel / RMSE / d<1.25 | wall |")
+    print("| --- | --- | --- | --- | --- | --- | ---: |")
     rows = [
         ("LiDAR only (aggregate -> prompt -> completion, no sky)",
          dict(prompt_points="aggregate.points", sky=False), []),
@@ -131,8 +162,9 @@ def section_accuracy(data, tmp, base):
         report, wall, _ = run(["eval", ron, "--set", f"dataset.root={data}", "--cache", cache,
                                "--out", tmp / f"out-ablation{i}", "--progress", "off"] + extra)
         a, b = mean_row(report, "gt (raw)"), mean_row(report, "gt_above_lidar (raw)")
+        dense = mean_row(report, "gt (sky, boundaries)")
         results[label] = (a, b)
-        print(f"| {label} | {fmt(a)} | {fmt(b)} | {wall:.1f} s |")
+        print(f"| {label} | {fmt(a)} | {fmt_new(a, dense)} | {fmt(b)} | {wall:.1f} s |")
     lidar_only, mvs = results[rows[0][0]][1], results[rows[1][0]][1]
     print(f"\nMVS changes the error above the LiDAR's field of view by {100 * (mvs['abs_rel'] / lidar_only['abs_rel'] - 1):+.1f}% "
           f"(Abs Rel) and {100 * (mvs['rmse'] / lidar_only['rmse'] - 1):+.1f}% (RMSE) against LiDAR only.")
@@ -198,7 +230,8 @@ def section_completion(data, tmp, base):
         ok = d > 0
         dd = np.where(ok, d, 1e-3)
         ratio = np.maximum(dd / g, g / dd)
-        return np.mean(np.abs(dd - g) / g), np.sqrt(np.mean((dd - g) ** 2)), np.mean(ratio < 1.25)
+        rel = np.abs(dd - g) / g
+        return np.mean(rel), np.sqrt(np.mean((dd - g) ** 2)), np.mean(ratio < 1.25), np.mean(rel > 0.1), np.mean(rel > 0.25)
 
     scores = {"dist4d CompleteDepth": [], "IP-Basic fill_in_fast (bilateral)": [],
               "IP-Basic fill_in_fast (extrapolate, bilateral)": []}
@@ -227,12 +260,12 @@ def section_completion(data, tmp, base):
           "hidden point removal). IP-Basic times are best of 3 per image (one thread, no I/O); CompleteDepth's is "
           f"its mean task time over all {n} images on one worker, decoding its inputs (the JPEG among them) "
           "and encoding its output included.\n")
-    print("| method | Abs Rel | RMSE | d<1.25 | time per image |")
-    print("| --- | ---: | ---: | ---: | ---: |")
+    print("| method | Abs Rel | RMSE | d<1.25 | >10% | >25% | time per image |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
     for label, rows in scores.items():
         a = np.array(rows).mean(axis=0)
         ms = ours_ms if label.startswith("dist4d") else 1000 * np.mean(times[label])
-        print(f"| {label} | {a[0]:.4f} | {a[1]:.2f} m | {a[2]:.3f} | {ms:.0f} ms |")
+        print(f"| {label} | {a[0]:.4f} | {a[1]:.2f} m | {a[2]:.3f} | {100 * a[3]:.2f}% | {100 * a[4]:.2f}% | {ms:.0f} ms |")
     print()
 
 
@@ -274,8 +307,9 @@ def section_holdout(tmp, base):
     print("A seeded 20% of the target frame's LiDAR points is left out of curation "
           "(`--set aggregate.holdout=0.2`) and the dense depth is scored on exactly those points "
           "(valid range 0.1-80 m).\n")
-    print("| data | images | Abs Rel | Sq Rel | RMSE | RMSE log | d<1.25 | d<1.25^2 | d<1.25^3 | Abs Rel, median-scaled |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    print("| data | images | Abs Rel | Sq Rel | RMSE | RMSE log | d<1.25 | d<1.25^2 | d<1.25^3 | >10% | >25% "
+          "| Abs Rel, median-scaled |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     dgp_text = re.sub(r"    dataset: NuScenes\((.|\n)*?\n    \),\n", '    dataset: Dgp(root: ""),\n', base, count=1)
     (tmp / "holdout_dgp.ron").write_text(dgp_text)
     (tmp / "holdout_nus.ron").write_text(base)
@@ -292,7 +326,8 @@ def section_holdout(tmp, base):
                             "--progress", "off"])
         m, s = mean_row(report, "holdout (raw)"), mean_row(report, "holdout (median-scaled)")
         print(f"| {label} | {m['images']:.0f} | {m['abs_rel']:.4f} | {m['sq_rel']:.4f} | {m['rmse']:.3f} m | "
-              f"{m['rmse_log']:.4f} | {m['d1']:.4f} | {m['d2']:.4f} | {m['d3']:.4f} | {s['abs_rel']:.4f} |")
+              f"{m['rmse_log']:.4f} | {m['d1']:.4f} | {m['d2']:.4f} | {m['d3']:.4f} | "
+              f"{num(m.get('bad10'), '.4f')} | {num(m.get('bad25'), '.4f')} | {s['abs_rel']:.4f} |")
     print()
 
 

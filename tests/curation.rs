@@ -63,6 +63,14 @@ fn curation_on_synthetic_data_is_scored_against_ground_truth_and_reruns_only_wha
     let a1 = mean_of(&report, "gt (raw)", 4);
     assert!(abs_rel < 0.12 && a1 > 0.8, "abs_rel {abs_rel}, a1 {a1}\n{report}");
     assert!(report.contains("gt_above_lidar (raw)") && report.contains("lidar_multi (median-scaled)"));
+    // Sky and boundary metrics against the dense ground truth only; an IoU and boundary errors
+    // that a broken metric (0 or the cap everywhere) would not give.
+    assert!(report.contains("\ngt (sky, boundaries)\n") && !report.contains("lidar (sky"), "{report}");
+    let iou = mean_of(&report, "gt (sky, boundaries)", 0);
+    let (accuracy, completeness) =
+        (mean_of(&report, "gt (sky, boundaries)", 3), mean_of(&report, "gt (sky, boundaries)", 4));
+    assert!(iou > 0.0 && iou <= 1.0, "{report}");
+    assert!(accuracy > 0.0 && accuracy < 10.0 && completeness > 0.0 && completeness < 10.0, "{report}");
     assert!(!report.contains("holdout ("), "no hold-out unless asked");
     let out = tmp.path().join("out/synth-0000");
     for f in
@@ -70,8 +78,9 @@ fn curation_on_synthetic_data_is_scored_against_ground_truth_and_reruns_only_wha
     {
         assert!(out.join(f).is_file(), "{f}");
     }
+    // Four panels per camera: the synthetic dataset has ground truth, so the error column too.
     let sheet = image::open(out.join("sheets/001.png")).unwrap();
-    assert_eq!((sheet.width(), sheet.height()), (3 * 320, 6 * 180));
+    assert_eq!((sheet.width(), sheet.height()), (4 * 320, 6 * 180));
 
     // A completion parameter reruns completion and what reads it, nothing upstream.
     let o = curation(&data, tmp.path(), None, &["--set", "complete.sky_depth=90"]);

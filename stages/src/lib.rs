@@ -178,9 +178,14 @@ mod tests {
             ("StaticMvsPoints", "(min_confidence: -0.1, voxel: NaN)", &["min_confidence", "voxel"]),
             ("DepthSheet", "(scale: 1000)", &["scale"]),
             ("DepthSheet", "(scale: 0)", &["scale"]),
+            ("DepthSheet", "(error_cap: 0, sky_threshold: NaN)", &["sky_threshold", "error_cap"]),
             ("EncodeDepth", "(preview_max_depth: 0)", &["preview_max_depth"]),
             ("EvalDepth", "(min_depth: 0)", &["min_depth"]),
-            ("EvalDepth", "(min_depth: 90)", &["min_depth"]),
+            // Below the scored range's end and the structure range's end: two relations broken.
+            ("EvalDepth", "(min_depth: 90)", &["min_depth", "min_depth"]),
+            // The edge search visits pi * max^2 offsets per edge pixel.
+            ("EvalDepth", "(structure_depth: 120, edge_max_distance: 1000)", &["structure_depth", "edge_max_distance"]),
+            ("EvalDepth", "(edge_low_step: 1, edge_high_step: 1.05)", &["edge_low_step"]),
             ("DepthPrompt", "(max_depth: NaN)", &["max_depth"]),
             ("ProjectLidar", "(border_px: -1)", &["border_px"]),
             (

@@ -39,7 +39,9 @@ fn stage(out: &mut String, s: &StageSchema) {
 fn ports(out: &mut String, what: &str, list: &[PortSpec]) {
     let _ = writeln!(out, "| {what} | type | takes | what |\n| --- | --- | --- | --- |");
     for p in list {
-        let takes = if p.many {
+        let takes = if p.many && p.optional {
+            "several, optional"
+        } else if p.many {
             "several"
         } else if p.optional {
             "one, optional"

@@ -92,6 +92,9 @@ pub struct Optional<A>(PhantomData<A>);
 /// Several artifacts (a window, a gather), each with its position (the offset along the window's
 /// dimension, the index of a gathered item): the field is a `Vec<(i64, A)>`.
 pub struct Many<A>(PhantomData<A>);
+/// Several artifacts like [`Many`], or none when the input is not wired (an empty `Vec`): what a
+/// stage gathers only when the pipeline has it (e.g. ground truth for a sheet).
+pub struct OptionalMany<A>(PhantomData<A>);
 /// The ports of another [`crate::ports!`] struct, under their own names (inputs several stages
 /// share, such as the four a camera view is made from): the field is that struct.
 pub struct Group<P>(PhantomData<P>);
@@ -147,28 +150,44 @@ impl<A: Artifact> Port for Optional<A> {
     }
 }
 
+fn decode_many<A: Artifact>(port: &str, list: &[dist4d_runtime::Artifact]) -> Result<Vec<(i64, A)>> {
+    list.iter()
+        .map(|a| {
+            let x = A::decode(&a.bytes)
+                .with_context(|| format!("decoding input `{port}` (position {}) as {}", a.pos, A::TYPE))?;
+            Ok((a.pos, x))
+        })
+        .collect()
+}
+
 impl<A: Artifact> Port for Many<A> {
     type Value = Vec<(i64, A)>;
     fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
         port_spec::<A>(name, doc, true, false)
     }
     fn decode(port: &str, inputs: &InputSet) -> Result<Vec<(i64, A)>> {
-        let list = inputs.get(port).ok_or_else(|| anyhow!("input `{port}` is not wired"))?;
-        list.iter()
-            .map(|a| {
-                let x = A::decode(&a.bytes)
-                    .with_context(|| format!("decoding input `{port}` (position {}) as {}", a.pos, A::TYPE))?;
-                Ok((a.pos, x))
-            })
-            .collect()
+        decode_many(port, inputs.get(port).ok_or_else(|| anyhow!("input `{port}` is not wired"))?)
     }
     fn encode(port: &str, _: Vec<(i64, A)>) -> Result<Vec<Encoded>> {
         bail!("output `{port}`: outputs are `One`, not `Many`")
     }
 }
 
-/// Declares a struct of typed ports: each field `name: One<T>`, `Optional<T>` or `Many<T>` with
-/// a doc comment, in port order. Implements [`Ports`] for it.
+impl<A: Artifact> Port for OptionalMany<A> {
+    type Value = Vec<(i64, A)>;
+    fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
+        port_spec::<A>(name, doc, true, true)
+    }
+    fn decode(port: &str, inputs: &InputSet) -> Result<Vec<(i64, A)>> {
+        decode_many(port, inputs.get(port).unwrap_or_default())
+    }
+    fn encode(port: &str, _: Vec<(i64, A)>) -> Result<Vec<Encoded>> {
+        bail!("output `{port}`: outputs are `One`, not `OptionalMany`")
+    }
+}
+
+/// Declares a struct of typed ports: each field `name: One<T>`, `Optional<T>`, `Many<T>` or
+/// `OptionalMany<T>` with a doc comment, in port order. Implements [`Ports`] for it.
 #[macro_export]
 macro_rules! ports {
     (
@@ -295,4 +314,20 @@ pub fn ensure_valid<P: Validate>(params: &P) -> Result<()> {
     }
     let list: Vec<String> = problems.iter().map(|p| format!("`{}` {}", p.field, p.message)).collect();
     Err(anyhow!("{}", list.join("; ")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dist4d_types::artifact::DepthMap;
+
+    #[test]
+    fn an_unwired_optional_many_input_is_an_empty_list_and_an_unwired_many_an_error() {
+        let inputs = InputSet { wired: &[], lists: &[] };
+        assert!(<OptionalMany<DepthMap> as Port>::decode("gt", &inputs).unwrap().is_empty());
+        let err = <Many<DepthMap> as Port>::decode("gt", &inputs).unwrap_err();
+        assert!(err.to_string().contains("`gt` is not wired"), "{err}");
+        let spec = &<OptionalMany<DepthMap> as Port>::specs("gt", "ground truth")[0];
+        assert!(spec.many && spec.optional && spec.ty == DepthMap::TYPE);
+    }
 }

@@ -1,7 +1,10 @@
 //! Scoring: depth against references (ground truth, held-out LiDAR) and the region above the
-//! LiDAR's field of view.
+//! LiDAR's field of view; the sky and depth-boundary metrics and the edge detector they use.
 
+pub mod boundary;
+pub mod canny;
 pub mod report;
+pub mod sky;
 
 crate::stage_modules! {
     above_fov::AboveLidarFov,

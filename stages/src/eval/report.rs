@@ -1,35 +1,45 @@
 //! `dist4d eval`'s tables: the scores every `EvalDepth` stage exported, read back from the run's
 //! output folder and averaged per camera (the last dimension of each item) and over cameras.
+//!
+//! Per reference, up to three Markdown tables, each titled on a line of its own (scripts find a
+//! table by its title and read its `mean` row by the header's column names):
+//! `<reference> (raw)` and `<reference> (median-scaled)` (the Eigen et al. metrics and the
+//! bad-pixel rates), and for a dense reference `<reference> (sky, boundaries)`. A metric an image
+//! does not have (a share of no pixel, boundaries of a reference without edges) is left out of
+//! its camera's mean; a camera without any value shows `-` and is left out of the mean row.
 
-use super::depth::{tabulate, ImageScores};
+use super::depth::{ImageScores, Params, Scores};
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::Pipeline;
+use std::collections::BTreeMap;
 use std::path::Path;
 
 /// The stage kind whose exported scores are tabulated.
 const KIND: &str = "EvalDepth";
 
-/// The `EvalDepth` stages of `pipeline`; an error unless there is one and each exports its scores
-/// (the tables are read from the exported files), so that a run that could not be reported on
-/// is refused before it starts.
-pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
-    let stages: Vec<(usize, &str)> = pipeline
+/// The `EvalDepth` stages of `pipeline` with their params; an error unless there is one and
+/// each exports its scores (the tables are read from the exported files), so that a run that
+/// could not be reported on is refused before it starts.
+pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<(&str, Params)>> {
+    let stages: Vec<(usize, &str, Params)> = pipeline
         .nodes
         .iter()
         .enumerate()
-        .filter(|(_, n)| n.stage().is_some_and(|s| s.kind == KIND))
-        .map(|(id, n)| (id, n.name.as_str()))
+        .filter_map(|(id, n)| {
+            let s = n.stage().filter(|s| s.kind == KIND)?;
+            Some((id, n.name.as_str(), s.params.get::<Params>().cloned().unwrap_or_default()))
+        })
         .collect();
     ensure!(!stages.is_empty(), "{}: the pipeline has no {KIND} stage to report", pipeline.path.display());
-    for &(id, name) in &stages {
+    for (id, name, _) in &stages {
         ensure!(
-            pipeline.exports.iter().any(|e| e.node == id),
+            pipeline.exports.iter().any(|e| e.node == *id),
             "{}: stage `{name}` ({KIND}) is not exported, and `dist4d eval` reads the scores from the \
              exported files: add `\"{name}.json\": \"{{scene}}/{{camera}}/{{frame}}_metrics.json\"` to `export`",
             pipeline.path.display()
         );
     }
-    Ok(stages.into_iter().map(|(_, name)| name).collect())
+    Ok(stages.into_iter().map(|(_, name, params)| (name, params)).collect())
 }
 
 /// The score tables of every `EvalDepth` stage of `pipeline`, from the files its last run
@@ -37,7 +47,7 @@ pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
 pub fn tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
     let index = dist4d_runtime::export::read_index(out_dir)?;
     let mut text = String::new();
-    for stage in scored_stages(pipeline)? {
+    for (stage, p) in scored_stages(pipeline)? {
         let mut images = Vec::new();
         for entry in index.iter().filter(|e| e.stage == stage) {
             let path = out_dir.join(&entry.path);
@@ -52,8 +62,186 @@ pub fn tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
             "stage `{stage}` exported no scores to {}: export its `json` port",
             out_dir.display()
         );
-        text.push_str(&format!("\n# {stage}: {} images, depth range 0.1-80 m\n", images.len()));
+        text.push_str(&format!(
+            "\n# {stage}: {} images, depth range {}-{} m; rel>k: relative error above k; sky: depth >= {} m, \
+             structure: < {} m; boundaries: Canny edges of log depth (steps {} / {}), distances in px capped at {}\n",
+            images.len(),
+            p.min_depth,
+            p.max_depth,
+            p.sky_threshold,
+            p.structure_depth,
+            p.edge_high_step,
+            p.edge_low_step,
+            p.edge_max_distance
+        ));
         text.push_str(&tabulate(&images));
     }
     Ok(text)
+}
+
+/// A column of a table: its header, how many decimals, and its value in one image's scores.
+struct Column {
+    header: &'static str,
+    decimals: usize,
+    value: fn(&Scores) -> Option<f64>,
+}
+
+macro_rules! columns {
+    ($( $header:literal, $decimals:literal, |$s:ident| $value:expr );* $(;)?) => {
+        &[$( Column { header: $header, decimals: $decimals, value: |$s: &Scores| $value } ),*]
+    };
+}
+
+const RAW: &[Column] = columns![
+    "abs_rel", 4, |s| Some(s.raw.abs_rel);
+    "sq_rel", 4, |s| Some(s.raw.sq_rel);
+    "rmse", 3, |s| Some(s.raw.rmse);
+    "rmse_log", 4, |s| Some(s.raw.rmse_log);
+    "d<1.25", 4, |s| Some(s.raw.a1);
+    "d<1.25^2", 4, |s| Some(s.raw.a2);
+    "d<1.25^3", 4, |s| Some(s.raw.a3);
+    "rel>10%", 4, |s| s.raw.bad_10;
+    "rel>25%", 4, |s| s.raw.bad_25;
+];
+
+const SCALED: &[Column] = columns![
+    "abs_rel", 4, |s| Some(s.median_scaled.abs_rel);
+    "sq_rel", 4, |s| Some(s.median_scaled.sq_rel);
+    "rmse", 3, |s| Some(s.median_scaled.rmse);
+    "rmse_log", 4, |s| Some(s.median_scaled.rmse_log);
+    "d<1.25", 4, |s| Some(s.median_scaled.a1);
+    "d<1.25^2", 4, |s| Some(s.median_scaled.a2);
+    "d<1.25^3", 4, |s| Some(s.median_scaled.a3);
+    "rel>10%", 4, |s| s.median_scaled.bad_10;
+    "rel>25%", 4, |s| s.median_scaled.bad_25;
+];
+
+const DENSE: &[Column] = columns![
+    "sky IoU", 4, |s| s.sky.and_then(|k| k.iou);
+    "sky as structure", 4, |s| s.sky.and_then(|k| k.sky_as_structure);
+    "structure as sky", 4, |s| s.sky.and_then(|k| k.structure_as_sky);
+    "boundary acc (px)", 2, |s| s.boundary.map(|b| b.accuracy);
+    "boundary comp (px)", 2, |s| s.boundary.map(|b| b.completeness);
+];
+
+/// Per-image scores averaged per camera, then over cameras (SurroundDepth): for each reference,
+/// tables of rows `(camera, images, mean metrics)` and a final `mean` row.
+pub fn tabulate(images: &[(String, ImageScores)]) -> String {
+    let mut camera_order: Vec<&str> = Vec::new();
+    // reference -> camera -> that camera's images' scores
+    let mut by_reference: BTreeMap<&str, BTreeMap<&str, Vec<&Scores>>> = BTreeMap::new();
+    for (camera, s) in images {
+        if !camera_order.contains(&camera.as_str()) {
+            camera_order.push(camera);
+        }
+        for (reference, scores) in &s.against {
+            by_reference.entry(reference).or_default().entry(camera).or_default().push(scores);
+        }
+    }
+    let mut out = String::new();
+    for (reference, cams) in &by_reference {
+        let cams: Vec<(&str, &[&Scores])> =
+            camera_order.iter().filter_map(|c| cams.get(c).map(|s| (*c, s.as_slice()))).collect();
+        let dense = cams.iter().any(|(_, s)| s.iter().any(|s| s.sky.is_some() || s.boundary.is_some()));
+        for (mode, columns, shown) in
+            [("raw", RAW, true), ("median-scaled", SCALED, true), ("sky, boundaries", DENSE, dense)]
+        {
+            if !shown {
+                continue;
+            }
+            out.push_str(&format!("\n{reference} ({mode})\n"));
+            out.push_str(&table(&cams, columns));
+        }
+    }
+    out
+}
+
+/// One table: a row per camera (its images' mean of each column), then the mean over cameras.
+fn table(cams: &[(&str, &[&Scores])], columns: &[Column]) -> String {
+    let mut out = String::from("| camera | images |");
+    let mut rule = String::from("| --- | ---: |");
+    for c in columns {
+        out.push_str(&format!(" {} |", c.header));
+        rule.push_str(" ---: |");
+    }
+    out.push('\n');
+    out.push_str(&rule);
+    out.push('\n');
+    let mean = |values: &mut dyn Iterator<Item = f64>| {
+        let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+        (n > 0).then(|| sum / n as f64)
+    };
+    let mut per_camera: Vec<Vec<Option<f64>>> = Vec::new();
+    for (camera, scores) in cams {
+        let row: Vec<Option<f64>> =
+            columns.iter().map(|c| mean(&mut scores.iter().filter_map(|s| (c.value)(s)))).collect();
+        out.push_str(&format_row(camera, scores.len(), columns, &row));
+        per_camera.push(row);
+    }
+    let overall: Vec<Option<f64>> =
+        (0..columns.len()).map(|k| mean(&mut per_camera.iter().filter_map(|row| row[k]))).collect();
+    let images = cams.iter().map(|(_, s)| s.len()).sum();
+    out.push_str(&format_row("mean", images, columns, &overall));
+    out
+}
+
+fn format_row(name: &str, images: usize, columns: &[Column], values: &[Option<f64>]) -> String {
+    let mut row = format!("| {name} | {images} |");
+    for (c, v) in columns.iter().zip(values) {
+        match v {
+            Some(v) => row.push_str(&format!(" {v:.*} |", c.decimals)),
+            None => row.push_str(" - |"),
+        }
+    }
+    row.push('\n');
+    row
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eval::boundary::BoundaryMetrics;
+    use crate::eval::depth::DepthMetrics;
+    use crate::eval::sky::SkyMetrics;
+
+    fn image(reference: &str, abs_rel: f64, sky_iou: Option<f64>) -> ImageScores {
+        let m = DepthMetrics { abs_rel, a1: 1.0, bad_10: Some(abs_rel), pixels: 10, ..Default::default() };
+        let sky = sky_iou.map(|iou| SkyMetrics { iou: Some(iou), ..Default::default() });
+        let boundary = sky_iou.map(|_| BoundaryMetrics { accuracy: 4.0, completeness: 2.0, ..Default::default() });
+        let mut x = ImageScores::default();
+        x.against.insert(reference.into(), Scores { raw: m, median_scaled: m, sky, boundary });
+        x
+    }
+
+    #[test]
+    fn cameras_are_averaged_per_camera_then_together() {
+        // CAM_A: 0.1, 0.3 -> 0.2; CAM_B: 0.4 -> mean of cameras 0.3 (not 0.8 / 3).
+        let t = tabulate(&[
+            ("CAM_A".into(), image("gt", 0.1, Some(0.5))),
+            ("CAM_A".into(), image("gt", 0.3, Some(1.0))),
+            ("CAM_B".into(), image("gt", 0.4, Some(0.9))),
+        ]);
+        assert!(t.contains("| CAM_A | 2 | 0.2000 |"), "{t}");
+        assert!(t.contains("| mean | 3 | 0.3000 |"), "{t}");
+        assert!(t.contains("gt (median-scaled)"));
+        // rel>10% the mean of abs_rel here, rel>25% absent; sky IoU (0.75 + 0.9) / 2.
+        let raw_mean = "| mean | 3 | 0.3000 | 0.0000 | 0.000 | 0.0000 | 1.0000 | 0.0000 | 0.0000 | 0.3000 | - |\n";
+        assert!(t.contains(raw_mean), "{t}");
+        assert!(t.contains("\ngt (sky, boundaries)\n| camera | images | sky IoU |"), "{t}");
+        assert!(t.contains("| CAM_A | 2 | 0.7500 | - | - | 4.00 | 2.00 |"), "{t}");
+        assert!(t.contains("| mean | 3 | 0.8250 | - | - | 4.00 | 2.00 |"), "{t}");
+    }
+
+    #[test]
+    fn sparse_references_have_no_sky_table_and_absent_values_are_left_out() {
+        let t = tabulate(&[
+            ("CAM_A".into(), image("lidar", 0.2, None)),
+            ("CAM_B".into(), image("gt", 0.2, Some(0.6))),
+            ("CAM_C".into(), image("gt", 0.2, None)),
+        ]);
+        assert!(!t.contains("lidar (sky, boundaries)"), "{t}");
+        // CAM_C has no sky value: '-', and the mean is CAM_B's alone.
+        assert!(t.contains("| CAM_C | 1 | - | - | - | - | - |"), "{t}");
+        assert!(t.contains("| mean | 2 | 0.6000 |"), "{t}");
+    }
 }
