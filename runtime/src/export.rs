@@ -7,7 +7,7 @@
 //!   index.json         every file of the last run with its stage, item and digest
 //! ```
 //!
-//! Files are written whole (temp file, fsync, rename). A file whose blob the store keeps raw is
+//! Files are written whole (temp file, rename; fsynced together, once, before the manifest). A file whose blob the store keeps raw is
 //! made by reflink where the filesystem allows (it then shares the blob's disk blocks, no second
 //! copy), else written from memory or from the unpacked blob. What is written where is confined:
 //! every dimension label put into a path is checked to be one plain path component, and the
@@ -25,7 +25,7 @@ use crate::digest::Digest;
 use crate::item::ItemKey;
 use crate::operator::{Blob, Dataset};
 use crate::record::OutputRef;
-use crate::store::{read_blob, write_atomic_via, BlobError, Store};
+use crate::store::{read_blob, sync_filesystem, write_atomic_via, write_whole_via, BlobError, Store};
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{Dim, Export, TemplatePart};
 use serde::{Deserialize, Serialize};
@@ -238,7 +238,8 @@ impl ExportJob {
                 }
                 (Source::Blob, None) => unreachable!("outputs without bytes in memory or a record have a blob"),
             };
-            write_atomic_via(&self.tmp, &self.dest, bytes)
+            // Made durable together before the manifest is written (`Exporter::finish`).
+            write_whole_via(&self.tmp, &self.dest, bytes, false)
                 .with_context(|| format!("exporting {}", self.dest.display()))?;
         }
         FileStat::of(&self.dest).ok_or_else(|| anyhow!("{} vanished right after it was written", self.dest.display()))
@@ -426,6 +427,9 @@ impl Exporter {
         let files: Vec<&IndexEntry> =
             self.entries.iter().filter(|(rel, _)| self.done.contains_key(*rel)).map(|(_, e)| e).collect();
         let count = files.len() as u64;
+        // The files written without an fsync each reach the disk before the manifest that lists
+        // them as written: after a power loss, a file the manifest trusts holds its bytes.
+        sync_filesystem(&self.dir)?;
         // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
         let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files }))?;
         let manifest_tmp = self.tmp_path("manifest");

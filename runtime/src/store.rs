@@ -11,8 +11,9 @@
 //!   tmp/                temp files, renamed into place when complete
 //! ```
 //!
-//! Every file appears whole or not at all: blobs and JSON are written to `tmp/`, fsynced and
-//! renamed; segment entries carry checksums. So a killed process leaves nothing half-written, and
+//! Every file appears whole or not at all: blobs and JSON are written to `tmp/` and renamed (JSON
+//! fsynced first; blobs together at the end of a run, see [`Store::sync`]); segment entries carry
+//! checksums. So a killed process leaves nothing half-written, and
 //! several processes (or cluster nodes on a shared filesystem) can use one store at once: they
 //! write different segments, and renaming a blob over an identical one is harmless.
 
@@ -166,8 +167,14 @@ impl Store {
         w.flush()
     }
 
-    /// Fsyncs this process's segments.
+    /// Makes this process's writes durable: the blobs (flushed with the whole filesystem, one
+    /// syncfs), then this process's segments. Blobs are not fsynced one by one as they are
+    /// written: on a busy disk an fsync per multi-megabyte blob kept workers waiting longer than
+    /// the task took. They are still renamed into place whole, so a killed process leaves no
+    /// half-written blob; after a power loss, a blob that did not reach the disk is missing or
+    /// fails its digest check when read, and its task runs again like that of any lost blob.
     pub fn sync(&self) -> Result<()> {
+        sync_filesystem(&self.root.join("cas"))?;
         for w in [&self.records, &self.fp_writer] {
             if let Some(w) = w.lock().unwrap().as_mut() {
                 w.sync()?;
@@ -198,7 +205,8 @@ impl Store {
             Err(_) => Ok(()),
         }
         .with_context(|| format!("removing {}, which is not a blob file", path.display()))?;
-        self.write_atomic(&path, blob::pack(bytes).file_bytes())
+        // Not fsynced here: see `sync`.
+        write_whole_via(&self.temp_path(), &path, blob::pack(bytes).file_bytes(), false)
     }
 
     /// Reads a blob and checks its digest: a corrupt blob is removed so that it is made again.
@@ -301,13 +309,35 @@ pub fn read_blob(path: &Path, digest: &Digest) -> Result<Vec<u8>, BlobError> {
 
 /// Writes `bytes` to `tmp`, fsyncs, and renames it to `dest` (creating `dest`'s directory).
 pub fn write_atomic_via(tmp: &Path, dest: &Path, bytes: &[u8]) -> Result<()> {
+    write_whole_via(tmp, dest, bytes, true)
+}
+
+/// Flushes every dirty page of the filesystem that holds `path` (syncfs(2)).
+pub fn sync_filesystem(path: &Path) -> Result<()> {
+    use std::os::fd::AsRawFd;
+    let dir = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    // SAFETY: the descriptor is open for the duration of the call.
+    if unsafe { libc::syncfs(dir.as_raw_fd()) } != 0 {
+        return Err(std::io::Error::last_os_error())
+            .with_context(|| format!("syncing the filesystem of {}", path.display()));
+    }
+    Ok(())
+}
+
+/// Writes `bytes` to `tmp` and renames it to `dest` (creating `dest`'s directory): the file
+/// appears whole or not at all to other processes, and survives this one being killed. With
+/// `durable`, also fsynced before the rename (survives a power loss); without, the caller
+/// makes it durable later (see [`sync_filesystem`]).
+pub fn write_whole_via(tmp: &Path, dest: &Path, bytes: &[u8], durable: bool) -> Result<()> {
     if let Some(dir) = dest.parent() {
         fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     let result = (|| -> std::io::Result<()> {
         let mut f = File::create(tmp)?;
         f.write_all(bytes)?;
-        f.sync_all()?;
+        if durable {
+            f.sync_all()?;
+        }
         fs::rename(tmp, dest)
     })();
     if result.is_err() {
