@@ -63,11 +63,14 @@ pub fn depth_exr(d: &DepthMap) -> Result<Vec<u8>> {
 /// and odd bytes, delta-coded (OpenEXR's predictor), then zlib. A block that does not shrink is
 /// stored as it is, which readers recognise by its size.
 fn exr_zip_block(values: &[f32]) -> Vec<u8> {
-    let raw: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let half = raw.len().div_ceil(2);
-    let mut t = vec![0u8; raw.len()];
-    for (i, b) in raw.iter().enumerate() {
-        t[if i % 2 == 0 { i / 2 } else { half + i / 2 }] = *b;
+    // Bytes 0 and 2 of each float are the even bytes of the block, 1 and 3 the odd ones.
+    let n = values.len();
+    let mut t = vec![0u8; 4 * n];
+    let (even, odd) = t.split_at_mut(2 * n);
+    for ((v, e), o) in values.iter().zip(even.chunks_exact_mut(2)).zip(odd.chunks_exact_mut(2)) {
+        let b = v.to_le_bytes();
+        e.copy_from_slice(&[b[0], b[2]]);
+        o.copy_from_slice(&[b[1], b[3]]);
     }
     let mut prev = t[0];
     for x in &mut t[1..] {
@@ -75,11 +78,11 @@ fn exr_zip_block(values: &[f32]) -> Vec<u8> {
         *x = cur.wrapping_sub(prev).wrapping_add(128);
         prev = cur;
     }
-    let z = zlib(&t, 1, miniz_oxide::deflate::core::CompressionStrategy::RLE);
-    if z.len() < raw.len() {
+    let z = zlib(&t, 1, miniz_oxide::deflate::core::CompressionStrategy::Default);
+    if z.len() < 4 * n {
         z
     } else {
-        raw
+        values.iter().flat_map(|v| v.to_le_bytes()).collect()
     }
 }
 
@@ -281,7 +284,8 @@ mod tests {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().unwrap();
         time("depth_exr (1 thread)", &|| pool.install(|| depth_exr(&d).unwrap().len()));
         use miniz_oxide::deflate::core::CompressionStrategy as S;
-        for (level, strategy) in [(1u8, S::Default), (4, S::Default), (1, S::RLE), (4, S::RLE), (1, S::HuffmanOnly)] {
+        // RLE and Huffman-only strategies leave the blocks at ~0.95 of their size: matches pay.
+        for (level, strategy) in [(1u8, S::Default), (4, S::Default)] {
             time(&format!("exr blocks, miniz {level} {strategy:?}"), &|| {
                 d.data
                     .chunks(w * 16)
