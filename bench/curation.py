@@ -3,7 +3,7 @@ IP-Basic, the whole chain against the peer programs, and LiDAR hold-out scores o
 data. Prints Markdown for docs/BENCHMARKS.md.
 
     .venv-peers/bin/python bench/curation.py [--data DIR] [--keyframes 40] [--only SECTION ...]
-                                             [--dist4d BINARY]
+                                             [--dist4d BINARY] [--set STAGE.PARAM=VALUE ...]
 
 Sections: accuracy (full pipeline + ablations on synthetic data; the shipped pipeline's time per
 stage and store/export bytes), completion (vs ipbasic_cv2.py), chain (curation without MVS with its
@@ -23,6 +23,7 @@ REPO = Path(__file__).resolve().parent.parent
 PEERS = REPO.parent / "shared" / "bench" / "peers"
 SHARED = REPO.parent / "shared" / "data"
 DIST4D = REPO / "target" / "release" / "dist4d"
+SETS = []  # --set values for the chain section
 CAMERAS = ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT"]
 
 
@@ -272,8 +273,9 @@ def section_chain(data, tmp, base):
     ron = tmp / "chain_only.ron"
     ron.write_text(t)
     cache, out = tmp / "cache-chain", tmp / "out-chain"
+    sets = [x for kv in SETS for x in ("--set", kv)]
     report, wall, cpu = run(["run", ron, "--set", f"dataset.root={data}", "--cache", cache,
-                             "--out", out, "--progress", "off"])
+                             "--out", out, "--progress", "off"] + sets)
     stages = stage_table(report)
     frames = stages["aggregate"][0]
     images = stages["complete"][0]
@@ -298,7 +300,7 @@ def section_chain(data, tmp, base):
           "one Python process; its wall excludes loading the tables).\n")
     print("| | wall | CPU |")
     print("| --- | ---: | ---: |")
-    print(f"| dist4d (2 worker threads) | {wall:.1f} s | {cpu:.1f} s |")
+    print(f"| dist4d (2 worker threads{''.join(', ' + kv for kv in SETS)}) | {wall:.1f} s | {cpu:.1f} s |")
     steps = " + ".join(f"{k} {peer[k]:.1f} s" for k in
                        ["aggregate", "project", "hpr", "splat", "complete", "decode", "write"] if k in peer)
     print(f"| peer: {steps} | {peer['wall']:.1f} s | {peer_cpu:.1f} s |")
@@ -345,10 +347,13 @@ def main():
     ap.add_argument("--data", default="/tmp/dist4d-bench-synth")
     ap.add_argument("--keyframes", type=int, default=40)
     ap.add_argument("--only", nargs="*", default=["accuracy", "completion", "chain", "holdout"])
+    ap.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="passed to dist4d in the chain section (e.g. encode.exr_zip=false)")
     ap.add_argument("--dist4d", help="a dist4d binary to measure (e.g. a copy of an older build) instead of "
                     "building target/release/dist4d")
     a = ap.parse_args()
     global DIST4D
+    SETS.extend(a.set)
     if a.dist4d:
         DIST4D = Path(a.dist4d).resolve()
     else:

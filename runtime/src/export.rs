@@ -7,9 +7,10 @@
 //!   index.json         every file of the last run with its stage, item and digest
 //! ```
 //!
-//! Files are written whole (temp file, rename; fsynced together, once, before the manifest). A file whose blob the store keeps raw is
-//! made by reflink where the filesystem allows (it then shares the blob's disk blocks, no second
-//! copy), else written from memory or from the unpacked blob. What is written where is confined:
+//! Files are written whole (temp file, rename; fsynced together, once, before the manifest). A
+//! file whose blob the store keeps raw is made by reflink where the filesystem allows (it then
+//! shares the blob's disk blocks, no second copy), else written from memory or from the unpacked
+//! blob. What is written where is confined:
 //! every dimension label put into a path is checked to be one plain path component, and the
 //! joined path must stay inside the output folder, so a dataset labelling an item `../../x` cannot
 //! write outside it. An output folder belongs to one pipeline (by name): its manifest says which,
@@ -190,6 +191,8 @@ pub struct Exporter {
     entries: BTreeMap<String, IndexEntry>,
     done: BTreeMap<String, FileStat>,
     reflinks: Arc<AtomicBool>,
+    /// Whether a job ran (wrote or confirmed a file) since the folder was last synced.
+    jobs_done: bool,
 }
 
 /// One file to write.
@@ -232,11 +235,11 @@ impl ExportJob {
             let bytes: &[u8] = match (&self.bytes, &self.cas) {
                 (Source::Mem(b), _) => b,
                 (Source::Inline(b), _) => b,
-                (Source::Blob, Some(path)) => {
+                (Source::Blob, cas) => {
+                    let path = cas.as_ref().ok_or_else(|| anyhow!("no bytes to export {}", self.dest.display()))?;
                     owned = read_blob(path, &self.digest)?;
                     &owned
                 }
-                (Source::Blob, None) => unreachable!("outputs without bytes in memory or a record have a blob"),
             };
             // Made durable together before the manifest is written (`Exporter::finish`).
             write_whole_via(&self.tmp, &self.dest, bytes, false)
@@ -268,9 +271,10 @@ impl ExportJob {
             return Ok(false);
         }
         if file_digest(&self.tmp) != Some(self.digest) {
+            // A corrupt blob: removed either way; written from memory if the bytes are there.
             let _ = std::fs::remove_file(&self.tmp);
+            let _ = std::fs::remove_file(cas);
             if matches!(self.bytes, Source::Blob) {
-                let _ = std::fs::remove_file(cas);
                 return Err(BlobError {
                     digest: self.digest,
                     problem: format!("is corrupt and was removed ({})", cas.display()),
@@ -339,6 +343,7 @@ impl Exporter {
             entries: BTreeMap::new(),
             done: BTreeMap::new(),
             reflinks: Arc::new(AtomicBool::new(true)),
+            jobs_done: false,
         };
         if exporter.manifest.owner.as_deref() != Some(pipeline) {
             exporter.manifest.owner = Some(pipeline.to_string());
@@ -402,6 +407,7 @@ impl Exporter {
 
     /// A job ended: its file is in place with `stat`, or (None) it failed.
     pub fn job_done(&mut self, rel: &str, stat: Option<FileStat>) {
+        self.jobs_done = true;
         match stat {
             Some(stat) => self.done.insert(rel.to_string(), stat),
             None => self.done.remove(rel),
@@ -429,7 +435,9 @@ impl Exporter {
         let count = files.len() as u64;
         // The files written without an fsync each reach the disk before the manifest that lists
         // them as written: after a power loss, a file the manifest trusts holds its bytes.
-        sync_filesystem(&self.dir)?;
+        if self.jobs_done {
+            sync_filesystem(&self.dir)?;
+        }
         // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
         let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files }))?;
         let manifest_tmp = self.tmp_path("manifest");

@@ -27,7 +27,7 @@ use std::fs::{self, File, OpenOptions};
 use std::io::Write;
 use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Mutex, RwLock};
 
 /// A blob that a task record names is missing or corrupt: the task that made it must run again.
@@ -82,6 +82,8 @@ pub struct Store {
     index: DigestMap<(u32, u64)>,
     fingerprints: RwLock<HashMap<PathBuf, (FileStamp, Digest)>>,
     tmp_counter: AtomicU64,
+    /// Whether this process wrote a blob since its last `sync` (which then flushes them).
+    unsynced_blobs: AtomicBool,
 }
 
 impl Store {
@@ -135,6 +137,7 @@ impl Store {
             index,
             fingerprints: RwLock::new(fingerprints),
             tmp_counter: AtomicU64::new(0),
+            unsynced_blobs: AtomicBool::new(false),
         })
     }
 
@@ -174,7 +177,9 @@ impl Store {
     /// half-written blob; after a power loss, a blob that did not reach the disk is missing or
     /// fails its digest check when read, and its task runs again like that of any lost blob.
     pub fn sync(&self) -> Result<()> {
-        sync_filesystem(&self.root.join("cas"))?;
+        if self.unsynced_blobs.swap(false, Ordering::Relaxed) {
+            sync_filesystem(&self.root.join("cas"))?;
+        }
         for w in [&self.records, &self.fp_writer] {
             if let Some(w) = w.lock().unwrap().as_mut() {
                 w.sync()?;
@@ -206,6 +211,7 @@ impl Store {
         }
         .with_context(|| format!("removing {}, which is not a blob file", path.display()))?;
         // Not fsynced here: see `sync`.
+        self.unsynced_blobs.store(true, Ordering::Relaxed);
         write_whole_via(&self.temp_path(), &path, blob::pack(bytes).file_bytes(), false)
     }
 
