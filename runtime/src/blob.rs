@@ -322,7 +322,7 @@ mod tests {
                     n as f64 / bytes.len() as f64
                 );
             };
-            for level in [1, 3] {
+            for level in [-1, 1, 3] {
                 time(&format!("zstd {level}"), &|| zstd::bulk::compress(&bytes, level).unwrap().len());
                 time(&format!("zstd {level} planes"), &|| {
                     zstd::bulk::compress(&to_planes(&bytes), level).unwrap().len()

@@ -137,14 +137,11 @@ fn zlib(mut input: &[u8], level: u8, strategy: miniz_oxide::deflate::core::Compr
 
 /// 16-bit grey PNG of depth x 256 (see [`png_bytes`]).
 pub fn depth_png16(d: &DepthMap) -> Result<Vec<u8>> {
-    let px: Vec<u8> = d
-        .data
-        .iter()
-        .flat_map(|&z| {
-            let v = if z > 0.0 && z.is_finite() { (z * 256.0).round().clamp(1.0, 65535.0) as u16 } else { 0 };
-            v.to_be_bytes()
-        })
-        .collect();
+    let mut px = vec![0u8; 2 * d.data.len()];
+    for (&z, be) in d.data.iter().zip(px.chunks_exact_mut(2)) {
+        let v = if z > 0.0 && z.is_finite() { (z * 256.0).round().clamp(1.0, 65535.0) as u16 } else { 0 };
+        be.copy_from_slice(&v.to_be_bytes());
+    }
     png_bytes(d.width, d.height, &px, png::ColorType::Grayscale, png::BitDepth::Sixteen)
 }
 
@@ -179,7 +176,11 @@ pub fn npy_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
     out.extend_from_slice(b"\x93NUMPY\x01\x00");
     out.extend_from_slice(&(header.len() as u16).to_le_bytes());
     out.extend_from_slice(header.as_bytes());
-    out.extend(data.iter().flat_map(|x| x.to_le_bytes()));
+    let at = out.len();
+    out.resize(at + 4 * data.len(), 0);
+    for (x, le) in data.iter().zip(out[at..].chunks_exact_mut(4)) {
+        le.copy_from_slice(&x.to_le_bytes());
+    }
     out
 }
 
