@@ -330,6 +330,16 @@ pub fn sync_filesystem(path: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Asks the kernel to start writing a file's pages to disk now, without waiting for them
+/// (sync_file_range WRITE): the data then goes out while the run computes, and the sync at its
+/// end finds little left to wait for (a 240-image run waited 4.7 s in its final syncfs without
+/// this). Best effort: an error (a filesystem without it) changes nothing.
+fn start_writeback(f: &File) {
+    use std::os::fd::AsRawFd;
+    // SAFETY: the descriptor is open for the duration of the call.
+    let _ = unsafe { libc::sync_file_range(f.as_raw_fd(), 0, 0, libc::SYNC_FILE_RANGE_WRITE) };
+}
+
 /// Writes `bytes` to `tmp` and renames it to `dest` (creating `dest`'s directory): the file
 /// appears whole or not at all to other processes, and survives this one being killed. With
 /// `durable`, also fsynced before the rename (survives a power loss); without, the caller
@@ -343,6 +353,8 @@ pub fn write_whole_via(tmp: &Path, dest: &Path, bytes: &[u8], durable: bool) -> 
         f.write_all(bytes)?;
         if durable {
             f.sync_all()?;
+        } else {
+            start_writeback(&f);
         }
         fs::rename(tmp, dest)
     })();
