@@ -3,9 +3,13 @@ IP-Basic, the whole chain against the peer programs, and LiDAR hold-out scores o
 data. Prints Markdown for docs/BENCHMARKS.md.
 
     .venv-peers/bin/python bench/curation.py [--data DIR] [--keyframes 40] [--only SECTION ...]
+                                             [--dist4d BINARY] [--set STAGE.PARAM=VALUE ...]
 
-Sections: accuracy (full pipeline + ablations on synthetic data), completion (vs ipbasic_cv2.py),
-chain (vs nuscenes-devkit + Open3D HPR + IP-Basic), holdout (shared nuScenes and DGP).
+Sections: accuracy (full pipeline + ablations on synthetic data; the shipped pipeline's time per
+stage and store/export bytes), completion (vs ipbasic_cv2.py), chain (curation without MVS with its
+depth files written vs ../shared/bench/peers/curation_chain.py, equal work; store/export bytes),
+holdout (shared nuScenes and DGP). --dist4d measures another binary (say a copy of an older build)
+instead of building target/release/dist4d.
 Needs the peer venv of ../shared/bench/peers/setup.sh (numpy, OpenCV, Open3D, nuscenes-devkit);
 dist4d itself is built with cargo. Everything is written under a temporary folder except the
 synthetic dataset (--data, created once and reused).
@@ -19,6 +23,7 @@ REPO = Path(__file__).resolve().parent.parent
 PEERS = REPO.parent / "shared" / "bench" / "peers"
 SHARED = REPO.parent / "shared" / "data"
 DIST4D = REPO / "target" / "release" / "dist4d"
+SETS = []  # --set values for the chain section
 CAMERAS = ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT"]
 
 
@@ -175,13 +180,14 @@ def section_accuracy(data, tmp, base):
     # Per-stage time of the shipped pipeline from a cold cache.
     report, wall, cpu = run(["run", variant(base, "shipped", tmp, slim=False), "--set", f"dataset.root={data}",
                              "--cache", tmp / "cache-cold", "--out", tmp / "out-cold", "--progress", "off"])
+    stages = stage_table(report)
+    space_line = space(tmp / "cache-cold", tmp / "out-cold", stages["complete"][0])
     shutil.rmtree(tmp / "cache-cold")
     shutil.rmtree(tmp / "out-cold")
-    stages = stage_table(report)
     frames = stages["aggregate"][0]
     print(f"### Time per stage (shipped pipeline, cold cache, {frames} keyframes x 6 cameras)\n")
     print(f"`dist4d run pipelines/curation.ron --set dataset.root={data}`: {wall:.1f} s wall, "
-          f"{cpu:.1f} s CPU on 2 cores.\n")
+          f"{cpu:.1f} s CPU on 2 cores. Space: {space_line}.\n")
     print("| stage | tasks | CPU seconds | per task |")
     print("| --- | ---: | ---: | ---: |")
     for name, (n, s) in sorted(stages.items(), key=lambda kv: -kv[1][1]):
@@ -269,37 +275,77 @@ def section_completion(data, tmp, base):
     print()
 
 
+def du(path):
+    """Bytes of the files under `path` (apparent sizes: what a copy elsewhere would take)."""
+    return sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file()) if Path(path).exists() else 0
+
+
+def space(cache, out, images):
+    """Store bytes (cas/ + ac/) and exported bytes, per image, and their ratio."""
+    store = du(cache / "cas") + du(cache / "ac")
+    exported = du(out) - du(out / ".dist4d-tmp")
+    return (f"store {store / images / 1e6:.2f} MB per image (cas/ + ac/), exported files "
+            f"{exported / images / 1e6:.2f} MB per image: store / exports = {store / max(exported, 1):.2f}")
+
+
 def section_chain(data, tmp, base):
-    """The chain projection -> HPR -> completion: dist4d vs the peer programs, same frames."""
-    print("## End to end vs the peer programs (projection + HPR + completion)\n")
-    # dist4d: the shipped pipeline without MVS, evaluation, encoding or sheets.
-    t = variant(base, "chain", tmp, visible_points="aggregate.points").read_text()
+    """Curation without MVS, depth files written: dist4d vs curation_chain.py (equal work)."""
+    print("## End to end vs the peer chain (curation without MVS, EXR + PNG16 + NPY written)\n")
+    # dist4d: the shipped pipeline without MVS, evaluation or sheets; EncodeDepth's EXR, PNG16 and
+    # NPY exported (it also makes the preview, which the peer does not: not exported).
+    t = variant(base, "chain", tmp, visible_points="aggregate.points", slim=False).read_text()
     names = set(re.findall(r'^        "(\w+)": \w+\(', t, re.M))
-    t = drop_stages(t, names - {"aggregate", "visible", "prompt", "complete"})
-    t = t[:t.index("    export: {")] + "    export: {},\n)\n"
+    t = drop_stages(t, names - {"aggregate", "visible", "prompt", "complete", "encode"})
+    t = t[:t.index("    export: {")] + """    export: {
+        "encode.exr": "{scene}/{camera}/{frame}_depth.exr",
+        "encode.png16": "{scene}/{camera}/{frame}_depth.png",
+        "encode.npy": "{scene}/{camera}/{frame}_depth.npy",
+    },
+)
+"""
     ron = tmp / "chain_only.ron"
     ron.write_text(t)
-    report, wall, cpu = run(["run", ron, "--set", f"dataset.root={data}", "--cache", tmp / "cache-chain",
-                             "--out", tmp / "out-chain", "--progress", "off"])
-    frames = stage_table(report)["aggregate"][0]
-    p = subprocess.run([sys.executable, REPO / "bench" / "peer_chain.py", data, "v1.0-mini"],
+    cache, out = tmp / "cache-chain", tmp / "out-chain"
+    sets = [x for kv in SETS for x in ("--set", kv)]
+    report, wall, cpu = run(["run", ron, "--set", f"dataset.root={data}", "--cache", cache,
+                             "--out", out, "--progress", "off"] + sets)
+    stages = stage_table(report)
+    frames = stages["aggregate"][0]
+    images = stages["complete"][0]
+    space_line = space(cache, out, images)
+    shutil.rmtree(cache)
+    shutil.rmtree(out)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    p = subprocess.run([sys.executable, PEERS / "curation_chain.py", data, "v1.0-mini", "--out", tmp / "out-peer"],
                        capture_output=True, text=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    peer_cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    shutil.rmtree(tmp / "out-peer", ignore_errors=True)
     if p.returncode != 0:
         print(f"(peer chain failed: {p.stderr.strip()[-500:]})\n")
         return
     peer = json.loads(p.stdout.strip().splitlines()[-1])
-    print(f"{frames} keyframes x 6 cameras of the synthetic scene (1600x900). dist4d: aggregation of 3 LiDAR "
-          "sweeps, HPR, z-buffered prompt with nearest fill, CompleteDepth (`dist4d run` of curation.ron "
-          "without MVS, evaluation and exports; cold cache, dataset reading included). Peers "
-          "(bench/peer_chain.py): nuscenes-devkit `map_pointcloud_to_image` of the keyframe sweep, Open3D "
-          "`hidden_point_removal` (same radius rule), a z-buffered sparse image, IP-Basic `fill_in_fast` "
-          "(extrapolate); one Python process, NuScenes table loading excluded.\n")
+    print(f"{frames} keyframes x 6 cameras of the synthetic scene (1600x900), same run. dist4d: `dist4d run` of "
+          "curation.ron without MVS, evaluation and sheets (aggregation of 3 LiDAR keyframes without moving "
+          "boxes, HPR, z-buffered prompt, CompleteDepth, EncodeDepth), EXR + PNG16 + NPY exported; cold cache, "
+          "dataset reading and exports included. Peer: ../shared/bench/peers/curation_chain.py (nuscenes-devkit "
+          "aggregation and projection, Open3D HPR, z-buffer, IP-Basic, JPEG decode, EXR + PNG16 + NPY written; "
+          "one Python process; its wall excludes loading the tables).\n")
     print("| | wall | CPU |")
     print("| --- | ---: | ---: |")
-    print(f"| dist4d (2 worker threads) | {wall:.1f} s | {cpu:.1f} s |")
-    print(f"| peers: projection {peer['project']:.1f} s + HPR {peer['hpr']:.1f} s + sparse image "
-          f"{peer['splat']:.1f} s + IP-Basic {peer['complete']:.1f} s | {peer['total']:.1f} s | {peer['total']:.1f} s |")
-    print(f"\nRatio: {peer['total'] / wall:.1f}x by wall time, {peer['total'] / cpu:.1f}x by CPU time.\n")
+    print(f"| dist4d (2 worker threads{''.join(', ' + kv for kv in SETS)}) | {wall:.1f} s | {cpu:.1f} s |")
+    steps = " + ".join(f"{k} {peer[k]:.1f} s" for k in
+                       ["aggregate", "project", "hpr", "splat", "complete", "decode", "write"] if k in peer)
+    print(f"| peer: {steps} | {peer['wall']:.1f} s | {peer_cpu:.1f} s |")
+    print(f"\nRatio: {peer['wall'] / wall:.2f}x by wall time, {peer_cpu / cpu:.2f}x by CPU time.\n")
+    print(f"Space (dist4d): {space_line}.\n")
+    print("dist4d per stage:\n")
+    print("| stage | tasks | CPU seconds | per task |")
+    print("| --- | ---: | ---: | ---: |")
+    for name, (n, s) in sorted(stages.items(), key=lambda kv: -kv[1][1]):
+        if n:
+            print(f"| {name} | {n} | {s:.1f} | {1000 * s / n:.0f} ms |")
+    print()
 
 
 def section_holdout(tmp, base):
@@ -336,8 +382,17 @@ def main():
     ap.add_argument("--data", default="/tmp/dist4d-bench-synth")
     ap.add_argument("--keyframes", type=int, default=40)
     ap.add_argument("--only", nargs="*", default=["accuracy", "completion", "chain", "holdout"])
+    ap.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="passed to dist4d in the chain section (e.g. encode.exr_zip=false)")
+    ap.add_argument("--dist4d", help="a dist4d binary to measure (e.g. a copy of an older build) instead of "
+                    "building target/release/dist4d")
     a = ap.parse_args()
-    subprocess.run(["cargo", "build", "--release", "-q"], cwd=REPO, check=True)
+    global DIST4D
+    SETS.extend(a.set)
+    if a.dist4d:
+        DIST4D = Path(a.dist4d).resolve()
+    else:
+        subprocess.run(["cargo", "build", "--release", "-q"], cwd=REPO, check=True)
     data = Path(a.data)
     if set(a.only) != {"holdout"}:
         if not (data / "v1.0-mini").is_dir():

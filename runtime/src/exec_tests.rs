@@ -438,6 +438,28 @@ fn a_corrupt_exported_blob_is_recomputed_and_exported() {
 }
 
 #[test]
+fn exports_from_compressed_blobs_are_byte_identical_to_fresh_ones() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    // 3000-byte files of a repeated digest: kept compressed, exported from the blob on a cached run.
+    let p = testkit::load(CHAIN, &["file.size=3000"]);
+    let grid = testkit::grid_of(&p);
+    let first = dir.path().join("first");
+    run_with(&p, &grid, &store, &RunOptions { jobs: 2, out_dir: Some(first.clone()), ..Default::default() });
+    let packed = std::fs::read_dir(store.join("cas"))
+        .unwrap()
+        .flat_map(|d| std::fs::read_dir(d.unwrap().path()).unwrap())
+        .filter(|b| !crate::blob::is_raw_file(&b.as_ref().unwrap().path()))
+        .count();
+    assert!(packed >= 8, "{packed} packed blobs");
+    let second = dir.path().join("second");
+    let r = run_with(&p, &grid, &store, &RunOptions { jobs: 2, out_dir: Some(second.clone()), ..Default::default() });
+    assert_eq!((r.executed(), r.exported), (0, 8));
+    assert_eq!(files_under(&second), files_under(&first));
+    assert_eq!(crate::export::verify(&second).unwrap().ok, 8);
+}
+
+#[test]
 fn exports_edited_in_place_are_found_and_rewritten() {
     let dir = tempfile::tempdir().unwrap();
     let (store, out) = (dir.path().join("store"), dir.path().join("out"));

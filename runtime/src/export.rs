@@ -7,7 +7,10 @@
 //!   index.json         every file of the last run with its stage, item and digest
 //! ```
 //!
-//! Files are written whole (temp file, fsync, rename). What is written where is confined:
+//! Files are written whole (temp file, rename; fsynced together, once, before the manifest). A
+//! file whose blob the store keeps raw is made by reflink where the filesystem allows (it then
+//! shares the blob's disk blocks, no second copy), else written from memory or from the unpacked
+//! blob. What is written where is confined:
 //! every dimension label put into a path is checked to be one plain path component, and the
 //! joined path must stay inside the output folder, so a dataset labelling an item `../../x` cannot
 //! write outside it. An output folder belongs to one pipeline (by name): its manifest says which,
@@ -18,17 +21,19 @@
 //! and rewritten if its bytes differ (an edit that keeps the size and mtime still changes ctime).
 //! [`verify`] hashes every file on demand.
 
+use crate::blob;
 use crate::digest::Digest;
 use crate::item::ItemKey;
 use crate::operator::{Blob, Dataset};
 use crate::record::OutputRef;
-use crate::store::{write_atomic_via, BlobError, Store};
+use crate::store::{read_blob, sync_filesystem, write_atomic_via, write_whole_via, BlobError, Store};
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{Dim, Export, TemplatePart};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::os::unix::fs::MetadataExt;
 use std::path::{Component, Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 const MANIFEST: &str = ".dist4d-manifest";
@@ -185,6 +190,9 @@ pub struct Exporter {
     /// This run's files as planned, and those of them confirmed or written (with their stat).
     entries: BTreeMap<String, IndexEntry>,
     done: BTreeMap<String, FileStat>,
+    reflinks: Arc<AtomicBool>,
+    /// Whether a job ran (wrote or confirmed a file) since the folder was last synced.
+    jobs_done: bool,
 }
 
 /// One file to write.
@@ -200,12 +208,17 @@ pub struct ExportJob {
     /// not when the manifest says it holds other bytes (a param changed), so that an
     /// incremental run reads each stale export no more than it writes it.
     confirm: bool,
+    /// The blob file in the store, for outputs not kept inside their record.
+    cas: Option<PathBuf>,
+    /// Shared by the jobs of one exporter: false once a reflink failed because the filesystem
+    /// (or the pair of filesystems) cannot do it, so that later jobs write without trying.
+    reflinks: Arc<AtomicBool>,
 }
 
 enum Source {
     Mem(Blob),
     Inline(Arc<[u8]>),
-    Blob { path: PathBuf },
+    Blob,
 }
 
 impl ExportJob {
@@ -217,23 +230,61 @@ impl ExportJob {
                 return Ok(stat);
             }
         }
-        let owned;
-        let bytes: &[u8] = match &self.bytes {
-            Source::Mem(b) => b,
-            Source::Inline(b) => b,
-            Source::Blob { path } => {
-                owned = std::fs::read(path).map_err(|e| {
-                    anyhow::Error::new(BlobError { digest: self.digest, problem: format!("cannot be read: {e}") })
-                })?;
-                if Digest::of(&owned) != self.digest {
-                    let _ = std::fs::remove_file(path);
-                    return Err(BlobError { digest: self.digest, problem: "is corrupt and was removed".into() }.into());
+        if !self.try_reflink()? {
+            let owned;
+            let bytes: &[u8] = match (&self.bytes, &self.cas) {
+                (Source::Mem(b), _) => b,
+                (Source::Inline(b), _) => b,
+                (Source::Blob, cas) => {
+                    let path = cas.as_ref().ok_or_else(|| anyhow!("no bytes to export {}", self.dest.display()))?;
+                    owned = read_blob(path, &self.digest)?;
+                    &owned
                 }
-                &owned
-            }
-        };
-        write_atomic_via(&self.tmp, &self.dest, bytes).with_context(|| format!("exporting {}", self.dest.display()))?;
+            };
+            // Made durable together before the manifest is written (`Exporter::finish`).
+            write_whole_via(&self.tmp, &self.dest, bytes, false)
+                .with_context(|| format!("exporting {}", self.dest.display()))?;
+        }
         FileStat::of(&self.dest).ok_or_else(|| anyhow!("{} vanished right after it was written", self.dest.display()))
+    }
+
+    /// Materializes the file by reflink from its blob when the blob holds its bytes raw and the
+    /// filesystem shares blocks between files (btrfs, XFS): no second copy on disk. The clone is
+    /// hashed before it is renamed into place, as a read of the blob would be. Ok(false) when
+    /// no reflink was made (the caller writes the bytes).
+    fn try_reflink(&self) -> Result<bool> {
+        let Some(cas) = self.cas.as_ref().filter(|_| self.reflinks.load(Ordering::Relaxed)) else { return Ok(false) };
+        if !blob::is_raw_file(cas) {
+            return Ok(false);
+        }
+        if let Some(dir) = self.dest.parent() {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+        if let Err(e) = blob::reflink(cas, &self.tmp) {
+            // Not supported here (ext4, tmpfs, or the store on another filesystem): stop trying.
+            if matches!(
+                e.raw_os_error(),
+                Some(libc::EOPNOTSUPP | libc::EXDEV | libc::EINVAL | libc::ENOTTY | libc::ENOSYS)
+            ) {
+                self.reflinks.store(false, Ordering::Relaxed);
+            }
+            return Ok(false);
+        }
+        if file_digest(&self.tmp) != Some(self.digest) {
+            // A corrupt blob: removed either way; written from memory if the bytes are there.
+            let _ = std::fs::remove_file(&self.tmp);
+            let _ = std::fs::remove_file(cas);
+            if matches!(self.bytes, Source::Blob) {
+                return Err(BlobError {
+                    digest: self.digest,
+                    problem: format!("is corrupt and was removed ({})", cas.display()),
+                }
+                .into());
+            }
+            return Ok(false);
+        }
+        std::fs::rename(&self.tmp, &self.dest).with_context(|| format!("exporting {}", self.dest.display()))?;
+        Ok(true)
     }
 }
 
@@ -291,6 +342,8 @@ impl Exporter {
             manifest,
             entries: BTreeMap::new(),
             done: BTreeMap::new(),
+            reflinks: Arc::new(AtomicBool::new(true)),
+            jobs_done: false,
         };
         if exporter.manifest.owner.as_deref() != Some(pipeline) {
             exporter.manifest.owner = Some(pipeline.to_string());
@@ -345,13 +398,16 @@ impl Exporter {
         let bytes = match (mem, &out.inline) {
             (Some(m), _) => Source::Mem(m),
             (None, Some(b)) => Source::Inline(b.clone()),
-            (None, None) => Source::Blob { path: store.blob_path(&out.digest) },
+            (None, None) => Source::Blob,
         };
-        Ok(Some(ExportJob { rel, dest, tmp, digest: out.digest, size: out.size, bytes, confirm }))
+        let cas = out.inline.is_none().then(|| store.blob_path(&out.digest));
+        let reflinks = self.reflinks.clone();
+        Ok(Some(ExportJob { rel, dest, tmp, digest: out.digest, size: out.size, bytes, confirm, cas, reflinks }))
     }
 
     /// A job ended: its file is in place with `stat`, or (None) it failed.
     pub fn job_done(&mut self, rel: &str, stat: Option<FileStat>) {
+        self.jobs_done = true;
         match stat {
             Some(stat) => self.done.insert(rel.to_string(), stat),
             None => self.done.remove(rel),
@@ -377,6 +433,11 @@ impl Exporter {
         let files: Vec<&IndexEntry> =
             self.entries.iter().filter(|(rel, _)| self.done.contains_key(*rel)).map(|(_, e)| e).collect();
         let count = files.len() as u64;
+        // The files written without an fsync each reach the disk before the manifest that lists
+        // them as written: after a power loss, a file the manifest trusts holds its bytes.
+        if self.jobs_done {
+            sync_filesystem(&self.dir)?;
+        }
         // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
         let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files }))?;
         let manifest_tmp = self.tmp_path("manifest");

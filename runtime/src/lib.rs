@@ -2,6 +2,7 @@
 //! explain and garbage collection. Knows nothing about driving: datasets and stage operators
 //! come in through the [`Dataset`] and [`Operator`] traits.
 
+pub mod blob;
 pub mod digest;
 pub mod exec;
 pub mod explain;

@@ -220,15 +220,22 @@ impl DepthMap {
 
 impl Artifact for DepthMap {
     const TYPE: &'static str = "DepthMap";
-    /// `DEP2`: width, height, then runs of (zeros: u32, values: u32, the values as f32). Sparse
-    /// maps (a projected sweep fills ~2% of the pixels) shrink ~30x, which matters because every
-    /// artifact is hashed and stored; a dense map is one run, 8 bytes more than raw.
+    /// A map with depth at half its pixels or more is an NPY file (v1.0, float32, H x W): the very
+    /// bytes [`crate::formats::npy_f32`] exports, so a dense map and its NPY export are one blob
+    /// in the store (and a blob a user can `numpy.load`). A sparser one is `DEP2`: width, height,
+    /// then runs of (zeros: u32, values: u32, the values as f32); a projected sweep fills ~2% of the
+    /// pixels and shrinks ~30x, which matters because every artifact is hashed and stored.
     fn encode(&self) -> Vec<u8> {
+        let d = &self.data;
+        if 2 * d.iter().filter(|&&z| z != 0.0).count() >= d.len()
+            && d.len() == self.width as usize * self.height as usize
+        {
+            return crate::formats::npy_f32(&[self.height as usize, self.width as usize], d);
+        }
         let mut out = Vec::with_capacity(12 + 4 * self.data.len() + 8);
         out.extend_from_slice(b"DEP2");
         out.extend_from_slice(&self.width.to_le_bytes());
         out.extend_from_slice(&self.height.to_le_bytes());
-        let d = &self.data;
         let mut i = 0;
         while i < d.len() {
             let zeros = d[i..].iter().take_while(|&&z| z == 0.0).count();
@@ -242,6 +249,12 @@ impl Artifact for DepthMap {
         out
     }
     fn decode(bytes: &[u8]) -> Result<Self> {
+        if bytes.starts_with(b"\x93NUMPY") {
+            let (shape, data) = crate::formats::read_npy_f32(bytes).context("DepthMap artifact (NPY)")?;
+            let [height, width] = shape[..] else { bail!("DepthMap artifact (NPY) has shape {shape:?}, not H x W") };
+            let (width, height) = (u32::try_from(width)?, u32::try_from(height)?);
+            return Ok(DepthMap { width, height, data });
+        }
         if bytes.starts_with(b"DEP1") {
             let mut r = Reader::new(bytes, b"DEP1", Self::TYPE)?;
             let (width, height) = (r.u32()?, r.u32()?);
@@ -496,5 +509,23 @@ mod depth_map_tests {
         bad[12..16].copy_from_slice(&9u32.to_le_bytes());
         assert!(DepthMap::decode(&bad).is_err());
         assert!(DepthMap::decode(&bad[..10]).is_err());
+    }
+
+    #[test]
+    fn a_dense_map_is_the_npy_file_that_is_exported_and_a_sparse_one_stays_runs() {
+        let dense = DepthMap { width: 3, height: 2, data: vec![1.0, 0.0, 3.0, 4.0, 0.0, 6.0] };
+        assert_eq!(dense.encode(), crate::formats::npy_f32(&[2, 3], &dense.data));
+        let sparse = DepthMap { width: 3, height: 2, data: vec![1.0, 0.0, 0.0, 0.0, 0.0, 6.0] };
+        assert!(sparse.encode().starts_with(b"DEP2"));
+        // An NPY of another dtype, order or rank is not a depth map.
+        let npy = crate::formats::npy_f32(&[6], &dense.data);
+        assert!(DepthMap::decode(&npy).is_err());
+        let mut f64s = dense.encode();
+        let at = f64s.windows(3).position(|w| w == b"<f4").unwrap();
+        f64s[at + 2] = b'8';
+        assert!(DepthMap::decode(&f64s).is_err());
+        let mut truncated = dense.encode();
+        truncated.pop();
+        assert!(DepthMap::decode(&truncated).is_err());
     }
 }
