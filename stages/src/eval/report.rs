@@ -4,11 +4,14 @@
 //! Per reference, up to three Markdown tables, each titled on a line of its own (scripts find a
 //! table by its title and read its `mean` row by the header's column names):
 //! `<reference> (raw)` and `<reference> (median-scaled)` (the Eigen et al. metrics and the
-//! bad-pixel rates), and for a dense reference `<reference> (sky, boundaries)`. A metric an image
+//! bad-pixel rates), and for a dense reference `<reference> (sky, boundaries)`, whose sky shares
+//! pool a camera's pixels over its images (as a dataset's segmentation IoU is) while every other
+//! metric is a mean of per-image values (as KITTI's and iBims-1's are). A metric an image
 //! does not have (a share of no pixel, boundaries of a reference without edges) is left out of
 //! its camera's mean; a camera without any value shows `-` and is left out of the mean row.
 
 use super::depth::{ImageScores, Params, Scores};
+use super::sky::SkyMetrics;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::Pipeline;
 use std::collections::BTreeMap;
@@ -79,16 +82,27 @@ pub fn tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
     Ok(text)
 }
 
-/// A column of a table: its header, how many decimals, and its value in one image's scores.
+/// A column of a table: its header, how many decimals, and its value over one camera's images.
 struct Column {
     header: &'static str,
     decimals: usize,
-    value: fn(&Scores) -> Option<f64>,
+    value: fn(&[&Scores]) -> Option<f64>,
 }
 
+/// The mean of the values the images have (`None` when none has one).
+fn mean(values: impl Iterator<Item = f64>) -> Option<f64> {
+    let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+    (n > 0).then(|| sum / n as f64)
+}
+
+/// Columns whose camera value is the mean of a per-image value.
 macro_rules! columns {
     ($( $header:literal, $decimals:literal, |$s:ident| $value:expr );* $(;)?) => {
-        &[$( Column { header: $header, decimals: $decimals, value: |$s: &Scores| $value } ),*]
+        &[$( Column {
+            header: $header,
+            decimals: $decimals,
+            value: |images: &[&Scores]| mean(images.iter().filter_map(|$s: &&Scores| $value)),
+        } ),*]
     };
 }
 
@@ -116,12 +130,26 @@ const SCALED: &[Column] = columns![
     "rel>25%", 4, |s| s.median_scaled.bad_25;
 ];
 
-const DENSE: &[Column] = columns![
-    "sky IoU", 4, |s| s.sky.and_then(|k| k.iou);
-    "sky as structure", 4, |s| s.sky.and_then(|k| k.sky_as_structure);
-    "structure as sky", 4, |s| s.sky.and_then(|k| k.structure_as_sky);
-    "boundary acc (px)", 2, |s| s.boundary.map(|b| b.accuracy);
-    "boundary comp (px)", 2, |s| s.boundary.map(|b| b.completeness);
+/// A camera's sky scores with its images' pixels pooled ([`SkyMetrics::pooled`]).
+fn pooled_sky(images: &[&Scores]) -> Option<SkyMetrics> {
+    images.iter().any(|s| s.sky.is_some()).then(|| SkyMetrics::pooled(images.iter().filter_map(|s| s.sky.as_ref())))
+}
+
+/// Sky shares pooled over a camera's images, boundary errors averaged per image (iBims-1).
+const DENSE: &[Column] = &[
+    Column { header: "sky IoU", decimals: 4, value: |i| pooled_sky(i).and_then(|k| k.iou) },
+    Column { header: "sky as structure", decimals: 4, value: |i| pooled_sky(i).and_then(|k| k.sky_as_structure) },
+    Column { header: "structure as sky", decimals: 4, value: |i| pooled_sky(i).and_then(|k| k.structure_as_sky) },
+    Column {
+        header: "boundary acc (px)",
+        decimals: 2,
+        value: |i| mean(i.iter().filter_map(|s| s.boundary.map(|b| b.accuracy))),
+    },
+    Column {
+        header: "boundary comp (px)",
+        decimals: 2,
+        value: |i| mean(i.iter().filter_map(|s| s.boundary.map(|b| b.completeness))),
+    },
 ];
 
 /// Per-image scores averaged per camera, then over cameras (SurroundDepth): for each reference,
@@ -167,19 +195,14 @@ fn table(cams: &[(&str, &[&Scores])], columns: &[Column]) -> String {
     out.push('\n');
     out.push_str(&rule);
     out.push('\n');
-    let mean = |values: &mut dyn Iterator<Item = f64>| {
-        let (sum, n) = values.fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
-        (n > 0).then(|| sum / n as f64)
-    };
     let mut per_camera: Vec<Vec<Option<f64>>> = Vec::new();
     for (camera, scores) in cams {
-        let row: Vec<Option<f64>> =
-            columns.iter().map(|c| mean(&mut scores.iter().filter_map(|s| (c.value)(s)))).collect();
+        let row: Vec<Option<f64>> = columns.iter().map(|c| (c.value)(scores)).collect();
         out.push_str(&format_row(camera, scores.len(), columns, &row));
         per_camera.push(row);
     }
     let overall: Vec<Option<f64>> =
-        (0..columns.len()).map(|k| mean(&mut per_camera.iter().filter_map(|row| row[k]))).collect();
+        (0..columns.len()).map(|k| mean(per_camera.iter().filter_map(|row| row[k]))).collect();
     let images = cams.iter().map(|(_, s)| s.len()).sum();
     out.push_str(&format_row("mean", images, columns, &overall));
     out
@@ -202,11 +225,14 @@ mod tests {
     use super::*;
     use crate::eval::boundary::BoundaryMetrics;
     use crate::eval::depth::DepthMetrics;
-    use crate::eval::sky::SkyMetrics;
 
     fn image(reference: &str, abs_rel: f64, sky_iou: Option<f64>) -> ImageScores {
         let m = DepthMetrics { abs_rel, a1: 1.0, bad_10: Some(abs_rel), pixels: 10, ..Default::default() };
-        let sky = sky_iou.map(|iou| SkyMetrics { iou: Some(iou), ..Default::default() });
+        // 100 sky pixels in the reference, 100 * iou of them predicted (and nothing else).
+        let sky = sky_iou.map(|iou| {
+            let found = (100.0 * iou) as u64;
+            SkyMetrics { sky_pixels: 100, predicted_sky_pixels: found, both_sky_pixels: found, ..Default::default() }
+        });
         let boundary = sky_iou.map(|_| BoundaryMetrics { accuracy: 4.0, completeness: 2.0, ..Default::default() });
         let mut x = ImageScores::default();
         x.against.insert(reference.into(), Scores { raw: m, median_scaled: m, sky, boundary });
@@ -228,8 +254,19 @@ mod tests {
         let raw_mean = "| mean | 3 | 0.3000 | 0.0000 | 0.000 | 0.0000 | 1.0000 | 0.0000 | 0.0000 | 0.3000 | - |\n";
         assert!(t.contains(raw_mean), "{t}");
         assert!(t.contains("\ngt (sky, boundaries)\n| camera | images | sky IoU |"), "{t}");
-        assert!(t.contains("| CAM_A | 2 | 0.7500 | - | - | 4.00 | 2.00 |"), "{t}");
-        assert!(t.contains("| mean | 3 | 0.8250 | - | - | 4.00 | 2.00 |"), "{t}");
+        assert!(t.contains("| CAM_A | 2 | 0.7500 | 0.0000 | - | 4.00 | 2.00 |"), "{t}");
+        assert!(t.contains("| mean | 3 | 0.8250 | 0.0000 | - | 4.00 | 2.00 |"), "{t}");
+    }
+
+    #[test]
+    fn a_cameras_sky_shares_pool_its_pixels() {
+        // Open sky found whole (100 px, IoU 1) and a 4-pixel sliver predicted as a wall (IoU 0):
+        // pooled 100 / 104, not the per-image mean 0.5.
+        let mut sliver = image("gt", 0.1, Some(0.0));
+        let s = sliver.against.get_mut("gt").unwrap().sky.as_mut().unwrap();
+        (s.sky_pixels, s.sky_as_structure_pixels) = (4, 4);
+        let t = tabulate(&[("CAM_A".into(), image("gt", 0.1, Some(1.0))), ("CAM_A".into(), sliver)]);
+        assert!(t.contains("| CAM_A | 2 | 0.9615 | 0.0385 | - |"), "{t}");
     }
 
     #[test]

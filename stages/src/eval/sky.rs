@@ -25,6 +25,41 @@ pub struct SkyMetrics {
     pub sky_pixels: u64,
     /// Predicted-sky pixels (where the reference has a value).
     pub predicted_sky_pixels: u64,
+    /// Pixels sky in both (the IoU's intersection).
+    pub both_sky_pixels: u64,
+    /// Reference-sky pixels predicted nearer than `structure_depth`.
+    pub sky_as_structure_pixels: u64,
+    /// Reference-structure pixels.
+    pub structure_pixels: u64,
+    /// Reference-structure pixels predicted as sky.
+    pub structure_as_sky_pixels: u64,
+}
+
+impl SkyMetrics {
+    /// The scores of several images taken as one (their pixel counts summed), as a dataset's
+    /// segmentation IoU is (Cityscapes, PASCAL VOC): an image with a sliver of sky weighs as
+    /// much as its sliver, not as much as an image of open sky.
+    pub fn pooled<'a>(images: impl IntoIterator<Item = &'a SkyMetrics>) -> SkyMetrics {
+        let mut sum = SkyMetrics::default();
+        for m in images {
+            sum.sky_pixels += m.sky_pixels;
+            sum.predicted_sky_pixels += m.predicted_sky_pixels;
+            sum.both_sky_pixels += m.both_sky_pixels;
+            sum.sky_as_structure_pixels += m.sky_as_structure_pixels;
+            sum.structure_pixels += m.structure_pixels;
+            sum.structure_as_sky_pixels += m.structure_as_sky_pixels;
+        }
+        sum.with_shares()
+    }
+
+    /// The shares from the pixel counts.
+    fn with_shares(mut self) -> SkyMetrics {
+        let share = |n: u64, of: u64| (of > 0).then(|| n as f64 / of as f64);
+        self.iou = share(self.both_sky_pixels, self.sky_pixels + self.predicted_sky_pixels - self.both_sky_pixels);
+        self.sky_as_structure = share(self.sky_as_structure_pixels, self.sky_pixels);
+        self.structure_as_sky = share(self.structure_as_sky_pixels, self.structure_pixels);
+        self
+    }
 }
 
 /// Whether depth `z` means sky: not below `threshold` (+inf and NaN included, 0 not).
@@ -57,14 +92,16 @@ pub fn sky_metrics(
             structure_far += ps as u64;
         }
     }
-    let share = |n: u64, of: u64| (of > 0).then(|| n as f64 / of as f64);
     SkyMetrics {
-        iou: share(both, pred_sky + ref_sky - both),
-        sky_as_structure: share(sky_near, ref_sky),
-        structure_as_sky: share(structure_far, structure),
         sky_pixels: ref_sky,
         predicted_sky_pixels: pred_sky,
+        both_sky_pixels: both,
+        sky_as_structure_pixels: sky_near,
+        structure_pixels: structure,
+        structure_as_sky_pixels: structure_far,
+        ..Default::default()
     }
+    .with_shares()
 }
 
 #[cfg(test)]
@@ -117,5 +154,21 @@ mod tests {
         assert_eq!(m.iou, Some(5.0 / 6.0));
         assert_eq!(m.structure_as_sky, Some(1.0));
         assert!(is_sky(f32::NAN, 99.0) && is_sky(f32::INFINITY, 99.0) && !is_sky(0.0, 99.0));
+    }
+
+    #[test]
+    fn pooled_images_weigh_by_their_pixels() {
+        // Image A: 40 sky pixels, all found (IoU 1); image B: 2 sky pixels, none found (IoU 0,
+        // both a wall). Averaged per image IoU would be 0.5; pooled it is 40 / 42.
+        let a = sky_metrics(&rows(10, 10, 4, 100.0, 20.0), &rows(10, 10, 4, f32::INFINITY, 20.0), 99.0, 80.0, 0.1);
+        let mut b_ref = rows(10, 10, 0, 0.0, 20.0);
+        b_ref.data[..2].fill(f32::INFINITY);
+        let b = sky_metrics(&rows(10, 10, 0, 0.0, 20.0), &b_ref, 99.0, 80.0, 0.1);
+        assert_eq!((a.iou, b.iou), (Some(1.0), Some(0.0)));
+        let p = SkyMetrics::pooled([&a, &b]);
+        assert_eq!(p.iou, Some(40.0 / 42.0));
+        assert_eq!(p.sky_as_structure, Some(2.0 / 42.0));
+        assert_eq!(p.structure_as_sky, Some(0.0));
+        assert_eq!((p.sky_pixels, p.structure_pixels), (42, 158));
     }
 }
