@@ -291,7 +291,7 @@ pub struct EvalDepth(Params);
 
 impl Stage for EvalDepth {
     const KIND: &'static str = "EvalDepth";
-    const VERSION: u32 = 4;
+    const VERSION: u32 = 5;
     const SUMMARY: &'static str = "Dense depth -> Abs Rel, Sq Rel, RMSE, RMSE log, delta<1.25^k, bad-pixel rates (raw and \
          median-scaled) per reference; sky IoU and misses, depth-boundary accuracy and completeness against a dense one; as JSON";
     const GRAINS: &'static [&'static str] = &["camera"];

@@ -2,10 +2,12 @@
 //!
 //! Depth alone says what is sky: the completion gives sky pixels `sky_depth` (100 m, the paper's
 //! value), so a prediction at or beyond `sky_threshold` (99 m) is predicted sky. In the reference
-//! (the synthetic ground truth writes +inf where a ray meets nothing within 1000 m) a pixel is sky
-//! when it is not finite or also at or beyond `sky_threshold`: no depth capped at 100 m can tell
-//! the few far ground and facade pixels beyond 99 m from sky, so they are not counted against it.
-//! Reference pixels of 0 (no reference) are left out. Only a dense reference says where the sky
+//! a pixel is sky when it is not finite (the synthetic ground truth writes +inf where a ray meets
+//! nothing within 1000 m). Finite reference depths at or beyond `sky_threshold` (far ground and
+//! facades) are left out of every sky score, as are pixels of 0 (no reference): a completion
+//! capped at 100 m may call them sky or structure and be right either way. (Counting them as
+//! sky, as a first version did, charged every far facade completed at 75 m as "sky given a
+//! structure depth": 2.4 of the 3.6 points of that share on synthetic seed 0.) Only a dense reference says where the sky
 //! is; sparse ones (LiDAR) have no sky information and get no sky metrics.
 
 use dist4d_types::artifact::DepthMap;
@@ -79,10 +81,10 @@ pub fn sky_metrics(
     let (mut both, mut pred_sky, mut ref_sky, mut sky_near) = (0u64, 0u64, 0u64, 0u64);
     let (mut structure, mut structure_far) = (0u64, 0u64);
     for (&p, &r) in pred.data.iter().zip(&reference.data) {
-        if r == 0.0 {
+        if r == 0.0 || r.is_finite() && r >= sky_threshold {
             continue;
         }
-        let (ps, rs) = (is_sky(p, sky_threshold), is_sky(r, sky_threshold));
+        let (ps, rs) = (is_sky(p, sky_threshold), !r.is_finite());
         pred_sky += ps as u64;
         ref_sky += rs as u64;
         both += (ps && rs) as u64;
@@ -145,13 +147,16 @@ mod tests {
         let reference = rows(5, 5, 0, 0.0, 12.0);
         let m = sky_metrics(&rows(5, 5, 0, 0.0, 12.0), &reference, 99.0, 80.0, 0.1);
         assert_eq!((m.iou, m.sky_as_structure, m.structure_as_sky), (None, None, Some(0.0)));
-        // A far reference pixel (beyond the threshold, finite) is sky too; pixels without a
-        // reference count nowhere.
+        // Far reference pixels (finite, beyond the threshold) and pixels without a reference
+        // count nowhere, whatever the prediction calls them.
         let mut reference = rows(5, 2, 1, 500.0, 0.0);
         reference.data[9] = 10.0;
-        let pred = rows(5, 2, 1, 100.0, 100.0);
+        reference.data[0] = f32::INFINITY;
+        let mut pred = rows(5, 2, 1, 100.0, 100.0);
+        pred.data[1] = 60.0;
         let m = sky_metrics(&pred, &reference, 99.0, 80.0, 0.1);
-        assert_eq!(m.iou, Some(5.0 / 6.0));
+        assert_eq!(m.iou, Some(1.0 / 2.0));
+        assert_eq!((m.sky_pixels, m.predicted_sky_pixels, m.sky_as_structure), (1, 2, Some(0.0)));
         assert_eq!(m.structure_as_sky, Some(1.0));
         assert!(is_sky(f32::NAN, 99.0) && is_sky(f32::INFINITY, 99.0) && !is_sky(0.0, 99.0));
     }
