@@ -2,6 +2,21 @@
 //! prompt": projection with a z-buffer). The paper's nearest-neighbour fill of it is its own stage,
 //! `NearestFill`, so that only pipelines whose completer reads it pay for it (the built-in
 //! `CompleteDepth` reads the sparse map).
+//!
+//! A z-buffer only settles which point wins a pixel; between the scan lines of a near object the
+//! pixels stay free, and aggregated points of what lies behind it (the road behind a car 2 m
+//! away, seen by the roof LiDAR of a neighbouring keyframe) land there. Hidden point removal keeps
+//! many of them: on the synthetic scene 11% of the prompt samples on cars and 21% on people were
+//! background, 0.8% of all samples, and each one spreads a patch of background depth over the
+//! object in the completion. So a sample is dropped when it is sandwiched between nearer samples:
+//! one nearer by more than `occlusion_tolerance` above it and one below it (within a window of
+//! `occlusion_window[1]` mean sample spacings up or down and `occlusion_window[0]` to the sides),
+//! or one to its left and one to its right (the same window turned). A background sample beside
+//! a silhouette has nearer samples on one side only and stays; ground has nearer ground only
+//! below it. This is a screen-space visibility test in the spirit of Pintus et al. 2011
+//! ("Real-time rendering of massive unstructured raw point clouds using screen-space
+//! operators"), which hides a point when nearer points surround it; we ask for two opposite
+//! sides instead of a cone of directions, which is enough for the scan-line gaps of LiDAR.
 
 use crate::camera::{CameraView, CloudInView, ZBuffer};
 use crate::stage::Stage;
@@ -19,11 +34,18 @@ pub struct Params {
     pub min_depth: f64,
     /// Points farther than this depth (m) are dropped.
     pub max_depth: f64,
+    /// Half-width (to the sides) and reach (up or down) of the window searched for occluders of
+    /// a sample, in mean sample spacings (sqrt(image area / samples)); `[0, 0]` keeps every
+    /// z-buffer winner.
+    pub occlusion_window: [f64; 2],
+    /// A sample is occluded by samples nearer than it by more than this fraction on two opposite
+    /// sides.
+    pub occlusion_tolerance: f64,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { min_depth: 1.0, max_depth: 100.0 }
+        Params { min_depth: 1.0, max_depth: 100.0, occlusion_window: [0.5, 3.0], occlusion_tolerance: 0.1 }
     }
 }
 
@@ -33,6 +55,10 @@ impl Validate for Params {
             .within("min_depth", self.min_depth, 0.0, 1000.0)
             .above("max_depth", self.max_depth, 0.0, 1e6)
             .below("min_depth", self.min_depth, "max_depth", self.max_depth)
+            .within("occlusion_tolerance", self.occlusion_tolerance, 0.0, 1.0)
+            // Every sample scans its window: its area bounds the work.
+            .within("occlusion_window[0]", self.occlusion_window[0], 0.0, 8.0)
+            .within("occlusion_window[1]", self.occlusion_window[1], 0.0, 16.0)
             .done()
     }
 }
@@ -47,7 +73,55 @@ pub fn project_points(params: &Params, points: &PointCloud, view: &CameraView) -
             z.splat(u, v, c.z as f32);
         }
     }
-    DepthMap { width: view.width, height: view.height, data: z.depth }
+    let mut depth = DepthMap { width: view.width, height: view.height, data: z.depth };
+    drop_occluded(&mut depth, params.occlusion_window, params.occlusion_tolerance);
+    depth
+}
+
+/// Sets to 0 every sample of the sparse `map` (0 = none) with a sample nearer by more than
+/// `tolerance` on two opposite sides within `window` (half-width, reach; mean sample spacings):
+/// above and below, or left and right. Every decision reads the map as projected, so the result
+/// does not depend on the scan order.
+pub fn drop_occluded(map: &mut DepthMap, window: [f64; 2], tolerance: f64) {
+    let (w, h) = (map.width as usize, map.height as usize);
+    let samples = map.data.iter().filter(|&&z| z > 0.0).count();
+    if samples == 0 || window[0] <= 0.0 && window[1] <= 0.0 {
+        return;
+    }
+    let spacing = ((w * h) as f64 / samples as f64).sqrt();
+    let side = (window[0] * spacing).round() as isize;
+    let reach = ((window[1] * spacing).round() as isize).max(1);
+    let data = &map.data;
+    let scale = (1.0 - tolerance) as f32;
+    // Whether a sample nearer than `limit` lies in rows y+dy0..=y+dy1, columns x+dx0..=x+dx1.
+    let nearer_in = |x: isize, y: isize, limit: f32, (dx0, dx1): (isize, isize), (dy0, dy1): (isize, isize)| {
+        let (x0, x1) = ((x + dx0).max(0), (x + dx1).min(w as isize - 1));
+        let (y0, y1) = ((y + dy0).max(0), (y + dy1).min(h as isize - 1));
+        (y0..=y1).any(|yy| {
+            let row = &data[yy as usize * w..][..w];
+            (x0..=x1).any(|xx| {
+                let z = row[xx as usize];
+                z > 0.0 && z < limit
+            })
+        })
+    };
+    let occluded: Vec<usize> = (0..w * h)
+        .filter(|&i| {
+            let z = data[i];
+            if z <= 0.0 {
+                return false;
+            }
+            let (x, y, limit) = ((i % w) as isize, (i / w) as isize, z * scale);
+            let vertical = nearer_in(x, y, limit, (-side, side), (-reach, -1))
+                && nearer_in(x, y, limit, (-side, side), (1, reach));
+            vertical
+                || nearer_in(x, y, limit, (-reach, -1), (-side, side))
+                    && nearer_in(x, y, limit, (1, reach), (-side, side))
+        })
+        .collect();
+    for i in occluded {
+        map.data[i] = 0.0;
+    }
 }
 
 crate::ports! {
@@ -61,7 +135,7 @@ pub struct DepthPrompt(Params);
 
 impl Stage for DepthPrompt {
     const KIND: &'static str = "DepthPrompt";
-    const VERSION: u32 = 2;
+    const VERSION: u32 = 3;
     const SUMMARY: &'static str = "Points -> sparse z-buffered depth of one camera (the depth prompt before its fill)";
     const GRAINS: &'static [&'static str] = &["camera"];
     type Params = Params;
@@ -79,6 +153,58 @@ impl Stage for DepthPrompt {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A `w x h` sparse map with samples at `(x, y, z)`.
+    fn sparse(w: u32, h: u32, samples: &[(usize, usize, f32)]) -> DepthMap {
+        let mut data = vec![0.0; (w * h) as usize];
+        for &(x, y, z) in samples {
+            data[y * w as usize + x] = z;
+        }
+        DepthMap { width: w, height: h, data }
+    }
+
+    #[test]
+    fn background_between_the_scan_lines_of_a_near_object_is_dropped() {
+        // 40x40 px, rings of a car at 2 m on rows 10 and 20 (columns 5-30), road at 12 m on row
+        // 15 between them (the leak), a wall at 30 m right of the car on rows 10-20 (beside the
+        // silhouette: kept), and ground rows 30 (8 m) and 36 (5 m): nearer below only, kept.
+        let mut s = Vec::new();
+        for x in 5..=30 {
+            s.push((x, 10, 2.0));
+            s.push((x, 20, 2.0));
+            s.push((x, 15, 12.0));
+        }
+        for y in 10..=20 {
+            s.push((33, y, 30.0));
+        }
+        for x in 0..40 {
+            s.push((x, 30, 8.0));
+            s.push((x, 36, 5.0));
+        }
+        let mut map = sparse(40, 40, &s);
+        let before = map.clone();
+        // Mean spacing sqrt(1600 / 169) ~ 3.1 px: reach 3 spacings ~ 9 px covers the 5 px gaps.
+        drop_occluded(&mut map, [0.5, 3.0], 0.1);
+        let at = |m: &DepthMap, x: usize, y: usize| m.data[y * 40 + x];
+        for x in 5..=30 {
+            assert_eq!(at(&map, x, 15), 0.0, "leak at column {x} kept");
+            assert_eq!((at(&map, x, 10), at(&map, x, 20)), (2.0, 2.0));
+        }
+        for y in 10..=20 {
+            assert_eq!(at(&map, 33, y), 30.0, "the wall beside the car lost row {y}");
+        }
+        for x in 0..40 {
+            assert_eq!((at(&map, x, 30), at(&map, x, 36)), (8.0, 5.0));
+        }
+        // [0, 0] keeps every sample.
+        let mut kept = before.clone();
+        drop_occluded(&mut kept, [0.0, 0.0], 0.1);
+        assert_eq!(kept, before);
+        // A leak only 5% farther than the car is within a 10% tolerance: kept.
+        let mut close = sparse(40, 40, &[(10, 10, 2.0), (10, 20, 2.0), (10, 15, 2.1)]);
+        drop_occluded(&mut close, [0.5, 3.0], 0.1);
+        assert_eq!(at(&close, 10, 15), 2.1);
+    }
 
     #[test]
     fn the_nearest_point_of_a_pixel_wins_and_the_depth_range_is_kept() {
