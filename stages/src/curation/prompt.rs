@@ -17,6 +17,13 @@
 //! ("Real-time rendering of massive unstructured raw point clouds using screen-space
 //! operators"), which hides a point when nearer points surround it; we ask for two opposite
 //! sides instead of a cone of directions, which is enough for the scan-line gaps of LiDAR.
+//!
+//! The window is a trade measured on three data sets (docs/BENCHMARKS.md): [0.5, 3] spacings
+//! took synthetic seed 0's bad pixels from 4.5% to 3.8% but worsened the real LiDAR hold-outs
+//! (DGP Abs Rel 0.078 -> 0.085), dropping far road seen between posts and bushes as well as
+//! leaks; [0.3, 2] keeps the real hold-outs within 0.001 and still takes 4.5% to 4.2%. The
+//! hold-out cannot judge this alone: its points have the same LiDAR-versus-camera visibility as
+//! the leaks.
 
 use crate::camera::{CameraView, CloudInView, ZBuffer};
 use crate::stage::Stage;
@@ -45,7 +52,7 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        Params { min_depth: 1.0, max_depth: 100.0, occlusion_window: [0.5, 3.0], occlusion_tolerance: 0.1 }
+        Params { min_depth: 1.0, max_depth: 100.0, occlusion_window: [0.3, 2.0], occlusion_tolerance: 0.1 }
     }
 }
 
@@ -184,6 +191,7 @@ mod tests {
         let mut map = sparse(40, 40, &s);
         let before = map.clone();
         // Mean spacing sqrt(1600 / 169) ~ 3.1 px: reach 3 spacings ~ 9 px covers the 5 px gaps.
+        // (The default [0.3, 2] would reach 6 px.)
         drop_occluded(&mut map, [0.5, 3.0], 0.1);
         let at = |m: &DepthMap, x: usize, y: usize| m.data[y * 40 + x];
         for x in 5..=30 {
