@@ -50,7 +50,7 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, grow: 0.13, smooth_from: 8.0, smooth_sigma: 40.0, smooth_edge: 30.0 }
+        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, grow: 0.13, smooth_from: 2.0, smooth_sigma: 40.0, smooth_edge: 30.0 }
     }
 }
 
@@ -580,9 +580,12 @@ mod tests {
         let sky = Mask { width: w, height: h, data: sky.into_iter().map(u8::from).collect() };
         let d = complete(&Params::default(), &image, &sparse, Some(&sky)).depth;
         let at = |x: usize, y: usize| d.data[y * w as usize + x];
-        assert_eq!(at(15, 32), 5.0);
-        assert_eq!(at(15, 33), 20.0);
-        assert_eq!(at(15, 5), 5.0, "the wall continues up");
+        // Pixels between the rows take their row's edge-aware average, which the grown samples
+        // beside the wall's edges nudge by a few millimetres.
+        let near = |z: f32, truth: f32| (z - truth).abs() < 0.01 * truth;
+        assert!(near(at(15, 32), 5.0), "{}", at(15, 32));
+        assert!(near(at(15, 33), 20.0), "{}", at(15, 33));
+        assert!(near(at(15, 5), 5.0), "the wall continues up: {}", at(15, 5));
         assert_eq!(at(3, 5), 100.0, "sky");
         // Not sky (below the sky colour) and the road's depth, not the wall's. (Sample growth
         // puts the wall's depth one column beyond its edge, which the row average spreads a
