@@ -20,6 +20,10 @@
 //! written. A rerun trusts a file whose stat is unchanged; one whose stat changed is hashed again
 //! and rewritten if its bytes differ (an edit that keeps the size and mtime still changes ctime).
 //! [`verify`] hashes every file on demand.
+//!
+//! Outputs that are exported and read by no stage are kept only here, not in the store (see
+//! [`OutputFolder`] and docs/cache.md): the folder is then where their bytes live, and a task
+//! record of theirs is a cache hit only while its files here hold the bytes it names.
 
 use crate::blob;
 use crate::digest::Digest;
@@ -30,11 +34,11 @@ use crate::store::{read_blob, sync_filesystem, write_atomic_via, write_whole_via
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{Dim, Export, TemplatePart};
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::os::unix::fs::MetadataExt;
 use std::path::{Component, Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 const MANIFEST: &str = ".dist4d-manifest";
 const TMP: &str = ".dist4d-tmp";
@@ -91,7 +95,7 @@ struct Held {
 }
 
 /// The `.dist4d-manifest` of an output folder.
-#[derive(Debug, Default)]
+#[derive(Debug, Default, Clone)]
 struct Manifest {
     /// The pipeline that owns the folder; None for a version-1 manifest, which named none.
     owner: Option<String>,
@@ -179,14 +183,91 @@ pub fn read_index(out_dir: &Path) -> Result<Vec<IndexEntry>> {
     Ok(index.files)
 }
 
-pub struct Exporter {
+/// An output folder as a run (or explain) found it: its manifest as earlier runs left it, read
+/// once, and the files found to hold given bytes by hashing since. It says whether an output kept
+/// only in the folder (not in the store) is still in place, which decides whether its task is a
+/// cache hit, and the exporter then trusts the same answer instead of hashing the file again.
+pub struct OutputFolder {
     dir: PathBuf,
     /// Dimension names, for messages about labels that cannot be path components.
     dims: Vec<String>,
+    manifest: Manifest,
+    /// Files whose stat was not the manifest's and that were hashed: path -> (digest, stat then).
+    confirmed: Mutex<HashMap<String, (Digest, FileStat)>>,
+}
+
+impl OutputFolder {
+    /// The folder `dir` as its manifest describes it (as an empty folder when it has none),
+    /// without writing anything: for explain, which must not claim a folder.
+    pub fn read(dir: &Path, dims: &[Dim]) -> Result<OutputFolder> {
+        Ok(OutputFolder::new(dir, dims, Manifest::read(dir)?.unwrap_or_default()))
+    }
+
+    fn new(dir: &Path, dims: &[Dim], manifest: Manifest) -> OutputFolder {
+        OutputFolder {
+            dir: dir.to_path_buf(),
+            dims: dims.iter().map(|d| d.name.clone()).collect(),
+            manifest,
+            confirmed: Mutex::new(HashMap::new()),
+        }
+    }
+
+    /// The pipeline the manifest names as the folder's owner, if any.
+    pub fn owner(&self) -> Option<&str> {
+        self.manifest.owner.as_deref()
+    }
+
+    /// Whether the file `export` makes for `item` holds the bytes of digest `digest` (`size`
+    /// bytes): yes when its stat is the one the manifest (or an earlier hash in this process)
+    /// recorded for those bytes; no when it is missing, has another size, or its path cannot be
+    /// made; otherwise the file is hashed, or, when `hash` is false, `None` says that only
+    /// hashing can tell. A stat can be trusted because every write replaces the file (a new
+    /// inode) and an edit in place changes its ctime.
+    pub fn holds(
+        &self,
+        export: &Export,
+        item: &ItemKey,
+        dataset: &dyn Dataset,
+        digest: &Digest,
+        size: u64,
+        hash: bool,
+    ) -> Option<bool> {
+        let Ok(rel) = render(export, item, dataset, &self.dims) else { return Some(false) };
+        let Ok(path) = confined(&self.dir, &rel) else { return Some(false) };
+        let Some(now) = FileStat::of(&path) else { return Some(false) };
+        if now.size != size {
+            return Some(false);
+        }
+        if let Some(known) = self.known_digest(&rel, &now) {
+            return Some(known == *digest);
+        }
+        if !hash {
+            return None;
+        }
+        let Some(found) = file_digest(&path) else { return Some(false) };
+        // A file changed while it was hashed has another stat by now: not remembered.
+        if FileStat::of(&path) == Some(now) {
+            self.confirmed.lock().unwrap().insert(rel, (found, now));
+        }
+        Some(found == *digest)
+    }
+
+    /// The digest of the bytes at `rel` when its stat is `now`, if the manifest or a hash made in
+    /// this process says.
+    fn known_digest(&self, rel: &str, now: &FileStat) -> Option<Digest> {
+        if let Some(held) = self.manifest.files.get(rel).filter(|h| h.stat.as_ref() == Some(now)) {
+            return Some(held.digest);
+        }
+        let confirmed = self.confirmed.lock().unwrap();
+        confirmed.get(rel).filter(|(_, stat)| stat == now).map(|(d, _)| *d)
+    }
+}
+
+pub struct Exporter {
+    /// The folder as earlier runs left it, owned by this pipeline.
+    folder: Arc<OutputFolder>,
     writer: String,
     counter: u64,
-    /// The manifest as earlier runs left it, owned by this pipeline.
-    manifest: Manifest,
     /// This run's files as planned, and those of them confirmed or written (with their stat).
     entries: BTreeMap<String, IndexEntry>,
     done: BTreeMap<String, FileStat>,
@@ -294,7 +375,7 @@ impl Exporter {
     /// is written; claims a new or empty folder by writing its manifest at once, so that a run
     /// killed before its end still leaves the folder marked as this pipeline's.
     pub fn open(dir: &Path, store: &Store, pipeline: &str, stages: &[&str], dims: &[Dim]) -> Result<Exporter> {
-        let manifest = match Manifest::read(dir)? {
+        let mut manifest = match Manifest::read(dir)? {
             Some(m) => match &m.owner {
                 None => {
                     adopt_legacy(dir, pipeline, stages)?;
@@ -334,28 +415,32 @@ impl Exporter {
                 let _ = std::fs::remove_file(&p);
             }
         }
-        let mut exporter = Exporter {
-            dir: dir.to_path_buf(),
-            dims: dims.iter().map(|d| d.name.clone()).collect(),
-            writer: store.writer_id().to_string(),
-            counter: 0,
-            manifest,
+        let writer = store.writer_id().to_string();
+        let mut counter = 0;
+        if manifest.owner.as_deref() != Some(pipeline) {
+            manifest.owner = Some(pipeline.to_string());
+            counter += 1;
+            manifest.write(dir, &dir.join(TMP).join(format!("{writer}-manifest{counter}")))?;
+        }
+        Ok(Exporter {
+            folder: Arc::new(OutputFolder::new(dir, dims, manifest)),
+            writer,
+            counter,
             entries: BTreeMap::new(),
             done: BTreeMap::new(),
             reflinks: Arc::new(AtomicBool::new(true)),
             jobs_done: false,
-        };
-        if exporter.manifest.owner.as_deref() != Some(pipeline) {
-            exporter.manifest.owner = Some(pipeline.to_string());
-            let tmp = exporter.tmp_path("manifest");
-            exporter.manifest.write(dir, &tmp)?;
-        }
-        Ok(exporter)
+        })
+    }
+
+    /// The folder as this run found it, for the cache decision of outputs kept only there.
+    pub fn folder(&self) -> Arc<OutputFolder> {
+        self.folder.clone()
     }
 
     fn tmp_path(&mut self, what: &str) -> PathBuf {
         self.counter += 1;
-        self.dir.join(TMP).join(format!("{}-{what}{}", self.writer, self.counter))
+        self.folder.dir.join(TMP).join(format!("{}-{what}{}", self.writer, self.counter))
     }
 
     /// Records the file an output maps to; returns a job unless the file is known to be in place.
@@ -371,8 +456,8 @@ impl Exporter {
         mem: Option<Blob>,
         store: &Store,
     ) -> Result<Option<ExportJob>> {
-        let rel = render(export, item, dataset, &self.dims)?;
-        let dest = confined(&self.dir, &rel)?;
+        let rel = render(export, item, dataset, &self.folder.dims)?;
+        let dest = confined(&self.folder.dir, &rel)?;
         let (stage, port) = names;
         self.entries.insert(
             rel.clone(),
@@ -385,13 +470,15 @@ impl Exporter {
                 bytes: out.size,
             },
         );
-        // In place: the manifest says the path holds these bytes, and the file is untouched since.
-        let held = self.manifest.files.get(&rel);
+        // In place: the manifest (or a hash made by this run) says the path holds these bytes, and
+        // the file is untouched since.
+        let held = self.folder.manifest.files.get(&rel);
         let same_bytes = held.is_some_and(|h| h.digest == out.digest && h.size == out.size);
-        if let Some(stat) = held.and_then(|h| h.stat).filter(|s| same_bytes && FileStat::of(&dest).as_ref() == Some(s))
-        {
-            self.done.insert(rel, stat);
-            return Ok(None);
+        if let Some(now) = FileStat::of(&dest).filter(|s| s.size == out.size) {
+            if self.folder.known_digest(&rel, &now) == Some(out.digest) {
+                self.done.insert(rel, now);
+                return Ok(None);
+            }
         }
         let confirm = held.is_none() || same_bytes;
         let tmp = self.tmp_path("");
@@ -419,31 +506,33 @@ impl Exporter {
     /// Both list only files that exist: a path whose export failed keeps its manifest entry only
     /// while the file earlier runs wrote is still there, untouched, and is left out of the index.
     pub fn finish(mut self) -> Result<u64> {
-        let mut manifest = std::mem::take(&mut self.manifest);
-        for (rel, entry) in &self.entries {
-            if let Some(stat) = self.done.get(rel) {
+        let (manifest_tmp, index_tmp) = (self.tmp_path("manifest"), self.tmp_path("index"));
+        let Exporter { folder, entries, done, jobs_done, .. } = self;
+        let dir = folder.dir.clone();
+        // Shared with the key layer during the run; by its end, normally ours alone.
+        let mut manifest = Arc::try_unwrap(folder).map(|f| f.manifest).unwrap_or_else(|f| f.manifest.clone());
+        for (rel, entry) in &entries {
+            if let Some(stat) = done.get(rel) {
                 let digest = Digest::from_hex(&entry.digest).unwrap_or_default();
                 manifest.files.insert(rel.clone(), Held { digest, size: entry.bytes, stat: Some(*stat) });
             }
         }
-        manifest.files.retain(|rel, held| match FileStat::of(&self.dir.join(rel)) {
+        manifest.files.retain(|rel, held| match FileStat::of(&dir.join(rel)) {
             None => false,
-            Some(now) => held.stat.is_none_or(|s| s == now) || self.done.contains_key(rel),
+            Some(now) => held.stat.is_none_or(|s| s == now) || done.contains_key(rel),
         });
         let files: Vec<&IndexEntry> =
-            self.entries.iter().filter(|(rel, _)| self.done.contains_key(*rel)).map(|(_, e)| e).collect();
+            entries.iter().filter(|(rel, _)| done.contains_key(*rel)).map(|(_, e)| e).collect();
         let count = files.len() as u64;
         // The files written without an fsync each reach the disk before the manifest that lists
         // them as written: after a power loss, a file the manifest trusts holds its bytes.
-        if self.jobs_done {
-            sync_filesystem(&self.dir)?;
+        if jobs_done {
+            sync_filesystem(&dir)?;
         }
         // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
         let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files }))?;
-        let manifest_tmp = self.tmp_path("manifest");
-        manifest.write(&self.dir, &manifest_tmp)?;
-        let index_tmp = self.tmp_path("index");
-        write_atomic_via(&index_tmp, &self.dir.join(INDEX), &json)?;
+        manifest.write(&dir, &manifest_tmp)?;
+        write_atomic_via(&index_tmp, &dir.join(INDEX), &json)?;
         Ok(count)
     }
 }
