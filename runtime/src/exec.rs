@@ -130,6 +130,8 @@ pub struct RunSummary {
 struct Produced {
     r: OutputRef,
     mem: Option<Blob>,
+    /// Made by this run and kept only in the output folder: its task's record waits for its files.
+    only_in_folder: bool,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
@@ -318,12 +320,6 @@ impl<'a> Engine<'a> {
             rank,
             live_tasks: 0,
             export_jobs: Vec::new(),
-            only_exported: p
-                .nodes
-                .iter()
-                .enumerate()
-                .map(|(n, node)| (0..node.outputs.len()).map(|port| keys.only_exported(n, port)).collect())
-                .collect(),
             awaiting: HashMap::new(),
             next_awaiting: 0,
         };
@@ -515,21 +511,21 @@ impl<'a> Engine<'a> {
         }
         let micros = t0.elapsed().as_micros() as u64;
         let mut produced = Vec::with_capacity(outs.len());
-        let mut awaits_export = false;
         for (port, Output { bytes, .. }) in outs.into_iter().enumerate() {
             let digest = Digest::of(&bytes);
             let size = bytes.len() as u64;
+            // Its bytes go to the output folder only (the exporter writes them from memory).
+            let only_in_folder = keys.only_in_folder(job.node, port, size);
             let inline = if bytes.len() <= INLINE_MAX {
                 Some(Arc::<[u8]>::from(bytes.as_slice()))
-            } else if keys.only_exported(job.node, port) {
-                // Its bytes go to the output folder only (the exporter writes them from memory).
-                awaits_export = true;
-                None
             } else {
-                self.store.put_blob(&digest, &bytes)?;
+                if !only_in_folder {
+                    self.store.put_blob(&digest, &bytes)?;
+                }
                 None
             };
-            produced.push(Produced { r: OutputRef { digest, size, inline }, mem: Some(Arc::new(bytes)) });
+            let r = OutputRef { digest, size, inline };
+            produced.push(Produced { r, mem: Some(Arc::new(bytes)), only_in_folder });
         }
         let record = TaskRecord {
             key,
@@ -554,7 +550,7 @@ impl<'a> Engine<'a> {
                 .unwrap_or(0),
             micros,
         };
-        if awaits_export {
+        if produced.iter().any(|p| p.only_in_folder) {
             return Ok(Outcome::Executed(key, produced, micros, Some(record)));
         }
         self.store.append_record(&record)?;
@@ -593,8 +589,6 @@ struct Coord {
     /// Export writes decided by `finish` (with the task's slot and index, and the id of the record
     /// awaiting it), to be spawned by the loop.
     export_jobs: Vec<(ExportJob, u32, u32, Option<u64>)>,
-    /// Per node and output port: kept only in the output folder (see [`Keys::exporting_to`]).
-    only_exported: Vec<Vec<bool>>,
     /// Task records waiting for their exports, by id.
     awaiting: HashMap<u64, Awaiting>,
     next_awaiting: u64,
@@ -709,7 +703,9 @@ impl Coord {
     /// Records a finished task's key and keeps its outputs (first run or run again alike).
     fn complete(&mut self, e: &Engine, slot: u32, t: usize, outcome: Outcome) -> Result<()> {
         let (key, produced, record) = match outcome {
-            Outcome::Cached(key, outs) => (key, outs.into_iter().map(|r| Produced { r, mem: None }).collect(), None),
+            Outcome::Cached(key, outs) => {
+                (key, outs.into_iter().map(|r| Produced { r, mem: None, only_in_folder: false }).collect(), None)
+            }
             Outcome::Executed(key, produced, _, record) => (key, produced, record),
         };
         self.keys_out.write_all(&key.0)?;
@@ -771,8 +767,7 @@ impl Coord {
             for x in p.exports.iter().filter(|x| x.node == node) {
                 let out = &produced[x.port];
                 let names = (p.nodes[node].name.as_str(), p.nodes[node].outputs[x.port].name.as_str());
-                let waits = self.only_exported[node][x.port] && out.r.inline.is_none();
-                let waiting = awaiting.as_mut().filter(|_| waits);
+                let waiting = awaiting.as_mut().filter(|_| out.only_in_folder);
                 match exporter.plan(x, names, &item, e.dataset, &out.r, out.mem.clone(), e.store) {
                     Ok(Some(job)) => {
                         run.exports_pending += 1;
@@ -1034,7 +1029,7 @@ fn release_inputs(run: &mut OuterRun, t: usize) {
 }
 
 fn strip(p: &Arc<Vec<Produced>>) -> Arc<Vec<Produced>> {
-    Arc::new(p.iter().map(|x| Produced { r: x.r.clone(), mem: None }).collect())
+    Arc::new(p.iter().map(|x| Produced { mem: None, ..x.clone() }).collect())
 }
 
 fn count_items(view: &View, prefix: ItemKey, depth: usize) -> u64 {

@@ -591,8 +591,9 @@ fn a_folder_where_a_blob_should_be_is_replaced() {
 
 // Outputs kept only in the output folder: exported, read by no stage, so not stored as blobs.
 
-/// `file` outputs of 3000 bytes: too big to live inside their records.
-const BIG_FILES: &[&str] = &["file.size=3000"];
+/// `file` outputs of 20000 bytes: too big to live inside their records, or to be stored when
+/// only exported (see [`crate::keys::STORED_EXPORT_MAX`]).
+const BIG_FILES: &[&str] = &["file.size=20000"];
 
 /// Exported path -> digest (hex), from the output folder's index.
 fn exported_digests(out: &Path) -> BTreeMap<String, String> {
@@ -703,6 +704,22 @@ fn exported_outputs_that_a_stage_reads_are_still_stored() {
 }
 
 #[test]
+fn small_outputs_only_exported_are_still_stored() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    // 3000 bytes: not inside their records, but small enough to cost nothing in the store.
+    let p = testkit::load(CHAIN, &["file.size=3000"]);
+    let grid = testkit::grid_of(&p);
+    run_with(&p, &grid, &store, &exporting(&out));
+    let reference = files_under(&out);
+    assert!(exported_digests(&out).values().all(|d| has_blob(&store, d)));
+    std::fs::remove_dir_all(&out).unwrap();
+    let r = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!((r.executed(), r.exported), (0, 8), "exported again from the store");
+    assert_eq!(files_under(&out), reference);
+}
+
+#[test]
 fn a_run_killed_after_its_exports_but_before_its_manifest_resumes_without_running_them_again() {
     let dir = tempfile::tempdir().unwrap();
     let (store, out) = (dir.path().join("store"), dir.path().join("out"));
@@ -730,7 +747,7 @@ fn a_task_whose_export_failed_leaves_no_record_and_runs_again() {
     let grid = testkit::grid_of(&testkit::load(CHAIN, BIG_FILES));
     run_with(&testkit::load(CHAIN, BIG_FILES), &grid, &store, &exporting(&out));
     // New bytes for every file; one cannot be written (a folder is in its way).
-    let p = testkit::load(CHAIN, &["file.size=3000", "file.salt=1"]);
+    let p = testkit::load(CHAIN, &["file.size=20000", "file.salt=1"]);
     std::fs::remove_file(out.join("s1/002.bin")).unwrap();
     std::fs::create_dir_all(out.join("s1/002.bin/in-the-way")).unwrap();
     let r = run_with(&p, &grid, &store, &exporting(&out));
