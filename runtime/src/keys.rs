@@ -32,9 +32,9 @@ pub const TASK_KEY_DOMAIN: &str = "dist4d-task-v2";
 pub const SEED_DOMAIN: &str = "dist4d-seed-v1";
 
 /// Outputs only exported of at most this many bytes (a few filesystem blocks) are stored all the
-/// same: they cost next to nothing in the store (curation's metrics: ~4 KB an image, against ~18 MB
-/// of exports), and their task may cost much to run again when a file is lost (EvalDepth: ~220 ms
-/// an image).
+/// same: they cost next to nothing in the store (a few KB of scores per item, against megabytes of
+/// exports), while the task that made them may cost much to run again when a file is lost (a
+/// stage that scores its item against references reads far more than it writes).
 pub const STORED_EXPORT_MAX: u64 = 16 << 10;
 
 /// The digest of checked params, as task keys and task records hold it.
