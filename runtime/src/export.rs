@@ -255,9 +255,16 @@ impl OutputFolder {
     /// The digest of the bytes at `rel` when its stat is `now`, if the manifest or a hash made in
     /// this process says.
     fn known_digest(&self, rel: &str, now: &FileStat) -> Option<Digest> {
-        if let Some(held) = self.manifest.files.get(rel).filter(|h| h.stat.as_ref() == Some(now)) {
-            return Some(held.digest);
-        }
+        self.listed_digest(rel, now).or_else(|| self.hashed_digest(rel, now))
+    }
+
+    /// The digest the manifest lists for `rel` with stat `now`.
+    fn listed_digest(&self, rel: &str, now: &FileStat) -> Option<Digest> {
+        self.manifest.files.get(rel).filter(|h| h.stat.as_ref() == Some(now)).map(|h| h.digest)
+    }
+
+    /// The digest a hash made in this process found at `rel` with stat `now`.
+    fn hashed_digest(&self, rel: &str, now: &FileStat) -> Option<Digest> {
         let confirmed = self.confirmed.lock().unwrap();
         confirmed.get(rel).filter(|(_, stat)| stat == now).map(|(d, _)| *d)
     }
@@ -470,12 +477,16 @@ impl Exporter {
                 bytes: out.size,
             },
         );
-        // In place: the manifest (or a hash made by this run) says the path holds these bytes, and
-        // the file is untouched since.
+        // In place: the manifest says the path holds these bytes, and the file is untouched since;
+        // or a hash made by this run found them there (a file the manifest does not list yet, as
+        // a killed run leaves them: it may not be on disk yet, so the folder is synced before the
+        // manifest lists it, as for a file written).
         let held = self.folder.manifest.files.get(&rel);
         let same_bytes = held.is_some_and(|h| h.digest == out.digest && h.size == out.size);
         if let Some(now) = FileStat::of(&dest).filter(|s| s.size == out.size) {
-            if self.folder.known_digest(&rel, &now) == Some(out.digest) {
+            let listed = self.folder.listed_digest(&rel, &now) == Some(out.digest);
+            if listed || self.folder.hashed_digest(&rel, &now) == Some(out.digest) {
+                self.jobs_done |= !listed;
                 self.done.insert(rel, now);
                 return Ok(None);
             }
@@ -701,6 +712,50 @@ mod tests {
         {
             assert!(confined(dir, bad).is_err(), "{bad:?}");
         }
+    }
+
+    #[test]
+    fn a_folder_holds_a_file_by_its_listed_stat_or_by_a_hash_when_one_is_allowed() {
+        let p = crate::testkit::load(
+            r#"Pipeline(
+                dataset: Grid(scenes: 1, frames: 2, cameras: 1),
+                stages: {"file": ToFile(inputs: {"x": "dataset.frame_value"}, grain: frame)},
+                export: {"file.file": "{scene}/{frame}.bin"},
+            )"#,
+            &[],
+        );
+        let grid = crate::testkit::grid_of(&p);
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(dir.path().join("s0")).unwrap();
+        let (first, second) = (dir.path().join("s0/000.bin"), dir.path().join("s0/001.bin"));
+        std::fs::write(&first, b"first").unwrap();
+        std::fs::write(&second, b"second").unwrap();
+        let mut m = Manifest { owner: Some("test".into()), files: BTreeMap::new() };
+        for (rel, bytes) in [("s0/000.bin", &b"first"[..]), ("s0/001.bin", b"second")] {
+            let stat = FileStat::of(&dir.path().join(rel));
+            m.files.insert(rel.into(), Held { digest: Digest::of(bytes), size: bytes.len() as u64, stat });
+        }
+        m.write(dir.path(), &dir.path().join("tmp")).unwrap();
+        let (item0, item1) = (ItemKey::new(&[0, 0]), ItemKey::new(&[0, 1]));
+
+        let folder = OutputFolder::read(dir.path(), &p.dims).unwrap();
+        let holds = |item: &ItemKey, bytes: &[u8], hash: bool| {
+            folder.holds(&p.exports[0], item, &grid, &Digest::of(bytes), bytes.len() as u64, hash)
+        };
+        // Listed with this stat: no read needed either way.
+        assert_eq!(holds(&item0, b"first", false), Some(true));
+        assert_eq!(holds(&item0, b"fir5t", false), Some(false));
+        assert_eq!(holds(&item0, b"other bytes", false), Some(false), "another size");
+        // Another stat (touched): only a hash can tell, and is then remembered.
+        let later = std::fs::metadata(&second).unwrap().modified().unwrap() + std::time::Duration::from_secs(5);
+        std::fs::File::options().write(true).open(&second).unwrap().set_modified(later).unwrap();
+        assert_eq!(holds(&item1, b"second", false), None);
+        assert_eq!(holds(&item1, b"second", true), Some(true));
+        assert_eq!(holds(&item1, b"second", false), Some(true));
+        assert_eq!(holds(&item1, b"secont", true), Some(false));
+        // Gone: no.
+        std::fs::remove_file(&first).unwrap();
+        assert_eq!(holds(&item0, b"first", true), Some(false));
     }
 
     #[test]
