@@ -201,7 +201,7 @@ enum Outcome {
     Cached(Digest, Vec<OutputRef>),
     /// Key, outputs, microseconds, and the task record when it waits for exports to be appended
     /// (outputs kept only in the output folder); `None` when the worker appended it.
-    Executed(Digest, Vec<Produced>, u64, Option<TaskRecord>),
+    Executed(Digest, Vec<Produced>, u64, Option<Box<TaskRecord>>),
 }
 
 enum Msg {
@@ -224,7 +224,7 @@ enum Msg {
 /// their files to be written before it is appended.
 struct Awaiting {
     /// None once an export of it failed: its bytes are not all anywhere, so no record.
-    record: Option<TaskRecord>,
+    record: Option<Box<TaskRecord>>,
     files_left: usize,
 }
 
@@ -551,7 +551,7 @@ impl<'a> Engine<'a> {
             micros,
         };
         if produced.iter().any(|p| p.only_in_folder) {
-            return Ok(Outcome::Executed(key, produced, micros, Some(record)));
+            return Ok(Outcome::Executed(key, produced, micros, Some(Box::new(record))));
         }
         self.store.append_record(&record)?;
         Ok(Outcome::Executed(key, produced, micros, None))
@@ -755,7 +755,14 @@ impl Coord {
     /// task just executed whose outputs are kept only in the output folder, is appended once the
     /// files of those outputs are in place (at once when they already are), and never when one
     /// of them cannot be written.
-    fn store_outputs(&mut self, e: &Engine, slot: u32, t: usize, produced: Vec<Produced>, record: Option<TaskRecord>) {
+    fn store_outputs(
+        &mut self,
+        e: &Engine,
+        slot: u32,
+        t: usize,
+        produced: Vec<Produced>,
+        record: Option<Box<TaskRecord>>,
+    ) {
         let p = e.pipeline;
         let run = self.active[slot as usize].as_mut().unwrap();
         run.state[t] = State::Done;
