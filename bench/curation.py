@@ -6,7 +6,8 @@ data. Prints Markdown for docs/BENCHMARKS.md.
                                              [--dist4d BINARY] [--set STAGE.PARAM=VALUE ...]
 
 Sections: accuracy (full pipeline + ablations on synthetic data; the shipped pipeline's time per
-stage and store/export bytes), completion (vs ipbasic_cv2.py), chain (curation without MVS with its
+stage and store/export bytes), shipped (the shipped pipeline alone: a cold run, a warm one, one
+after deleting the output folder; store and export bytes; not run unless asked for), completion (vs ipbasic_cv2.py), chain (curation without MVS with its
 depth files written vs ../shared/bench/peers/curation_chain.py, equal work; store/export bytes),
 holdout (shared nuScenes and DGP). --dist4d measures another binary (say a copy of an older build)
 instead of building target/release/dist4d.
@@ -288,6 +289,37 @@ def space(cache, out, images):
             f"{exported / images / 1e6:.2f} MB per image: store / exports = {store / max(exported, 1):.2f}")
 
 
+def section_shipped(data, tmp, base):
+    """The shipped pipeline as it ships: a cold run, the same command again (everything cached),
+    and again after deleting the output folder; the store and export bytes per image after the
+    cold run."""
+    ron = tmp / "shipped.ron"
+    ron.write_text(base)
+    cache, out = tmp / "cache-shipped", tmp / "out-shipped"
+    args = ["run", ron, "--set", f"dataset.root={data}", "--cache", cache, "--out", out, "--progress", "off"]
+    report, cold, cold_cpu = run(args)
+    stages = stage_table(report)
+    space_line = space(cache, out, stages["complete"][0])
+    report, warm, warm_cpu = run(args)
+    cached = re.search(r"(\d+) executed, (\d+) cached", report)
+    shutil.rmtree(out)
+    report, lost, lost_cpu = run(args)
+    redone = re.search(r"(\d+) executed, (\d+) cached", report)
+    shutil.rmtree(cache)
+    shutil.rmtree(out)
+    print("## The shipped pipeline: cold and warm runs, store and export bytes\n")
+    print(f"`dist4d run pipelines/curation.ron --set dataset.root={data} --cache C --out O` "
+          f"({stages['aggregate'][0]} keyframes x 6 cameras), then the same command again, and again "
+          "after `rm -r O`:\n")
+    print("| run | wall | CPU |")
+    print("| --- | ---: | ---: |")
+    print(f"| cold | {cold:.1f} s | {cold_cpu:.1f} s |")
+    print(f"| warm ({cached.group(1)} executed, {cached.group(2)} cached) | {warm:.2f} s | {warm_cpu:.2f} s |")
+    print(f"| output folder deleted ({redone.group(1)} executed, {redone.group(2)} cached) | {lost:.1f} s "
+          f"| {lost_cpu:.1f} s |")
+    print(f"\nSpace after the cold run: {space_line}.\n")
+
+
 def section_chain(data, tmp, base):
     """Curation without MVS, depth files written: dist4d vs curation_chain.py (equal work)."""
     print("## End to end vs the peer chain (curation without MVS, EXR + PNG16 + NPY written)\n")
@@ -405,6 +437,8 @@ def main():
             section_accuracy(data, tmp, base)
         if "completion" in a.only:
             section_completion(data, tmp, base)
+        if "shipped" in a.only:
+            section_shipped(data, tmp, base)
         if "chain" in a.only:
             section_chain(data, tmp, base)
         if "holdout" in a.only:

@@ -99,10 +99,17 @@ enum Command {
     },
     /// Say, per stage, how many tasks are cached, will run or failed, and why each would run.
     ///
+    /// Outputs that are exported and read by no stage are kept in the output folder only, so
+    /// whether their tasks are cached depends on the folder a run would export to: give the
+    /// same --out as the run.
+    ///
     /// Example: dist4d explain pipelines/lidar_depth.ron --set project.min_depth=2
     Explain {
         #[command(flatten)]
         p: PipelineArgs,
+        /// The output folder of the run to explain [default: out/<pipeline name>/ beside the pipeline file].
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
     /// Print the stage DAG as Graphviz DOT.
     ///
@@ -463,7 +470,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             print!("{}", pipeline.to_dot());
             Ok(ExitCode::SUCCESS)
         }
-        Command::Explain { p } => {
+        Command::Explain { p, out } => {
             let pipeline = match load(&p, &registry)? {
                 Ok(x) => x,
                 Err(code) => return Ok(code),
@@ -473,7 +480,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let store =
                 Store::open(&p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d")), Access::Shared)?;
             let engine = Engine { pipeline: &pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
-            let report = dist4d_runtime::explain::explain(&engine, p.scenes.as_deref(), p.limit)?;
+            let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+            let report = dist4d_runtime::explain::explain(&engine, p.scenes.as_deref(), p.limit, Some(&out_dir))?;
             for s in &report {
                 let failed = if s.failed_last_run > 0 {
                     format!(", {} failed last run", s.failed_last_run)

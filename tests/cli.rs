@@ -62,7 +62,9 @@ fn a_second_run_executes_nothing_and_explain_says_all_cached() {
     let run = last_run(&cache);
     assert!(executed(&run).values().all(|&n| n == 0));
     let set = format!("dataset.root={root}");
-    let o = dist4d(&["explain", &pipeline(), "--cache", cache.to_str().unwrap(), "--set", &set]);
+    // The same --out as the run: the exported outputs are kept there, not in the store.
+    let (cache, out) = (cache.to_str().unwrap(), out.to_str().unwrap());
+    let o = dist4d(&["explain", &pipeline(), "--cache", cache, "--out", out, "--set", &set]);
     let t = text(&o);
     assert!(t.contains("project (ProjectLidar): 6 cached, 0 will run"), "{t}");
     assert!(t.contains("points (EncodePoints): 6 cached, 0 will run"), "{t}");

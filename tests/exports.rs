@@ -1,6 +1,7 @@
 //! End-to-end tests of what a run writes, and where: exports confined to `--out`, one pipeline per
-//! output folder, exports repaired after edits, `dist4d verify`, and SIGTERM. They run on a small
-//! synthetic dataset that `dist4d synth` makes, so they need no shared data.
+//! output folder, exports repaired after edits, `dist4d verify`, exported outputs kept in the
+//! output folder only (not also in the store), and SIGTERM. They run on a small synthetic dataset
+//! that `dist4d synth` makes, so they need no shared data.
 
 mod common;
 
@@ -133,11 +134,70 @@ fn an_export_edited_in_place_is_reported_by_verify_and_repaired_by_a_rerun() {
     assert!(t.contains("missing:  synth-0000/CAM_FRONT/000_uvz.npy"), "{t}");
     assert!(t.contains("46 files intact, 1 modified, 1 missing"), "{t}");
 
+    // The edited 160x90 PNG is small enough to be kept in the store as well: written again from
+    // there. The projected points (tens of KB) are kept only in the output folder: their encoder
+    // runs again, and nothing upstream.
     let o = run(&lidar_depth(), &root, &cache, &out, &[]);
     assert!(o.status.success(), "{}", text(&o));
-    assert!(text(&o).contains("0 executed"), "{}", text(&o));
+    assert!(text(&o).contains("1 executed, 35 cached"), "{}", text(&o));
     assert_eq!(tree(&out), reference);
     assert!(dist4d(&["verify", out.to_str().unwrap()]).status.success());
+}
+
+/// Whether the store `cache` holds a blob of the bytes of digest `hex`.
+fn has_blob(cache: &Path, hex: &str) -> bool {
+    cache.join("cas").join(&hex[..2]).join(&hex[2..]).is_file()
+}
+
+fn explain(root: &Path, cache: &Path, out: &Path) -> String {
+    let (pipeline, cache, out) = (lidar_depth(), cache.to_str().unwrap(), out.to_str().unwrap());
+    let set = format!("dataset.root={}", root.display());
+    let o = dist4d(&["explain", pipeline.to_str().unwrap(), "--cache", cache, "--out", out, "--set", &set]);
+    assert!(o.status.success(), "{}", text(&o));
+    text(&o)
+}
+
+#[test]
+fn exported_files_are_kept_once_and_a_deleted_one_is_made_again_by_its_task_alone() {
+    // 800x450: every export is over 16 KiB, so none is stored when only exported.
+    let (tmp, root) = synthetic(2, 800, 450);
+    let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
+    let o = run(&lidar_depth(), &root, &cache, &out, &[]);
+    assert!(o.status.success(), "{}", text(&o));
+    let reference = tree(&out);
+    // No exported file is in the store too: lidar_depth exports what EncodeDepth and EncodePoints
+    // make, which no stage reads. (ProjectLidar's outputs, which they read, are blobs.)
+    let index: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("index.json")).unwrap()).unwrap();
+    let digests: Vec<&str> = index["files"].as_array().unwrap().iter().map(|f| f["digest"].as_str().unwrap()).collect();
+    assert_eq!(digests.len(), 48);
+    assert!(digests.iter().all(|d| !has_blob(&cache, d)), "exported bytes are not in the store");
+
+    let deleted = out.join("synth-0000/CAM_BACK/001_depth.exr");
+    std::fs::remove_file(&deleted).unwrap();
+    let t = explain(&root, &cache, &out);
+    assert!(t.contains("encode (EncodeDepth): 11 cached, 1 will run"), "{t}");
+    assert!(
+        t.contains("1 x output `exr` is kept only in the output folder, and its file there is missing or changed"),
+        "{t}"
+    );
+    let o = run(&lidar_depth(), &root, &cache, &out, &[]);
+    assert!(text(&o).contains("1 executed, 35 cached"), "{}", text(&o));
+    assert_eq!(tree(&out), reference);
+
+    // Records outlive gc without blobs; the folder still holds their bytes, so nothing runs.
+    let o = dist4d(&["gc", "--cache", cache.to_str().unwrap(), "--keep-runs", "1"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = run(&lidar_depth(), &root, &cache, &out, &[]);
+    assert!(text(&o).contains("0 executed, 36 cached"), "{}", text(&o));
+
+    // Another folder holds none of them: the encoders run, the projections stay cached.
+    let elsewhere = tmp.path().join("elsewhere");
+    let t = explain(&root, &cache, &elsewhere);
+    assert!(t.contains("project (ProjectLidar): 12 cached, 0 will run"), "{t}");
+    assert!(t.contains("encode (EncodeDepth): 0 cached, 12 will run"), "{t}");
+    let o = run(&lidar_depth(), &root, &cache, &elsewhere, &[]);
+    assert!(text(&o).contains("24 executed, 12 cached"), "{}", text(&o));
+    assert_eq!(tree(&elsewhere), reference);
 }
 
 #[test]

@@ -7,6 +7,11 @@
 //! operator, store outputs and the task record, and report back on a crossbeam channel. Ready
 //! tasks are taken in (outer item, position along the second dimension, stage) order, so items
 //! stream through the stages: an item can finish before later items start.
+//!
+//! An output that the run exports and no stage reads is not stored as a blob: its bytes go to the
+//! output folder only ([`Keys::exporting_to`]). The record of a task with such outputs is appended
+//! once their files are in place, so that no record names bytes that are nowhere, whenever the
+//! process is killed.
 
 use crate::digest::{Digest, DigestBuilder};
 use crate::export::{ExportJob, Exporter, FileStat};
@@ -125,6 +130,8 @@ pub struct RunSummary {
 struct Produced {
     r: OutputRef,
     mem: Option<Blob>,
+    /// Made by this run and kept only in the output folder: its task's record waits for its files.
+    only_in_folder: bool,
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
@@ -192,12 +199,33 @@ enum Prepared {
 
 enum Outcome {
     Cached(Digest, Vec<OutputRef>),
-    Executed(Digest, Vec<Produced>, u64),
+    /// Key, outputs, microseconds, and the task record when it waits for exports to be appended
+    /// (outputs kept only in the output folder); `None` when the worker appended it.
+    Executed(Digest, Vec<Produced>, u64, Option<Box<TaskRecord>>),
 }
 
 enum Msg {
-    Task { slot: u32, task: u32, result: Result<Outcome> },
-    Exported { slot: u32, task: u32, rel: String, result: Result<FileStat> },
+    Task {
+        slot: u32,
+        task: u32,
+        result: Result<Outcome>,
+    },
+    /// An export job ended; `awaiting` is the id of the task record waiting for it, if any.
+    Exported {
+        slot: u32,
+        task: u32,
+        rel: String,
+        result: Result<FileStat>,
+        awaiting: Option<u64>,
+    },
+}
+
+/// The record of an executed task whose outputs are kept only in the output folder, waiting for
+/// their files to be written before it is appended.
+struct Awaiting {
+    /// None once an export of it failed: its bytes are not all anywhere, so no record.
+    record: Option<Box<TaskRecord>>,
+    files_left: usize,
 }
 
 /// Heap entry: lower sorts first (earlier outer item, earlier position along the second dimension,
@@ -216,7 +244,17 @@ impl<'a> Engine<'a> {
         let outers = select_outer(self.dataset, &p.dims[0].name, opts.outer_items.as_deref())?;
         let view = View { space: self.dataset, second_dim_limit: opts.second_dim_limit };
 
-        let keys = Keys::new(p, self.dataset, self.store);
+        let mut exporter = match &opts.out_dir {
+            Some(dir) if !p.exports.is_empty() => {
+                let stages: Vec<&str> = p.stage_order().map(|n| p.nodes[n].name.as_str()).collect();
+                Some(Exporter::open(dir, self.store, &p.name, &stages, &p.dims)?)
+            }
+            _ => None,
+        };
+        let keys = match &exporter {
+            Some(x) => Keys::new(p, self.dataset, self.store).exporting_to(x.folder()),
+            None => Keys::new(p, self.dataset, self.store),
+        };
         // Canonical params are stored as blobs so that explain can show what changed.
         for n in p.stage_order() {
             let text = &p.nodes[n].stage().unwrap().params.canonical;
@@ -258,13 +296,6 @@ impl<'a> Engine<'a> {
             .collect();
         let reporter = Reporter::start(counters.clone(), opts.progress);
 
-        let mut exporter = match &opts.out_dir {
-            Some(dir) if !p.exports.is_empty() => {
-                let stages: Vec<&str> = p.stage_order().map(|n| p.nodes[n].name.as_str()).collect();
-                Some(Exporter::open(dir, self.store, &p.name, &stages, &p.dims)?)
-            }
-            _ => None,
-        };
         let keys_tmp = self.store.temp_path();
         let keys_out = std::io::BufWriter::new(
             std::fs::File::create(&keys_tmp).with_context(|| format!("creating {}", keys_tmp.display()))?,
@@ -289,6 +320,8 @@ impl<'a> Engine<'a> {
             rank,
             live_tasks: 0,
             export_jobs: Vec::new(),
+            awaiting: HashMap::new(),
+            next_awaiting: 0,
         };
         let ctx = Ctx { engine: self, keys: &keys };
         let mut next_outer = 0usize;
@@ -351,9 +384,9 @@ impl<'a> Engine<'a> {
                         c.finish(self, slot, task, result)?;
                         inflight += c.spawn_exports(scope, &tx);
                     }
-                    Ok(Msg::Exported { slot, task, rel, result }) => {
+                    Ok(Msg::Exported { slot, task, rel, result, awaiting }) => {
                         inflight -= 1;
-                        c.exported(self, slot, task, &rel, result);
+                        c.exported(self, slot, task, &rel, result, awaiting);
                     }
                     Err(RecvTimeoutError::Timeout) => {}
                     Err(RecvTimeoutError::Disconnected) => bail!("the worker pool stopped unexpectedly"),
@@ -365,20 +398,25 @@ impl<'a> Engine<'a> {
         })?;
         drop(pool);
         drop(reporter);
-        let Coord { mut stats, failures, mut keys_out, exporter, .. } = c;
+        let Coord { mut stats, failures, mut keys_out, exporter, awaiting, .. } = c;
+        debug_assert!(awaiting.is_empty(), "every export job has ended");
         for (i, s) in stats.iter_mut().enumerate() {
             s.total = counters.total[i].load(Ordering::Relaxed);
         }
 
+        // The output folder first (its files, then its manifest), then the store: after a power
+        // loss, a record made durable names exported files that are too. The key layer lets go
+        // of the folder first, so that its manifest is not copied.
+        drop(keys);
+        let exported = match exporter {
+            Some(e) => e.finish()?,
+            None => 0,
+        };
         self.store.sync()?;
         keys_out.flush()?;
         drop(keys_out);
         let id = run_id;
         std::fs::rename(&keys_tmp, runs::keys_path(self.store, &id)).with_context(|| "saving the run's task keys")?;
-        let exported = match exporter {
-            Some(e) => e.finish()?,
-            None => 0,
-        };
         let status = match stopping {
             Some(s) => s,
             None if failures.is_empty() => RunStatus::Complete,
@@ -415,9 +453,9 @@ impl<'a> Engine<'a> {
                 if let Some(e) = take_unreadable(&mut job.inputs) {
                     return Err(e);
                 }
-                match keys.decide(job.node, &job.item, &job.inputs) {
+                match keys.decide(job.node, &job.item, &job.inputs, true) {
                     Decision::Cached { key, outputs } => return Ok(Outcome::Cached(key, outputs)),
-                    Decision::Run { key } => key,
+                    Decision::Run { key, .. } => key,
                     Decision::Unknown => bail!("{}", self.unknown_inputs(&job)),
                 }
             }
@@ -473,16 +511,21 @@ impl<'a> Engine<'a> {
         }
         let micros = t0.elapsed().as_micros() as u64;
         let mut produced = Vec::with_capacity(outs.len());
-        for Output { bytes, .. } in outs {
+        for (port, Output { bytes, .. }) in outs.into_iter().enumerate() {
             let digest = Digest::of(&bytes);
             let size = bytes.len() as u64;
+            // Its bytes go to the output folder only (the exporter writes them from memory).
+            let only_in_folder = keys.only_in_folder(job.node, port, size);
             let inline = if bytes.len() <= INLINE_MAX {
                 Some(Arc::<[u8]>::from(bytes.as_slice()))
             } else {
-                self.store.put_blob(&digest, &bytes)?;
+                if !only_in_folder {
+                    self.store.put_blob(&digest, &bytes)?;
+                }
                 None
             };
-            produced.push(Produced { r: OutputRef { digest, size, inline }, mem: Some(Arc::new(bytes)) });
+            let r = OutputRef { digest, size, inline };
+            produced.push(Produced { r, mem: Some(Arc::new(bytes)), only_in_folder });
         }
         let record = TaskRecord {
             key,
@@ -507,8 +550,11 @@ impl<'a> Engine<'a> {
                 .unwrap_or(0),
             micros,
         };
+        if produced.iter().any(|p| p.only_in_folder) {
+            return Ok(Outcome::Executed(key, produced, micros, Some(Box::new(record))));
+        }
         self.store.append_record(&record)?;
-        Ok(Outcome::Executed(key, produced, micros))
+        Ok(Outcome::Executed(key, produced, micros, None))
     }
 
     /// Which inputs of a job still have no digest after hashing, for the error.
@@ -540,8 +586,12 @@ struct Coord {
     exporter: Option<Exporter>,
     rank: Vec<u32>,
     live_tasks: usize,
-    /// Export writes decided by `finish` (with the task's slot and index), to be spawned by the loop.
-    export_jobs: Vec<(ExportJob, u32, u32)>,
+    /// Export writes decided by `finish` (with the task's slot and index, and the id of the record
+    /// awaiting it), to be spawned by the loop.
+    export_jobs: Vec<(ExportJob, u32, u32, Option<u64>)>,
+    /// Task records waiting for their exports, by id.
+    awaiting: HashMap<u64, Awaiting>,
+    next_awaiting: u64,
 }
 
 impl Coord {
@@ -588,12 +638,12 @@ impl Coord {
 
     fn spawn_exports<'s>(&mut self, scope: &rayon::Scope<'s>, tx: &Sender<Msg>) -> usize {
         let n = self.export_jobs.len();
-        for (job, slot, task) in self.export_jobs.drain(..) {
+        for (job, slot, task, awaiting) in self.export_jobs.drain(..) {
             let tx = tx.clone();
             scope.spawn(move |_| {
                 let rel = job.rel.clone();
                 let result = job.write();
-                let _ = tx.send(Msg::Exported { slot, task, rel, result });
+                let _ = tx.send(Msg::Exported { slot, task, rel, result, awaiting });
             });
         }
         n
@@ -619,7 +669,7 @@ impl Coord {
             Ok(outcome) => {
                 match &outcome {
                     Outcome::Cached(..) => self.stats[ci].cached += 1,
-                    Outcome::Executed(_, _, micros) => {
+                    Outcome::Executed(_, _, micros, _) => {
                         self.stats[ci].executed += 1;
                         self.stats[ci].seconds += *micros as f64 / 1e6;
                     }
@@ -652,12 +702,14 @@ impl Coord {
 
     /// Records a finished task's key and keeps its outputs (first run or run again alike).
     fn complete(&mut self, e: &Engine, slot: u32, t: usize, outcome: Outcome) -> Result<()> {
-        let (key, produced) = match outcome {
-            Outcome::Cached(key, outs) => (key, outs.into_iter().map(|r| Produced { r, mem: None }).collect()),
-            Outcome::Executed(key, produced, _) => (key, produced),
+        let (key, produced, record) = match outcome {
+            Outcome::Cached(key, outs) => {
+                (key, outs.into_iter().map(|r| Produced { r, mem: None, only_in_folder: false }).collect(), None)
+            }
+            Outcome::Executed(key, produced, _, record) => (key, produced, record),
         };
         self.keys_out.write_all(&key.0)?;
-        self.store_outputs(e, slot, t, produced);
+        self.store_outputs(e, slot, t, produced, record);
         Ok(())
     }
 
@@ -699,33 +751,74 @@ impl Coord {
         }
     }
 
-    /// Keeps a finished task's outputs for its readers and plans their exports.
-    fn store_outputs(&mut self, e: &Engine, slot: u32, t: usize, produced: Vec<Produced>) {
+    /// Keeps a finished task's outputs for its readers and plans their exports. `record`, of a
+    /// task just executed whose outputs are kept only in the output folder, is appended once the
+    /// files of those outputs are in place (at once when they already are), and never when one
+    /// of them cannot be written.
+    fn store_outputs(
+        &mut self,
+        e: &Engine,
+        slot: u32,
+        t: usize,
+        produced: Vec<Produced>,
+        record: Option<Box<TaskRecord>>,
+    ) {
         let p = e.pipeline;
         let run = self.active[slot as usize].as_mut().unwrap();
         run.state[t] = State::Done;
         let node = run.plan.tasks[t].node as usize;
         let item = run.plan.tasks[t].item;
+        let id = self.next_awaiting;
+        let mut awaiting = record.map(|record| Awaiting { record: Some(record), files_left: 0 });
         if let Some(exporter) = self.exporter.as_mut() {
             for x in p.exports.iter().filter(|x| x.node == node) {
                 let out = &produced[x.port];
                 let names = (p.nodes[node].name.as_str(), p.nodes[node].outputs[x.port].name.as_str());
+                let waiting = awaiting.as_mut().filter(|_| out.only_in_folder);
                 match exporter.plan(x, names, &item, e.dataset, &out.r, out.mem.clone(), e.store) {
                     Ok(Some(job)) => {
                         run.exports_pending += 1;
-                        self.export_jobs.push((job, slot, t as u32));
+                        let by = waiting.map(|a| {
+                            a.files_left += 1;
+                            id
+                        });
+                        self.export_jobs.push((job, slot, t as u32, by));
                     }
                     Ok(None) => {}
-                    Err(err) => self.failures.push(Failure {
-                        stage: p.nodes[node].name.clone(),
-                        item: e.dataset.path(&item),
-                        error: format!("{err:#}"),
-                    }),
+                    Err(err) => {
+                        if let Some(a) = waiting {
+                            a.record = None;
+                        }
+                        self.failures.push(Failure {
+                            stage: p.nodes[node].name.clone(),
+                            item: e.dataset.path(&item),
+                            error: format!("{err:#}"),
+                        })
+                    }
                 }
             }
         }
         let produced = Arc::new(produced);
         run.outputs[t] = Some(if run.readers_left[t] > 0 { produced } else { strip(&produced) });
+        match awaiting {
+            Some(a) if a.files_left > 0 => {
+                self.awaiting.insert(id, a);
+                self.next_awaiting += 1;
+            }
+            Some(Awaiting { record: Some(record), .. }) => self.append(e, &record),
+            _ => {}
+        }
+    }
+
+    /// Appends the record of a task whose exports are in place; failing to is the task's failure.
+    fn append(&mut self, e: &Engine, record: &TaskRecord) {
+        if let Err(err) = e.store.append_record(record) {
+            self.failures.push(Failure {
+                stage: record.stage.clone(),
+                item: e.dataset.path(&record.item),
+                error: format!("recording the finished task in the store: {err:#}"),
+            });
+        }
     }
 
     /// A blob that finished task `u` produced is missing or corrupt, found by its reader `t`:
@@ -804,7 +897,27 @@ impl Coord {
 
     /// An export write ended. A blob found missing or corrupt makes its task run again (which
     /// exports it anew); any other failure is the item's.
-    fn exported(&mut self, e: &Engine, slot: u32, task: u32, rel: &str, result: Result<FileStat>) {
+    fn exported(
+        &mut self,
+        e: &Engine,
+        slot: u32,
+        task: u32,
+        rel: &str,
+        result: Result<FileStat>,
+        awaiting: Option<u64>,
+    ) {
+        if let Some(id) = awaiting {
+            let a = self.awaiting.get_mut(&id).expect("a record awaits each of its export jobs");
+            if result.is_err() {
+                a.record = None;
+            }
+            a.files_left -= 1;
+            if a.files_left == 0 {
+                if let Some(record) = self.awaiting.remove(&id).and_then(|a| a.record) {
+                    self.append(e, &record);
+                }
+            }
+        }
         let t = task as usize;
         let run = self.active[slot as usize].as_mut().unwrap();
         run.exports_pending -= 1;
@@ -849,9 +962,10 @@ impl Ctx<'_, '_> {
         if let Some(e) = take_unreadable(&mut inputs) {
             return Err(e);
         }
-        let key = match self.keys.decide(node, &t.item, &inputs) {
+        // Without hashing: a raw file, or an exported file whose stat changed, is for the worker.
+        let key = match self.keys.decide(node, &t.item, &inputs, false) {
             Decision::Cached { key, outputs } => return Ok(Prepared::Cached(key, outputs)),
-            Decision::Run { key } => Some(key),
+            Decision::Run { key, .. } => Some(key),
             Decision::Unknown => None,
         };
         let srcs = t
@@ -922,7 +1036,7 @@ fn release_inputs(run: &mut OuterRun, t: usize) {
 }
 
 fn strip(p: &Arc<Vec<Produced>>) -> Arc<Vec<Produced>> {
-    Arc::new(p.iter().map(|x| Produced { r: x.r.clone(), mem: None }).collect())
+    Arc::new(p.iter().map(|x| Produced { mem: None, ..x.clone() }).collect())
 }
 
 fn count_items(view: &View, prefix: ItemKey, depth: usize) -> u64 {

@@ -23,6 +23,13 @@ const CHAIN: &str = r#"Pipeline(
     export: {"file.file": "{scene}/{frame}.bin"},
 )"#;
 
+/// CHAIN where a stage reads the exported files: they are then kept in the store too.
+fn chain_reading_its_files() -> String {
+    let file = r#""file": ToFile(inputs: {"x": "window.y"}, grain: frame),"#;
+    assert!(CHAIN.contains(file));
+    CHAIN.replace(file, &format!(r#"{file} "reader": FromFile(inputs: {{"file": "file.file"}}),"#))
+}
+
 fn run_with(p: &Pipeline, grid: &Grid, store: &Path, opts: &RunOptions) -> RunRecord {
     let store = Store::open(store, Access::Shared).unwrap();
     let ops = testkit::operators(p);
@@ -235,7 +242,7 @@ fn explain_says_what_changed() {
     let explain = |p: &Pipeline| {
         let s = store(dir.path());
         let ops = testkit::operators(p);
-        crate::explain::explain(&Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }, None, None)
+        crate::explain::explain(&Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }, None, None, None)
             .unwrap()
     };
     let fresh = explain(&p);
@@ -268,8 +275,12 @@ fn explain_predicts_what_the_next_run_executes() {
     let predicted = |p: &Pipeline| -> BTreeMap<String, u64> {
         let s = Store::open(dir.path(), Access::Shared).unwrap();
         let ops = testkit::operators(p);
-        let e =
-            crate::explain::explain(&Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s }, None, None);
+        let e = crate::explain::explain(
+            &Engine { pipeline: p, dataset: &grid, operators: &ops, store: &s },
+            None,
+            None,
+            None,
+        );
         e.unwrap().into_iter().map(|s| (s.stage, s.will_run)).collect()
     };
     grid.bump("camera_value", ItemKey::new(&[1, 2, 0]));
@@ -420,8 +431,8 @@ fn a_corrupt_input_blob_is_recomputed_in_the_same_run() {
 fn a_corrupt_exported_blob_is_recomputed_and_exported() {
     let dir = tempfile::tempdir().unwrap();
     let (store, out) = (dir.path().join("store"), dir.path().join("out"));
-    // 3000-byte files: exported from blobs, not from inside the records.
-    let p = testkit::load(CHAIN, &["file.size=3000"]);
+    // 3000-byte files, which a stage reads: kept as blobs, and exported from them on a rerun.
+    let p = testkit::load(&chain_reading_its_files(), &["file.size=3000"]);
     let grid = testkit::grid_of(&p);
     let opts = RunOptions { jobs: 2, out_dir: Some(out.clone()), ..Default::default() };
     run_with(&p, &grid, &store, &opts);
@@ -441,8 +452,9 @@ fn a_corrupt_exported_blob_is_recomputed_and_exported() {
 fn exports_from_compressed_blobs_are_byte_identical_to_fresh_ones() {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
-    // 3000-byte files of a repeated digest: kept compressed, exported from the blob on a cached run.
-    let p = testkit::load(CHAIN, &["file.size=3000"]);
+    // 3000-byte files of a repeated digest, which a stage reads: kept compressed, exported from the
+    // blob on a cached run.
+    let p = testkit::load(&chain_reading_its_files(), &["file.size=3000"]);
     let grid = testkit::grid_of(&p);
     let first = dir.path().join("first");
     run_with(&p, &grid, &store, &RunOptions { jobs: 2, out_dir: Some(first.clone()), ..Default::default() });
@@ -575,4 +587,202 @@ fn a_folder_where_a_blob_should_be_is_replaced() {
     let r = run(&changed, &grid, dir.path());
     assert_eq!(r.status, RunStatus::Complete, "{:?}", r.failures);
     assert_eq!(run(&changed, &grid, dir.path()).executed(), 0);
+}
+
+// Outputs kept only in the output folder: exported, read by no stage, so not stored as blobs.
+
+/// `file` outputs of 20000 bytes: too big to live inside their records, or to be stored when
+/// only exported (see [`crate::keys::STORED_EXPORT_MAX`]).
+const BIG_FILES: &[&str] = &["file.size=20000"];
+
+/// Exported path -> digest (hex), from the output folder's index.
+fn exported_digests(out: &Path) -> BTreeMap<String, String> {
+    let index: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("index.json")).unwrap()).unwrap();
+    let files = index["files"].as_array().unwrap().iter();
+    files.map(|f| (f["path"].as_str().unwrap().to_string(), f["digest"].as_str().unwrap().to_string())).collect()
+}
+
+fn has_blob(store: &Path, hex: &str) -> bool {
+    store.join("cas").join(&hex[..2]).join(&hex[2..]).is_file()
+}
+
+fn inode(path: &Path) -> u64 {
+    std::os::unix::fs::MetadataExt::ino(&std::fs::metadata(path).unwrap())
+}
+
+fn exporting(out: &Path) -> RunOptions {
+    RunOptions { jobs: 2, out_dir: Some(out.to_path_buf()), ..Default::default() }
+}
+
+#[test]
+fn outputs_only_exported_are_kept_in_the_output_folder_not_in_the_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(CHAIN, BIG_FILES);
+    let grid = testkit::grid_of(&p);
+    let first = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!((first.status, first.exported), (RunStatus::Complete, 8));
+    let files = exported_digests(&out);
+    assert_eq!(files.len(), 8);
+    assert!(files.values().all(|d| !has_blob(&store, d)), "exported files are not also blobs");
+    // b's 5000-byte outputs, which stages read, are blobs as before.
+    let blobs =
+        std::fs::read_dir(store.join("cas")).unwrap().flat_map(|d| std::fs::read_dir(d.unwrap().path()).unwrap());
+    assert!(blobs.count() >= 24);
+
+    // Their records are hits while the files are in place: nothing runs, nothing is rewritten.
+    let manifest = std::fs::read_to_string(out.join(".dist4d-manifest")).unwrap();
+    let again = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!((again.executed(), again.exported), (0, 8));
+    assert_eq!(std::fs::read_to_string(out.join(".dist4d-manifest")).unwrap(), manifest);
+
+    // gc keeps their records (it has no blob of theirs to keep).
+    crate::gc::gc(&store, 1, None).unwrap();
+    assert_eq!(run_with(&p, &grid, &store, &exporting(&out)).executed(), 0);
+
+    // A run that exports nothing keeps every output in the store: its bytes would be nowhere else.
+    let r = run(&p, &grid, &store);
+    assert_eq!(executed(&r), counts(&[("a", 0), ("b", 0), ("per_frame", 0), ("window", 0), ("next", 0), ("file", 8)]));
+    assert!(files.values().all(|d| has_blob(&store, d)));
+}
+
+#[test]
+fn a_deleted_edited_or_elsewhere_export_reruns_just_its_task() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(CHAIN, BIG_FILES);
+    let grid = testkit::grid_of(&p);
+    run_with(&p, &grid, &store, &exporting(&out));
+    let reference = files_under(&out);
+    let only_file = |n| counts(&[("a", 0), ("b", 0), ("per_frame", 0), ("window", 0), ("next", 0), ("file", n)]);
+
+    std::fs::remove_file(out.join("s1/002.bin")).unwrap();
+    let r = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!(executed(&r), only_file(1));
+    assert_eq!(files_under(&out), reference);
+    assert_eq!(crate::export::verify(&out).unwrap().ok, 8);
+
+    // Edited in place with the same size and mtime (only ctime tells): its task runs again. Touched
+    // (another stat, the same bytes): hashed, found intact, a hit, and the file is not rewritten.
+    let edited = out.join("s0/001.bin");
+    let mtime = std::fs::metadata(&edited).unwrap().modified().unwrap();
+    let mut bytes = std::fs::read(&edited).unwrap();
+    bytes[7] ^= 0x20;
+    std::fs::write(&edited, &bytes).unwrap();
+    std::fs::File::options().write(true).open(&edited).unwrap().set_modified(mtime).unwrap();
+    let touched = out.join("s0/003.bin");
+    let touched_inode = inode(&touched);
+    let later = std::fs::metadata(&touched).unwrap().modified().unwrap() + std::time::Duration::from_secs(5);
+    std::fs::File::options().write(true).open(&touched).unwrap().set_modified(later).unwrap();
+    let r = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!(executed(&r), only_file(1));
+    assert_eq!(files_under(&out), reference);
+    assert_eq!(inode(&touched), touched_inode, "an intact file is left alone");
+    assert_eq!(run_with(&p, &grid, &store, &exporting(&out)).executed(), 0);
+
+    // Another folder does not hold them: every task that exports runs again, nothing upstream.
+    let elsewhere = dir.path().join("elsewhere");
+    let r = run_with(&p, &grid, &store, &exporting(&elsewhere));
+    assert_eq!(executed(&r), only_file(8));
+    assert_eq!(files_under(&elsewhere), reference);
+}
+
+#[test]
+fn exported_outputs_that_a_stage_reads_are_still_stored() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(&chain_reading_its_files(), BIG_FILES);
+    let grid = testkit::grid_of(&p);
+    run_with(&p, &grid, &store, &exporting(&out));
+    let reference = files_under(&out);
+    assert!(exported_digests(&out).values().all(|d| has_blob(&store, d)));
+    // A deleted export is written again from its blob: nothing runs.
+    std::fs::remove_file(out.join("s1/002.bin")).unwrap();
+    let r = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!((r.executed(), r.exported), (0, 8));
+    assert_eq!(files_under(&out), reference);
+}
+
+#[test]
+fn small_outputs_only_exported_are_still_stored() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    // 3000 bytes: not inside their records, but small enough to cost nothing in the store.
+    let p = testkit::load(CHAIN, &["file.size=3000"]);
+    let grid = testkit::grid_of(&p);
+    run_with(&p, &grid, &store, &exporting(&out));
+    let reference = files_under(&out);
+    assert!(exported_digests(&out).values().all(|d| has_blob(&store, d)));
+    std::fs::remove_dir_all(&out).unwrap();
+    let r = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!((r.executed(), r.exported), (0, 8), "exported again from the store");
+    assert_eq!(files_under(&out), reference);
+}
+
+#[test]
+fn a_run_killed_after_its_exports_but_before_its_manifest_resumes_without_running_them_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(CHAIN, BIG_FILES);
+    let grid = testkit::grid_of(&p);
+    run_with(&p, &grid, &store, &exporting(&out));
+    let reference = files_under(&out);
+    let inodes: Vec<u64> = exported_digests(&out).keys().map(|rel| inode(&out.join(rel))).collect();
+    // A first run killed at its end leaves the files and records, and the manifest that claimed
+    // the folder when the run began (the owner, no files).
+    std::fs::write(out.join(".dist4d-manifest"), "dist4d-manifest 2 test\n").unwrap();
+    std::fs::remove_file(out.join("index.json")).unwrap();
+    let r = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!((r.status, r.executed(), r.exported), (RunStatus::Complete, 0, 8));
+    assert_eq!(files_under(&out), reference);
+    let after: Vec<u64> = exported_digests(&out).keys().map(|rel| inode(&out.join(rel))).collect();
+    assert_eq!(after, inodes, "the files were hashed, not written again");
+    assert_eq!(crate::export::verify(&out).unwrap().ok, 8);
+}
+
+#[test]
+fn a_task_whose_export_failed_leaves_no_record_and_runs_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let grid = testkit::grid_of(&testkit::load(CHAIN, BIG_FILES));
+    run_with(&testkit::load(CHAIN, BIG_FILES), &grid, &store, &exporting(&out));
+    // New bytes for every file; one cannot be written (a folder is in its way).
+    let p = testkit::load(CHAIN, &["file.size=20000", "file.salt=1"]);
+    std::fs::remove_file(out.join("s1/002.bin")).unwrap();
+    std::fs::create_dir_all(out.join("s1/002.bin/in-the-way")).unwrap();
+    let r = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!(r.status, RunStatus::Failed);
+    assert_eq!((stat(&r, "file").executed, r.exported, r.failures.len()), (8, 7, 1));
+    assert!(r.failures[0].error.contains("s1/002.bin"), "{}", r.failures[0].error);
+    // Its bytes are nowhere, so no record says they are: the task runs again, alone.
+    std::fs::remove_dir_all(out.join("s1/002.bin")).unwrap();
+    let r = run_with(&p, &grid, &store, &exporting(&out));
+    assert_eq!((r.status, stat(&r, "file").executed, r.executed()), (RunStatus::Complete, 1, 1));
+    let fresh = dir.path().join("fresh");
+    run_with(&p, &grid, &dir.path().join("fresh-store"), &exporting(&fresh));
+    assert_eq!(files_under(&out), files_under(&fresh));
+}
+
+#[test]
+fn explain_looks_for_outputs_kept_only_in_the_output_folder_where_the_run_would() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(CHAIN, BIG_FILES);
+    let grid = testkit::grid_of(&p);
+    run_with(&p, &grid, &store, &exporting(&out));
+    std::fs::remove_file(out.join("s1/002.bin")).unwrap();
+    let explain = |out_dir: Option<&Path>| {
+        let s = Store::open(&store, Access::Shared).unwrap();
+        let ops = testkit::operators(&p);
+        let engine = Engine { pipeline: &p, dataset: &grid, operators: &ops, store: &s };
+        let e = crate::explain::explain(&engine, None, None, out_dir).unwrap();
+        e.into_iter().find(|s| s.stage == "file").unwrap()
+    };
+    let file = explain(Some(&out));
+    assert_eq!((file.cached, file.will_run), (7, 1));
+    let why = "output `file` is kept only in the output folder, and its file there is missing or changed";
+    assert_eq!(file.reasons[why], (1, "s1/002".to_string()), "{:?}", file.reasons);
+    let file = explain(Some(&dir.path().join("elsewhere")));
+    assert_eq!((file.cached, file.will_run), (0, 8));
+    assert_eq!(executed(&run_with(&p, &grid, &store, &exporting(&out)))["file"], 1, "as explained");
 }

@@ -1,16 +1,20 @@
 //! `explain`: per stage, how many tasks are cached, will run, or failed last time, and why each
 //! task that will run does: never run, stage version changed, which param changed from what to
-//! what, which input changed, or an upstream task will run.
+//! what, which input changed, an upstream task will run, or the bytes of an output are gone (a
+//! blob from the store, or a file of an output kept only in the output folder).
 
 use crate::digest::Digest;
 use crate::exec::{select_outer, Engine};
+use crate::export::OutputFolder;
 use crate::item::ItemKey;
-use crate::keys::{known_digests, Decision, Keys, Unknown};
+use crate::keys::{known_digests, Decision, Keys, Lost, Unknown};
 use crate::plan::{plan_outer, InputSrc, View};
 use crate::record::TaskRecord;
 use crate::runs::list_runs;
 use anyhow::Result;
 use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+use std::sync::Arc;
 
 #[derive(Debug, Default, Clone)]
 pub struct StageExplain {
@@ -33,11 +37,13 @@ struct Previous {
 }
 
 /// Explains the tasks under the selected outer items (all when `outer_items` is `None`), with the
-/// first `second_dim_limit` items along the second dimension, as [`crate::RunOptions`] selects them.
+/// first `second_dim_limit` items along the second dimension, as [`crate::RunOptions`] selects them,
+/// for a run that exports into `out_dir` (whose files hold the outputs the store does not keep).
 pub fn explain(
     engine: &Engine,
     outer_items: Option<&[String]>,
     second_dim_limit: Option<u32>,
+    out_dir: Option<&Path>,
 ) -> Result<Vec<StageExplain>> {
     let p = engine.pipeline;
     let store = engine.store;
@@ -78,7 +84,14 @@ pub fn explain(
         .map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect())
         .unwrap_or_default();
 
-    let keys = Keys::new(p, engine.dataset, store);
+    let mut keys = Keys::new(p, engine.dataset, store);
+    if let Some(dir) = out_dir.filter(|_| !p.exports.is_empty()) {
+        // A folder another pipeline owns holds nothing of this one's (a run would refuse it).
+        let folder = OutputFolder::read(dir, &p.dims)?;
+        if folder.owner().is_none_or(|o| o == p.name) {
+            keys = keys.exporting_to(Arc::new(folder));
+        }
+    }
     let mut out: Vec<StageExplain> = vec![StageExplain::default(); p.nodes.len()];
     for n in p.stage_order() {
         out[n].stage = p.nodes[n].name.clone();
@@ -96,11 +109,15 @@ pub fn explain(
             let upstream = |u: u32, port: u16| outputs[u as usize].as_ref().map(|o| o[port as usize]);
             let inputs = keys.resolve(&plan, t as u32, upstream, true);
             let e = &mut out[node];
-            if let Decision::Cached { outputs: outs, .. } = keys.decide(node, &task.item, &inputs) {
-                e.cached += 1;
-                outputs[t] = Some(outs.iter().map(|o| o.digest).collect());
-                continue;
-            }
+            let lost = match keys.decide(node, &task.item, &inputs, true) {
+                Decision::Cached { outputs: outs, .. } => {
+                    e.cached += 1;
+                    outputs[t] = Some(outs.iter().map(|o| o.digest).collect());
+                    continue;
+                }
+                Decision::Run { lost, .. } => lost,
+                Decision::Unknown => None,
+            };
             let mut unknown_inputs: Vec<String> = Vec::new();
             for (input, spec) in inputs.iter().zip(&stage.inputs) {
                 for a in input {
@@ -149,7 +166,17 @@ pub fn explain(
                 }
             }
             if reasons.is_empty() {
-                reasons.push("no record of this exact task (removed by gc, or its cached output is missing)".into());
+                let port = |i: usize| p.nodes[node].outputs[i].name.as_str();
+                reasons.push(match lost {
+                    Some(Lost::Exported(i)) => format!(
+                        "output `{}` is kept only in the output folder, and its file there is missing or changed",
+                        port(i)
+                    ),
+                    Some(Lost::Blob(i)) => {
+                        format!("the cached bytes of output `{}` are missing from the store", port(i))
+                    }
+                    None => "no record of this exact task (removed by gc)".into(),
+                });
             }
             for r in reasons {
                 let entry = e.reasons.entry(r).or_insert((0, label.clone()));

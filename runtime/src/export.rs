@@ -20,6 +20,10 @@
 //! written. A rerun trusts a file whose stat is unchanged; one whose stat changed is hashed again
 //! and rewritten if its bytes differ (an edit that keeps the size and mtime still changes ctime).
 //! [`verify`] hashes every file on demand.
+//!
+//! Outputs that are exported and read by no stage are kept only here, not in the store (see
+//! [`OutputFolder`] and docs/cache.md): the folder is then where their bytes live, and a task
+//! record of theirs is a cache hit only while its files here hold the bytes it names.
 
 use crate::blob;
 use crate::digest::Digest;
@@ -30,11 +34,11 @@ use crate::store::{read_blob, sync_filesystem, write_atomic_via, write_whole_via
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{Dim, Export, TemplatePart};
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, HashMap};
 use std::os::unix::fs::MetadataExt;
 use std::path::{Component, Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 const MANIFEST: &str = ".dist4d-manifest";
 const TMP: &str = ".dist4d-tmp";
@@ -91,7 +95,7 @@ struct Held {
 }
 
 /// The `.dist4d-manifest` of an output folder.
-#[derive(Debug, Default)]
+#[derive(Debug, Default, Clone)]
 struct Manifest {
     /// The pipeline that owns the folder; None for a version-1 manifest, which named none.
     owner: Option<String>,
@@ -179,14 +183,98 @@ pub fn read_index(out_dir: &Path) -> Result<Vec<IndexEntry>> {
     Ok(index.files)
 }
 
-pub struct Exporter {
+/// An output folder as a run (or explain) found it: its manifest as earlier runs left it, read
+/// once, and the files found to hold given bytes by hashing since. It says whether an output kept
+/// only in the folder (not in the store) is still in place, which decides whether its task is a
+/// cache hit, and the exporter then trusts the same answer instead of hashing the file again.
+pub struct OutputFolder {
     dir: PathBuf,
     /// Dimension names, for messages about labels that cannot be path components.
     dims: Vec<String>,
+    manifest: Manifest,
+    /// Files whose stat was not the manifest's and that were hashed: path -> (digest, stat then).
+    confirmed: Mutex<HashMap<String, (Digest, FileStat)>>,
+}
+
+impl OutputFolder {
+    /// The folder `dir` as its manifest describes it (as an empty folder when it has none),
+    /// without writing anything: for explain, which must not claim a folder.
+    pub fn read(dir: &Path, dims: &[Dim]) -> Result<OutputFolder> {
+        Ok(OutputFolder::new(dir, dims, Manifest::read(dir)?.unwrap_or_default()))
+    }
+
+    fn new(dir: &Path, dims: &[Dim], manifest: Manifest) -> OutputFolder {
+        OutputFolder {
+            dir: dir.to_path_buf(),
+            dims: dims.iter().map(|d| d.name.clone()).collect(),
+            manifest,
+            confirmed: Mutex::new(HashMap::new()),
+        }
+    }
+
+    /// The pipeline the manifest names as the folder's owner, if any.
+    pub fn owner(&self) -> Option<&str> {
+        self.manifest.owner.as_deref()
+    }
+
+    /// Whether the file `export` makes for `item` holds the bytes of digest `digest` (`size`
+    /// bytes): yes when its stat is the one the manifest (or an earlier hash in this process)
+    /// recorded for those bytes; no when it is missing, has another size, or its path cannot be
+    /// made; otherwise the file is hashed, or, when `hash` is false, `None` says that only
+    /// hashing can tell. A stat can be trusted because every write replaces the file (a new
+    /// inode) and an edit in place changes its ctime.
+    pub fn holds(
+        &self,
+        export: &Export,
+        item: &ItemKey,
+        dataset: &dyn Dataset,
+        digest: &Digest,
+        size: u64,
+        hash: bool,
+    ) -> Option<bool> {
+        let Ok(rel) = render(export, item, dataset, &self.dims) else { return Some(false) };
+        let Ok(path) = confined(&self.dir, &rel) else { return Some(false) };
+        let Some(now) = FileStat::of(&path) else { return Some(false) };
+        if now.size != size {
+            return Some(false);
+        }
+        if let Some(known) = self.known_digest(&rel, &now) {
+            return Some(known == *digest);
+        }
+        if !hash {
+            return None;
+        }
+        let Some(found) = file_digest(&path) else { return Some(false) };
+        // A file changed while it was hashed has another stat by now: not remembered.
+        if FileStat::of(&path) == Some(now) {
+            self.confirmed.lock().unwrap().insert(rel, (found, now));
+        }
+        Some(found == *digest)
+    }
+
+    /// The digest of the bytes at `rel` when its stat is `now`, if the manifest or a hash made in
+    /// this process says.
+    fn known_digest(&self, rel: &str, now: &FileStat) -> Option<Digest> {
+        self.listed_digest(rel, now).or_else(|| self.hashed_digest(rel, now))
+    }
+
+    /// The digest the manifest lists for `rel` with stat `now`.
+    fn listed_digest(&self, rel: &str, now: &FileStat) -> Option<Digest> {
+        self.manifest.files.get(rel).filter(|h| h.stat.as_ref() == Some(now)).map(|h| h.digest)
+    }
+
+    /// The digest a hash made in this process found at `rel` with stat `now`.
+    fn hashed_digest(&self, rel: &str, now: &FileStat) -> Option<Digest> {
+        let confirmed = self.confirmed.lock().unwrap();
+        confirmed.get(rel).filter(|(_, stat)| stat == now).map(|(d, _)| *d)
+    }
+}
+
+pub struct Exporter {
+    /// The folder as earlier runs left it, owned by this pipeline.
+    folder: Arc<OutputFolder>,
     writer: String,
     counter: u64,
-    /// The manifest as earlier runs left it, owned by this pipeline.
-    manifest: Manifest,
     /// This run's files as planned, and those of them confirmed or written (with their stat).
     entries: BTreeMap<String, IndexEntry>,
     done: BTreeMap<String, FileStat>,
@@ -294,7 +382,7 @@ impl Exporter {
     /// is written; claims a new or empty folder by writing its manifest at once, so that a run
     /// killed before its end still leaves the folder marked as this pipeline's.
     pub fn open(dir: &Path, store: &Store, pipeline: &str, stages: &[&str], dims: &[Dim]) -> Result<Exporter> {
-        let manifest = match Manifest::read(dir)? {
+        let mut manifest = match Manifest::read(dir)? {
             Some(m) => match &m.owner {
                 None => {
                     adopt_legacy(dir, pipeline, stages)?;
@@ -334,28 +422,32 @@ impl Exporter {
                 let _ = std::fs::remove_file(&p);
             }
         }
-        let mut exporter = Exporter {
-            dir: dir.to_path_buf(),
-            dims: dims.iter().map(|d| d.name.clone()).collect(),
-            writer: store.writer_id().to_string(),
-            counter: 0,
-            manifest,
+        let writer = store.writer_id().to_string();
+        let mut counter = 0;
+        if manifest.owner.as_deref() != Some(pipeline) {
+            manifest.owner = Some(pipeline.to_string());
+            counter += 1;
+            manifest.write(dir, &dir.join(TMP).join(format!("{writer}-manifest{counter}")))?;
+        }
+        Ok(Exporter {
+            folder: Arc::new(OutputFolder::new(dir, dims, manifest)),
+            writer,
+            counter,
             entries: BTreeMap::new(),
             done: BTreeMap::new(),
             reflinks: Arc::new(AtomicBool::new(true)),
             jobs_done: false,
-        };
-        if exporter.manifest.owner.as_deref() != Some(pipeline) {
-            exporter.manifest.owner = Some(pipeline.to_string());
-            let tmp = exporter.tmp_path("manifest");
-            exporter.manifest.write(dir, &tmp)?;
-        }
-        Ok(exporter)
+        })
+    }
+
+    /// The folder as this run found it, for the cache decision of outputs kept only there.
+    pub fn folder(&self) -> Arc<OutputFolder> {
+        self.folder.clone()
     }
 
     fn tmp_path(&mut self, what: &str) -> PathBuf {
         self.counter += 1;
-        self.dir.join(TMP).join(format!("{}-{what}{}", self.writer, self.counter))
+        self.folder.dir.join(TMP).join(format!("{}-{what}{}", self.writer, self.counter))
     }
 
     /// Records the file an output maps to; returns a job unless the file is known to be in place.
@@ -371,8 +463,8 @@ impl Exporter {
         mem: Option<Blob>,
         store: &Store,
     ) -> Result<Option<ExportJob>> {
-        let rel = render(export, item, dataset, &self.dims)?;
-        let dest = confined(&self.dir, &rel)?;
+        let rel = render(export, item, dataset, &self.folder.dims)?;
+        let dest = confined(&self.folder.dir, &rel)?;
         let (stage, port) = names;
         self.entries.insert(
             rel.clone(),
@@ -385,13 +477,19 @@ impl Exporter {
                 bytes: out.size,
             },
         );
-        // In place: the manifest says the path holds these bytes, and the file is untouched since.
-        let held = self.manifest.files.get(&rel);
+        // In place: the manifest says the path holds these bytes, and the file is untouched since;
+        // or a hash made by this run found them there (a file the manifest does not list yet, as
+        // a killed run leaves them: it may not be on disk yet, so the folder is synced before the
+        // manifest lists it, as for a file written).
+        let held = self.folder.manifest.files.get(&rel);
         let same_bytes = held.is_some_and(|h| h.digest == out.digest && h.size == out.size);
-        if let Some(stat) = held.and_then(|h| h.stat).filter(|s| same_bytes && FileStat::of(&dest).as_ref() == Some(s))
-        {
-            self.done.insert(rel, stat);
-            return Ok(None);
+        if let Some(now) = FileStat::of(&dest).filter(|s| s.size == out.size) {
+            let listed = self.folder.listed_digest(&rel, &now) == Some(out.digest);
+            if listed || self.folder.hashed_digest(&rel, &now) == Some(out.digest) {
+                self.jobs_done |= !listed;
+                self.done.insert(rel, now);
+                return Ok(None);
+            }
         }
         let confirm = held.is_none() || same_bytes;
         let tmp = self.tmp_path("");
@@ -419,31 +517,33 @@ impl Exporter {
     /// Both list only files that exist: a path whose export failed keeps its manifest entry only
     /// while the file earlier runs wrote is still there, untouched, and is left out of the index.
     pub fn finish(mut self) -> Result<u64> {
-        let mut manifest = std::mem::take(&mut self.manifest);
-        for (rel, entry) in &self.entries {
-            if let Some(stat) = self.done.get(rel) {
+        let (manifest_tmp, index_tmp) = (self.tmp_path("manifest"), self.tmp_path("index"));
+        let Exporter { folder, entries, done, jobs_done, .. } = self;
+        let dir = folder.dir.clone();
+        // Shared with the key layer during the run; by its end, normally ours alone.
+        let mut manifest = Arc::try_unwrap(folder).map(|f| f.manifest).unwrap_or_else(|f| f.manifest.clone());
+        for (rel, entry) in &entries {
+            if let Some(stat) = done.get(rel) {
                 let digest = Digest::from_hex(&entry.digest).unwrap_or_default();
                 manifest.files.insert(rel.clone(), Held { digest, size: entry.bytes, stat: Some(*stat) });
             }
         }
-        manifest.files.retain(|rel, held| match FileStat::of(&self.dir.join(rel)) {
+        manifest.files.retain(|rel, held| match FileStat::of(&dir.join(rel)) {
             None => false,
-            Some(now) => held.stat.is_none_or(|s| s == now) || self.done.contains_key(rel),
+            Some(now) => held.stat.is_none_or(|s| s == now) || done.contains_key(rel),
         });
         let files: Vec<&IndexEntry> =
-            self.entries.iter().filter(|(rel, _)| self.done.contains_key(*rel)).map(|(_, e)| e).collect();
+            entries.iter().filter(|(rel, _)| done.contains_key(*rel)).map(|(_, e)| e).collect();
         let count = files.len() as u64;
         // The files written without an fsync each reach the disk before the manifest that lists
         // them as written: after a power loss, a file the manifest trusts holds its bytes.
-        if self.jobs_done {
-            sync_filesystem(&self.dir)?;
+        if jobs_done {
+            sync_filesystem(&dir)?;
         }
         // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
         let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files }))?;
-        let manifest_tmp = self.tmp_path("manifest");
-        manifest.write(&self.dir, &manifest_tmp)?;
-        let index_tmp = self.tmp_path("index");
-        write_atomic_via(&index_tmp, &self.dir.join(INDEX), &json)?;
+        manifest.write(&dir, &manifest_tmp)?;
+        write_atomic_via(&index_tmp, &dir.join(INDEX), &json)?;
         Ok(count)
     }
 }
@@ -612,6 +712,50 @@ mod tests {
         {
             assert!(confined(dir, bad).is_err(), "{bad:?}");
         }
+    }
+
+    #[test]
+    fn a_folder_holds_a_file_by_its_listed_stat_or_by_a_hash_when_one_is_allowed() {
+        let p = crate::testkit::load(
+            r#"Pipeline(
+                dataset: Grid(scenes: 1, frames: 2, cameras: 1),
+                stages: {"file": ToFile(inputs: {"x": "dataset.frame_value"}, grain: frame)},
+                export: {"file.file": "{scene}/{frame}.bin"},
+            )"#,
+            &[],
+        );
+        let grid = crate::testkit::grid_of(&p);
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir_all(dir.path().join("s0")).unwrap();
+        let (first, second) = (dir.path().join("s0/000.bin"), dir.path().join("s0/001.bin"));
+        std::fs::write(&first, b"first").unwrap();
+        std::fs::write(&second, b"second").unwrap();
+        let mut m = Manifest { owner: Some("test".into()), files: BTreeMap::new() };
+        for (rel, bytes) in [("s0/000.bin", &b"first"[..]), ("s0/001.bin", b"second")] {
+            let stat = FileStat::of(&dir.path().join(rel));
+            m.files.insert(rel.into(), Held { digest: Digest::of(bytes), size: bytes.len() as u64, stat });
+        }
+        m.write(dir.path(), &dir.path().join("tmp")).unwrap();
+        let (item0, item1) = (ItemKey::new(&[0, 0]), ItemKey::new(&[0, 1]));
+
+        let folder = OutputFolder::read(dir.path(), &p.dims).unwrap();
+        let holds = |item: &ItemKey, bytes: &[u8], hash: bool| {
+            folder.holds(&p.exports[0], item, &grid, &Digest::of(bytes), bytes.len() as u64, hash)
+        };
+        // Listed with this stat: no read needed either way.
+        assert_eq!(holds(&item0, b"first", false), Some(true));
+        assert_eq!(holds(&item0, b"fir5t", false), Some(false));
+        assert_eq!(holds(&item0, b"other bytes", false), Some(false), "another size");
+        // Another stat (touched): only a hash can tell, and is then remembered.
+        let later = std::fs::metadata(&second).unwrap().modified().unwrap() + std::time::Duration::from_secs(5);
+        std::fs::File::options().write(true).open(&second).unwrap().set_modified(later).unwrap();
+        assert_eq!(holds(&item1, b"second", false), None);
+        assert_eq!(holds(&item1, b"second", true), Some(true));
+        assert_eq!(holds(&item1, b"second", false), Some(true));
+        assert_eq!(holds(&item1, b"secont", true), Some(false));
+        // Gone: no.
+        std::fs::remove_file(&first).unwrap();
+        assert_eq!(holds(&item0, b"first", true), Some(false));
     }
 
     #[test]

@@ -33,10 +33,11 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcRep
     runs.reverse(); // newest first
     let mut report = GcReport::default();
 
-    // Latest record per key, with the blobs it references.
+    // Latest record per key (the one a run uses), with the blobs it references.
     let mut records: DigestMap<Vec<u8>> = DigestMap::default();
     for (_, payload) in store.all_records() {
-        if let Some(k) = TaskRecord::key_of(payload) {
+        let Some(k) = TaskRecord::key_of(payload) else { continue };
+        if records.get(&k).is_none_or(|kept| TaskRecord::supersedes(payload, kept)) {
             records.insert(k, payload.to_vec());
         }
     }

@@ -7,8 +7,13 @@
 //! exact input artifacts with their positions, and, for seeded stages, the item key. It does not
 //! hash which upstream task made an input: a rerun upstream task that yields the same bytes leaves
 //! downstream keys unchanged (early cutoff).
+//!
+//! A record is a hit only while the bytes of every output it names can be had: inside the record
+//! (small outputs), as a blob in the store, or — for an output the run exports and no stage reads,
+//! which the store does not keep (see [`Keys::exporting_to`]) — as its files in the output folder.
 
 use crate::digest::{Digest, DigestBuilder};
+use crate::export::OutputFolder;
 use crate::item::ItemKey;
 use crate::operator::{Dataset, FileDigests};
 use crate::plan::{InputSrc, OuterPlan};
@@ -17,6 +22,7 @@ use crate::store::Store;
 use anyhow::{Context, Result};
 use dist4d_graph::{NodeId, NodeKind, ParamsValue, Pipeline, StageNode};
 use std::path::Path;
+use std::sync::Arc;
 
 /// Domain of task keys. Bump it when the key layout or the canonical params printer changes, so
 /// that old records are never mistaken for new ones.
@@ -24,6 +30,12 @@ pub const TASK_KEY_DOMAIN: &str = "dist4d-task-v2";
 
 /// Domain of task seeds.
 pub const SEED_DOMAIN: &str = "dist4d-seed-v1";
+
+/// Outputs only exported of at most this many bytes (a few filesystem blocks) are stored all the
+/// same: they cost next to nothing in the store (a few KB of scores per item, against megabytes of
+/// exports), while the task that made them may cost much to run again when a file is lost (a
+/// stage that scores its item against references reads far more than it writes).
+pub const STORED_EXPORT_MAX: u64 = 16 << 10;
 
 /// The digest of checked params, as task keys and task records hold it.
 pub fn params_digest(params: &ParamsValue) -> Digest {
@@ -92,10 +104,21 @@ impl Input {
 pub enum Decision {
     /// A finished task with this key left every output readable: nothing to run.
     Cached { key: Digest, outputs: Vec<OutputRef> },
-    /// No usable record of this key: the task runs.
-    Run { key: Digest },
-    /// Some input digest is not known, so neither is the key.
+    /// No usable record of this key: the task runs. `lost` says why when there is a record.
+    Run { key: Digest, lost: Option<Lost> },
+    /// Some input digest is not known, so neither is the key; or, when hashing was not allowed,
+    /// whether an exported file still holds an output's bytes.
     Unknown,
+}
+
+/// The output of a task record whose bytes are nowhere to be had (by output port).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Lost {
+    /// Its blob is missing from the store (removed by hand, found corrupt, or a power loss).
+    Blob(usize),
+    /// It is kept only in the output folder, and a file of it there is missing or holds other bytes
+    /// (deleted, edited, overwritten by a run with other params, or the run exports elsewhere).
+    Exported(usize),
 }
 
 /// The key layer of one pipeline on one dataset and store.
@@ -105,12 +128,48 @@ pub struct Keys<'a> {
     store: &'a Store,
     /// Params digest per node (default for sources).
     params: Vec<Digest>,
+    /// The output folder of the run, when it exports.
+    folder: Option<Arc<OutputFolder>>,
+    /// Per node and output port: exported into `folder` and read by no stage (all false without a folder).
+    only_exported: Vec<Vec<bool>>,
 }
 
 impl<'a> Keys<'a> {
     pub fn new(pipeline: &'a Pipeline, dataset: &'a dyn Dataset, store: &'a Store) -> Keys<'a> {
         let params = pipeline.nodes.iter().map(|n| n.stage().map(|s| params_digest(&s.params)).unwrap_or_default());
-        Keys { pipeline, dataset, store, params: params.collect() }
+        let only_exported = pipeline.nodes.iter().map(|n| vec![false; n.outputs.len()]).collect();
+        Keys { pipeline, dataset, store, params: params.collect(), folder: None, only_exported }
+    }
+
+    /// Keys for a run that exports into `folder`. Outputs that it exports and that no stage of
+    /// the pipeline reads (larger than [`STORED_EXPORT_MAX`]) are then kept only there, as Bazel's
+    /// "build without the bytes" keeps them out of its cache: the store records their digest and
+    /// size, not their bytes, which exist once on disk instead of twice. No task of the run needs
+    /// them; a later run that does not find them in place (deleted, edited, another folder) runs
+    /// their task again.
+    pub fn exporting_to(mut self, folder: Arc<OutputFolder>) -> Keys<'a> {
+        let p = self.pipeline;
+        for x in &p.exports {
+            self.only_exported[x.node][x.port] = true;
+        }
+        for input in p.nodes.iter().filter_map(|n| n.stage()).flat_map(|s| &s.inputs) {
+            if let Some(read) = self.only_exported[input.from].get_mut(input.from_port) {
+                *read = false;
+            }
+        }
+        self.folder = Some(folder);
+        self
+    }
+
+    /// Whether output `port` of stage node `node` is exported and read by no stage.
+    pub fn only_exported(&self, node: NodeId, port: usize) -> bool {
+        self.only_exported[node].get(port).copied().unwrap_or(false)
+    }
+
+    /// Whether an output of `size` bytes on output `port` of stage node `node` is kept only in
+    /// the output folder, not in the store (see [`Keys::exporting_to`]).
+    pub fn only_in_folder(&self, node: NodeId, port: usize, size: u64) -> bool {
+        size > STORED_EXPORT_MAX && self.only_exported(node, port)
     }
 
     /// The params digest of stage node `node`.
@@ -167,16 +226,50 @@ impl<'a> Keys<'a> {
     }
 
     /// Whether stage node `node` on `item` with these inputs is cached, must run, or cannot be
-    /// keyed yet. A record whose blob is gone (removed by hand or found corrupt) is not a hit.
-    pub fn decide(&self, node: NodeId, item: &ItemKey, inputs: &[Vec<Input>]) -> Decision {
+    /// keyed yet. A record is a hit only when the bytes of each of its outputs are there: inside
+    /// the record, as a blob, or, for an output kept only in the output folder, as its files there
+    /// (see [`OutputFolder::holds`]; an exported file whose stat changed is hashed only when `hash`
+    /// is set, else the answer is `Unknown`). A record whose bytes are gone is not a hit.
+    pub fn decide(&self, node: NodeId, item: &ItemKey, inputs: &[Vec<Input>], hash: bool) -> Decision {
         let Some(digests) = known_digests(inputs) else { return Decision::Unknown };
         let key = task_key(self.stage(node), &self.params[node], item, &digests);
-        match self.store.lookup(&key) {
-            Some(rec) if rec.outputs.iter().all(|o| o.inline.is_some() || self.store.has_blob(&o.digest)) => {
-                Decision::Cached { key, outputs: rec.outputs }
+        let Some(rec) = self.store.lookup(&key) else { return Decision::Run { key, lost: None } };
+        let mut unsure = false;
+        for (port, o) in rec.outputs.iter().enumerate() {
+            if o.inline.is_some() {
+                continue;
             }
-            _ => Decision::Run { key },
+            // The output folder first, where such outputs are; a blob of the same bytes (another
+            // output's, or one an older dist4d stored) serves as well.
+            let only_in_folder = self.only_in_folder(node, port, o.size);
+            let exported = if only_in_folder { self.in_folder(node, port, item, o, hash) } else { None };
+            match exported {
+                Some(true) => {}
+                _ if self.store.has_blob(&o.digest) => {}
+                Some(false) => return Decision::Run { key, lost: Some(Lost::Exported(port)) },
+                None if only_in_folder => unsure = true,
+                None => return Decision::Run { key, lost: Some(Lost::Blob(port)) },
+            }
         }
+        if unsure {
+            return Decision::Unknown;
+        }
+        Decision::Cached { key, outputs: rec.outputs }
+    }
+
+    /// Whether every file the run exports of output `port` of `node` on `item` holds `out`'s bytes
+    /// (`None`: only hashing can tell, and `hash` is not set).
+    fn in_folder(&self, node: NodeId, port: usize, item: &ItemKey, out: &OutputRef, hash: bool) -> Option<bool> {
+        let folder = self.folder.as_ref()?;
+        let mut answer = Some(true);
+        for x in self.pipeline.exports.iter().filter(|x| x.node == node && x.port == port) {
+            match folder.holds(x, item, self.dataset, &out.digest, out.size, hash) {
+                Some(true) => {}
+                Some(false) => return Some(false),
+                None => answer = None,
+            }
+        }
+        answer
     }
 
     fn stage(&self, node: NodeId) -> &'a StageNode {

@@ -86,6 +86,22 @@ impl TaskRecord {
         (payload.first() == Some(&FORMAT) && payload.len() >= 33).then(|| Digest(payload[1..33].try_into().unwrap()))
     }
 
+    /// When the task of an encoded record finished (Unix milliseconds), without decoding the rest.
+    pub fn finished_ms_of(payload: &[u8]) -> Option<u64> {
+        // The record ends with its finish time and its duration, 8 bytes each.
+        let at = payload.len().checked_sub(16)?;
+        Some(u64::from_le_bytes(payload[at..at + 8].try_into().ok()?))
+    }
+
+    /// Whether encoded record `a` is to be used rather than `b`, of the same key: the one whose
+    /// task finished later. Records of one key normally name the same outputs; when a task that
+    /// ran again gave other bytes (a stage that is not deterministic), the last run's record is
+    /// the one that matches what it left in the output folder. Segments are read in the order of
+    /// their writers' names, which is not the order they were written in.
+    pub fn supersedes(a: &[u8], b: &[u8]) -> bool {
+        TaskRecord::finished_ms_of(a) >= TaskRecord::finished_ms_of(b)
+    }
+
     /// The stage name and item of an encoded record, without decoding the rest.
     pub fn stage_item_of(payload: &[u8]) -> Result<(&str, ItemKey)> {
         let mut r = Reader { buf: payload.get(33..).unwrap_or(&[]) };
@@ -158,6 +174,7 @@ mod tests {
         assert_eq!(TaskRecord::decode(&bytes).unwrap(), rec);
         assert_eq!(TaskRecord::key_of(&bytes), Some(rec.key));
         assert_eq!(TaskRecord::stage_item_of(&bytes).unwrap(), ("project", rec.item));
+        assert_eq!(TaskRecord::finished_ms_of(&bytes), Some(rec.finished_ms));
         assert!(TaskRecord::decode(&bytes[..bytes.len() - 3]).is_err());
     }
 }

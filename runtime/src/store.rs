@@ -113,13 +113,19 @@ impl Store {
         let writer_lock = lock_writer_file(&writer_lock_path)?;
         remove_dead_writers_temps(&root.join("tmp"), &writer_id)?;
 
-        let mut segments = Vec::new();
+        let mut segments: Vec<Segment> = Vec::new();
         let mut index = DigestMap::default();
         for path in segment_paths(&root.join("ac"))? {
             let seg = Segment::open(&path)?;
             let si = segments.len() as u32;
             for (off, payload) in seg.entries() {
-                if let Some(key) = TaskRecord::key_of(payload) {
+                let Some(key) = TaskRecord::key_of(payload) else { continue };
+                // A key recorded twice (a task run again) is rare: only then is a record compared.
+                let earlier = match index.get(&key) {
+                    Some(&(s, o)) if s != si => segments[s as usize].payload_at(o as usize),
+                    _ => None,
+                };
+                if earlier.is_none_or(|e| TaskRecord::supersedes(payload, e)) {
                     index.insert(key, (si, off as u64));
                 }
             }
@@ -482,6 +488,28 @@ mod tests {
         assert_eq!(s.record_count(), 2);
         assert_eq!(s.lookup(&Digest::of(b"a")).unwrap(), record(b"a"));
         assert!(s.lookup(&Digest::of(b"c")).is_none());
+    }
+
+    #[test]
+    fn of_two_records_of_one_key_the_later_is_used_whatever_the_segment_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let with = |key: &[u8], finished_ms: u64, out: &[u8]| TaskRecord {
+            finished_ms,
+            outputs: vec![OutputRef { digest: Digest::of(out), size: 1, inline: Some(std::sync::Arc::from(out)) }],
+            ..record(key)
+        };
+        // Two writers (two segments, named in no particular order); for key a the newer record is
+        // written first, for key b last.
+        for (a, b) in [(2000, 1000), (1000, 2000)] {
+            let s = Store::open(dir.path(), Access::Shared).unwrap();
+            s.append_record(&with(b"a", a, if a > b { b"new" } else { b"old" })).unwrap();
+            s.append_record(&with(b"b", b, if b > a { b"new" } else { b"old" })).unwrap();
+        }
+        let s = Store::open(dir.path(), Access::Shared).unwrap();
+        for key in [b"a", b"b"] {
+            let found = s.lookup(&Digest::of(key)).unwrap();
+            assert_eq!((found.finished_ms, found.outputs[0].digest), (2000, Digest::of(b"new")));
+        }
     }
 
     #[test]

@@ -3,7 +3,7 @@
 //! `Grid(scenes, frames, cameras)` has sources `frame_value` (per frame) and `camera_value`
 //! (per camera) whose content is a function of the item and a version that tests can bump (as if
 //! a raw file changed). Stages: `Echo` (hash of its input, optionally padded to `size` bytes),
-//! `Merge` (hash of several inputs), `ToFile` (an exportable copy).
+//! `Merge` (hash of several inputs), `ToFile` (an exportable copy), `FromFile` (a reader of one).
 
 use crate::digest::{Digest, DigestBuilder};
 use crate::item::{ItemKey, ItemSpace};
@@ -143,7 +143,13 @@ impl Default for TestCatalog {
                     vec![PortSpec::one("y", "Bytes", "")],
                     vec!["frame", "scene", "camera"],
                 ),
-                kind("ToFile", vec![PortSpec::one("x", "Bytes", "")], vec![PortSpec::one("file", "File", "")], all),
+                kind(
+                    "ToFile",
+                    vec![PortSpec::one("x", "Bytes", "")],
+                    vec![PortSpec::one("file", "File", "")],
+                    all.clone(),
+                ),
+                kind("FromFile", vec![PortSpec::one("file", "File", "")], vec![PortSpec::one("y", "Bytes", "")], all),
             ],
             grid: DatasetSchema {
                 kind: "Grid",
