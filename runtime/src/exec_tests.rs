@@ -614,12 +614,19 @@ fn exporting(out: &Path) -> RunOptions {
     RunOptions { jobs: 2, out_dir: Some(out.to_path_buf()), ..Default::default() }
 }
 
-#[test]
-fn outputs_only_exported_are_kept_in_the_output_folder_not_in_the_store() {
+/// A fresh store and output folder (in a temporary directory the caller keeps alive) and the
+/// chain whose `file` outputs are big enough to live only in the output folder.
+fn big_file_chain() -> (tempfile::TempDir, std::path::PathBuf, std::path::PathBuf, Pipeline, Grid) {
     let dir = tempfile::tempdir().unwrap();
     let (store, out) = (dir.path().join("store"), dir.path().join("out"));
     let p = testkit::load(CHAIN, BIG_FILES);
     let grid = testkit::grid_of(&p);
+    (dir, store, out, p, grid)
+}
+
+#[test]
+fn outputs_only_exported_are_kept_in_the_output_folder_not_in_the_store() {
+    let (_dir, store, out, p, grid) = big_file_chain();
     let first = run_with(&p, &grid, &store, &exporting(&out));
     assert_eq!((first.status, first.exported), (RunStatus::Complete, 8));
     let files = exported_digests(&out);
@@ -648,10 +655,7 @@ fn outputs_only_exported_are_kept_in_the_output_folder_not_in_the_store() {
 
 #[test]
 fn a_deleted_edited_or_elsewhere_export_reruns_just_its_task() {
-    let dir = tempfile::tempdir().unwrap();
-    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
-    let p = testkit::load(CHAIN, BIG_FILES);
-    let grid = testkit::grid_of(&p);
+    let (dir, store, out, p, grid) = big_file_chain();
     run_with(&p, &grid, &store, &exporting(&out));
     let reference = files_under(&out);
     let only_file = |n| counts(&[("a", 0), ("b", 0), ("per_frame", 0), ("window", 0), ("next", 0), ("file", n)]);
@@ -721,10 +725,7 @@ fn small_outputs_only_exported_are_still_stored() {
 
 #[test]
 fn a_run_killed_after_its_exports_but_before_its_manifest_resumes_without_running_them_again() {
-    let dir = tempfile::tempdir().unwrap();
-    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
-    let p = testkit::load(CHAIN, BIG_FILES);
-    let grid = testkit::grid_of(&p);
+    let (_dir, store, out, p, grid) = big_file_chain();
     run_with(&p, &grid, &store, &exporting(&out));
     let reference = files_under(&out);
     let inodes: Vec<u64> = exported_digests(&out).keys().map(|rel| inode(&out.join(rel))).collect();
@@ -765,10 +766,7 @@ fn a_task_whose_export_failed_leaves_no_record_and_runs_again() {
 
 #[test]
 fn explain_looks_for_outputs_kept_only_in_the_output_folder_where_the_run_would() {
-    let dir = tempfile::tempdir().unwrap();
-    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
-    let p = testkit::load(CHAIN, BIG_FILES);
-    let grid = testkit::grid_of(&p);
+    let (dir, store, out, p, grid) = big_file_chain();
     run_with(&p, &grid, &store, &exporting(&out));
     std::fs::remove_file(out.join("s1/002.bin")).unwrap();
     let explain = |out_dir: Option<&Path>| {
