@@ -220,6 +220,19 @@ pub fn read_npy_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>)> {
 mod tests {
     use super::*;
 
+    /// An EXR file as the exr crate reads it (every channel of its first layer).
+    fn read_exr(bytes: Vec<u8>) -> exr::image::Image<exr::image::Layer<exr::image::AnyChannels<exr::image::FlatSamples>>> {
+        use exr::prelude::*;
+        read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .all_channels()
+            .first_valid_layer()
+            .all_attributes()
+            .from_buffered(std::io::Cursor::new(bytes))
+            .unwrap()
+    }
+
     #[test]
     fn exrs_of_many_blocks_with_a_partial_last_one_read_back_exactly() {
         use exr::prelude::*;
@@ -232,27 +245,13 @@ mod tests {
             })
             .collect();
         let d = DepthMap { width: w as u32, height: h as u32, data };
-        let img = read()
-            .no_deep_data()
-            .largest_resolution_level()
-            .all_channels()
-            .first_valid_layer()
-            .all_attributes()
-            .from_buffered(std::io::Cursor::new(depth_exr(&d).unwrap()))
-            .unwrap();
+        let img = read_exr(depth_exr(&d).unwrap());
         assert_eq!(img.layer_data.size, Vec2(w, h));
         let FlatSamples::F32(v) = &img.layer_data.channel_data.list[0].sample_data else { panic!("float32") };
         assert!(v.iter().zip(&d.data).all(|(a, b)| a.to_bits() == b.to_bits()));
         let none = depth_exr_with(&d, ExrCompression::None).unwrap();
         assert!(none.len() > 4 * w * h);
-        let img = read()
-            .no_deep_data()
-            .largest_resolution_level()
-            .all_channels()
-            .first_valid_layer()
-            .all_attributes()
-            .from_buffered(std::io::Cursor::new(none))
-            .unwrap();
+        let img = read_exr(none);
         assert_eq!(img.layer_data.encoding.compression, Compression::Uncompressed);
         let FlatSamples::F32(v) = &img.layer_data.channel_data.list[0].sample_data else { panic!("float32") };
         assert!(v.iter().zip(&d.data).all(|(a, b)| a.to_bits() == b.to_bits()));
@@ -262,14 +261,7 @@ mod tests {
             (0..w * h).map(|i| f32::from_bits(0x3f80_0000 ^ (i as u32).wrapping_mul(2654435761) >> 9)).collect(),
         ] {
             let d = DepthMap { width: w as u32, height: h as u32, data };
-            let img = read()
-                .no_deep_data()
-                .largest_resolution_level()
-                .all_channels()
-                .first_valid_layer()
-                .all_attributes()
-                .from_buffered(std::io::Cursor::new(depth_exr(&d).unwrap()))
-                .unwrap();
+            let img = read_exr(depth_exr(&d).unwrap());
             let FlatSamples::F32(v) = &img.layer_data.channel_data.list[0].sample_data else { panic!("float32") };
             assert!(v.iter().zip(&d.data).all(|(a, b)| a.to_bits() == b.to_bits()));
         }
