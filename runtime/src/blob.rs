@@ -229,7 +229,7 @@ fn write(path: &Path, bytes: &[u8]) {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     fn floats(n: usize) -> Vec<u8> {
@@ -249,17 +249,22 @@ mod tests {
         assert_eq!(unpack(file, &Digest::of(&text)).unwrap(), text);
     }
 
-    #[test]
-    fn incompressible_and_small_bytes_stay_raw() {
+    /// `len` bytes zstd cannot shrink (xorshift64).
+    pub(crate) fn noise(len: usize) -> Vec<u8> {
         let mut x = 0x9e3779b97f4a7c15u64;
-        let noise: Vec<u8> = (0..200_000)
+        (0..len)
             .map(|_| {
                 x ^= x << 13;
                 x ^= x >> 7;
                 x ^= x << 17;
                 x as u8
             })
-            .collect();
+            .collect()
+    }
+
+    #[test]
+    fn incompressible_and_small_bytes_stay_raw() {
+        let noise = noise(200_000);
         assert!(matches!(pack(&noise), Kept::Raw(_)));
         assert!(matches!(pack(b"short"), Kept::Raw(_)));
         assert_eq!(unpack(noise.clone(), &Digest::of(&noise)).unwrap(), noise);

@@ -536,15 +536,7 @@ mod tests {
         assert!(on_disk.starts_with(&blob::MAGIC) && on_disk.len() < floats.len() / 2, "{}", on_disk.len());
         assert!(s.get_blob(&d).unwrap() == floats);
         // Bytes that do not compress are kept as they are (an export can reflink them).
-        let mut x = 0x9e3779b97f4a7c15u64;
-        let noise: Vec<u8> = (0..20_000)
-            .map(|_| {
-                x ^= x << 13;
-                x ^= x >> 7;
-                x ^= x << 17;
-                x as u8
-            })
-            .collect();
+        let noise = blob::tests::noise(20_000);
         let n = Digest::of(&noise);
         s.put_blob(&n, &noise).unwrap();
         assert!(fs::read(s.blob_path(&n)).unwrap() == noise);
