@@ -323,9 +323,10 @@ def section_shipped(data, tmp, base):
 def section_chain(data, tmp, base):
     """Curation without MVS, depth files written: dist4d vs curation_chain.py (equal work)."""
     print("## End to end vs the peer chain (curation without MVS, EXR + PNG16 + NPY written)\n")
-    # dist4d: the shipped pipeline without MVS, evaluation or sheets; EncodeDepth's EXR, PNG16 and
-    # NPY exported (it also makes the preview, which the peer does not: not exported).
-    t = variant(base, "chain", tmp, visible_points="aggregate.points", slim=False).read_text()
+    # dist4d: the shipped pipeline without MVS, sky estimation, evaluation or sheets (the peer
+    # estimates no sky: IP-Basic leaves it as it fills it); EncodeDepth's EXR, PNG16 and NPY
+    # exported (it also makes the preview, which the peer does not: not exported).
+    t = variant(base, "chain", tmp, visible_points="aggregate.points", sky=False, slim=False).read_text()
     names = set(re.findall(r'^        "(\w+)": \w+\(', t, re.M))
     t = drop_stages(t, names - {"aggregate", "visible", "prompt", "complete", "encode"})
     t = t[:t.index("    export: {")] + """    export: {
@@ -358,7 +359,7 @@ def section_chain(data, tmp, base):
         return
     peer = json.loads(p.stdout.strip().splitlines()[-1])
     print(f"{frames} keyframes x 6 cameras of the synthetic scene (1600x900), same run. dist4d: `dist4d run` of "
-          "curation.ron without MVS, evaluation and sheets (aggregation of 3 LiDAR keyframes without moving "
+          "curation.ron without MVS, sky estimation, evaluation and sheets (aggregation of 3 LiDAR keyframes without moving "
           "boxes, HPR, z-buffered prompt, CompleteDepth, EncodeDepth), EXR + PNG16 + NPY exported; cold cache, "
           "dataset reading and exports included. Peer: ../shared/bench/peers/curation_chain.py (nuscenes-devkit "
           "aggregation and projection, Open3D HPR, z-buffer, IP-Basic, JPEG decode, EXR + PNG16 + NPY written; "

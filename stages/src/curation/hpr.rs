@@ -157,27 +157,82 @@ fn restore_unoccluded(params: &Params, xyz: &[DVec3], visible: &mut [bool], view
     let in_image = kept.iter().filter(|(u, v, _)| (0..w).contains(u) && (0..h).contains(v)).count();
     let spacing = ((w * h) as f64 / in_image.max(1) as f64).sqrt();
     let [rx, ry] = params.restore_window.map(|r| (r * spacing).round() as i64);
-    // The nearest kept depth within the window of every pixel: kept points are few (a few per
-    // cent of the pixels), so each splats its window. Those just outside the image (the frustum
-    // margin) still occlude near the border.
-    let mut nearest = vec![f32::INFINITY; (w * h) as usize];
-    for &(u, v, z) in &kept {
-        let (x0, x1) = ((u - rx).max(0), (u + rx + 1).min(w));
-        if x0 >= x1 {
-            continue;
-        }
-        for y in (v - ry).max(0)..(v + ry + 1).min(h) {
-            for n in &mut nearest[(y * w + x0) as usize..(y * w + x1) as usize] {
-                *n = n.min(z);
-            }
-        }
-    }
+    let occluders = WindowMin::new(&kept, (w, h), (rx, ry));
     let keep = 1.0 - params.restore_tolerance as f32;
     for (p, vis) in xyz.iter().zip(visible.iter_mut()).filter(|(_, v)| !**v) {
         let (u, v, z) = pixel(p);
-        if (0..w).contains(&u) && (0..h).contains(&v) && nearest[(v * w + u) as usize] >= z * keep {
+        if (0..w).contains(&u) && (0..h).contains(&v) && occluders.nearest(u, v) >= z * keep {
             *vis = true;
         }
+    }
+}
+
+/// The nearest depth among points within a window (`|du| <= rx`, `|dv| <= ry` pixels) of a
+/// pixel, asked only at the pixels of hidden points: a few hundred per image against ~10 000 kept
+/// points, so the kept points are binned into cells of the window's size (a window then meets at
+/// most 2 x 2 cells) instead of each splatting its window into an image-sized map (that splat was
+/// most of HiddenPointRemoval's time outside the hull). The same minimum, so the same points come
+/// back.
+struct WindowMin {
+    /// Kept points that can be within a window of an image pixel, grouped by cell: `(u, v, z)`.
+    points: Vec<(i64, i64, f32)>,
+    /// `points[start[c]..start[c + 1]]` lie in cell `c` (row-major, `cols` per row).
+    start: Vec<usize>,
+    cols: i64,
+    rows: i64,
+    /// Pixel of the corner of cell 0: `(-rx, -ry)`.
+    origin: (i64, i64),
+    cell: (i64, i64),
+    window: (i64, i64),
+}
+
+impl WindowMin {
+    fn new(points: &[(i64, i64, f32)], (w, h): (i64, i64), (rx, ry): (i64, i64)) -> WindowMin {
+        let (rx, ry) = (rx.max(0), ry.max(0));
+        let cell = (2 * rx + 1, 2 * ry + 1);
+        let origin = (-rx, -ry);
+        let (cols, rows) = ((w + 2 * rx + cell.0 - 1) / cell.0, (h + 2 * ry + cell.1 - 1) / cell.1);
+        // Points farther than the window outside the image reach no image pixel.
+        let cell_of = |&(u, v, _): &(i64, i64, f32)| -> Option<usize> {
+            let (x, y) = (u - origin.0, v - origin.1);
+            ((0..w + 2 * rx).contains(&x) && (0..h + 2 * ry).contains(&y))
+                .then(|| ((y / cell.1) * cols + x / cell.0) as usize)
+        };
+        let mut start = vec![0usize; (cols * rows) as usize + 1];
+        for c in points.iter().filter_map(cell_of) {
+            start[c + 1] += 1;
+        }
+        for c in 1..start.len() {
+            start[c] += start[c - 1];
+        }
+        let mut next = start.clone();
+        let mut binned = vec![(0, 0, 0.0f32); start[start.len() - 1]];
+        for p in points {
+            if let Some(c) = cell_of(p) {
+                binned[next[c]] = *p;
+                next[c] += 1;
+            }
+        }
+        WindowMin { points: binned, start, cols, rows, origin, cell, window: (rx, ry) }
+    }
+
+    /// The nearest depth within the window of image pixel `(u, v)`; +inf when there is none.
+    fn nearest(&self, u: i64, v: i64) -> f32 {
+        let (rx, ry) = self.window;
+        let cells = |lo: i64, hi: i64, size: i64, n: i64| (lo.max(0) / size)..=(hi / size).min(n - 1);
+        let (x, y) = (u - self.origin.0, v - self.origin.1);
+        let mut nearest = f32::INFINITY;
+        for cy in cells(y - ry, y + ry, self.cell.1, self.rows) {
+            for cx in cells(x - rx, x + rx, self.cell.0, self.cols) {
+                let c = (cy * self.cols + cx) as usize;
+                for &(pu, pv, z) in &self.points[self.start[c]..self.start[c + 1]] {
+                    if (pu - u).abs() <= rx && (pv - v).abs() <= ry {
+                        nearest = nearest.min(z);
+                    }
+                }
+            }
+        }
+        nearest
     }
 }
 
@@ -260,6 +315,37 @@ mod tests {
         let mut katz: Vec<bool> = (0..xyz.len()).map(|i| i < kept).collect();
         restore_unoccluded(&Params { restore_window: [0.0, 0.0], ..params }, &xyz, &mut katz, &view);
         assert!(katz[kept..].iter().all(|&v| !v));
+    }
+
+    #[test]
+    fn window_minimum_is_the_splat_of_every_point_in_reach() {
+        // Against the image-sized splat it replaced: points inside, at and beyond the border.
+        let mut rng = dist4d_types::rng::Rng::new(4);
+        let (w, h) = (97i64, 61i64);
+        for (rx, ry) in [(0, 0), (1, 3), (4, 9), (30, 70)] {
+            let points: Vec<(i64, i64, f32)> = (0..400)
+                .map(|_| {
+                    let u = rng.range(-45.0, w as f64 + 45.0).floor() as i64;
+                    let v = rng.range(-80.0, h as f64 + 80.0).floor() as i64;
+                    (u, v, rng.range(1.0, 50.0) as f32)
+                })
+                .collect();
+            let mut splat = vec![f32::INFINITY; (w * h) as usize];
+            for &(u, v, z) in &points {
+                for y in (v - ry).max(0)..(v + ry + 1).min(h) {
+                    for x in (u - rx).max(0)..(u + rx + 1).min(w) {
+                        let n = &mut splat[(y * w + x) as usize];
+                        *n = n.min(z);
+                    }
+                }
+            }
+            let grid = WindowMin::new(&points, (w, h), (rx, ry));
+            for y in 0..h {
+                for x in 0..w {
+                    assert_eq!(grid.nearest(x, y).to_bits(), splat[(y * w + x) as usize].to_bits(), "({x}, {y})");
+                }
+            }
+        }
     }
 
     #[test]
