@@ -36,8 +36,6 @@ use dist4d_runtime::TaskContext;
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_types::artifact::{Boxes3D, PointCloud};
-#[cfg(test)]
-use dist4d_types::artifact::Box3D;
 use dist4d_types::geometry::{BoxTest, Se3};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -394,6 +392,7 @@ impl Stage for HiddenPointRemoval {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use dist4d_types::artifact::Box3D;
 
     #[test]
     fn an_object_hides_what_is_behind_its_returns_not_behind_the_air_of_its_box() {

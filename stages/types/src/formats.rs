@@ -221,7 +221,9 @@ mod tests {
     use super::*;
 
     /// An EXR file as the exr crate reads it (every channel of its first layer).
-    fn read_exr(bytes: Vec<u8>) -> exr::image::Image<exr::image::Layer<exr::image::AnyChannels<exr::image::FlatSamples>>> {
+    fn read_exr(
+        bytes: Vec<u8>,
+    ) -> exr::image::Image<exr::image::Layer<exr::image::AnyChannels<exr::image::FlatSamples>>> {
         use exr::prelude::*;
         read()
             .no_deep_data()

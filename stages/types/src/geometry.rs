@@ -115,19 +115,16 @@ impl BoxTest {
         (DVec3::new(-self.half.x, -self.half.y, self.z_min), self.half)
     }
 
-    /// Whether the segment from `a` to `b` passes through the box (the slab test of Kay and
-    /// Kajiya 1986, in the box's own axes).
-    #[inline]
-    pub fn crosses(&self, a: DVec3, b: DVec3) -> bool {
-        self.clip(a, b).is_some()
-    }
-
     /// The part of the segment from `a` to `b` inside the box, in the box's own axes; `None`
-    /// when the segment misses it.
+    /// when the segment misses it (the slab test of Kay and Kajiya 1986).
     pub fn clip(&self, a: DVec3, b: DVec3) -> Option<(DVec3, DVec3)> {
         // Bounding sphere first: most segments pass nowhere near a given box.
         let d = b - a;
-        let t = if d.length_squared() > 0.0 { ((self.center - a).dot(d) / d.length_squared()).clamp(0.0, 1.0) } else { 0.0 };
+        let t = if d.length_squared() > 0.0 {
+            ((self.center - a).dot(d) / d.length_squared()).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
         if (a + d * t - self.center).length_squared() > self.radius2 {
             return None;
         }
@@ -161,9 +158,20 @@ impl BoxTest {
 mod tests {
     use super::*;
 
+    /// Whether the segment from `a` to `b` passes through `b`'s box.
+    fn crosses(b: &BoxTest, from: DVec3, to: DVec3) -> bool {
+        b.clip(from, to).is_some()
+    }
+
     /// A 4 x 2 x 1.5 m box (length along world x) centred at (10, 0, 0.75), yawed by `yaw`.
     fn car(yaw: f64) -> BoxTest {
-        BoxTest::new([2.0, 4.0, 1.5], &Se3::from_yaw(yaw, DVec3::new(10.0, 0.0, 0.75)), &Se3::from_yaw(0.0, DVec3::ZERO), 0.0, 0.0)
+        BoxTest::new(
+            [2.0, 4.0, 1.5],
+            &Se3::from_yaw(yaw, DVec3::new(10.0, 0.0, 0.75)),
+            &Se3::from_yaw(0.0, DVec3::ZERO),
+            0.0,
+            0.0,
+        )
     }
 
     #[test]
@@ -172,20 +180,20 @@ mod tests {
         for yaw in [0.0, 0.4, 1.3] {
             let b = car(yaw);
             // Through the middle, to a point behind the box.
-            assert!(b.crosses(eye, DVec3::new(20.0, 0.0, 0.5)), "yaw {yaw}");
+            assert!(crosses(&b, eye, DVec3::new(20.0, 0.0, 0.5)), "yaw {yaw}");
             // Ending in front of the box, passing beside it, or over its roof.
-            assert!(!b.crosses(eye, DVec3::new(7.0, 0.0, 0.8)), "yaw {yaw}");
-            assert!(!b.crosses(eye, DVec3::new(20.0, 6.0, 0.5)), "yaw {yaw}");
-            assert!(!b.crosses(eye, DVec3::new(20.0, 0.0, 3.5)), "yaw {yaw}");
+            assert!(!crosses(&b, eye, DVec3::new(7.0, 0.0, 0.8)), "yaw {yaw}");
+            assert!(!crosses(&b, eye, DVec3::new(20.0, 6.0, 0.5)), "yaw {yaw}");
+            assert!(!crosses(&b, eye, DVec3::new(20.0, 0.0, 3.5)), "yaw {yaw}");
             // Ending inside the box.
-            assert!(b.crosses(eye, DVec3::new(10.0, 0.0, 0.5)), "yaw {yaw}");
+            assert!(crosses(&b, eye, DVec3::new(10.0, 0.0, 0.5)), "yaw {yaw}");
         }
         // y = x / 5 passes beside the box along x (|y| <= 1 for x in [8, 12]) but through it
         // turned by 90 degrees (|y| <= 2 for x in [9, 11]).
-        assert!(!car(0.0).crosses(eye, DVec3::new(20.0, 4.0, 1.0)));
-        assert!(car(std::f64::consts::FRAC_PI_2).crosses(eye, DVec3::new(20.0, 4.0, 1.0)));
+        assert!(!crosses(&car(0.0), eye, DVec3::new(20.0, 4.0, 1.0)));
+        assert!(crosses(&car(std::f64::consts::FRAC_PI_2), eye, DVec3::new(20.0, 4.0, 1.0)));
         // A zero-length segment crosses only when it lies inside.
-        assert!(car(0.0).crosses(DVec3::new(10.0, 0.0, 0.5), DVec3::new(10.0, 0.0, 0.5)));
-        assert!(!car(0.0).crosses(eye, eye));
+        assert!(crosses(&car(0.0), DVec3::new(10.0, 0.0, 0.5), DVec3::new(10.0, 0.0, 0.5)));
+        assert!(!crosses(&car(0.0), eye, eye));
     }
 }
