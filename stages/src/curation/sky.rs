@@ -22,6 +22,8 @@
 //!   |dx| + |dy| of the unsmoothed luminance <= `max_texture`; a facade is textured) and not
 //!   tiny (>= `min_area` of the image), and it reaches into the upper part of the image (above
 //!   `max_first_row` of its height).
+//! - **Skyline**: the pixels on each side of it are blends of sky and structure; each goes to the
+//!   side whose colour it is nearer (twice: the smoothing leaves a band two pixels wide).
 //! - **Holes**: non-sky specks enclosed by sky, without a depth sample and smaller than
 //!   `max_hole` of the image (JPEG blocks, a distant bird), become sky.
 //!
@@ -66,7 +68,7 @@ impl Default for Params {
         Params {
             step: 6.0,
             min_luminance: 150.0,
-            max_texture: 2.0,
+            max_texture: 2.5,
             max_samples: 0.0002,
             hue_slack: 12.0,
             max_first_row: 0.5,
@@ -240,6 +242,31 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
             }
         }
     }
+    // The pixels on each side of the skyline are blends of sky and structure (the camera's blur,
+    // the image's compression, the 3x3 smoothing above): too far from either to have joined.
+    // Each goes to the side whose colour it is nearer, the sky pixel beside it or the structure
+    // pixel beyond it; twice, as the smoothing left a band two pixels wide.
+    let distance = |a: usize, b: usize| -> u32 {
+        (0..3).map(|c| (image.rgb[3 * a + c] as i32 - image.rgb[3 * b + c] as i32).unsigned_abs()).sum()
+    };
+    for _ in 0..2 {
+        let edge = sky.clone();
+        for i in (0..w * h).filter(|&i| edge[i]) {
+            let (x, y) = (i % w, i / w);
+            // (neighbour, the pixel beyond it), in the four directions.
+            let steps = [
+                (x > 1).then(|| (i - 1, i - 2)),
+                (x + 2 < w).then(|| (i + 1, i + 2)),
+                (y > 1).then(|| (i - w, i - 2 * w)),
+                (y + 2 < h).then(|| (i + w, i + 2 * w)),
+            ];
+            for (j, beyond) in steps.into_iter().flatten() {
+                if !edge[j] && !sampled[j] && !edge[beyond] && distance(j, i) < distance(j, beyond) {
+                    sky[j] = true;
+                }
+            }
+        }
+    }
     fill_holes(&mut sky, &sampled, w, h, (p.max_hole as f64 * (w * h) as f64) as usize);
     sky
 }
@@ -304,7 +331,7 @@ pub struct EstimateSky(Params);
 
 impl Stage for EstimateSky {
     const KIND: &'static str = "EstimateSky";
-    const VERSION: u32 = 1;
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str =
         "Image (+ structure depth samples) -> sky mask: smooth bright region grown from the top, above all depth";
     const GRAINS: &'static [&'static str] = &["camera"];
@@ -379,6 +406,25 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn a_blurred_skyline_row_goes_to_the_side_whose_colour_it_is_nearer() {
+        // The wall starts at row 20; row 19 is a blend a quarter of the way to the wall's
+        // colour in columns 0..30 (sky at its centre) and three quarters in 30..60 (wall).
+        let mut img = scene(|_| 20);
+        for x in 0..60 {
+            let i = 3 * (19 * 60 + x);
+            let t = if x < 30 { 0.25 } else { 0.75 };
+            for c in 0..3 {
+                let (sky, wall) = (img.rgb[i + c] as f32, img.rgb[3 * (21 * 60 + x) + c] as f32);
+                img.rgb[i + c] = (sky + t * (wall - sky)).round() as u8;
+            }
+        }
+        let sky = estimate_sky(&Params::default(), &img, None);
+        assert!((2..28).all(|x| sky[19 * 60 + x]), "nearer the sky: {:?}", &sky[19 * 60..20 * 60]);
+        assert!((32..58).all(|x| !sky[19 * 60 + x]), "nearer the wall: {:?}", &sky[19 * 60..20 * 60]);
+        assert!((0..60).all(|x| !sky[20 * 60 + x]), "the wall's top row");
     }
 
     #[test]
