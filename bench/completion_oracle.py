@@ -72,7 +72,7 @@ def summary(rows):
     acc = np.mean([float(r[3]) for r in rows])
     comp = np.mean([float(r[4]) for r in rows])
     ms = np.mean([float(r[5]) for r in rows])
-    return f"{100 * bad / scored:.2f}% | {acc:.2f} px | {comp:.2f} px | {ms:.0f} ms"
+    return f"{100 * bad / scored:.2f}% | {acc:.2f} px | {comp:.2f} px | " + (f"{ms:.0f} ms" if ms > 0 else "-")
 
 
 def levin(base, sigma=5.0, weight=100.0, iterations=3000):

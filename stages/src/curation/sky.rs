@@ -68,7 +68,7 @@ impl Default for Params {
         Params {
             step: 6.0,
             min_luminance: 150.0,
-            max_texture: 2.5,
+            max_texture: 2.0,
             max_samples: 0.0002,
             hue_slack: 12.0,
             max_first_row: 0.5,
