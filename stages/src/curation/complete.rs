@@ -49,11 +49,21 @@ pub struct Params {
     pub smooth_edge: f32,
     /// Row-then-column passes of that average (Gastal and Oliveira use 3).
     pub smooth_iterations: u32,
+    /// Conjugate-gradient iterations refining the result towards the colour-affinity least
+    /// squares of Levin et al. 2004 (every pixel like its like-coloured neighbours, samples held);
+    /// 0 = off.
+    pub refine_iterations: u32,
+    /// Colour distance (Euclidean RGB, 0-441) at which a link's affinity falls to exp(-1/2).
+    pub refine_sigma: f32,
+    /// How hard a sample holds its own pixel, against a neighbour's affinity of at most 1.
+    pub refine_weight: f32,
+    /// Only pixels within this distance (px) of a depth edge of the filled map are refined.
+    pub refine_band: u32,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, grow: 0.13, smooth_from: 1.0, smooth_sigma: 30.0, smooth_edge: 40.0, smooth_iterations: 3 }
+        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, grow: 0.13, smooth_from: 1.0, smooth_sigma: 30.0, smooth_edge: 40.0, smooth_iterations: 3, refine_iterations: 50, refine_sigma: 5.0, refine_weight: 100.0, refine_band: 6 }
     }
 }
 
@@ -74,6 +84,11 @@ impl Validate for Params {
             .above("smooth_edge", self.smooth_edge as f64, 0.0, 765.0)
             // Each pass costs a few ms; more than a handful changes nothing (the sigmas halve).
             .count("smooth_iterations", self.smooth_iterations as u64, 0, 8)
+            // Each iteration costs a few ms per megapixel.
+            .count("refine_iterations", self.refine_iterations as u64, 0, 10_000)
+            .above("refine_sigma", self.refine_sigma as f64, 0.0, 1e4)
+            .above("refine_weight", self.refine_weight as f64, 0.0, 1e9)
+            .count("refine_band", self.refine_band as u64, 0, MAX_GAP_PX)
             .done()
     }
 }
@@ -322,6 +337,7 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
     let distance = support_distance(&sparse.data, w, h);
     let sky = sky.map(|s| s.data.as_slice());
     smooth_unsupported(p, &mut inv, &image.rgb, &distance, sky, w, h);
+    refine(p, &mut inv, &image.rgb, &sparse.data, sky, w, h);
     let mut depth = inv;
     for v in depth.iter_mut() {
         *v = if *v > 0.0 { 1.0 / *v } else { 0.0 };
@@ -506,6 +522,182 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
     }
 }
 
+/// A few conjugate-gradient steps on the colour-affinity least squares of Levin, Lischinski and
+/// Weiss 2004 (the NYU Depth v2 toolbox's fill), in inverse depth x, near the filled map's depth
+/// edges: minimise, over the pixels within `refine_band` px of a depth step of more than
+/// `EDGE_STEP`, sum over 4-neighbour links of w_ij (x_i - x_j)^2 + `refine_weight` * sum over
+/// samples of (x_i - 1/z_i)^2, with w_ij = exp(-|rgb_i - rgb_j|^2 / 2 `refine_sigma`^2) + 1e-4;
+/// every other pixel keeps its value and holds its neighbours in the band (sky neither gives nor
+/// takes). Started from the filled map, tens of steps (Jacobi preconditioner) move depth edges
+/// onto colour edges; solved to the end over the whole image it takes thousands and blurs real
+/// images across like-coloured surfaces. Figures: docs/BENCHMARKS.md, "What the completion can
+/// reach".
+fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: Option<&[u8]>, w: usize, h: usize) {
+    /// A depth step (ratio) that marks a depth edge of the filled map.
+    const EDGE_STEP: f32 = 1.05;
+    if p.refine_iterations == 0 || w < 2 || h < 2 {
+        return;
+    }
+    let n = w * h;
+    let no_sky;
+    let sky = match sky {
+        Some(s) => s,
+        None => {
+            no_sky = vec![0u8; n];
+            &no_sky
+        }
+    };
+    // Depth edges of the filled map, grown by the band into the active set.
+    let (lo, hi) = (1.0 / EDGE_STEP, EDGE_STEP);
+    let apart = |a: f32, b: f32| a > 0.0 && b > 0.0 && (a > hi * b || a < lo * b);
+    let mut edge = vec![false; n];
+    for y in 0..h {
+        for c in 0..w {
+            let i = y * w + c;
+            if sky[i] != 0 {
+                continue;
+            }
+            if c + 1 < w && sky[i + 1] == 0 && apart(x[i], x[i + 1]) {
+                edge[i] = true;
+                edge[i + 1] = true;
+            }
+            if y + 1 < h && sky[i + w] == 0 && apart(x[i], x[i + w]) {
+                edge[i] = true;
+                edge[i + w] = true;
+            }
+        }
+    }
+    let band = p.refine_band as usize;
+    let active = dilate(&edge, w, h, band);
+    let index: Vec<usize> = (0..n).filter(|&i| active[i] && sky[i] == 0 && x[i] > 0.0).collect();
+    let m = index.len();
+    if m == 0 {
+        return;
+    }
+    // Compact numbering; `m` is a dummy slot holding 0 for links that leave the band.
+    let mut at = vec![m as u32; n];
+    for (k, &i) in index.iter().enumerate() {
+        at[i] = k as u32;
+    }
+    let mut factor = [0f32; 256];
+    for (d, f) in factor.iter_mut().enumerate() {
+        *f = (-((d * d) as f32) / (2.0 * p.refine_sigma * p.refine_sigma)).exp();
+    }
+    let affinity = |i: usize, j: usize| -> f32 {
+        let (a, b) = (&rgb[3 * i..3 * i + 3], &rgb[3 * j..3 * j + 3]);
+        if (sky[i] | sky[j]) != 0 {
+            0.0
+        } else {
+            factor[a[0].abs_diff(b[0]) as usize] * factor[a[1].abs_diff(b[1]) as usize] * factor[a[2].abs_diff(b[2]) as usize] + 1e-4
+        }
+    };
+    // Per active pixel: its four links (compact neighbour, weight), its diagonal and right-hand
+    // side (its sample, and the fixed neighbours outside the band).
+    let mut links = vec![[(m as u32, 0f32); 4]; m];
+    let mut diag = vec![0f32; m];
+    let mut rhs = vec![0f32; m];
+    for (k, &i) in index.iter().enumerate() {
+        let (c, y) = (i % w, i / w);
+        let neighbours = [(c > 0).then(|| i - 1), (c + 1 < w).then(|| i + 1), (y > 0).then(|| i - w), (y + 1 < h).then(|| i + w)];
+        let held = if sparse[i] > 0.0 && sparse[i].is_finite() { p.refine_weight } else { 0.0 };
+        let (mut d, mut b) = (held, if held > 0.0 { held / sparse[i] } else { 0.0 });
+        for (slot, j) in neighbours.into_iter().enumerate() {
+            let Some(j) = j else { continue };
+            let a = affinity(i, j);
+            d += a;
+            if (at[j] as usize) < m {
+                links[k][slot] = (at[j], a);
+            } else if sky[j] == 0 {
+                b += a * x[j];
+            }
+        }
+        diag[k] = if d > 0.0 { d } else { 1.0 };
+        rhs[k] = b;
+    }
+    // out = A v (v has the dummy slot); returns v . A v.
+    let apply = |v: &[f32], out: &mut [f32]| -> f64 {
+        let mut dot = 0f64;
+        for (k, o) in out.iter_mut().enumerate() {
+            let l = &links[k];
+            let a = diag[k] * v[k]
+                - l[0].1 * v[l[0].0 as usize]
+                - l[1].1 * v[l[1].0 as usize]
+                - l[2].1 * v[l[2].0 as usize]
+                - l[3].1 * v[l[3].0 as usize];
+            *o = a;
+            dot += (a * v[k]) as f64;
+        }
+        dot
+    };
+    let mut u: Vec<f32> = index.iter().map(|&i| x[i]).chain([0.0]).collect();
+    let mut r = vec![0f32; m];
+    apply(&u, &mut r);
+    for k in 0..m {
+        r[k] = rhs[k] - r[k];
+    }
+    let mut dir: Vec<f32> = r.iter().zip(&diag).map(|(r, d)| r / d).chain([0.0]).collect();
+    let mut rz: f64 = r.iter().zip(&diag).map(|(&a, &d)| (a * a / d) as f64).sum();
+    let mut q = vec![0f32; m];
+    for _ in 0..p.refine_iterations {
+        let pq = apply(&dir, &mut q);
+        if !(pq > 0.0) || rz <= 0.0 {
+            break;
+        }
+        let alpha = (rz / pq) as f32;
+        let mut next = 0f64;
+        for k in 0..m {
+            u[k] += alpha * dir[k];
+            r[k] -= alpha * q[k];
+            next += (r[k] * r[k] / diag[k]) as f64;
+        }
+        let beta = (next / rz) as f32;
+        rz = next;
+        for k in 0..m {
+            dir[k] = r[k] / diag[k] + beta * dir[k];
+        }
+    }
+    for (k, &i) in index.iter().enumerate() {
+        x[i] = u[k];
+    }
+}
+
+/// `mask` grown by `r` px (a square window): a row pass, then a column pass, each counting the
+/// distance to the nearest set entry forwards and backwards.
+fn dilate(mask: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
+    const FAR: u32 = u32::MAX / 2;
+    let r = r.min(FAR as usize - 1) as u32;
+    let mut rows = vec![false; w * h];
+    for y in 0..h {
+        let (line, out) = (&mask[y * w..(y + 1) * w], &mut rows[y * w..(y + 1) * w]);
+        let mut d = FAR;
+        for c in 0..w {
+            d = if line[c] { 0 } else { d + 1 };
+            out[c] = d <= r;
+        }
+        d = FAR;
+        for c in (0..w).rev() {
+            d = if line[c] { 0 } else { d + 1 };
+            out[c] |= d <= r;
+        }
+    }
+    let mut out = vec![false; w * h];
+    let mut d = vec![FAR; w];
+    for y in 0..h {
+        for c in 0..w {
+            d[c] = if rows[y * w + c] { 0 } else { d[c] + 1 };
+            out[y * w + c] = d[c] <= r;
+        }
+    }
+    d.fill(FAR);
+    for y in (0..h).rev() {
+        for c in 0..w {
+            d[c] = if rows[y * w + c] { 0 } else { d[c] + 1 };
+            out[y * w + c] |= d[c] <= r;
+        }
+    }
+    out
+}
+
 crate::ports! {
     pub struct Inputs {
         /// the camera image
@@ -531,7 +723,7 @@ pub struct CompleteDepth(Params);
 
 impl Stage for CompleteDepth {
     const KIND: &'static str = "CompleteDepth";
-    const VERSION: u32 = 5;
+    const VERSION: u32 = 6;
     const SUMMARY: &'static str =
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)";
     const GRAINS: &'static [&'static str] = &["camera"];
@@ -605,7 +797,7 @@ mod tests {
         // slanted surface) and without the average of unsupported pixels (which mixes rows, so
         // it is not exact on the ground: the price of no streaks), interpolation in inverse
         // depth is exact on a plane.
-        let p = Params { grow: 0.0, smooth_sigma: 0.0, ..Params::default() };
+        let p = Params { grow: 0.0, smooth_sigma: 0.0, refine_iterations: 0, ..Params::default() };
         let d = complete(&p, &image, &sparse, None).depth;
         for y in 24..h as usize {
             for x in 0..w as usize {
@@ -748,9 +940,54 @@ mod tests {
             assert!((z - 20.0).abs() < 0.05 * 20.0, "({x}, 4): {z}");
         }
         assert!((at(&d, 20, 20) - 8.0).abs() < 0.05 * 8.0, "the crown keeps its depth: {}", at(&d, 20, 20));
-        // The column alone would continue the crown up.
-        let column = complete(&Params { smooth_sigma: 0.0, ..Params::default() }, &image, &sparse, None).depth;
+        // The column alone (neither average nor refinement) would continue the crown up.
+        let column = Params { smooth_sigma: 0.0, refine_iterations: 0, ..Params::default() };
+        let column = complete(&column, &image, &sparse, None).depth;
         assert!((at(&column, 20, 4) - 8.0).abs() < 0.5, "{}", at(&column, 20, 4));
+    }
+
+    #[test]
+    fn dilation_grows_a_point_into_a_square() {
+        let (w, h) = (9, 7);
+        let mut mask = vec![false; w * h];
+        mask[3 * w + 4] = true;
+        let grown = dilate(&mask, w, h, 2);
+        for y in 0..h {
+            for x in 0..w {
+                let inside = x.abs_diff(4) <= 2 && y.abs_diff(3) <= 2;
+                assert_eq!(grown[y * w + x], inside, "({x}, {y})");
+            }
+        }
+        assert_eq!(dilate(&mask, w, h, 0), mask);
+    }
+
+    #[test]
+    fn refinement_moves_a_misplaced_depth_edge_onto_the_colour_edge() {
+        // Columns 0..20 are dark (a pole 10 m away), 20..40 bright (a wall 20 m away); samples
+        // every 6 px. The filled map starts with the edge 3 px too far left (columns 17..20 at
+        // the wall's depth, as a grown band or a blurred fill leaves it).
+        let (w, h) = (40usize, 30usize);
+        let image = grey(w as u32, h as u32, |x, _| if x < 20 { [40, 40, 40] } else { [200, 190, 180] });
+        let depth = |x: usize| if x < 20 { 10.0f32 } else { 20.0 };
+        let mut sparse = vec![0f32; w * h];
+        for y in (1..h).step_by(6) {
+            for x in (1..w).step_by(6) {
+                sparse[y * w + x] = depth(x);
+            }
+        }
+        let start: Vec<f32> = (0..w * h).map(|i| 1.0 / if i % w < 17 { 10.0 } else { 20.0 }).collect();
+        let mut inv = start.clone();
+        refine(&Params::default(), &mut inv, &image.rgb, &sparse, None, w, h);
+        for y in 0..h {
+            for x in 15..25 {
+                let z = 1.0 / inv[y * w + x];
+                assert!((z - depth(x)).abs() < 0.05 * depth(x), "({x}, {y}): {z}");
+            }
+        }
+        // Without iterations nothing moves.
+        let mut same = start.clone();
+        refine(&Params { refine_iterations: 0, ..Params::default() }, &mut same, &image.rgb, &sparse, None, w, h);
+        assert_eq!(same, start);
     }
 
     #[test]
@@ -772,7 +1009,7 @@ mod tests {
         let row: Vec<f32> = (8..56).map(|x| d.data[5 * w as usize + x]).collect();
         let (lo, hi) = row.iter().fold((f32::MAX, 0f32), |(a, b), &v| (a.min(v), b.max(v)));
         assert!(hi / lo < 1.02, "row 5 spans {lo}..{hi} m");
-        let streaky = complete(&Params { smooth_sigma: 0.0, ..p }, &image, &sparse, None).depth;
+        let streaky = complete(&Params { smooth_sigma: 0.0, refine_iterations: 0, ..p }, &image, &sparse, None).depth;
         assert_eq!(streaky.data[5 * w as usize + 5], 12.0, "without the row average: a streak");
     }
 }
