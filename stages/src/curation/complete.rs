@@ -11,6 +11,9 @@
 //! its highest sample a vertical surface continues (constant depth). Pixels of the `sky` mask
 //! (from `EstimateSky`, or a segmentation through it) get
 //! `sky_depth` (paper: 100 m). Columns with no sample take their nearest filled column.
+//! Pixels more than `smooth_from` px from every sample then take the edge-aware 2D average of the
+//! measured depths around them (`smooth_unsupported`), and the pixels near the result's depth
+//! edges are refined towards Levin et al.'s colour-affinity least squares (`refine`).
 //!
 //! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
 
