@@ -165,16 +165,22 @@ fn packed(codec: u8, len: usize, payload: &[u8]) -> Vec<u8> {
     out
 }
 
+/// `out` (the length of `bytes`) cut into its four planes of `n` bytes and the 0-3 byte tail.
+fn planes_mut(out: &mut [u8], n: usize) -> ([&mut [u8]; 4], &mut [u8]) {
+    let (planes, tail) = out.split_at_mut(4 * n);
+    let (p0, rest) = planes.split_at_mut(n);
+    let (p1, rest) = rest.split_at_mut(n);
+    let (p2, p3) = rest.split_at_mut(n);
+    ([p0, p1, p2, p3], tail)
+}
+
 /// [`to_planes`], then every byte minus the one before it (wrapping), in one pass: byte k of a
 /// word follows byte k of the word before it in plane k, so its delta is taken there (the first
 /// byte of a plane follows the last of the plane before; the tail follows the last plane).
 fn to_planes_delta(bytes: &[u8]) -> Vec<u8> {
     let n = bytes.len() / 4;
     let mut out = vec![0u8; bytes.len()];
-    let (planes, tail) = out.split_at_mut(4 * n);
-    let (p0, rest) = planes.split_at_mut(n);
-    let (p1, rest) = rest.split_at_mut(n);
-    let (p2, p3) = rest.split_at_mut(n);
+    let ([p0, p1, p2, p3], tail) = planes_mut(&mut out, n);
     let words = &bytes[..4 * n];
     let mut prev = match words.last_chunk::<4>() {
         Some(last) => [0, last[0], last[1], last[2]],
@@ -229,10 +235,7 @@ fn from_planes_delta(p: Vec<u8>) -> Vec<u8> {
 fn to_planes(bytes: &[u8]) -> Vec<u8> {
     let n = bytes.len() / 4;
     let mut out = vec![0u8; bytes.len()];
-    let (planes, tail) = out.split_at_mut(4 * n);
-    let (p0, rest) = planes.split_at_mut(n);
-    let (p1, rest) = rest.split_at_mut(n);
-    let (p2, p3) = rest.split_at_mut(n);
+    let ([p0, p1, p2, p3], tail) = planes_mut(&mut out, n);
     for (i, w) in bytes[..4 * n].chunks_exact(4).enumerate() {
         p0[i] = w[0];
         p1[i] = w[1];

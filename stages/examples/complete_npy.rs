@@ -11,7 +11,7 @@
 //! (HxW, 1 = sky), `out` (the dense depth written) and `gt` (HxW, +inf = sky). `field=value` sets
 //! a CompleteDepth parameter (`smooth_edge=40`). One line is printed per image: `out`, scored
 //! pixels (ground truth in 0.1-80 m), those off by more than 10%, boundary accuracy and
-//! completeness (px, EvalDepth's edge parameters), and the completion's time (ms, one image).
+//! completeness (px, EvalDepth's default edge parameters), and the completion's time (ms, one image).
 use anyhow::{bail, ensure, Context, Result};
 use dist4d_stages::curation::complete::{complete, Params};
 use dist4d_stages::eval::boundary::{boundary_metrics, EdgeParams};
@@ -64,18 +64,9 @@ fn run(p: &Params, line: &str) -> Result<String> {
             bad += ((d.clamp(0.1, 80.0) - g).abs() / g > 0.1) as u64;
         }
     }
-    let edges = EdgeParams {
-        min_depth: 0.1,
-        sky_threshold: 99.0,
-        sky_depth: 100.0,
-        sigma: std::f32::consts::SQRT_2,
-        low_step: 1.1,
-        high_step: 1.25,
-        max_distance: 10.0,
-    };
     let pred = DepthMap { width: w as u32, height: h as u32, data: depth };
     let gt = DepthMap { width: w as u32, height: h as u32, data: gt };
-    let b = boundary_metrics(&edges, &pred, &gt).unwrap_or_default();
+    let b = boundary_metrics(&EdgeParams::default(), &pred, &gt).unwrap_or_default();
     Ok(format!("{} {scored} {bad} {:.4} {:.4} {ms:.2}", f[3], b.accuracy, b.completeness))
 }
 

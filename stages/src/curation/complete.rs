@@ -339,8 +339,16 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
     }
     let distance = support_distance(&sparse.data, w, h);
     let sky = sky.map(|s| s.data.as_slice());
-    smooth_unsupported(p, &mut inv, &image.rgb, &distance, sky, w, h);
-    refine(p, &mut inv, &image.rgb, &sparse.data, sky, w, h);
+    let no_sky;
+    let sky_or_none = match sky {
+        Some(s) => s,
+        None => {
+            no_sky = vec![0u8; w * h];
+            &no_sky
+        }
+    };
+    smooth_unsupported(p, &mut inv, &image.rgb, &distance, sky_or_none, w, h);
+    refine(p, &mut inv, &image.rgb, &sparse.data, sky_or_none, w, h);
     let mut depth = inv;
     for v in depth.iter_mut() {
         *v = if *v > 0.0 { 1.0 / *v } else { 0.0 };
@@ -425,18 +433,10 @@ fn support_distance(sparse: &[f32], w: usize, h: usize) -> Vec<f32> {
 /// `smooth_edge` in the summed RGB difference counts as `smooth_sigma` pixels); sky pixels
 /// neither give nor pass on depth. Only measured depths are spread, so the facade seen around a
 /// crown reaches the pixels above it while the crown's green stops it.
-fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32], sky: Option<&[u8]>, w: usize, h: usize) {
+fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32], sky: &[u8], w: usize, h: usize) {
     if p.smooth_sigma <= 0.0 || p.smooth_iterations == 0 || w < 2 || h < 2 {
         return;
     }
-    let no_sky;
-    let sky = match sky {
-        Some(s) => s,
-        None => {
-            no_sky = vec![0u8; w * h];
-            &no_sky
-        }
-    };
     // The filter's input: (inverse depth, 1) at sources, (0, 0) elsewhere, filtered together.
     let mut acc: Vec<[f32; 2]> = inv
         .iter()
@@ -535,25 +535,18 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
 /// onto colour edges; solved to the end over the whole image it takes thousands and blurs real
 /// images across like-coloured surfaces. Figures: docs/BENCHMARKS.md, "What the completion can
 /// reach".
-fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: Option<&[u8]>, w: usize, h: usize) {
+fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: usize, h: usize) {
     /// A depth step (ratio) that marks a depth edge of the filled map.
     const EDGE_STEP: f32 = 1.05;
     if p.refine_iterations == 0 || w < 2 || h < 2 {
         return;
     }
     let n = w * h;
-    let no_sky;
-    let sky = match sky {
-        Some(s) => s,
-        None => {
-            no_sky = vec![0u8; n];
-            &no_sky
-        }
-    };
     // Depth edges of the filled map, grown by the band into the active set.
     let (lo, hi) = (1.0 / EDGE_STEP, EDGE_STEP);
     let apart = |a: f32, b: f32| a > 0.0 && b > 0.0 && (a > hi * b || a < lo * b);
-    let mut edge = vec![false; n];
+    // 1.0 on an edge: growing it by the band (a square-window maximum) marks the active set.
+    let mut edge = vec![0f32; n];
     for y in 0..h {
         for c in 0..w {
             let i = y * w + c;
@@ -561,18 +554,17 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: Option<&[u
                 continue;
             }
             if c + 1 < w && sky[i + 1] == 0 && apart(x[i], x[i + 1]) {
-                edge[i] = true;
-                edge[i + 1] = true;
+                edge[i] = 1.0;
+                edge[i + 1] = 1.0;
             }
             if y + 1 < h && sky[i + w] == 0 && apart(x[i], x[i + w]) {
-                edge[i] = true;
-                edge[i + w] = true;
+                edge[i] = 1.0;
+                edge[i + w] = 1.0;
             }
         }
     }
-    let band = p.refine_band as usize;
-    let active = dilate(&edge, w, h, band);
-    let index: Vec<usize> = (0..n).filter(|&i| active[i] && sky[i] == 0 && x[i] > 0.0).collect();
+    grow_samples(&mut edge, w, h, p.refine_band as usize);
+    let index: Vec<usize> = (0..n).filter(|&i| edge[i] > 0.0 && sky[i] == 0 && x[i] > 0.0).collect();
     let m = index.len();
     if m == 0 {
         return;
@@ -662,43 +654,6 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: Option<&[u
     for (k, &i) in index.iter().enumerate() {
         x[i] = u[k];
     }
-}
-
-/// `mask` grown by `r` px (a square window): a row pass, then a column pass, each counting the
-/// distance to the nearest set entry forwards and backwards.
-fn dilate(mask: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
-    const FAR: u32 = u32::MAX / 2;
-    let r = r.min(FAR as usize - 1) as u32;
-    let mut rows = vec![false; w * h];
-    for y in 0..h {
-        let (line, out) = (&mask[y * w..(y + 1) * w], &mut rows[y * w..(y + 1) * w]);
-        let mut d = FAR;
-        for c in 0..w {
-            d = if line[c] { 0 } else { d + 1 };
-            out[c] = d <= r;
-        }
-        d = FAR;
-        for c in (0..w).rev() {
-            d = if line[c] { 0 } else { d + 1 };
-            out[c] |= d <= r;
-        }
-    }
-    let mut out = vec![false; w * h];
-    let mut d = vec![FAR; w];
-    for y in 0..h {
-        for c in 0..w {
-            d[c] = if rows[y * w + c] { 0 } else { d[c] + 1 };
-            out[y * w + c] = d[c] <= r;
-        }
-    }
-    d.fill(FAR);
-    for y in (0..h).rev() {
-        for c in 0..w {
-            d[c] = if rows[y * w + c] { 0 } else { d[c] + 1 };
-            out[y * w + c] |= d[c] <= r;
-        }
-    }
-    out
 }
 
 crate::ports! {
@@ -950,18 +905,21 @@ mod tests {
     }
 
     #[test]
-    fn dilation_grows_a_point_into_a_square() {
+    fn the_refined_band_is_a_square_window_around_each_edge_pixel() {
         let (w, h) = (9, 7);
-        let mut mask = vec![false; w * h];
-        mask[3 * w + 4] = true;
-        let grown = dilate(&mask, w, h, 2);
+        let mut mask = vec![0f32; w * h];
+        mask[3 * w + 4] = 1.0;
+        let mut grown = mask.clone();
+        grow_samples(&mut grown, w, h, 2);
         for y in 0..h {
             for x in 0..w {
                 let inside = x.abs_diff(4) <= 2 && y.abs_diff(3) <= 2;
-                assert_eq!(grown[y * w + x], inside, "({x}, {y})");
+                assert_eq!(grown[y * w + x] > 0.0, inside, "({x}, {y})");
             }
         }
-        assert_eq!(dilate(&mask, w, h, 0), mask);
+        let mut same = mask.clone();
+        grow_samples(&mut same, w, h, 0);
+        assert_eq!(same, mask);
     }
 
     #[test]
@@ -980,7 +938,7 @@ mod tests {
         }
         let start: Vec<f32> = (0..w * h).map(|i| 1.0 / if i % w < 17 { 10.0 } else { 20.0 }).collect();
         let mut inv = start.clone();
-        refine(&Params::default(), &mut inv, &image.rgb, &sparse, None, w, h);
+        refine(&Params::default(), &mut inv, &image.rgb, &sparse, &vec![0; w * h], w, h);
         for y in 0..h {
             for x in 15..25 {
                 let z = 1.0 / inv[y * w + x];
@@ -989,7 +947,7 @@ mod tests {
         }
         // Without iterations nothing moves.
         let mut same = start.clone();
-        refine(&Params { refine_iterations: 0, ..Params::default() }, &mut same, &image.rgb, &sparse, None, w, h);
+        refine(&Params { refine_iterations: 0, ..Params::default() }, &mut same, &image.rgb, &sparse, &vec![0; w * h], w, h);
         assert_eq!(same, start);
     }
 

@@ -48,6 +48,22 @@ pub struct EdgeParams {
     pub max_distance: f32,
 }
 
+/// The iBims-1 protocol as EvalDepth runs it by default: depths from 0.1 m, sky at or beyond 99 m
+/// set to 100 m, Gaussian sigma sqrt 2, steps 1.25 / 1.1, distances capped at 10 px.
+impl Default for EdgeParams {
+    fn default() -> Self {
+        EdgeParams {
+            min_depth: 0.1,
+            sky_threshold: 99.0,
+            sky_depth: 100.0,
+            sigma: std::f32::consts::SQRT_2,
+            low_step: 1.1,
+            high_step: 1.25,
+            max_distance: 10.0,
+        }
+    }
+}
+
 /// One image's depth-boundary errors against one dense reference, in pixels.
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Default)]
 pub struct BoundaryMetrics {

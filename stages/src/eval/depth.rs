@@ -58,16 +58,17 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
+        let e = EdgeParams::default();
         Params {
-            min_depth: 0.1,
+            min_depth: e.min_depth,
             max_depth: 80.0,
-            sky_threshold: 99.0,
+            sky_threshold: e.sky_threshold,
             structure_depth: 80.0,
-            edge_sky_depth: 100.0,
-            edge_sigma: std::f32::consts::SQRT_2,
-            edge_high_step: 1.25,
-            edge_low_step: 1.1,
-            edge_max_distance: 10.0,
+            edge_sky_depth: e.sky_depth,
+            edge_sigma: e.sigma,
+            edge_high_step: e.high_step,
+            edge_low_step: e.low_step,
+            edge_max_distance: e.max_distance,
         }
     }
 }
