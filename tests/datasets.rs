@@ -104,3 +104,106 @@ fn an_empty_sample_data_table_is_one_error_before_anything_runs() {
     assert!(!t.contains("has no keyframe sample_data"), "no error per task: {t}");
     assert!(!tmp.path().join("out").join("synth-0000").exists(), "{t}");
 }
+
+/// A synthetic dataset with 12 Hz camera sweeps (3 keyframes: 13 images per camera).
+fn with_camera_sweeps(tmp: &Path) -> PathBuf {
+    let root = tmp.join("data");
+    let o = dist4d(&[
+        "synth",
+        "--out",
+        root.to_str().unwrap(),
+        "--keyframes",
+        "3",
+        "--width",
+        "160",
+        "--height",
+        "90",
+        "--camera-sweeps",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    root
+}
+
+fn run_camera_clock(tmp: &Path, root: &Path) -> std::process::Output {
+    dist4d(&[
+        "run",
+        &repo().join("pipelines/lidar_depth.ron").display().to_string(),
+        "--progress",
+        "off",
+        "--cache",
+        tmp.join("cache").to_str().unwrap(),
+        "--out",
+        tmp.join("out").to_str().unwrap(),
+        "--set",
+        &format!("dataset.root={}", root.display()),
+        "--set",
+        "dataset.frames=Camera",
+    ])
+}
+
+#[test]
+fn the_camera_clock_exports_every_image_once_and_the_index_names_each_source() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = with_camera_sweeps(tmp.path());
+    let o = run_camera_clock(tmp.path(), &root);
+    assert!(o.status.success(), "{}", text(&o));
+    let index: Value = serde_json::from_slice(&std::fs::read(tmp.path().join("out/index.json")).unwrap()).unwrap();
+    let sources = index["sources"].as_object().unwrap();
+    let cameras: Vec<String> = table(&root, "sensor")
+        .iter()
+        .filter(|s| s["modality"] == "camera")
+        .map(|s| s["channel"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(cameras.len(), 6);
+    // 13 rounds x 6 cameras, each a depth map of its own image, every image named once.
+    let images: Vec<&str> = sources.values().map(|s| s["file"].as_str().unwrap()).collect();
+    assert_eq!(images.len(), 78);
+    let distinct: std::collections::BTreeSet<&str> = images.iter().copied().collect();
+    assert_eq!(distinct.len(), 78, "no image is used twice");
+    let camera_rows: Vec<Value> =
+        table(&root, "sample_data").into_iter().filter(|r| r["filename"].as_str().unwrap().ends_with(".jpg")).collect();
+    assert_eq!(camera_rows.len(), 78, "and none is left out");
+    for (item, s) in sources {
+        let row = camera_rows.iter().find(|r| r["token"] == s["token"]).unwrap_or_else(|| panic!("{item}: {s}"));
+        assert_eq!(row["filename"], s["file"], "{item}");
+        assert_eq!(row["timestamp"], s["timestamp_us"], "{item}");
+        assert!(item.ends_with(row["filename"].as_str().unwrap().split("__").nth(1).unwrap()), "{item} vs {s}");
+        assert!(root.join(s["file"].as_str().unwrap()).is_file());
+    }
+    // Each exported file's item has its source.
+    for f in index["files"].as_array().unwrap() {
+        assert!(sources.contains_key(f["item"].as_str().unwrap()), "{f}");
+    }
+}
+
+#[test]
+fn a_dropped_camera_image_makes_an_incomplete_round_reported_and_nothing_else_fails() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = with_camera_sweeps(tmp.path());
+    // CAM_BACK loses its 5th image (a dropped frame): the row goes, its neighbours are relinked.
+    let mut rows = table(&root, "sample_data");
+    let mut back: Vec<usize> =
+        (0..rows.len()).filter(|&i| rows[i]["filename"].as_str().unwrap().contains("__CAM_BACK__")).collect();
+    back.sort_by_key(|&i| rows[i]["timestamp"].as_i64().unwrap());
+    let gone = rows[back[4]].clone();
+    assert_eq!(gone["is_key_frame"], false);
+    for r in rows.iter_mut() {
+        if r["token"] == gone["prev"] {
+            r["next"] = gone["next"].clone();
+        }
+        if r["token"] == gone["next"] {
+            r["prev"] = gone["prev"].clone();
+        }
+    }
+    rows.retain(|r| r["token"] != gone["token"]);
+    write_table(&root, "sample_data", &rows);
+    let o = run_camera_clock(tmp.path(), &root);
+    let out = text(&o);
+    assert!(!o.status.success(), "{out}");
+    assert!(out.contains("1 of 13 camera rounds are incomplete (round 4 without CAM_BACK)"), "{out}");
+    assert!(out.contains("camera round 4") && out.contains("has no CAM_BACK image"), "{out}");
+    let index: Value = serde_json::from_slice(&std::fs::read(tmp.path().join("out/index.json")).unwrap()).unwrap();
+    let sources = index["sources"].as_object().unwrap();
+    assert_eq!(sources.len(), 77, "every other camera image is exported");
+    assert!(!sources.contains_key("synth-0000/004/CAM_BACK"));
+}

@@ -278,6 +278,8 @@ pub struct Exporter {
     /// This run's files as planned, and those of them confirmed or written (with their stat).
     entries: BTreeMap<String, IndexEntry>,
     done: BTreeMap<String, FileStat>,
+    /// What the dataset says each exported item was read from, by item path.
+    sources: BTreeMap<String, serde_json::Value>,
     reflinks: Arc<AtomicBool>,
     /// Whether a job ran (wrote or confirmed a file) since the folder was last synced.
     jobs_done: bool,
@@ -435,6 +437,7 @@ impl Exporter {
             counter,
             entries: BTreeMap::new(),
             done: BTreeMap::new(),
+            sources: BTreeMap::new(),
             reflinks: Arc::new(AtomicBool::new(true)),
             jobs_done: false,
         })
@@ -466,13 +469,19 @@ impl Exporter {
         let rel = render(export, item, dataset, &self.folder.dims)?;
         let dest = confined(&self.folder.dir, &rel)?;
         let (stage, port) = names;
+        let item_path = dataset.path(item);
+        if !self.sources.contains_key(&item_path) {
+            if let Some(record) = dataset.source_record(item) {
+                self.sources.insert(item_path.clone(), record);
+            }
+        }
         self.entries.insert(
             rel.clone(),
             IndexEntry {
                 path: rel.clone(),
                 stage: stage.into(),
                 port: port.into(),
-                item: dataset.path(item),
+                item: item_path,
                 digest: out.digest.hex(),
                 bytes: out.size,
             },
@@ -518,7 +527,7 @@ impl Exporter {
     /// while the file earlier runs wrote is still there, untouched, and is left out of the index.
     pub fn finish(mut self) -> Result<u64> {
         let (manifest_tmp, index_tmp) = (self.tmp_path("manifest"), self.tmp_path("index"));
-        let Exporter { folder, entries, done, jobs_done, .. } = self;
+        let Exporter { folder, entries, done, sources, jobs_done, .. } = self;
         let dir = folder.dir.clone();
         // Shared with the key layer during the run; by its end, normally ours alone.
         let mut manifest = Arc::try_unwrap(folder).map(|f| f.manifest).unwrap_or_else(|f| f.manifest.clone());
@@ -535,13 +544,16 @@ impl Exporter {
         let files: Vec<&IndexEntry> =
             entries.iter().filter(|(rel, _)| done.contains_key(*rel)).map(|(_, e)| e).collect();
         let count = files.len() as u64;
+        let items: std::collections::BTreeSet<&str> = files.iter().map(|e| e.item.as_str()).collect();
+        let sources: BTreeMap<&String, &serde_json::Value> =
+            sources.iter().filter(|(item, _)| items.contains(item.as_str())).collect();
         // The files written without an fsync each reach the disk before the manifest that lists
         // them as written: after a power loss, a file the manifest trusts holds its bytes.
         if jobs_done {
             sync_filesystem(&dir)?;
         }
         // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
-        let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files }))?;
+        let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files, "sources": sources }))?;
         manifest.write(&dir, &manifest_tmp)?;
         write_atomic_via(&index_tmp, &dir.join(INDEX), &json)?;
         Ok(count)

@@ -35,6 +35,12 @@ pub trait Dataset: ItemSpace {
     fn source_digest(&self, port: &str, item: &ItemKey, files: &dyn FileDigests) -> Result<Option<Digest>>;
     /// The artifact itself.
     fn load_source(&self, port: &str, item: &ItemKey) -> Result<Vec<u8>>;
+    /// What the item was read from, for the export index (`index.json`'s `sources`): for a
+    /// driving log, the image's or sweep's token, file and timestamp. None when the dataset has
+    /// nothing to say about the item.
+    fn source_record(&self, _item: &ItemKey) -> Option<serde_json::Value> {
+        None
+    }
 }
 
 /// What a task knows about itself.

@@ -152,7 +152,7 @@ impl Dgp {
             scenes.push(Self::scene(&config, &path, &mut renormalised)?);
         }
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
-        let tree = Tree { cameras: config.cameras.clone(), scenes, sidecars };
+        let tree = Tree { root: root.clone(), cameras: config.cameras.clone(), scenes, sidecars };
         Ok(Dgp { config, tree, warnings: renormalised.warnings() })
     }
 
@@ -271,6 +271,7 @@ fn datum(d: &Value, sensor: &str, src: &Sources, notes: &mut Renormalised) -> Re
         calib: Calibration { sensor_to_ego, intrinsics, width, height },
         pose: Pose { ego_to_world: sensor_to_world.then_from(&sensor_to_ego.inverse()), timestamp_us: timestamp },
         what: format!("datum {key}"),
+        token: key.to_string(),
     };
     let boxes =
         body.pointer("/annotations/1").and_then(|a| a.as_str()).map(|a| join_inside(src.dir, &at, "annotations.1", a));

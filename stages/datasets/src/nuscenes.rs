@@ -30,6 +30,11 @@ pub enum FrameMode {
     /// One frame per LiDAR sweep (20 Hz `sample_data` chain); each camera gives its image
     /// nearest in time, and boxes are interpolated between keyframes.
     Sweeps,
+    /// One frame per round of the surround cameras (12 Hz): the images of the first camera
+    /// (`cameras[0]`, the reference) and, of every other camera, the image of the same round
+    /// (see [`camera_rounds`]). Every image is in exactly one frame and keeps its own timestamp,
+    /// pose and calibration; the frame's LiDAR is the sweep nearest the round's time.
+    Camera,
 }
 
 #[derive(Serialize, Deserialize, Clone, Debug)]
@@ -465,6 +470,7 @@ impl NuScenes {
                 },
                 pose: Pose { ego_to_world, timestamp_us: sd.timestamp },
                 what: format!("sample_data {}", sd.token),
+                token: sd.token.clone(),
             })
         };
         // A LiDAR reading and its lidarseg labels: a refused labels file fails the whole reading.
@@ -557,7 +563,7 @@ impl NuScenes {
                 .iter()
                 .map(|k| (k.timestamp, anns_of_sample.get(k.token.as_str()).cloned().unwrap_or_default()))
                 .collect();
-            let frames = match config.frames {
+            let frames: Vec<Frame<Sweep>> = match config.frames {
                 FrameMode::Keyframes => keys
                     .iter()
                     .enumerate()
@@ -599,13 +605,85 @@ impl NuScenes {
                         })
                         .collect()
                 }
+                FrameMode::Camera => {
+                    let Some(first) = keys.first() else { bail!("scene {}: it has no samples", scene.name) };
+                    // Each camera's whole chain, through its image of the first keyframe.
+                    let chains: Vec<Result<Vec<&SampleDataRow>, String>> = config
+                        .cameras
+                        .iter()
+                        .map(|c| match keyframe.get(&(first.token.as_str(), c.as_str())) {
+                            Some(sd) => chain(sd, &sd_by, &tables).map_err(|e| format!("{e:#}")),
+                            None => Err(format!("scene {}: {}", scene.name, no_keyframe(&first.token, c))),
+                        })
+                        .collect();
+                    let lidar_chain = keyframe
+                        .get(&(first.token.as_str(), config.lidar.as_str()))
+                        .map(|sd| chain(sd, &sd_by, &tables))
+                        .transpose()?
+                        .unwrap_or_default();
+                    let times: Vec<Vec<i64>> = chains
+                        .iter()
+                        .map(|c| c.as_ref().map(|c| c.iter().map(|sd| sd.timestamp).collect()).unwrap_or_default())
+                        .collect();
+                    // A camera's offset from the reference: the median over the keyframes, whose
+                    // images are one round by the dataset's own definition.
+                    let offsets: Vec<i64> = config
+                        .cameras
+                        .iter()
+                        .map(|c| {
+                            let mut d: Vec<i64> = keys
+                                .iter()
+                                .filter_map(|k| {
+                                    let own = keyframe.get(&(k.token.as_str(), c.as_str()))?;
+                                    let reference = keyframe.get(&(k.token.as_str(), config.cameras[0].as_str()))?;
+                                    Some(own.timestamp - reference.timestamp)
+                                })
+                                .collect();
+                            d.sort_unstable();
+                            d.get(d.len() / 2).copied().unwrap_or(0)
+                        })
+                        .collect();
+                    let sample_of: HashMap<&str, usize> =
+                        keys.iter().enumerate().map(|(i, k)| (k.token.as_str(), i)).collect();
+                    let rounds = camera_rounds(&times, &offsets);
+                    let complete: Vec<bool> = chains.iter().map(|c| c.is_ok()).collect();
+                    if let Some(note) = incomplete_rounds(&scene.name, &config.cameras, &rounds, &complete) {
+                        warnings.push(note);
+                    }
+                    rounds
+                        .iter()
+                        .enumerate()
+                        .map(|(n, round)| {
+                            let image = |c: usize| round.images[c].and_then(|j| chains[c].as_ref().ok().map(|ch| ch[j]));
+                            let key_image = (0..config.cameras.len()).filter_map(image).find(|sd| sd.is_key_frame);
+                            let cameras = config.cameras.iter().enumerate().map(|(c, name)| match (&chains[c], image(c)) {
+                                (Err(e), _) => Err(e.clone()),
+                                (Ok(_), Some(sd)) => resolve(sd, true),
+                                (Ok(_), None) => Err(format!(
+                                    "scene {}: camera round {n} ({} us) has no {name} image: the camera has none within \
+                                     half a frame period of the round (a dropped frame)",
+                                    scene.name, round.time
+                                )),
+                            });
+                            let lidar = match lidar_chain.iter().min_by_key(|sd| (sd.timestamp - round.time).abs()) {
+                                Some(sd) => resolve_lidar(sd),
+                                None => Err(format!("scene {}: {}", scene.name, no_keyframe(&first.token, &config.lidar))),
+                            };
+                            let sample = match key_image {
+                                Some(sd) => sample_of.get(sd.sample_token.as_str()).copied(),
+                                None => keys.iter().rposition(|k| k.timestamp <= round.time),
+                            };
+                            frame(lidar, cameras.collect(), round.time, sample, key_image.is_some())
+                        })
+                        .collect()
+                }
             };
             out.push(Scene { name: scene.name.clone(), frames, extra: samples_of_scene });
         }
         let annotation_by_token = annotations.iter().enumerate().map(|(i, a)| (a.row.token.clone(), i)).collect();
         let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
-        let tree = Tree { cameras: config.cameras.clone(), scenes: out, sidecars };
+        let tree = Tree { root, cameras: config.cameras.clone(), scenes: out, sidecars };
         Ok(NuScenes { config, tree, annotations, annotation_by_token, sample_time, warnings })
     }
 
@@ -640,6 +718,120 @@ impl NuScenes {
             interpolated: false,
         }
     }
+}
+
+/// One round of the surround cameras: its time (the reference image's timestamp, or for a round
+/// the reference has no image in, the earliest offset-corrected time of its images) and, per
+/// camera, the index of its image in that camera's chain.
+#[derive(Debug, PartialEq)]
+pub struct CameraRound {
+    pub time: i64,
+    pub images: Vec<Option<usize>>,
+}
+
+/// Groups the images of every camera (`times[c]`: camera c's timestamps in chain order, us) into
+/// rounds, each image in exactly one round. Camera 0 is the reference: each of its images opens a
+/// round. Every other camera's image, shifted by the camera's `offsets[c]` from the reference,
+/// joins the nearest round within half the reference's frame period that has no image of its
+/// camera yet (of two claimants, the nearer wins). What is left (a dropped reference image, a
+/// stray or duplicated one) forms rounds of its own, grouped the same way. Rounds come out in
+/// time order. nuScenes fires each camera as the LiDAR sweeps past it, so the offsets are up to
+/// ~50 ms while rounds are ~83 ms apart: the nearest image alone would give one image to two
+/// rounds, or skip one, wherever a camera's offset nears half the period.
+pub fn camera_rounds(times: &[Vec<i64>], offsets: &[i64]) -> Vec<CameraRound> {
+    let cameras = times.len();
+    let Some(reference) = times.first() else { return Vec::new() };
+    let period = {
+        let mut steps: Vec<i64> = reference.windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 0).collect();
+        steps.sort_unstable();
+        steps.get(steps.len() / 2).copied().unwrap_or(83_333)
+    };
+    let half = period / 2;
+    let mut rounds: Vec<CameraRound> = reference
+        .iter()
+        .enumerate()
+        .map(|(j, &t)| {
+            let mut images = vec![None; cameras];
+            images[0] = Some(j);
+            CameraRound { time: t, images }
+        })
+        .collect();
+    // (corrected time, camera, index) of the images no reference round took.
+    let mut left: Vec<(i64, usize, usize)> = Vec::new();
+    for c in 1..cameras {
+        let offset = offsets.get(c).copied().unwrap_or(0);
+        // (round, distance) each image of this camera claims.
+        let mut taken: HashMap<usize, (usize, i64)> = HashMap::new();
+        for (j, &t) in times[c].iter().enumerate() {
+            let tau = t - offset;
+            let at = rounds.partition_point(|r| r.time < tau);
+            let nearest = [at.checked_sub(1), (at < rounds.len()).then_some(at)]
+                .into_iter()
+                .flatten()
+                .min_by_key(|&r| (rounds[r].time - tau).abs());
+            let Some(r) = nearest.filter(|&r| (rounds[r].time - tau).abs() <= half) else {
+                left.push((tau, c, j));
+                continue;
+            };
+            let distance = (rounds[r].time - tau).abs();
+            match taken.get(&r) {
+                Some(&(_, d)) if d <= distance => left.push((tau, c, j)),
+                Some(&(other, _)) => {
+                    left.push((times[c][other] - offset, c, other));
+                    taken.insert(r, (j, distance));
+                }
+                None => {
+                    taken.insert(r, (j, distance));
+                }
+            }
+        }
+        for (r, (j, _)) in taken {
+            rounds[r].images[c] = Some(j);
+        }
+    }
+    left.sort_unstable();
+    let mut extra: Vec<CameraRound> = Vec::new();
+    for (tau, c, j) in left {
+        match extra.last_mut() {
+            Some(round) if tau - round.time <= half && round.images[c].is_none() => round.images[c] = Some(j),
+            _ => {
+                let mut images = vec![None; cameras];
+                images[c] = Some(j);
+                extra.push(CameraRound { time: tau, images });
+            }
+        }
+    }
+    rounds.extend(extra);
+    rounds.sort_by_key(|r| r.time);
+    rounds
+}
+
+/// The run report's line for a scene whose camera rounds are not all complete, naming the rounds
+/// (the first few) and the cameras missing from them; cameras without any image (`has[c]`
+/// false) fail on their own account and are not counted.
+fn incomplete_rounds(scene: &str, cameras: &[String], rounds: &[CameraRound], has: &[bool]) -> Option<String> {
+    let missing: Vec<String> = rounds
+        .iter()
+        .enumerate()
+        .filter_map(|(n, round)| {
+            let names: Vec<&str> = (0..cameras.len())
+                .filter(|&c| has[c] && round.images[c].is_none())
+                .map(|c| cameras[c].as_str())
+                .collect();
+            (!names.is_empty()).then(|| format!("round {n} without {}", names.join(", ")))
+        })
+        .collect();
+    if missing.is_empty() {
+        return None;
+    }
+    let shown: Vec<&str> = missing.iter().take(5).map(String::as_str).collect();
+    Some(format!(
+        "scene {scene}: {} of {} camera rounds are incomplete ({}{}); those cameras' items of those rounds fail",
+        missing.len(),
+        rounds.len(),
+        shown.join("; "),
+        if missing.len() > shown.len() { "; ..." } else { "" }
+    ))
 }
 
 /// A frame from its LiDAR reading with that reading's lidarseg labels (none when it failed).
@@ -876,6 +1068,115 @@ mod tests {
         let pose = Pose::decode(&ds.load_source("camera_pose", &ItemKey::new(&[0, 5, 0])).unwrap()).unwrap();
         let lidar = Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, 5])).unwrap()).unwrap();
         assert!((pose.timestamp_us - lidar.timestamp_us).abs() <= 250_000);
+    }
+
+    /// Every image of every camera is in exactly one round.
+    fn each_image_once(times: &[Vec<i64>], rounds: &[CameraRound]) {
+        for (c, t) in times.iter().enumerate() {
+            let mut seen: Vec<usize> = rounds.iter().filter_map(|r| r.images[c]).collect();
+            seen.sort_unstable();
+            assert_eq!(seen, (0..t.len()).collect::<Vec<_>>(), "camera {c}");
+        }
+        assert!(rounds.windows(2).all(|w| w[0].time <= w[1].time), "rounds in time order");
+    }
+
+    #[test]
+    fn camera_rounds_use_every_image_once_even_where_the_nearest_image_would_repeat() {
+        // 12 Hz, three cameras; camera 2 fires 40 ms after the reference (near half the 83 ms
+        // period) with +-5 ms of jitter, so the image nearest a reference time is sometimes the
+        // one of the round before or after.
+        let period = 83_333;
+        let jitter = |j: i64| [5_000, -5_000, 3_000, -4_000][(j % 4) as usize];
+        let times: Vec<Vec<i64>> = vec![
+            (0..12).map(|j| j * period).collect(),
+            (0..12).map(|j| j * period + 20_000 + jitter(j) / 2).collect(),
+            (0..12).map(|j| j * period + 40_000 + jitter(j)).collect(),
+        ];
+        let rounds = camera_rounds(&times, &[0, 20_000, 40_000]);
+        each_image_once(&times, &rounds);
+        assert_eq!(rounds.len(), 12);
+        for (j, r) in rounds.iter().enumerate() {
+            assert_eq!(r.images, vec![Some(j), Some(j), Some(j)], "round {j}");
+            assert_eq!(r.time, times[0][j], "a round's time is its reference image's");
+        }
+        // Without the offsets the same images still go one to a round.
+        let rounds = camera_rounds(&times, &[0, 0, 0]);
+        each_image_once(&times, &rounds);
+    }
+
+    #[test]
+    fn dropped_and_stray_images_make_incomplete_rounds_and_nothing_is_lost() {
+        let period = 83_333;
+        let mut reference: Vec<i64> = (0..10).map(|j| j * period).collect();
+        reference.remove(4); // the reference drops round 4
+        let mut other: Vec<i64> = (0..10).map(|j| j * period + 10_000).collect();
+        other.remove(7); // the other camera drops round 7
+        other.insert(2, 2 * period + 12_000); // and fires twice in round 2
+        let times = vec![reference, other];
+        let rounds = camera_rounds(&times, &[0, 10_000]);
+        each_image_once(&times, &rounds);
+        // 9 reference rounds, round 4 from the other camera alone, the stray image alone.
+        assert_eq!(rounds.len(), 11);
+        let without = |c: usize| rounds.iter().filter(|r| r.images[c].is_none()).count();
+        assert_eq!((without(0), without(1)), (2, 1));
+        let report = incomplete_rounds("s", &["A".into(), "B".into()], &rounds, &[true, true]).unwrap();
+        assert!(report.contains("3 of 11 camera rounds are incomplete") && report.contains("without A"), "{report}");
+        assert_eq!(
+            incomplete_rounds("s", &["A".into()], &[CameraRound { time: 0, images: vec![Some(0)] }], &[true]),
+            None
+        );
+    }
+
+    #[test]
+    fn camera_frames_are_the_12_hz_rounds_each_image_once_with_its_own_time() {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("synth");
+        let config = dist4d_synth::SynthConfig {
+            keyframes: 3,
+            width: 160,
+            height: 90,
+            camera_sweeps: true,
+            ground_truth: false,
+            ..Default::default()
+        };
+        dist4d_synth::write_dataset(&config, &root, &|_| {}).unwrap();
+        let ds = open(&root, FrameMode::Camera).unwrap();
+        assert!(ds.0.warnings.is_empty(), "{:?}", ds.0.warnings);
+        // 3 keyframes 0.5 s apart at 12 Hz: 13 rounds; each camera image is read once.
+        assert_eq!(ds.count(&ItemKey::new(&[0])), 13);
+        let sweeps = open(&root, FrameMode::Sweeps).unwrap();
+        for c in 0..6u32 {
+            let tokens = |ds: &Surround<NuScenes>, n: u32| -> Vec<String> {
+                let mut t: Vec<String> =
+                    (0..n).map(|f| token(ds.0.tree.reading("image", &ItemKey::new(&[0, f, c])).unwrap())).collect();
+                t.sort();
+                t
+            };
+            let rounds = tokens(&ds, 13);
+            let mut distinct = rounds.clone();
+            distinct.dedup();
+            assert_eq!(distinct.len(), 13, "camera {c}: every image once");
+            // Sweeps mode (20 Hz) repeats images and may skip one: 21 frames from at most 13.
+            let mut from_sweeps = tokens(&sweeps, 21);
+            from_sweeps.dedup();
+            assert!(from_sweeps.len() < 21 && from_sweeps.iter().all(|t| rounds.contains(t)));
+        }
+        let pose =
+            |f: u32, c: u32| Pose::decode(&ds.load_source("camera_pose", &ItemKey::new(&[0, f, c])).unwrap()).unwrap();
+        // Cameras keep their own times (they fire as the LiDAR passes them), within one round.
+        let (front, back) = (pose(3, 0), pose(3, 3));
+        assert_ne!(front.timestamp_us, back.timestamp_us);
+        assert!((front.timestamp_us - back.timestamp_us).abs() < 50_000);
+        assert!(pose(4, 0).timestamp_us - front.timestamp_us > 80_000);
+        // Rounds 0, 6 and 12 hold the keyframe images: their boxes are the annotations; the
+        // others' are interpolated to the round's time.
+        let boxes = |f: u32| Boxes3D::decode(&ds.load_source("boxes", &ItemKey::new(&[0, f])).unwrap()).unwrap();
+        assert!(boxes(6).boxes.iter().all(|b| !b.interpolated) && !boxes(6).boxes.is_empty());
+        assert!(boxes(3).boxes.iter().all(|b| b.interpolated) && !boxes(3).boxes.is_empty());
+        assert_eq!(boxes(3).timestamp_us, pose(3, 0).timestamp_us);
+        // The frame's LiDAR is the sweep nearest the round.
+        let lidar = Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, 3])).unwrap()).unwrap();
+        assert!((lidar.timestamp_us - front.timestamp_us).abs() <= 25_000);
     }
 
     #[test]

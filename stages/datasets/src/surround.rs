@@ -65,9 +65,22 @@ pub struct Reading {
     pub pose: Pose,
     /// What the metadata calls it, for messages: `sample_data <token>`, `datum <key>`.
     pub what: String,
+    /// Its token in the metadata (nuScenes `sample_data` token, DGP datum key).
+    pub token: String,
 }
 
 impl Reading {
+    /// The reading as the export index records it: token, file (relative to the dataset root
+    /// when it lies under it) and timestamp (us).
+    fn record(&self, root: &Path) -> serde_json::Value {
+        let file = self.file.strip_prefix(root).unwrap_or(&self.file);
+        serde_json::json!({
+            "token": self.token,
+            "file": file.to_string_lossy(),
+            "timestamp_us": self.pose.timestamp_us,
+        })
+    }
+
     /// The content digest of the reading's file.
     pub fn file_digest(&self, files: &dyn FileDigests) -> Result<Option<Digest>> {
         files.file_digest(&self.file).with_context(|| format!("{}: {}", self.what, self.file.display()))
@@ -93,6 +106,8 @@ pub struct Scene<S, F> {
 /// What a surround-camera dataset resolved when it was opened: the camera names (the third item
 /// dimension), the scenes with their frames and readings, and the per-image sidecar files.
 pub struct Tree<S, F> {
+    /// The dataset root: files are recorded relative to it.
+    pub root: PathBuf,
     pub cameras: Vec<String>,
     pub scenes: Vec<Scene<S, F>>,
     pub sidecars: Sidecars,
@@ -197,6 +212,30 @@ impl<R: SurroundReader> Dataset for Surround<R> {
             "lidar_pose" | "camera_pose" => r.pose.encode(),
             other => bail!("{} has no source port `{other}`", R::FORMAT),
         })
+    }
+
+    /// A camera item: its image. A frame: its LiDAR sweep and its images, by camera. Readings
+    /// that failed are left out (their items fail on their own account).
+    fn source_record(&self, item: &ItemKey) -> Option<serde_json::Value> {
+        let tree = self.0.tree();
+        match item.depth {
+            3 => tree.reading("image", item).ok().map(|r| r.record(&tree.root)),
+            2 => {
+                let (_, frame) = tree.scene_frame(item).ok()?;
+                let cameras: serde_json::Map<String, serde_json::Value> = tree
+                    .cameras
+                    .iter()
+                    .zip(&frame.cameras)
+                    .filter_map(|(name, r)| Some((name.clone(), r.as_ref().ok()?.record(&tree.root))))
+                    .collect();
+                let mut record = serde_json::json!({ "cameras": cameras });
+                if let Ok(lidar) = &frame.lidar {
+                    record["lidar"] = lidar.record(&tree.root);
+                }
+                Some(record)
+            }
+            _ => None,
+        }
     }
 }
 
