@@ -29,8 +29,9 @@ pub struct DgpConfig {
     pub root: String,
     /// `train`, `val` or `test` (DGP split ids 0, 1, 2).
     pub split: String,
-    /// Camera datum names, in item order (DDAD's six by default).
-    pub cameras: Vec<String>,
+    /// Camera datum names, in item order; by default every camera the split's scenes have (the
+    /// names of their image datums, sorted: DDAD's CAMERA_01, CAMERA_05, ...).
+    pub cameras: Option<Vec<String>>,
     /// LiDAR datum name.
     pub lidar: String,
     /// Folder of semantic maps (`<CAMERA>/<image stem>.png`, Cityscapes ids), relative to the
@@ -40,15 +41,7 @@ pub struct DgpConfig {
 
 impl Default for DgpConfig {
     fn default() -> Self {
-        DgpConfig {
-            root: String::new(),
-            split: "train".into(),
-            cameras: ["CAMERA_01", "CAMERA_05", "CAMERA_06", "CAMERA_07", "CAMERA_08", "CAMERA_09"]
-                .map(String::from)
-                .to_vec(),
-            lidar: "LIDAR".into(),
-            semantics: None,
-        }
+        DgpConfig { root: String::new(), split: "train".into(), cameras: None, lidar: "LIDAR".into(), semantics: None }
     }
 }
 
@@ -142,23 +135,53 @@ impl Dgp {
             .and_then(|s| s.get("filenames"))
             .and_then(|f| f.as_array())
             .ok_or_else(|| anyhow!("{}: split {} ({split}) lists no scene files", index.display(), config.split))?;
-        let mut scenes = Vec::new();
         let mut renormalised = Renormalised::default();
         let at = Place::new(&index, format!("split {}", config.split));
+        let mut scene_files = Vec::new();
         for (i, f) in files.iter().enumerate() {
             let field = format!("filenames[{i}]");
             let rel = f.as_str().ok_or_else(|| anyhow!("{at}: field {field} is not a string"))?;
             let path = join_inside(&root, &at, &field, rel).map_err(anyhow::Error::msg)?;
-            scenes.push(Self::scene(&config, &path, &mut renormalised)?);
+            let json = read_json(&path)?;
+            scene_files.push((path, json));
+        }
+        let cameras = match &config.cameras {
+            Some(c) => c.clone(),
+            None => {
+                let mut names: Vec<String> = scene_files
+                    .iter()
+                    .flat_map(|(_, json)| json.get("data").and_then(|d| d.as_array()).into_iter().flatten())
+                    .filter(|d| d.pointer("/datum/image").is_some())
+                    .filter_map(|d| d.pointer("/id/name").and_then(|n| n.as_str()).map(String::from))
+                    .collect();
+                names.sort();
+                names.dedup();
+                ensure!(
+                    !names.is_empty(),
+                    "{}: no scene of split {} has an image datum",
+                    index.display(),
+                    config.split
+                );
+                names
+            }
+        };
+        let mut scenes = Vec::new();
+        for (path, json) in &scene_files {
+            scenes.push(Self::scene(&config, &cameras, path, json, &mut renormalised)?);
         }
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
-        let tree = Tree { root: root.clone(), cameras: config.cameras.clone(), scenes, sidecars };
+        let tree = Tree { root: root.clone(), cameras, scenes, sidecars };
         Ok(Dgp { config, tree, warnings: renormalised.warnings() })
     }
 
-    fn scene(config: &DgpConfig, path: &Path, notes: &mut Renormalised) -> Result<Scene<Ontology, BoxFile>> {
+    fn scene(
+        config: &DgpConfig,
+        cameras: &[String],
+        path: &Path,
+        scene: &Value,
+        notes: &mut Renormalised,
+    ) -> Result<Scene<Ontology, BoxFile>> {
         let dir = path.parent().unwrap_or(Path::new("."));
-        let scene = read_json(path)?;
         let name = dir.file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
         let mut datums: HashMap<&str, &Value> = HashMap::new();
         for d in field(&scene, "data", path, "the scene")?.as_array().context("`data` is not a list")? {
@@ -218,7 +241,7 @@ impl Dgp {
                 Ok((reading, boxes)) => (Ok(reading), boxes),
                 Err(e) => (Err(e), None),
             };
-            let cameras = config.cameras.iter().map(|c| resolve(c).map(|(reading, _)| reading)).collect();
+            let cameras = cameras.iter().map(|c| resolve(c).map(|(reading, _)| reading)).collect();
             frames.push(Frame { lidar, cameras, extra: boxes });
         }
         Ok(Scene { name, frames, extra: ontology })
@@ -399,7 +422,11 @@ impl SurroundReader for Dgp {
 /// path component; the cameras, at least one, once each.
 impl dist4d_graph::Validate for DgpConfig {
     fn validate(&self) -> Vec<dist4d_graph::ParamProblem> {
-        dist4d_graph::ParamChecks::new().path_names("cameras", &self.cameras).path_name("lidar", &self.lidar).done()
+        let mut checks = dist4d_graph::ParamChecks::new();
+        if let Some(cameras) = &self.cameras {
+            checks.path_names("cameras", cameras);
+        }
+        checks.path_name("lidar", &self.lidar).done()
     }
 }
 
@@ -407,7 +434,7 @@ impl dist4d_graph::Validate for DgpConfig {
 pub fn schema() -> DatasetSchema {
     DatasetSchema {
         kind: "Dgp",
-        summary: "TRI DGP scenes (DDAD): samples, six cameras, LiDAR, 3D boxes",
+        summary: "TRI DGP scenes (DDAD): samples, cameras, LiDAR, 3D boxes",
         dims: crate::surround::DIMS.to_vec(),
         ports: crate::surround::PORTS.to_vec(),
         config: ParamsSpec::of::<DgpConfig>(),
@@ -512,6 +539,35 @@ mod tests {
             .iter_mut()
             .find(|d| keys.iter().any(|k| d["key"] == k.as_str()) && d["id"]["name"] == sensor)
             .unwrap()
+    }
+
+    #[test]
+    fn the_cameras_default_to_those_the_scenes_have() {
+        let Some((_tmp, root)) = copy_of_shared_dgp() else { return };
+        // A three-camera rig: the other cameras' datums are gone from the scene.
+        let (file, mut scene) = scene_json(&root);
+        let kept = ["CAMERA_01", "CAMERA_06", "CAMERA_09"];
+        scene["data"].as_array_mut().unwrap().retain(|d| {
+            let name = d.pointer("/id/name").and_then(|n| n.as_str()).unwrap();
+            d.pointer("/datum/image").is_none() || kept.contains(&name)
+        });
+        write(&file, &scene);
+        let ds = open_at(&root).unwrap();
+        assert_eq!(ds.0.tree.cameras, kept.map(String::from));
+        for c in 0..3 {
+            for f in 0..3 {
+                assert!(ds.load_source("camera_calib", &ItemKey::new(&[0, f, c])).is_ok(), "frame {f} camera {c}");
+            }
+        }
+        // Named cameras stay as named (a missing one fails its items, naming it).
+        let named = Dgp::open(DgpConfig {
+            root: root.display().to_string(),
+            cameras: Some(vec!["CAMERA_01".into(), "CAMERA_05".into()]),
+            ..Default::default()
+        })
+        .map(Surround)
+        .unwrap();
+        assert!(load_err(&named, "image", &[0, 0, 1]).contains("no datum named CAMERA_05"));
     }
 
     #[test]

@@ -10,7 +10,7 @@
 use crate::checks::{join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform};
 use crate::sidecar::Sidecars;
 use crate::surround::{Frame, Reading, Scene, SurroundReader, Tree, DIMS, PORTS};
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, ensure, Context, Result};
 use dist4d_graph::{DatasetSchema, ParamsSpec};
 use dist4d_runtime::{Digest, DigestBuilder, FileDigests, ItemKey};
 use dist4d_types::artifact::{Box3D, Boxes3D, Calibration, PointCloud, Pose};
@@ -44,8 +44,9 @@ pub struct NuScenesConfig {
     pub root: String,
     /// Table folder: `v1.0-mini`, `v1.0-trainval` or `v1.0-test`.
     pub version: String,
-    /// Camera channels, in item order.
-    pub cameras: Vec<String>,
+    /// Camera channels, in item order; by default every camera the data has (the sensors of
+    /// modality `camera` with sample_data), the devkit's six in its order first.
+    pub cameras: Option<Vec<String>>,
     /// LiDAR channel.
     pub lidar: String,
     /// Keyframes or Sweeps.
@@ -60,7 +61,7 @@ impl Default for NuScenesConfig {
         NuScenesConfig {
             root: String::new(),
             version: "v1.0-mini".into(),
-            cameras: CAMERAS.iter().map(|s| s.to_string()).collect(),
+            cameras: None,
             lidar: "LIDAR_TOP".into(),
             frames: FrameMode::Keyframes,
             semantics: None,
@@ -120,6 +121,8 @@ struct CalibratedSensorRow {
 struct SensorRow {
     token: String,
     channel: String,
+    #[serde(default)]
+    modality: String,
 }
 
 #[derive(Deserialize)]
@@ -333,6 +336,28 @@ fn dangling(file: &Path, row: usize, token: &str, field: &str, value: &str, tabl
     format!("{}: field {field} {value} names no {table} row", Place::row(file, row, token))
 }
 
+/// The camera channels the data has: sensors of modality `camera` that some `sample_data` row
+/// is of, the devkit's six in its order first, then the others by name.
+fn data_cameras(
+    sensors: &[SensorRow],
+    calibs: &[CalibratedSensorRow],
+    sample_data: &[SampleDataRow],
+) -> Result<Vec<String>> {
+    let used: std::collections::HashSet<&str> =
+        sample_data.iter().map(|sd| sd.calibrated_sensor_token.as_str()).collect();
+    let with_data: std::collections::HashSet<&str> =
+        calibs.iter().filter(|c| used.contains(c.token.as_str())).map(|c| c.sensor_token.as_str()).collect();
+    let mut cameras: Vec<String> = sensors
+        .iter()
+        .filter(|s| s.modality == "camera" && with_data.contains(s.token.as_str()))
+        .map(|s| s.channel.clone())
+        .collect();
+    cameras.sort_by_key(|c| (CAMERAS.iter().position(|k| k == c).unwrap_or(CAMERAS.len()), c.clone()));
+    cameras.dedup();
+    ensure!(!cameras.is_empty(), "no sensor of modality \"camera\" has sample_data");
+    Ok(cameras)
+}
+
 /// Whether a nuScenes file name says it is of `channel` (`samples/CAM_FRONT/..__CAM_FRONT__..`).
 fn names_channel(filename: &str, channel: &str) -> bool {
     filename.contains(&format!("__{channel}__")) || filename.split('/').any(|part| part == channel)
@@ -398,6 +423,11 @@ impl NuScenes {
             calibs.iter().map(|c| (c.token.as_str(), (c, check_mount(c, &cs_file, &mut renormalised)))).collect();
         warnings.extend(renormalised.warnings());
 
+        let cameras = match &config.cameras {
+            Some(c) => c.clone(),
+            None => data_cameras(&sensors, &calibs, &sample_data)
+                .with_context(|| format!("{}: set dataset.cameras", tables.join("sensor.json").display()))?,
+        };
         let sample_by: HashMap<&str, &SampleRow> = samples.iter().map(|s| (s.token.as_str(), s)).collect();
         let channel_by: HashMap<&str, &str> = sensors.iter().map(|s| (s.token.as_str(), s.channel.as_str())).collect();
         let sd_by: HashMap<&str, &SampleDataRow> = sample_data.iter().map(|s| (s.token.as_str(), s)).collect();
@@ -569,8 +599,7 @@ impl NuScenes {
                     .enumerate()
                     .map(|(i, k)| {
                         let lidar = key_row(&k.token, &config.lidar).and_then(resolve_lidar);
-                        let cameras =
-                            config.cameras.iter().map(|c| key_row(&k.token, c).and_then(|sd| resolve(sd, true)));
+                        let cameras = cameras.iter().map(|c| key_row(&k.token, c).and_then(|sd| resolve(sd, true)));
                         frame(lidar, cameras.collect(), k.timestamp, Some(i), true)
                     })
                     .collect(),
@@ -580,8 +609,7 @@ impl NuScenes {
                         bail!("scene {}: {}", scene.name, no_keyframe(&first.token, &config.lidar));
                     };
                     let lidar_chain = chain(first_key, &sd_by, &tables)?;
-                    let camera_chains: Vec<Option<Vec<&SampleDataRow>>> = config
-                        .cameras
+                    let camera_chains: Vec<Option<Vec<&SampleDataRow>>> = cameras
                         .iter()
                         .map(|c| {
                             keys.first()
@@ -595,7 +623,7 @@ impl NuScenes {
                         .map(|sd| {
                             let t = sd.timestamp;
                             let sample = keys.iter().rposition(|k| k.timestamp <= t);
-                            let cameras = camera_chains.iter().zip(&config.cameras).map(|(ch, name)| {
+                            let cameras = camera_chains.iter().zip(&cameras).map(|(ch, name)| {
                                 let ch =
                                     ch.as_ref().ok_or_else(|| format!("scene {}: no {name} images", scene.name))?;
                                 let nearest = ch.iter().min_by_key(|c| (c.timestamp - t).abs()).ok_or("empty chain")?;
@@ -608,8 +636,7 @@ impl NuScenes {
                 FrameMode::Camera => {
                     let Some(first) = keys.first() else { bail!("scene {}: it has no samples", scene.name) };
                     // Each camera's whole chain, through its image of the first keyframe.
-                    let chains: Vec<Result<Vec<&SampleDataRow>, String>> = config
-                        .cameras
+                    let chains: Vec<Result<Vec<&SampleDataRow>, String>> = cameras
                         .iter()
                         .map(|c| match keyframe.get(&(first.token.as_str(), c.as_str())) {
                             Some(sd) => chain(sd, &sd_by, &tables).map_err(|e| format!("{e:#}")),
@@ -627,15 +654,14 @@ impl NuScenes {
                         .collect();
                     // A camera's offset from the reference: the median over the keyframes, whose
                     // images are one round by the dataset's own definition.
-                    let offsets: Vec<i64> = config
-                        .cameras
+                    let offsets: Vec<i64> = cameras
                         .iter()
                         .map(|c| {
                             let mut d: Vec<i64> = keys
                                 .iter()
                                 .filter_map(|k| {
                                     let own = keyframe.get(&(k.token.as_str(), c.as_str()))?;
-                                    let reference = keyframe.get(&(k.token.as_str(), config.cameras[0].as_str()))?;
+                                    let reference = keyframe.get(&(k.token.as_str(), cameras[0].as_str()))?;
                                     Some(own.timestamp - reference.timestamp)
                                 })
                                 .collect();
@@ -647,7 +673,7 @@ impl NuScenes {
                         keys.iter().enumerate().map(|(i, k)| (k.token.as_str(), i)).collect();
                     let rounds = camera_rounds(&times, &offsets);
                     let complete: Vec<bool> = chains.iter().map(|c| c.is_ok()).collect();
-                    if let Some(note) = incomplete_rounds(&scene.name, &config.cameras, &rounds, &complete) {
+                    if let Some(note) = incomplete_rounds(&scene.name, &cameras, &rounds, &complete) {
                         warnings.push(note);
                     }
                     rounds
@@ -655,8 +681,8 @@ impl NuScenes {
                         .enumerate()
                         .map(|(n, round)| {
                             let image = |c: usize| round.images[c].and_then(|j| chains[c].as_ref().ok().map(|ch| ch[j]));
-                            let key_image = (0..config.cameras.len()).filter_map(image).find(|sd| sd.is_key_frame);
-                            let cameras = config.cameras.iter().enumerate().map(|(c, name)| match (&chains[c], image(c)) {
+                            let key_image = (0..cameras.len()).filter_map(image).find(|sd| sd.is_key_frame);
+                            let cameras = cameras.iter().enumerate().map(|(c, name)| match (&chains[c], image(c)) {
                                 (Err(e), _) => Err(e.clone()),
                                 (Ok(_), Some(sd)) => resolve(sd, true),
                                 (Ok(_), None) => Err(format!(
@@ -683,7 +709,7 @@ impl NuScenes {
         let annotation_by_token = annotations.iter().enumerate().map(|(i, a)| (a.row.token.clone(), i)).collect();
         let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
-        let tree = Tree { root, cameras: config.cameras.clone(), scenes: out, sidecars };
+        let tree = Tree { root, cameras, scenes: out, sidecars };
         Ok(NuScenes { config, tree, annotations, annotation_by_token, sample_time, warnings })
     }
 
@@ -950,11 +976,11 @@ pub fn read_pcd_bin(path: &Path) -> Result<PointCloud> {
 /// under the root), so each must be one safe path component; the cameras, at least one, once each.
 impl dist4d_graph::Validate for NuScenesConfig {
     fn validate(&self) -> Vec<dist4d_graph::ParamProblem> {
-        dist4d_graph::ParamChecks::new()
-            .path_names("cameras", &self.cameras)
-            .path_name("lidar", &self.lidar)
-            .path_name("version", &self.version)
-            .done()
+        let mut checks = dist4d_graph::ParamChecks::new();
+        if let Some(cameras) = &self.cameras {
+            checks.path_names("cameras", cameras);
+        }
+        checks.path_name("lidar", &self.lidar).path_name("version", &self.version).done()
     }
 }
 
@@ -962,7 +988,7 @@ impl dist4d_graph::Validate for NuScenesConfig {
 pub fn schema() -> DatasetSchema {
     DatasetSchema {
         kind: "NuScenes",
-        summary: "nuScenes v1.0 tables and files: scenes, keyframes or sweeps, six cameras, boxes, lidarseg",
+        summary: "nuScenes v1.0 tables and files: scenes, keyframes, sweeps or camera rounds, cameras, boxes, lidarseg",
         dims: DIMS.to_vec(),
         ports: PORTS.to_vec(),
         config: ParamsSpec::of::<NuScenesConfig>(),
@@ -1177,6 +1203,23 @@ mod tests {
         // The frame's LiDAR is the sweep nearest the round.
         let lidar = Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, 3])).unwrap()).unwrap();
         assert!((lidar.timestamp_us - front.timestamp_us).abs() <= 25_000);
+    }
+
+    #[test]
+    fn the_cameras_default_to_those_the_data_has_in_the_devkit_order() {
+        let (_tmp, root) = synthetic();
+        assert_eq!(open(&root, FrameMode::Keyframes).unwrap().0.tree.cameras, CAMERAS.map(String::from));
+        // A rig without CAM_BACK_LEFT data: five cameras, none failing.
+        let file = root.join("v1.0-mini/sample_data.json");
+        let mut rows: Vec<serde_json::Value> = serde_json::from_slice(&std::fs::read(&file).unwrap()).unwrap();
+        rows.retain(|r| !r["filename"].as_str().unwrap().contains("__CAM_BACK_LEFT__"));
+        std::fs::write(&file, serde_json::to_vec(&rows).unwrap()).unwrap();
+        let ds = open(&root, FrameMode::Keyframes).unwrap();
+        let five: Vec<String> = CAMERAS.iter().filter(|c| **c != "CAM_BACK_LEFT").map(|c| c.to_string()).collect();
+        assert_eq!(ds.0.tree.cameras, five);
+        for c in 0..5 {
+            assert!(ds.load_source("camera_calib", &ItemKey::new(&[0, 0, c])).is_ok(), "camera {c}");
+        }
     }
 
     #[test]
