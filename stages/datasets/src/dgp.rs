@@ -337,6 +337,7 @@ fn read_boxes(file: &Path, sensor_to_world: &Se3, ontology: &HashMap<i64, String
                 attributes: Vec::new(),
                 num_lidar_pts: a.get("num_points").and_then(|n| n.as_u64()).unwrap_or(0) as u32,
                 interpolated: false,
+                extrapolated: false,
             })
         })
         .collect()

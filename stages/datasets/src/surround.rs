@@ -12,7 +12,7 @@ use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{DimSpec, SourcePortSpec};
 use dist4d_runtime::{Dataset, Digest, DigestBuilder, FileDigests, ItemKey, ItemSpace};
-use dist4d_types::artifact::{Artifact, Boxes3D, Calibration, PointCloud, Pose};
+use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
 use std::path::{Path, PathBuf};
 
 pub(crate) const DIMS: [DimSpec; 3] = [
@@ -20,7 +20,7 @@ pub(crate) const DIMS: [DimSpec; 3] = [
     DimSpec { name: "frame", ordered: true },
     DimSpec { name: "camera", ordered: false },
 ];
-pub(crate) const PORTS: [SourcePortSpec; 9] = [
+pub(crate) const PORTS: [SourcePortSpec; 10] = [
     SourcePortSpec {
         name: "lidar",
         ty: "PointCloud",
@@ -32,6 +32,12 @@ pub(crate) const PORTS: [SourcePortSpec; 9] = [
         ty: "Boxes3D",
         grain: "frame",
         doc: "annotated boxes at the frame's time (world frame; interpolated for sweeps)",
+    },
+    SourcePortSpec {
+        name: "camera_boxes",
+        ty: "Boxes3D",
+        grain: "camera",
+        doc: "annotated boxes at the camera image's own time (world frame; interpolated between keyframes)",
     },
     SourcePortSpec { name: "image", ty: "Image", grain: "camera", doc: "the camera image (RGB8)" },
     SourcePortSpec { name: "lidar_calib", ty: "Calibration", grain: "frame", doc: "LiDAR mounting (sensor -> ego)" },
@@ -152,6 +158,24 @@ pub trait SurroundReader: Send + Sync {
     fn read_lidar(&self, lidar: &Reading, frame: &Self::Frame) -> Result<PointCloud>;
     /// The `boxes` port of a frame (`item` is a frame of the tree or fails as one).
     fn boxes(&self, item: &ItemKey) -> Result<Boxes3D>;
+    /// The `camera_boxes` port: the boxes at the camera image's own time. By default the frame's
+    /// boxes moved with their velocities over the time from the frame to the image (a format
+    /// whose cameras fire with its LiDAR, like DDAD, moves them by milliseconds).
+    fn camera_boxes(&self, item: &ItemKey) -> Result<Boxes3D> {
+        let frame = self.boxes(&item.prefix(2))?;
+        let t = self.tree().reading("image", item)?.pose.timestamp_us;
+        let s = (t - frame.timestamp_us) as f64 * 1e-6;
+        let boxes = frame
+            .boxes
+            .into_iter()
+            .map(|b| {
+                let center =
+                    [0, 1, 2].map(|i| b.center[i] + if b.velocity[i].is_finite() { b.velocity[i] * s } else { 0.0 });
+                Box3D { center, ..b }
+            })
+            .collect();
+        Ok(Boxes3D { timestamp_us: t, boxes })
+    }
 }
 
 /// A format reader as the runtime's dataset.
@@ -198,8 +222,10 @@ impl<R: SurroundReader> Dataset for Surround<R> {
     }
 
     fn load_source(&self, port: &str, item: &ItemKey) -> Result<Vec<u8>> {
-        if port == "boxes" {
-            return Ok(self.0.boxes(item)?.encode());
+        match port {
+            "boxes" => return Ok(self.0.boxes(item)?.encode()),
+            "camera_boxes" => return Ok(self.0.camera_boxes(item)?.encode()),
+            _ => {}
         }
         let tree = self.0.tree();
         let r = tree.reading(port, item)?;

@@ -262,6 +262,7 @@ mod tests {
             attributes: vec![],
             num_lidar_pts: 0,
             interpolated: false,
+            extrapolated: false,
         }
     }
 

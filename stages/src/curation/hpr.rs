@@ -409,6 +409,7 @@ mod tests {
             attributes: vec![],
             num_lidar_pts: 0,
             interpolated: false,
+            extrapolated: false,
         };
         let boxes = Boxes3D { timestamp_us: 0, boxes: vec![b] };
         let mut xyz = Vec::new();

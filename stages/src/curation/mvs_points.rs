@@ -372,6 +372,7 @@ mod tests {
             attributes: vec![],
             num_lidar_pts: 0,
             interpolated: false,
+            extrapolated: false,
         };
         let boxes = Boxes3D { timestamp_us: 0, boxes: vec![car(5.0)] };
         let mut sky = Mask { width: 80, height: 60, data: vec![0; 4800] };

@@ -210,6 +210,10 @@ const GROUND_TRUTH_README: &str = "\
   (col + 0.5, row + 0.5).
 - `semantic/<CHANNEL>/<image name>.png`: 8-bit Cityscapes ids: road 7, sidewalk 8, building 11,
   pole 17, vegetation 21, terrain 22, sky 23, person 24, car 26.
+- `boxes/<CHANNEL>/<image name>.json`: the exact box of every annotated agent at that image's own
+  timestamp: `{\"timestamp_us\", \"boxes\": [{\"instance_token\", \"category\", \"translation\", \"size\",
+  \"rotation\", \"velocity\"}]}` (world frame, nuScenes conventions: size w, l, h; rotation w, x, y, z),
+  what boxes interpolated between keyframes are scored against.
 - `synth.json`: the generator version and settings. `dist4d_stages::synth::Renderer::open(root)`
   rebuilds the world from it and renders exact RGB, depth and semantics for any camera pose at any
   timestamp.
@@ -480,6 +484,8 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
     let key_cams: Vec<Vec<&Reading>> = cameras.iter().map(|v| v.iter().filter(|r| r.key).collect()).collect();
     // One frozen world per keyframe, shared by every box's visibility rays.
     let key_snapshots: Vec<Snapshot> = (0..k).map(|kf| Snapshot::new(&world, secs(t0 + kf * KEYFRAME_US))).collect();
+    // The annotated agents, with their instance token and category (for the exact boxes below).
+    let mut annotated = Vec::new();
     for agent in &world.agents {
         let in_range = |kf: usize| {
             let ts = t0 + kf as i64 * KEYFRAME_US;
@@ -523,6 +529,7 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
             );
             summary.annotations += 1;
         }
+        annotated.push((agent, instance_token.clone(), category));
         t.push(
             "instance",
             json!({
@@ -533,6 +540,35 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
                 "last_annotation_token": ann(last),
             }),
         );
+    }
+
+    // The exact box of every annotated agent at every camera image's own time, what boxes
+    // interpolated between keyframes are scored against (`groundtruth/boxes/<CAMERA>/<image
+    // stem>.json`).
+    if config.ground_truth {
+        for r in cameras.iter().flatten() {
+            let boxes: Vec<serde_json::Value> = annotated
+                .iter()
+                .filter_map(|(agent, instance, category)| {
+                    let (centre, yaw, velocity) = agent.state(&world.path, secs(r.timestamp))?;
+                    let [l, w, h] = agent.size;
+                    Some(json!({
+                        "instance_token": instance,
+                        "category": category,
+                        "translation": centre.to_array(),
+                        "size": [w, l, h],
+                        "rotation": Se3::from_yaw(yaw, centre).wxyz(),
+                        "velocity": velocity.to_array(),
+                    }))
+                })
+                .collect();
+            let stem = Path::new(&r.filename).file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+            let dir = gt.join("boxes").join(r.channel);
+            std::fs::create_dir_all(&dir)?;
+            let file = dir.join(format!("{stem}.json"));
+            std::fs::write(&file, serde_json::to_vec(&json!({"timestamp_us": r.timestamp, "boxes": boxes}))?)
+                .with_context(|| format!("writing {}", file.display()))?;
+        }
     }
 
     // Map mask: the drivable surface at 0.1 m per pixel, as the devkit's MapMask expects.

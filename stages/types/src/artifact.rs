@@ -124,8 +124,12 @@ pub struct Box3D {
     pub attributes: Vec<String>,
     /// LiDAR points inside, as annotated (0 when interpolated or unknown).
     pub num_lidar_pts: u32,
-    /// Whether the box was interpolated between two annotations (sweeps).
+    /// Whether the box was interpolated between two annotations (sweeps, camera rounds, images).
     pub interpolated: bool,
+    /// Whether the box was extrapolated from one annotation with its velocity (a track annotated
+    /// on only one of the keyframes around the box's time).
+    #[serde(default)]
+    pub extrapolated: bool,
 }
 
 impl Box3D {
@@ -462,6 +466,7 @@ mod tests {
             attributes: vec!["vehicle.moving".into()],
             num_lidar_pts: 3,
             interpolated: false,
+            extrapolated: false,
         };
         let boxes = Boxes3D { timestamp_us: 7, boxes: vec![b.clone(), Box3D { velocity: [1.0, 0.0, 0.0], ..b }] };
         let back = Boxes3D::decode(&boxes.encode()).unwrap();
