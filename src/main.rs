@@ -91,7 +91,7 @@ enum Command {
     /// Run a pipeline (cached tasks are not redone) and tabulate the scores of its EvalDepth
     /// stages: Abs Rel, Sq Rel, RMSE, RMSE log, delta < 1.25^k and the bad-pixel rates (relative
     /// error > 10%, > 25%), raw and median-scaled, per camera and averaged over cameras, for each
-    /// reference (gt, gt_above_lidar, lidar, lidar_multi, holdout); against the dense ground truth
+    /// reference (gt, gt_above_lidar, gt_moving, lidar, lidar_multi, holdout); against the dense ground truth
     /// also sky IoU, sky given a structure depth, structure given the sky depth and the iBims-1
     /// depth-boundary accuracy and completeness (px).
     ///

@@ -927,12 +927,14 @@ impl SurroundReader for NuScenes {
         Ok(pc)
     }
 
-    /// Boxes at the frame's time: a keyframe's (or a round holding keyframe images') own
-    /// annotations, otherwise [`NuScenes::boxes_at`] the frame's time.
+    /// Boxes at the time of the frame's LiDAR sweep (what stages that move or remove its points
+    /// need; a camera round's own time is its reference image's, up to ~40 ms away): a keyframe
+    /// sweep's own annotations, otherwise [`NuScenes::boxes_at`] its time. Without a LiDAR
+    /// reading, at the frame's time.
     fn boxes(&self, item: &ItemKey) -> Result<Boxes3D> {
         let (scene, frame) = self.tree.scene_frame(item)?;
-        let t = frame.extra.timestamp;
-        let key = frame.extra.sample.filter(|_| frame.extra.key);
+        let t = frame.lidar.as_ref().map_or(frame.extra.timestamp, |l| l.pose.timestamp_us);
+        let key = frame.extra.sample.filter(|&k| frame.extra.key && scene.extra.get(k).is_some_and(|s| s.0 == t));
         Ok(Boxes3D { timestamp_us: t, boxes: self.boxes_at(scene, t, key) })
     }
 

@@ -31,7 +31,7 @@ pub(crate) const PORTS: [SourcePortSpec; 10] = [
         name: "boxes",
         ty: "Boxes3D",
         grain: "frame",
-        doc: "annotated boxes at the frame's time (world frame; interpolated for sweeps)",
+        doc: "annotated boxes at the time of the frame's LiDAR sweep (world frame; interpolated between keyframes)",
     },
     SourcePortSpec {
         name: "camera_boxes",

@@ -4,6 +4,7 @@
 crate::stage_modules! {
     aggregate::AggregateLidar,
     complete::CompleteDepth,
+    follow_tracks::FollowTracks,
     fuse::FusePoints,
     hpr::HiddenPointRemoval,
     mvs::MultiViewStereo,

@@ -278,6 +278,8 @@ crate::ports! {
         holdout: Optional<DepthMap>,
         /// the ground truth above the LiDAR's field of view (AboveLidarFov of `gt`)
         gt_above_lidar: Optional<DepthMap>,
+        /// the ground truth on moving objects (OnMovingObjects of `gt`)
+        gt_moving: Optional<DepthMap>,
     }
 }
 
@@ -310,6 +312,7 @@ impl Stage for EvalDepth {
             ("lidar_multi", i.lidar_multi.as_ref(), Sparse),
             ("holdout", i.holdout.as_ref(), Sparse),
             ("gt_above_lidar", i.gt_above_lidar.as_ref(), Sparse),
+            ("gt_moving", i.gt_moving.as_ref(), Sparse),
         ];
         let scores = evaluate(&self.0, &i.depth, &references)?;
         Ok(Outputs { json: File(serde_json::to_vec_pretty(&scores)?) })

@@ -9,4 +9,5 @@ pub mod sky;
 crate::stage_modules! {
     above_fov::AboveLidarFov,
     depth::EvalDepth,
+    moving::OnMovingObjects,
 }
