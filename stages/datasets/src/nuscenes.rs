@@ -1256,15 +1256,15 @@ mod tests {
         assert_ne!(front.timestamp_us, back.timestamp_us);
         assert!((front.timestamp_us - back.timestamp_us).abs() < 50_000);
         assert!(pose(4, 0).timestamp_us - front.timestamp_us > 80_000);
-        // Rounds 0, 6 and 12 hold the keyframe images: their boxes are the annotations; the
-        // others' are interpolated to the round's time.
-        let boxes = |f: u32| Boxes3D::decode(&ds.load_source("boxes", &ItemKey::new(&[0, f])).unwrap()).unwrap();
-        assert!(boxes(6).boxes.iter().all(|b| !b.interpolated) && !boxes(6).boxes.is_empty());
-        assert!(boxes(3).boxes.iter().all(|b| b.interpolated) && !boxes(3).boxes.is_empty());
-        assert_eq!(boxes(3).timestamp_us, pose(3, 0).timestamp_us);
         // The frame's LiDAR is the sweep nearest the round.
         let lidar = Pose::decode(&ds.load_source("lidar_pose", &ItemKey::new(&[0, 3])).unwrap()).unwrap();
         assert!((lidar.timestamp_us - front.timestamp_us).abs() <= 25_000);
+        // Rounds 0, 6 and 12 hold the keyframe images and sweeps: their boxes are the
+        // annotations; the others' are interpolated to the time of their LiDAR sweep.
+        let boxes = |f: u32| Boxes3D::decode(&ds.load_source("boxes", &ItemKey::new(&[0, f])).unwrap()).unwrap();
+        assert!(boxes(6).boxes.iter().all(|b| !b.interpolated) && !boxes(6).boxes.is_empty());
+        assert!(boxes(3).boxes.iter().all(|b| b.interpolated) && !boxes(3).boxes.is_empty());
+        assert_eq!(boxes(3).timestamp_us, lidar.timestamp_us);
     }
 
     /// Centre errors (m) against the synthetic world's exact boxes at every non-keyframe image of
