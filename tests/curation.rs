@@ -155,19 +155,7 @@ fn curation_runs_on_the_shared_nuscenes_keyframe_and_dgp_scene() {
 fn the_12_hz_pipeline_curates_every_camera_image_and_moving_objects_follow_their_tracks() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
-    let o = dist4d(&[
-        "synth",
-        "--out",
-        data.to_str().unwrap(),
-        "--keyframes",
-        "3",
-        "--width",
-        "320",
-        "--height",
-        "180",
-        "--camera-sweeps",
-    ]);
-    assert!(o.status.success(), "{}", text(&o));
+    synth_camera_sweeps(&data, 320, 180);
     let pipeline = repo().join("pipelines/video_12hz.ron");
     let run = |out: &str, extra: &[&str]| {
         let root = format!("dataset.root={}", data.display());

@@ -108,37 +108,12 @@ fn an_empty_sample_data_table_is_one_error_before_anything_runs() {
 /// A synthetic dataset with 12 Hz camera sweeps (3 keyframes: 13 images per camera).
 fn with_camera_sweeps(tmp: &Path) -> PathBuf {
     let root = tmp.join("data");
-    let o = dist4d(&[
-        "synth",
-        "--out",
-        root.to_str().unwrap(),
-        "--keyframes",
-        "3",
-        "--width",
-        "160",
-        "--height",
-        "90",
-        "--camera-sweeps",
-    ]);
-    assert!(o.status.success(), "{}", text(&o));
+    synth_camera_sweeps(&root, 160, 90);
     root
 }
 
 fn run_camera_clock(tmp: &Path, root: &Path) -> std::process::Output {
-    dist4d(&[
-        "run",
-        &repo().join("pipelines/lidar_depth.ron").display().to_string(),
-        "--progress",
-        "off",
-        "--cache",
-        tmp.join("cache").to_str().unwrap(),
-        "--out",
-        tmp.join("out").to_str().unwrap(),
-        "--set",
-        &format!("dataset.root={}", root.display()),
-        "--set",
-        "dataset.frames=Camera",
-    ])
+    run_lidar_depth_with(root, &tmp.join("cache"), &tmp.join("out"), &["--set", "dataset.frames=Camera"])
 }
 
 #[test]

@@ -201,18 +201,26 @@ pub fn read_npy_rows(path: &Path) -> Vec<[f32; 3]> {
 
 /// `dist4d run pipelines/lidar_depth.ron` on a nuScenes-format root, progress off.
 pub fn run_lidar_depth(root: &Path, cache: &Path, out: &Path) -> Output {
-    dist4d(&[
-        "run",
-        &repo().join("pipelines/lidar_depth.ron").display().to_string(),
-        "--progress",
-        "off",
-        "--cache",
-        cache.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--set",
-        &format!("dataset.root={}", root.display()),
-    ])
+    run_lidar_depth_with(root, cache, out, &[])
+}
+
+/// The same with more arguments (`--set dataset.frames=Camera`).
+pub fn run_lidar_depth_with(root: &Path, cache: &Path, out: &Path, extra: &[&str]) -> Output {
+    let pipeline = repo().join("pipelines/lidar_depth.ron");
+    let set_root = format!("dataset.root={}", root.display());
+    let mut args = vec!["run", pipeline.to_str().unwrap(), "--progress", "off"];
+    args.extend(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap(), "--set", &set_root]);
+    args.extend(extra);
+    dist4d(&args)
+}
+
+/// `dist4d synth` of a small dataset with 12 Hz camera sweeps at `root` (3 keyframes: 13 images
+/// per camera).
+pub fn synth_camera_sweeps(root: &Path, width: u32, height: u32) {
+    let (w, h) = (width.to_string(), height.to_string());
+    let args = ["synth", "--out", root.to_str().unwrap(), "--keyframes", "3", "--width", &w, "--height", &h];
+    let o = dist4d(&[&args[..], &["--camera-sweeps"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
 }
 
 /// Runs the devkit peer (`nusc_project.py`) on `root`, writing its points to `peer_out`, and

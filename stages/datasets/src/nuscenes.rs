@@ -1096,6 +1096,16 @@ mod tests {
         (dir, root)
     }
 
+    /// A small synthetic nuScenes dataset with 12 Hz camera sweeps and its exact boxes.
+    fn with_camera_sweeps(keyframes: u32) -> (tempfile::TempDir, PathBuf) {
+        let dir = tempfile::tempdir().unwrap();
+        let root = dir.path().join("synth");
+        let config =
+            dist4d_synth::SynthConfig { keyframes, width: 96, height: 54, camera_sweeps: true, ..Default::default() };
+        dist4d_synth::write_dataset(&config, &root, &|_| {}).unwrap();
+        (dir, root)
+    }
+
     fn open(root: &Path, frames: FrameMode) -> Result<Surround<NuScenes>> {
         NuScenes::open(NuScenesConfig { root: root.display().to_string(), frames, ..Default::default() }).map(Surround)
     }
@@ -1217,17 +1227,7 @@ mod tests {
 
     #[test]
     fn camera_frames_are_the_12_hz_rounds_each_image_once_with_its_own_time() {
-        let dir = tempfile::tempdir().unwrap();
-        let root = dir.path().join("synth");
-        let config = dist4d_synth::SynthConfig {
-            keyframes: 3,
-            width: 160,
-            height: 90,
-            camera_sweeps: true,
-            ground_truth: false,
-            ..Default::default()
-        };
-        dist4d_synth::write_dataset(&config, &root, &|_| {}).unwrap();
+        let (_dir, root) = with_camera_sweeps(3);
         let ds = open(&root, FrameMode::Camera).unwrap();
         assert!(ds.0.warnings.is_empty(), "{:?}", ds.0.warnings);
         // 3 keyframes 0.5 s apart at 12 Hz: 13 rounds; each camera image is read once.
@@ -1317,16 +1317,7 @@ mod tests {
 
     #[test]
     fn boxes_at_each_images_time_are_within_5_cm_of_the_truth_and_closer_than_asaps() {
-        let dir = tempfile::tempdir().unwrap();
-        let root = dir.path().join("synth");
-        let config = dist4d_synth::SynthConfig {
-            keyframes: 4,
-            width: 96,
-            height: 54,
-            camera_sweeps: true,
-            ..Default::default()
-        };
-        dist4d_synth::write_dataset(&config, &root, &|_| {}).unwrap();
+        let (_dir, root) = with_camera_sweeps(4);
         let ds = open(&root, FrameMode::Camera).unwrap();
         let (ours, asap) = box_errors(&ds, &root);
         assert!(ours.len() > 100, "{} interpolated boxes of moving agents", ours.len());
@@ -1342,16 +1333,7 @@ mod tests {
 
     #[test]
     fn a_track_on_one_keyframe_only_is_extrapolated_half_an_interval_or_dropped() {
-        let dir = tempfile::tempdir().unwrap();
-        let root = dir.path().join("synth");
-        let config = dist4d_synth::SynthConfig {
-            keyframes: 6,
-            width: 96,
-            height: 54,
-            camera_sweeps: true,
-            ..Default::default()
-        };
-        dist4d_synth::write_dataset(&config, &root, &|_| {}).unwrap();
+        let (_dir, root) = with_camera_sweeps(6);
         let ds = open(&root, FrameMode::Camera).unwrap();
         let scene = &ds.0.tree.scenes[0];
         let keys = &scene.extra;
