@@ -167,7 +167,7 @@ fn the_12_hz_pipeline_curates_every_camera_image_and_moving_objects_follow_their
         assert!(o.status.success(), "{}", text(&o));
         text(&o)
     };
-    let report = run("out", &[]);
+    let report = run("out", &["--set", "clips.frames=4", "--set", "clips.stride=2"]);
     // 13 rounds x 6 cameras, each curated once; scored on moving objects too.
     assert_eq!(executed(&report, "complete"), 78, "{report}");
     let moving = mean_of(&report, "gt_moving (raw)", 0);
@@ -177,6 +177,44 @@ fn the_12_hz_pipeline_curates_every_camera_image_and_moving_objects_follow_their
         .filter(|e| e.as_ref().unwrap().file_name().to_string_lossy().ends_with("_depth.exr"))
         .count();
     assert_eq!(depth_files, 13);
+    // Clips of 4 rounds every 2: 5 of the 13 rounds' clips, each image with its files.
+    let jsonl = std::fs::read_to_string(tmp.path().join("out/synth-0000/clips.jsonl")).unwrap();
+    let clips: Vec<serde_json::Value> = jsonl.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(clips.len(), 5);
+    for clip in &clips {
+        let frames = clip["frames"].as_array().unwrap();
+        assert_eq!(frames.len(), 4);
+        assert_eq!(clip["ego_trajectory"].as_array().unwrap().len(), 4);
+        for frame in frames {
+            let cameras = frame["cameras"].as_array().unwrap();
+            assert_eq!(cameras.len(), 6);
+            for c in cameras {
+                assert!(data.join(c["image"].as_str().unwrap()).is_file(), "{c}");
+                for file in ["depth", "confidence"] {
+                    assert!(tmp.path().join("out").join(c[file].as_str().unwrap()).is_file(), "{file}: {c}");
+                }
+                assert_eq!(c["boxes_timestamp_us"], c["timestamp_us"], "boxes at the image's own time");
+            }
+        }
+    }
+    assert_eq!(clips[1]["frames"][0]["frame"], clips[0]["frames"][2]["frame"], "stride 2");
+    // The numpy-only loader of docs/examples reads a clip.
+    if let Some(python) = peers_python() {
+        let o = std::process::Command::new(python)
+            .arg(repo().join("docs/examples/clip_loader.py"))
+            .arg(tmp.path().join("out"))
+            .arg(&data)
+            .output()
+            .unwrap();
+        let printed = String::from_utf8_lossy(&o.stdout);
+        assert!(o.status.success(), "{printed}{}", String::from_utf8_lossy(&o.stderr));
+        assert!(
+            printed.contains("depth [4, 6, 180, 320]") && printed.contains("ego_trajectory [4, 4, 4]"),
+            "{printed}"
+        );
+    } else {
+        eprintln!("SKIPPED the clip loader: no peer venv (../shared/bench/peers/setup.sh)");
+    }
     // Without following the tracks (the ablation) only FollowTracks and what depends on it rerun,
     // and moving objects are scored no better.
     let ablation = run("out_ablation", &["--set", "follow.moving_speed=1000"]);

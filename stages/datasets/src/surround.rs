@@ -12,7 +12,7 @@ use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{DimSpec, SourcePortSpec};
 use dist4d_runtime::{Dataset, Digest, DigestBuilder, FileDigests, ItemKey, ItemSpace};
-use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, PointCloud, Pose};
+use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, ImageInfo, PointCloud, Pose};
 use std::path::{Path, PathBuf};
 
 pub(crate) const DIMS: [DimSpec; 3] = [
@@ -20,7 +20,7 @@ pub(crate) const DIMS: [DimSpec; 3] = [
     DimSpec { name: "frame", ordered: true },
     DimSpec { name: "camera", ordered: false },
 ];
-pub(crate) const PORTS: [SourcePortSpec; 10] = [
+pub(crate) const PORTS: [SourcePortSpec; 11] = [
     SourcePortSpec {
         name: "lidar",
         ty: "PointCloud",
@@ -40,6 +40,12 @@ pub(crate) const PORTS: [SourcePortSpec; 10] = [
         doc: "annotated boxes at the camera image's own time (world frame; interpolated between keyframes)",
     },
     SourcePortSpec { name: "image", ty: "Image", grain: "camera", doc: "the camera image (RGB8)" },
+    SourcePortSpec {
+        name: "image_info",
+        ty: "ImageInfo",
+        grain: "camera",
+        doc: "which image the item is: scene, frame and camera labels, token, file (relative to the root), timestamp",
+    },
     SourcePortSpec { name: "lidar_calib", ty: "Calibration", grain: "frame", doc: "LiDAR mounting (sensor -> ego)" },
     SourcePortSpec { name: "lidar_pose", ty: "Pose", grain: "frame", doc: "ego pose at the LiDAR timestamp" },
     SourcePortSpec {
@@ -222,12 +228,24 @@ impl<R: SurroundReader> Dataset for Surround<R> {
     }
 
     fn load_source(&self, port: &str, item: &ItemKey) -> Result<Vec<u8>> {
+        let tree = self.0.tree();
         match port {
             "boxes" => return Ok(self.0.boxes(item)?.encode()),
             "camera_boxes" => return Ok(self.0.camera_boxes(item)?.encode()),
+            "image_info" => {
+                let r = tree.reading("image", item)?;
+                let info = ImageInfo {
+                    scene: self.label(&item.prefix(1)),
+                    frame: self.label(&item.prefix(2)),
+                    camera: self.label(item),
+                    token: r.token.clone(),
+                    file: r.file.strip_prefix(&tree.root).unwrap_or(&r.file).to_string_lossy().into_owned(),
+                    timestamp_us: r.pose.timestamp_us,
+                };
+                return Ok(info.encode());
+            }
             _ => {}
         }
-        let tree = self.0.tree();
         let r = tree.reading(port, item)?;
         Ok(match port {
             "lidar" => self.0.read_lidar(r, &tree.scene_frame(item)?.1.extra)?.encode(),

@@ -1,6 +1,7 @@
 //! Encoding stages: artifacts to the files of the user-facing layout (EXR, PNG, NPY, sheets).
 
 crate::stage_modules! {
+    clips::ClipIndex,
     encode_depth::EncodeDepth,
     encode_points::EncodePoints,
     sheet::DepthSheet,

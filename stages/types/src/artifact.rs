@@ -150,6 +150,33 @@ impl Box3D {
     }
 }
 
+/// Which image a camera item is: what a training index records so that a loader never redoes the
+/// matching (the item's labels, the dataset's token, file relative to the dataset root, time).
+#[derive(Clone, Debug, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+pub struct ImageInfo {
+    pub scene: String,
+    pub frame: String,
+    pub camera: String,
+    /// nuScenes `sample_data` token, DGP datum key.
+    pub token: String,
+    /// Relative to the dataset root.
+    pub file: String,
+    pub timestamp_us: i64,
+}
+
+impl Artifact for ImageInfo {
+    const TYPE: &'static str = "ImageInfo";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"IMI1".to_vec();
+        out.extend_from_slice(&serde_json::to_vec(self).unwrap_or_default());
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let r = Reader::new(bytes, b"IMI1", Self::TYPE)?;
+        serde_json::from_slice(r.0).context("ImageInfo artifact is malformed")
+    }
+}
+
 /// The annotated boxes of one frame.
 #[derive(Clone, Debug, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct Boxes3D {

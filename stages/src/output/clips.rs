@@ -1,0 +1,299 @@
+//! `ClipIndex`: the training clips of a scene as JSON lines, one record per clip, for a video
+//! model's loader (DiST-T trains on surround RGB-D clips at 12 Hz).
+//!
+//! A clip is `frames` consecutive frames (camera rounds with `frames: Camera`), clips starting
+//! every `stride` frames. Its record holds, per frame and camera, everything a loader needs without
+//! redoing any matching: the image (file relative to the dataset root, token, timestamp), the
+//! intrinsics, camera -> ego, ego -> world at the image's time, the boxes at that time, and the
+//! curated depth and its confidence (paths relative to the output folder, from the `depth` and
+//! `confidence` templates, which must be the pipeline's export templates of those files); and the
+//! clip's ego trajectory (the first camera's ego pose at each frame). Record layout and a
+//! numpy-only loader: docs/datasets.md, "Training clips".
+
+use crate::stage::Stage;
+use anyhow::{ensure, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::TaskContext;
+use dist4d_types::artifact::{Boxes3D, Calibration, File, ImageInfo, Pose};
+use dist4d_types::geometry::Se3;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Frames per clip.
+    pub frames: u32,
+    /// Frames from one clip's start to the next's (= `frames`: clips do not overlap).
+    pub stride: u32,
+    /// Where the curated depth of an image is, relative to the output folder: the pipeline's
+    /// export template of it (`{scene}`, `{frame}`, `{camera}` are the item's labels).
+    pub depth: String,
+    /// Where its confidence (the completion's support distance) is, the same way.
+    pub confidence: String,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            frames: 16,
+            stride: 8,
+            depth: "{scene}/{camera}/{frame}_depth.npy".into(),
+            confidence: "{scene}/{camera}/{frame}_support.npy".into(),
+        }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        c.count("frames", self.frames as u64, 1, 100_000).count("stride", self.stride as u64, 1, 100_000);
+        for (field, template) in [("depth", &self.depth), ("confidence", &self.confidence)] {
+            c.check(["{scene}", "{frame}", "{camera}"].iter().all(|p| template.contains(p)), field, || {
+                format!("must hold {{scene}}, {{frame}} and {{camera}} (one file per image), found `{template}`")
+            });
+        }
+        c.done()
+    }
+}
+
+fn transform(t: &Se3) -> Value {
+    json!({ "translation": t.translation.to_array(), "rotation": t.wxyz() })
+}
+
+fn render(template: &str, info: &ImageInfo) -> String {
+    template.replace("{scene}", &info.scene).replace("{frame}", &info.frame).replace("{camera}", &info.camera)
+}
+
+/// One image of a clip: what it is, where it is seen from, what is in it, and its curated files.
+fn image_record(p: &Params, info: &ImageInfo, calib: &Calibration, pose: &Pose, boxes: &Boxes3D) -> Value {
+    let boxes_time = boxes.timestamp_us;
+    let boxes: Vec<Value> = boxes
+        .boxes
+        .iter()
+        .map(|b| {
+            json!({
+                "instance": b.instance,
+                "category": b.category,
+                "attributes": b.attributes,
+                "center": b.center,
+                "size": b.size,
+                "rotation": b.rotation,
+                // JSON has no NaN: an unknown velocity is null.
+                "velocity": b.velocity.map(|v| v.is_finite().then_some(v)),
+                "interpolated": b.interpolated,
+                "extrapolated": b.extrapolated,
+            })
+        })
+        .collect();
+    json!({
+        "camera": info.camera,
+        "token": info.token,
+        "image": info.file,
+        "timestamp_us": info.timestamp_us,
+        "width": calib.width,
+        "height": calib.height,
+        "intrinsics": calib.intrinsics,
+        "camera_to_ego": transform(&calib.sensor_to_ego),
+        "ego_to_world": transform(&pose.ego_to_world),
+        "boxes_timestamp_us": boxes_time,
+        "boxes": boxes,
+        "depth": render(&p.depth, info),
+        "confidence": render(&p.confidence, info),
+    })
+}
+
+/// The records of a scene's clips, one JSON object per line. `images`, `calibs`, `poses` and
+/// `boxes` are the scene's camera items in order (frame by frame, the cameras of a frame
+/// together), as `All(...)` gives them.
+pub fn clip_index(
+    p: &Params,
+    images: &[ImageInfo],
+    calibs: &[Calibration],
+    poses: &[Pose],
+    boxes: &[Boxes3D],
+) -> Result<Vec<u8>> {
+    let n = images.len();
+    ensure!(
+        calibs.len() == n && poses.len() == n && boxes.len() == n,
+        "the images, calibrations, poses and boxes differ in number ({n}, {}, {}, {}): wire them with All(..) of the \
+         same grain",
+        calibs.len(),
+        poses.len(),
+        boxes.len()
+    );
+    // Frames in order, each with the indices of its cameras' items.
+    let mut frames: Vec<(String, Vec<usize>)> = Vec::new();
+    for (i, info) in images.iter().enumerate() {
+        match frames.last_mut() {
+            Some((label, items)) if *label == info.frame => items.push(i),
+            _ => frames.push((info.frame.clone(), vec![i])),
+        }
+    }
+    let mut out = Vec::new();
+    let (length, stride) = (p.frames as usize, p.stride as usize);
+    if frames.len() < length {
+        return Ok(out);
+    }
+    for (clip, start) in (0..=frames.len() - length).step_by(stride).enumerate() {
+        let window = &frames[start..start + length];
+        let trajectory: Vec<Value> = window
+            .iter()
+            .map(|(label, items)| {
+                let first = items[0];
+                json!({
+                    "frame": label,
+                    "camera": images[first].camera,
+                    "timestamp_us": poses[first].timestamp_us,
+                    "ego_to_world": transform(&poses[first].ego_to_world),
+                })
+            })
+            .collect();
+        let frame_records: Vec<Value> = window
+            .iter()
+            .map(|(label, items)| {
+                let cameras: Vec<Value> =
+                    items.iter().map(|&i| image_record(p, &images[i], &calibs[i], &poses[i], &boxes[i])).collect();
+                json!({ "frame": label, "cameras": cameras })
+            })
+            .collect();
+        let record = json!({
+            "scene": images[window[0].1[0]].scene,
+            "clip": clip,
+            "frames": frame_records,
+            "ego_trajectory": trajectory,
+        });
+        serde_json::to_writer(&mut out, &record)?;
+        out.push(b'\n');
+    }
+    Ok(out)
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// which image each camera item is: All("dataset.image_info")
+        images: Many<ImageInfo>,
+        /// the cameras' calibrations: All("dataset.camera_calib")
+        calibs: Many<Calibration>,
+        /// the ego poses at the images' times: All("dataset.camera_pose")
+        poses: Many<Pose>,
+        /// the boxes at the images' times: All("dataset.camera_boxes")
+        boxes: Many<Boxes3D>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// the clips, one JSON object per line
+        jsonl: One<File>,
+    }
+}
+
+/// The artifacts of a `Many` input without their positions (All gives them in item order).
+fn strip<A>(mut v: Vec<(i64, A)>) -> Vec<A> {
+    v.sort_by_key(|(position, _)| *position);
+    v.into_iter().map(|(_, a)| a).collect()
+}
+
+pub struct ClipIndex(Params);
+
+impl Stage for ClipIndex {
+    const KIND: &'static str = "ClipIndex";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "A scene's camera items -> its training clips (frames x cameras: image, calibration, poses, boxes, depth paths) as JSON lines";
+    const GRAINS: &'static [&'static str] = &["scene"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(ClipIndex(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let (images, calibs, poses, boxes) = (strip(i.images), strip(i.calibs), strip(i.poses), strip(i.boxes));
+        Ok(Outputs { jsonl: File(clip_index(&self.0, &images, &calibs, &poses, &boxes)?) })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dist4d_types::artifact::Box3D;
+
+    /// `frames` x `cameras` items as All(..) gives them, frame by frame.
+    fn scene(frames: usize, cameras: usize) -> (Vec<ImageInfo>, Vec<Calibration>, Vec<Pose>, Vec<Boxes3D>) {
+        let identity = Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [0.0; 3]);
+        let mut out = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for f in 0..frames {
+            for c in 0..cameras {
+                let t = (f * 83_333 + c * 8_000) as i64;
+                out.0.push(ImageInfo {
+                    scene: "s".into(),
+                    frame: format!("{f:03}"),
+                    camera: format!("CAM{c}"),
+                    token: format!("tok{f}-{c}"),
+                    file: format!("sweeps/CAM{c}/{t}.jpg"),
+                    timestamp_us: t,
+                });
+                out.1.push(Calibration {
+                    sensor_to_ego: identity,
+                    intrinsics: Some([[500.0, 0.0, 800.0], [0.0, 500.0, 450.0], [0.0, 0.0, 1.0]]),
+                    width: 1600,
+                    height: 900,
+                });
+                out.2.push(Pose { ego_to_world: Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [f as f64, 0.0, 0.0]), timestamp_us: t });
+                let car = Box3D {
+                    center: [f as f64, 5.0, 0.8],
+                    size: [1.8, 4.4, 1.5],
+                    rotation: [1.0, 0.0, 0.0, 0.0],
+                    velocity: [f64::NAN; 3],
+                    instance: "car".into(),
+                    category: "vehicle.car".into(),
+                    attributes: vec![],
+                    num_lidar_pts: 0,
+                    interpolated: true,
+                    extrapolated: false,
+                };
+                out.3.push(Boxes3D { timestamp_us: t, boxes: vec![car] });
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn clips_are_windows_of_frames_with_every_cameras_files_and_the_ego_trajectory() {
+        let (images, calibs, poses, boxes) = scene(7, 2);
+        let p = Params { frames: 3, stride: 2, ..Params::default() };
+        let bytes = clip_index(&p, &images, &calibs, &poses, &boxes).unwrap();
+        let clips: Vec<Value> = String::from_utf8(bytes).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+        // Starts 0, 2, 4 (a clip from 6 would run past the 7 frames).
+        assert_eq!(clips.len(), 3);
+        let frame_labels = |c: &Value| -> Vec<String> {
+            c["frames"].as_array().unwrap().iter().map(|f| f["frame"].as_str().unwrap().to_string()).collect()
+        };
+        assert_eq!(frame_labels(&clips[2]), ["004", "005", "006"]);
+        let image = &clips[1]["frames"][0]["cameras"][1];
+        assert_eq!(image["camera"], "CAM1");
+        assert_eq!(image["token"], "tok2-1");
+        assert_eq!(image["depth"], "s/CAM1/002_depth.npy");
+        assert_eq!(image["confidence"], "s/CAM1/002_support.npy");
+        assert_eq!(image["timestamp_us"], 2 * 83_333 + 8_000);
+        assert_eq!(image["boxes_timestamp_us"], image["timestamp_us"]);
+        assert_eq!(image["ego_to_world"]["translation"][0], 2.0);
+        assert!(image["boxes"][0]["velocity"][0].is_null(), "an unknown velocity is null, not NaN");
+        // The trajectory: the first camera's ego pose at each frame.
+        let trajectory = clips[1]["ego_trajectory"].as_array().unwrap();
+        assert_eq!(trajectory.len(), 3);
+        assert_eq!((trajectory[2]["frame"].as_str(), trajectory[2]["camera"].as_str()), (Some("004"), Some("CAM0")));
+        // Fewer frames than a clip: no clips; items that do not line up: an error.
+        assert!(clip_index(&Params { frames: 8, ..p.clone() }, &images, &calibs, &poses, &boxes).unwrap().is_empty());
+        assert!(clip_index(&p, &images, &calibs[1..], &poses, &boxes).is_err());
+    }
+
+    #[test]
+    fn a_path_template_must_name_every_item() {
+        let bad = Params { depth: "{scene}/{frame}_depth.npy".into(), ..Params::default() };
+        assert_eq!(bad.validate().len(), 1);
+        assert!(Params::default().validate().is_empty());
+    }
+}
