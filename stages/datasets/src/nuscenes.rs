@@ -1332,6 +1332,52 @@ mod tests {
     }
 
     #[test]
+    fn image_info_says_which_image_an_item_is_or_why_it_has_none() {
+        use dist4d_types::artifact::ImageInfo;
+        let (_dir, root) = with_camera_sweeps(3);
+        // CAM_BACK drops its 5th image.
+        let file = root.join("v1.0-mini/sample_data.json");
+        let mut rows: Vec<serde_json::Value> = serde_json::from_slice(&std::fs::read(&file).unwrap()).unwrap();
+        let mut back: Vec<usize> =
+            (0..rows.len()).filter(|&i| rows[i]["filename"].as_str().unwrap().contains("__CAM_BACK__")).collect();
+        back.sort_by_key(|&i| rows[i]["timestamp"].as_i64().unwrap());
+        let gone = rows[back[4]].clone();
+        for r in rows.iter_mut() {
+            if r["token"] == gone["prev"] {
+                r["next"] = gone["next"].clone();
+            }
+            if r["token"] == gone["next"] {
+                r["prev"] = gone["prev"].clone();
+            }
+        }
+        rows.retain(|r| r["token"] != gone["token"]);
+        std::fs::write(&file, serde_json::to_vec(&rows).unwrap()).unwrap();
+        let ds = open(&root, FrameMode::Camera).unwrap();
+        let info = |f: u32, c: u32| {
+            ImageInfo::decode(&ds.load_source("image_info", &ItemKey::new(&[0, f, c])).unwrap()).unwrap()
+        };
+        let front = info(4, 0);
+        assert_eq!(
+            (front.scene.as_str(), front.frame.as_str(), front.camera.as_str()),
+            ("synth-0000", "004", "CAM_FRONT")
+        );
+        assert!(
+            front.missing.is_none() && front.file.starts_with("sweeps/CAM_FRONT/") && root.join(&front.file).is_file()
+        );
+        assert_eq!(front.boxes.timestamp_us, front.timestamp_us, "boxes at the image's time");
+        assert!(front.intrinsics.is_some() && front.width == 96);
+        let dropped = info(4, 3);
+        assert_eq!(dropped.camera, "CAM_BACK");
+        assert!(
+            dropped.missing.as_deref().is_some_and(|m| m.contains("has no CAM_BACK image")),
+            "{:?}",
+            dropped.missing
+        );
+        // The other ports of that item still fail, naming why.
+        assert!(load_err(&ds, "camera_calib", &[0, 4, 3]).contains("has no CAM_BACK image"));
+    }
+
+    #[test]
     fn a_track_on_one_keyframe_only_is_extrapolated_half_an_interval_or_dropped() {
         let (_dir, root) = with_camera_sweeps(6);
         let ds = open(&root, FrameMode::Camera).unwrap();

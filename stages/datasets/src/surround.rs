@@ -44,7 +44,7 @@ pub(crate) const PORTS: [SourcePortSpec; 11] = [
         name: "image_info",
         ty: "ImageInfo",
         grain: "camera",
-        doc: "which image the item is: scene, frame and camera labels, token, file (relative to the root), timestamp",
+        doc: "what an index records of the image: labels, token, file (relative to the root), time, calibration, ego pose, boxes at its time; or why it is missing",
     },
     SourcePortSpec { name: "lidar_calib", ty: "Calibration", grain: "frame", doc: "LiDAR mounting (sensor -> ego)" },
     SourcePortSpec { name: "lidar_pose", ty: "Pose", grain: "frame", doc: "ego pose at the LiDAR timestamp" },
@@ -233,14 +233,28 @@ impl<R: SurroundReader> Dataset for Surround<R> {
             "boxes" => return Ok(self.0.boxes(item)?.encode()),
             "camera_boxes" => return Ok(self.0.camera_boxes(item)?.encode()),
             "image_info" => {
-                let r = tree.reading("image", item)?;
-                let info = ImageInfo {
+                let labels = ImageInfo {
                     scene: self.label(&item.prefix(1)),
                     frame: self.label(&item.prefix(2)),
                     camera: self.label(item),
-                    token: r.token.clone(),
-                    file: r.file.strip_prefix(&tree.root).unwrap_or(&r.file).to_string_lossy().into_owned(),
-                    timestamp_us: r.pose.timestamp_us,
+                    ..ImageInfo::default()
+                };
+                // A missing image (a dropped frame) is an answer here, not an error: what indexes
+                // the items (training clips) skips it instead of losing the whole scene.
+                let info = match tree.reading("image", item) {
+                    Err(e) => ImageInfo { missing: Some(format!("{e:#}")), ..labels },
+                    Ok(r) => ImageInfo {
+                        token: r.token.clone(),
+                        file: r.file.strip_prefix(&tree.root).unwrap_or(&r.file).to_string_lossy().into_owned(),
+                        timestamp_us: r.pose.timestamp_us,
+                        width: r.calib.width,
+                        height: r.calib.height,
+                        intrinsics: r.calib.intrinsics,
+                        camera_to_ego: r.calib.sensor_to_ego,
+                        ego_to_world: r.pose.ego_to_world,
+                        boxes: self.0.camera_boxes(item)?,
+                        ..labels
+                    },
                 };
                 return Ok(info.encode());
             }

@@ -7,14 +7,16 @@
 //! intrinsics, camera -> ego, ego -> world at the image's time, the boxes at that time, and the
 //! curated depth and its confidence (paths relative to the output folder, from the `depth` and
 //! `confidence` templates, which must be the pipeline's export templates of those files); and the
-//! clip's ego trajectory (the first camera's ego pose at each frame). Record layout and a
-//! numpy-only loader: docs/datasets.md, "Training clips".
+//! clip's ego trajectory (the first camera's ego pose at each frame). Everything comes from the
+//! dataset's `image_info` port, which answers for a missing image too (a dropped frame): clips
+//! holding one are left out, not the scene. Record layout and a numpy-only loader:
+//! docs/datasets.md, "Training clips".
 
 use crate::stage::Stage;
-use anyhow::{ensure, Result};
+use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::TaskContext;
-use dist4d_types::artifact::{Boxes3D, Calibration, File, ImageInfo, Pose};
+use dist4d_types::artifact::{File, ImageInfo};
 use dist4d_types::geometry::Se3;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
@@ -66,9 +68,9 @@ fn render(template: &str, info: &ImageInfo) -> String {
 }
 
 /// One image of a clip: what it is, where it is seen from, what is in it, and its curated files.
-fn image_record(p: &Params, info: &ImageInfo, calib: &Calibration, pose: &Pose, boxes: &Boxes3D) -> Value {
-    let boxes_time = boxes.timestamp_us;
-    let boxes: Vec<Value> = boxes
+fn image_record(p: &Params, info: &ImageInfo) -> Value {
+    let boxes: Vec<Value> = info
+        .boxes
         .boxes
         .iter()
         .map(|b| {
@@ -91,37 +93,22 @@ fn image_record(p: &Params, info: &ImageInfo, calib: &Calibration, pose: &Pose, 
         "token": info.token,
         "image": info.file,
         "timestamp_us": info.timestamp_us,
-        "width": calib.width,
-        "height": calib.height,
-        "intrinsics": calib.intrinsics,
-        "camera_to_ego": transform(&calib.sensor_to_ego),
-        "ego_to_world": transform(&pose.ego_to_world),
-        "boxes_timestamp_us": boxes_time,
+        "width": info.width,
+        "height": info.height,
+        "intrinsics": info.intrinsics,
+        "camera_to_ego": transform(&info.camera_to_ego),
+        "ego_to_world": transform(&info.ego_to_world),
+        "boxes_timestamp_us": info.boxes.timestamp_us,
         "boxes": boxes,
         "depth": render(&p.depth, info),
         "confidence": render(&p.confidence, info),
     })
 }
 
-/// The records of a scene's clips, one JSON object per line. `images`, `calibs`, `poses` and
-/// `boxes` are the scene's camera items in order (frame by frame, the cameras of a frame
-/// together), as `All(...)` gives them.
-pub fn clip_index(
-    p: &Params,
-    images: &[ImageInfo],
-    calibs: &[Calibration],
-    poses: &[Pose],
-    boxes: &[Boxes3D],
-) -> Result<Vec<u8>> {
-    let n = images.len();
-    ensure!(
-        calibs.len() == n && poses.len() == n && boxes.len() == n,
-        "the images, calibrations, poses and boxes differ in number ({n}, {}, {}, {}): wire them with All(..) of the \
-         same grain",
-        calibs.len(),
-        poses.len(),
-        boxes.len()
-    );
+/// The records of a scene's clips, one JSON object per line, from its camera items in order
+/// (frame by frame, the cameras of a frame together, as `All(...)` gives them). A clip with a
+/// missing image (a dropped frame) is left out; the others keep their numbers.
+pub fn clip_index(p: &Params, images: &[ImageInfo]) -> Result<Vec<u8>> {
     // Frames in order, each with the indices of its cameras' items.
     let mut frames: Vec<(String, Vec<usize>)> = Vec::new();
     for (i, info) in images.iter().enumerate() {
@@ -137,23 +124,25 @@ pub fn clip_index(
     }
     for (clip, start) in (0..=frames.len() - length).step_by(stride).enumerate() {
         let window = &frames[start..start + length];
+        if window.iter().flat_map(|(_, items)| items).any(|&i| images[i].missing.is_some()) {
+            continue;
+        }
         let trajectory: Vec<Value> = window
             .iter()
             .map(|(label, items)| {
-                let first = items[0];
+                let first = &images[items[0]];
                 json!({
                     "frame": label,
-                    "camera": images[first].camera,
-                    "timestamp_us": poses[first].timestamp_us,
-                    "ego_to_world": transform(&poses[first].ego_to_world),
+                    "camera": first.camera,
+                    "timestamp_us": first.timestamp_us,
+                    "ego_to_world": transform(&first.ego_to_world),
                 })
             })
             .collect();
         let frame_records: Vec<Value> = window
             .iter()
             .map(|(label, items)| {
-                let cameras: Vec<Value> =
-                    items.iter().map(|&i| image_record(p, &images[i], &calibs[i], &poses[i], &boxes[i])).collect();
+                let cameras: Vec<Value> = items.iter().map(|&i| image_record(p, &images[i])).collect();
                 json!({ "frame": label, "cameras": cameras })
             })
             .collect();
@@ -171,14 +160,8 @@ pub fn clip_index(
 
 crate::ports! {
     pub struct Inputs {
-        /// which image each camera item is: All("dataset.image_info")
+        /// every camera item's image, calibration, poses and boxes: All("dataset.image_info")
         images: Many<ImageInfo>,
-        /// the cameras' calibrations: All("dataset.camera_calib")
-        calibs: Many<Calibration>,
-        /// the ego poses at the images' times: All("dataset.camera_pose")
-        poses: Many<Pose>,
-        /// the boxes at the images' times: All("dataset.camera_boxes")
-        boxes: Many<Boxes3D>,
     }
 }
 
@@ -210,38 +193,21 @@ impl Stage for ClipIndex {
         Ok(ClipIndex(params))
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        let (images, calibs, poses, boxes) = (strip(i.images), strip(i.calibs), strip(i.poses), strip(i.boxes));
-        Ok(Outputs { jsonl: File(clip_index(&self.0, &images, &calibs, &poses, &boxes)?) })
+        Ok(Outputs { jsonl: File(clip_index(&self.0, &strip(i.images))?) })
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dist4d_types::artifact::Box3D;
+    use dist4d_types::artifact::{Artifact, Box3D, Boxes3D};
 
     /// `frames` x `cameras` items as All(..) gives them, frame by frame.
-    fn scene(frames: usize, cameras: usize) -> (Vec<ImageInfo>, Vec<Calibration>, Vec<Pose>, Vec<Boxes3D>) {
-        let identity = Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [0.0; 3]);
-        let mut out = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    fn scene(frames: usize, cameras: usize) -> Vec<ImageInfo> {
+        let mut out = Vec::new();
         for f in 0..frames {
             for c in 0..cameras {
                 let t = (f * 83_333 + c * 8_000) as i64;
-                out.0.push(ImageInfo {
-                    scene: "s".into(),
-                    frame: format!("{f:03}"),
-                    camera: format!("CAM{c}"),
-                    token: format!("tok{f}-{c}"),
-                    file: format!("sweeps/CAM{c}/{t}.jpg"),
-                    timestamp_us: t,
-                });
-                out.1.push(Calibration {
-                    sensor_to_ego: identity,
-                    intrinsics: Some([[500.0, 0.0, 800.0], [0.0, 500.0, 450.0], [0.0, 0.0, 1.0]]),
-                    width: 1600,
-                    height: 900,
-                });
-                out.2.push(Pose { ego_to_world: Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [f as f64, 0.0, 0.0]), timestamp_us: t });
                 let car = Box3D {
                     center: [f as f64, 5.0, 0.8],
                     size: [1.8, 4.4, 1.5],
@@ -254,18 +220,35 @@ mod tests {
                     interpolated: true,
                     extrapolated: false,
                 };
-                out.3.push(Boxes3D { timestamp_us: t, boxes: vec![car] });
+                out.push(ImageInfo {
+                    scene: "s".into(),
+                    frame: format!("{f:03}"),
+                    camera: format!("CAM{c}"),
+                    missing: None,
+                    token: format!("tok{f}-{c}"),
+                    file: format!("sweeps/CAM{c}/{t}.jpg"),
+                    timestamp_us: t,
+                    width: 1600,
+                    height: 900,
+                    intrinsics: Some([[500.0, 0.0, 800.0], [0.0, 500.0, 450.0], [0.0, 0.0, 1.0]]),
+                    camera_to_ego: Se3::default(),
+                    ego_to_world: Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [f as f64, 0.0, 0.0]),
+                    boxes: Boxes3D { timestamp_us: t, boxes: vec![car] },
+                });
             }
         }
         out
     }
 
+    fn records(bytes: Vec<u8>) -> Vec<Value> {
+        String::from_utf8(bytes).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect()
+    }
+
     #[test]
     fn clips_are_windows_of_frames_with_every_cameras_files_and_the_ego_trajectory() {
-        let (images, calibs, poses, boxes) = scene(7, 2);
+        let images = scene(7, 2);
         let p = Params { frames: 3, stride: 2, ..Params::default() };
-        let bytes = clip_index(&p, &images, &calibs, &poses, &boxes).unwrap();
-        let clips: Vec<Value> = String::from_utf8(bytes).unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+        let clips = records(clip_index(&p, &images).unwrap());
         // Starts 0, 2, 4 (a clip from 6 would run past the 7 frames).
         assert_eq!(clips.len(), 3);
         let frame_labels = |c: &Value| -> Vec<String> {
@@ -285,9 +268,29 @@ mod tests {
         let trajectory = clips[1]["ego_trajectory"].as_array().unwrap();
         assert_eq!(trajectory.len(), 3);
         assert_eq!((trajectory[2]["frame"].as_str(), trajectory[2]["camera"].as_str()), (Some("004"), Some("CAM0")));
-        // Fewer frames than a clip: no clips; items that do not line up: an error.
-        assert!(clip_index(&Params { frames: 8, ..p.clone() }, &images, &calibs, &poses, &boxes).unwrap().is_empty());
-        assert!(clip_index(&p, &images, &calibs[1..], &poses, &boxes).is_err());
+        // Fewer frames than a clip: no clips.
+        assert!(clip_index(&Params { frames: 8, ..p.clone() }, &images).unwrap().is_empty());
+    }
+
+    #[test]
+    fn a_dropped_image_loses_the_clips_that_hold_it_and_no_others() {
+        let mut images = scene(7, 2);
+        images[2 * 5 + 1].missing = Some("a dropped frame".into()); // frame 5, camera 1
+        let p = Params { frames: 3, stride: 2, ..Params::default() };
+        let clips = records(clip_index(&p, &images).unwrap());
+        let numbers: Vec<u64> = clips.iter().map(|c| c["clip"].as_u64().unwrap()).collect();
+        assert_eq!(numbers, [0, 1], "clip 2 (frames 4-6) holds it");
+    }
+
+    #[test]
+    fn image_info_survives_its_encoding() {
+        let info = scene(2, 1).remove(1);
+        let mut back = ImageInfo::decode(&info.encode()).unwrap();
+        assert_eq!(back.boxes.boxes[0].center, info.boxes.boxes[0].center);
+        assert!(back.boxes.boxes[0].velocity[0].is_nan(), "NaN, stored as null, comes back NaN");
+        // (NaN is not equal to itself: the rest compared without the boxes.)
+        back.boxes = Boxes3D::default();
+        assert_eq!(back, ImageInfo { boxes: Boxes3D::default(), ..info });
     }
 
     #[test]

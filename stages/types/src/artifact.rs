@@ -150,30 +150,92 @@ impl Box3D {
     }
 }
 
-/// Which image a camera item is: what a training index records so that a loader never redoes the
-/// matching (the item's labels, the dataset's token, file relative to the dataset root, time).
-#[derive(Clone, Debug, PartialEq, Default, serde::Serialize, serde::Deserialize)]
+/// Everything a training index records about one camera item: which image it is (the item's
+/// labels, the dataset's token, file relative to the dataset root, time), how it was taken
+/// (intrinsics, camera -> ego, ego -> world at its time) and the boxes at its time. An item whose
+/// image is missing (a dropped frame) has `missing` set and nothing else.
+#[derive(Clone, Debug, PartialEq, Default)]
 pub struct ImageInfo {
     pub scene: String,
     pub frame: String,
     pub camera: String,
+    /// Why the item has no image, when it has none.
+    pub missing: Option<String>,
     /// nuScenes `sample_data` token, DGP datum key.
     pub token: String,
     /// Relative to the dataset root.
     pub file: String,
     pub timestamp_us: i64,
+    pub width: u32,
+    pub height: u32,
+    pub intrinsics: Option<[[f64; 3]; 3]>,
+    pub camera_to_ego: Se3,
+    pub ego_to_world: Se3,
+    pub boxes: Boxes3D,
+}
+
+/// `ImageInfo` without its boxes and transforms, as JSON.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct ImageInfoOnDisk {
+    scene: String,
+    frame: String,
+    camera: String,
+    missing: Option<String>,
+    token: String,
+    file: String,
+    timestamp_us: i64,
+    width: u32,
+    height: u32,
+    intrinsics: Option<[[f64; 3]; 3]>,
 }
 
 impl Artifact for ImageInfo {
     const TYPE: &'static str = "ImageInfo";
+    // The JSON's length and bytes, the two transforms, then the boxes as Boxes3D encodes them.
     fn encode(&self) -> Vec<u8> {
+        let head = ImageInfoOnDisk {
+            scene: self.scene.clone(),
+            frame: self.frame.clone(),
+            camera: self.camera.clone(),
+            missing: self.missing.clone(),
+            token: self.token.clone(),
+            file: self.file.clone(),
+            timestamp_us: self.timestamp_us,
+            width: self.width,
+            height: self.height,
+            intrinsics: self.intrinsics,
+        };
+        let json = serde_json::to_vec(&head).unwrap_or_default();
         let mut out = b"IMI1".to_vec();
-        out.extend_from_slice(&serde_json::to_vec(self).unwrap_or_default());
+        out.extend_from_slice(&(json.len() as u64).to_le_bytes());
+        out.extend_from_slice(&json);
+        self.camera_to_ego.encode_into(&mut out);
+        self.ego_to_world.encode_into(&mut out);
+        out.extend_from_slice(&self.boxes.encode());
         out
     }
     fn decode(bytes: &[u8]) -> Result<Self> {
-        let r = Reader::new(bytes, b"IMI1", Self::TYPE)?;
-        serde_json::from_slice(r.0).context("ImageInfo artifact is malformed")
+        let mut r = Reader::new(bytes, b"IMI1", Self::TYPE)?;
+        let n = usize::try_from(r.i64()?).context("ImageInfo artifact is malformed")?;
+        let head: ImageInfoOnDisk = serde_json::from_slice(r.take(n)?).context("ImageInfo artifact is malformed")?;
+        let camera_to_ego = Se3::decode_from(&mut |n| r.take(n))?;
+        let ego_to_world = Se3::decode_from(&mut |n| r.take(n))?;
+        let boxes = Boxes3D::decode(r.0)?;
+        Ok(ImageInfo {
+            scene: head.scene,
+            frame: head.frame,
+            camera: head.camera,
+            missing: head.missing,
+            token: head.token,
+            file: head.file,
+            timestamp_us: head.timestamp_us,
+            width: head.width,
+            height: head.height,
+            intrinsics: head.intrinsics,
+            camera_to_ego,
+            ego_to_world,
+            boxes,
+        })
     }
 }
 

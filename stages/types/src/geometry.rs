@@ -3,8 +3,8 @@
 use anyhow::Result;
 use glam::{DMat3, DQuat, DVec3};
 
-/// A rigid transform `p -> R p + t`.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// A rigid transform `p -> R p + t` (the default is the identity).
+#[derive(Clone, Copy, Debug, PartialEq, Default)]
 pub struct Se3 {
     pub rotation: DQuat,
     pub translation: DVec3,
