@@ -991,7 +991,9 @@ impl NuScenes {
             match late.iter().find(|b| b.instance == a.instance) {
                 Some(b) => {
                     let (t0, t1) = (t0.unwrap_or(t), t1.unwrap_or(t));
-                    out.push(interpolate(a, b, (t - t0) as f64 / (t1 - t0) as f64));
+                    // Two samples at one time (a malformed table) give the earlier annotation.
+                    let w = if t1 > t0 { (t - t0) as f64 / (t1 - t0) as f64 } else { 0.0 };
+                    out.push(interpolate(a, b, w));
                 }
                 None => out.extend(extrapolate(a.clone(), t0.unwrap_or(t))),
             }
