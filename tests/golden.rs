@@ -82,3 +82,12 @@ fn curation_on_the_shared_dgp_scene() {
     std::fs::write(&file, with_dataset("curation", &format!("Dgp(root: {:?})", root.display().to_string()))).unwrap();
     check("dgp-curation", &file, &[]);
 }
+
+#[test]
+fn the_12_hz_pipeline_on_a_small_synthetic_seed_with_camera_sweeps() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    synth_camera_sweeps(&root, 320, 180);
+    let sets = [format!("dataset.root={}", root.display()), "clips.frames=4".into(), "clips.stride=2".into()];
+    check("synth-video_12hz", &repo().join("pipelines/video_12hz.ron"), &sets);
+}
