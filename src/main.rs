@@ -178,6 +178,29 @@ enum Command {
         #[arg(long)]
         no_ground_truth: bool,
     },
+    /// Write the 12 Hz nuScenes tables ASAP's users load: every round of the surround cameras a
+    /// `sample`, with its images, its LiDAR sweep and boxes interpolated to its time.
+    ///
+    /// Writes ROOT/interp_12Hz_<split>/ (load it with the devkit: NuScenes(version='interp_12Hz_mini',
+    /// dataroot=ROOT)) beside the version's tables, which it leaves as they are; an existing folder
+    /// is replaced whole. See docs/datasets.md, "The 12 Hz tables". Example:
+    /// dist4d export-12hz --root /data/nuscenes --version v1.0-trainval
+    #[command(name = "export-12hz")]
+    Export12Hz {
+        /// The nuScenes root (holding v1.0-*/, samples/, sweeps/).
+        #[arg(long)]
+        root: PathBuf,
+        /// The table folder to read.
+        #[arg(long, default_value = "v1.0-mini")]
+        version: String,
+        /// Where the tables go [default: ROOT/interp_12Hz_<split>, e.g. interp_12Hz_mini].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Leave out the boxes of a track annotated on only one of the keyframes around a sample
+        /// (ASAP's rule) instead of extrapolating them with their velocity for up to half an interval.
+        #[arg(long)]
+        drop_lone_tracks: bool,
+    },
     /// The built-in default: synthesize a small dataset (if not there yet) and run the shipped
     /// pipeline on it, then say where everything is.
     ///
@@ -581,6 +604,35 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 ..Default::default()
             };
             synthesize(&config, &out)?;
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Export12Hz { root, version, out, drop_lone_tracks } => {
+            use dist4d_datasets::nuscenes::{interp12hz, LoneTracks, NuScenesConfig};
+            let config = NuScenesConfig {
+                root: root.to_string_lossy().into_owned(),
+                version: version.clone(),
+                lone_tracks: if drop_lone_tracks { LoneTracks::Drop } else { LoneTracks::Extrapolate },
+                ..Default::default()
+            };
+            let out = out.unwrap_or_else(|| interp12hz::default_folder(&root, &version));
+            let r = interp12hz::write_interp_12hz(&config, &out)?;
+            for w in &r.warnings {
+                eprintln!("warning: {w}");
+            }
+            let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+            println!(
+                "{}: {} scene(s), {} samples ({} keyframes, {} camera rounds between), {} interpolated annotations ({} extrapolated)",
+                out.display(),
+                r.scenes,
+                r.samples,
+                r.keyframes,
+                r.samples - r.keyframes,
+                r.annotations,
+                r.extrapolated
+            );
+            if out.parent() == Some(root.as_path()) {
+                println!("load it with NuScenes(version='{name}', dataroot='{}')", root.display());
+            }
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify { out } => {

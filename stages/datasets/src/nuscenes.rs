@@ -19,6 +19,8 @@ use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
+pub mod interp12hz;
+
 /// The six cameras in the devkit's order.
 pub const CAMERAS: [&str; 6] =
     ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT"];
@@ -89,6 +91,7 @@ struct SceneRow {
 #[derive(Deserialize)]
 struct SampleRow {
     token: String,
+    #[serde(deserialize_with = "microseconds")]
     timestamp: i64,
     next: String,
 }
@@ -108,6 +111,7 @@ struct SampleDataRow {
     width: u32,
     #[serde(default)]
     height: u32,
+    #[serde(deserialize_with = "microseconds")]
     timestamp: i64,
     #[serde(default)]
     prev: String,
@@ -184,6 +188,19 @@ struct LidarsegRow {
     filename: String,
 }
 
+/// A timestamp in microseconds: an integer, as nuScenes writes it, or a number with a fraction,
+/// as ASAP's `interp_12Hz_*` tables write their evenly spaced times (rounded to the microsecond).
+fn microseconds<'de, D: serde::Deserializer<'de>>(d: D) -> Result<i64, D::Error> {
+    let value = serde_json::Number::deserialize(d)?;
+    if let Some(us) = value.as_i64() {
+        return Ok(us);
+    }
+    match value.as_f64() {
+        Some(us) if us.is_finite() && us.abs() < 9.0e18 => Ok(us.round() as i64),
+        _ => Err(serde::de::Error::custom(format!("{value} is not a timestamp in microseconds"))),
+    }
+}
+
 /// What a nuScenes frame keeps beside its readings.
 pub struct Sweep {
     /// The frame's time (its LiDAR timestamp) and the keyframe (sample) it is or follows.
@@ -192,6 +209,9 @@ pub struct Sweep {
     key: bool,
     /// nuScenes-lidarseg labels of the frame's LiDAR reading, when the dataset has them.
     labels: Option<PathBuf>,
+    /// Each camera's `sample_data` token in this frame, also when the reading failed to resolve
+    /// (what the 12 Hz export regroups; `None` where the frame has no image of that camera).
+    images: Vec<Option<String>>,
 }
 
 /// A scene's keyframe timestamps, and the annotations of each keyframe (indices into
@@ -582,9 +602,16 @@ impl NuScenes {
         }
 
         let mut out = Vec::new();
+        let mut skipped: Vec<&str> = Vec::new();
         for scene in &scenes {
             let mut keys: Vec<&SampleRow> = Vec::new();
             let mut token = scene.first_sample_token.as_str();
+            if !token.is_empty() && !sample_by.contains_key(token) {
+                // ASAP's interp_12Hz folders keep every scene of trainval but the samples of the
+                // val split only: such a scene has no frames, which the open report says.
+                skipped.push(scene.name.as_str());
+                continue;
+            }
             while !token.is_empty() {
                 let sample = sample_by.get(token).ok_or_else(|| {
                     anyhow!(
@@ -609,7 +636,10 @@ impl NuScenes {
                     .enumerate()
                     .map(|(i, k)| {
                         let lidar = key_row(&k.token, &config.lidar).and_then(resolve_lidar);
-                        let cameras = cameras.iter().map(|c| key_row(&k.token, c).and_then(|sd| resolve(sd, true)));
+                        let cameras = cameras.iter().map(|c| {
+                            let sd = key_row(&k.token, c);
+                            (sd.as_ref().ok().map(|sd| sd.token.clone()), sd.and_then(|sd| resolve(sd, true)))
+                        });
                         frame(lidar, cameras.collect(), k.timestamp, Some(i), true)
                     })
                     .collect(),
@@ -634,10 +664,13 @@ impl NuScenes {
                             let t = sd.timestamp;
                             let sample = keys.iter().rposition(|k| k.timestamp <= t);
                             let cameras = camera_chains.iter().zip(&cameras).map(|(ch, name)| {
-                                let ch =
-                                    ch.as_ref().ok_or_else(|| format!("scene {}: no {name} images", scene.name))?;
-                                let nearest = ch.iter().min_by_key(|c| (c.timestamp - t).abs()).ok_or("empty chain")?;
-                                resolve(nearest, true)
+                                let Some(ch) = ch else {
+                                    return (None, Err(format!("scene {}: no {name} images", scene.name)));
+                                };
+                                match ch.iter().min_by_key(|c| (c.timestamp - t).abs()) {
+                                    Some(nearest) => (Some(nearest.token.clone()), resolve(nearest, true)),
+                                    None => (None, Err("empty chain".to_string())),
+                                }
                             });
                             frame(resolve_lidar(sd), cameras.collect(), t, sample, sd.is_key_frame)
                         })
@@ -692,7 +725,8 @@ impl NuScenes {
                         .map(|(n, round)| {
                             let image = |c: usize| round.images[c].and_then(|j| chains[c].as_ref().ok().map(|ch| ch[j]));
                             let key_image = (0..cameras.len()).filter_map(image).find(|sd| sd.is_key_frame);
-                            let cameras = cameras.iter().enumerate().map(|(c, name)| match (&chains[c], image(c)) {
+                            let cameras = cameras.iter().enumerate().map(|(c, name)| {
+                                (image(c).map(|sd| sd.token.clone()), match (&chains[c], image(c)) {
                                 (Err(e), _) => Err(e.clone()),
                                 (Ok(_), Some(sd)) => resolve(sd, true),
                                 (Ok(_), None) => Err(format!(
@@ -700,6 +734,7 @@ impl NuScenes {
                                      half a frame period of the round (a dropped frame)",
                                     scene.name, round.time
                                 )),
+                                })
                             });
                             let lidar = match lidar_chain.iter().min_by_key(|sd| (sd.timestamp - round.time).abs()) {
                                 Some(sd) => resolve_lidar(sd),
@@ -716,6 +751,15 @@ impl NuScenes {
             };
             out.push(Scene { name: scene.name.clone(), frames, extra: samples_of_scene });
         }
+        if let Some(first) = skipped.first() {
+            warnings.push(format!(
+                "{}/scene.json: {} scene(s) name a first_sample_token that is not in sample.json and have no frames \
+                 (first: {first}); a folder written for one split (ASAP's interp_12Hz) keeps the others' scenes",
+                tables.display(),
+                skipped.len()
+            ));
+        }
+        ensure!(!out.is_empty(), "{}: no scene has samples", tables.join("scene.json").display());
         let annotation_by_token = annotations.iter().enumerate().map(|(i, a)| (a.row.token.clone(), i)).collect();
         let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
@@ -871,10 +915,11 @@ fn incomplete_rounds(scene: &str, cameras: &[String], rounds: &[CameraRound], ha
     ))
 }
 
-/// A frame from its LiDAR reading with that reading's lidarseg labels (none when it failed).
+/// A frame from its LiDAR reading with that reading's lidarseg labels (none when it failed), and
+/// per camera its image's token (when known) and reading.
 fn frame(
     lidar: Result<(Reading, Option<PathBuf>), String>,
-    cameras: Vec<Result<Reading, String>>,
+    cameras: Vec<(Option<String>, Result<Reading, String>)>,
     timestamp: i64,
     sample: Option<usize>,
     key: bool,
@@ -883,7 +928,8 @@ fn frame(
         Ok((reading, labels)) => (Ok(reading), labels),
         Err(e) => (Err(e), None),
     };
-    Frame { lidar, cameras, extra: Sweep { timestamp, sample, key, labels } }
+    let (images, cameras) = cameras.into_iter().unzip();
+    Frame { lidar, cameras, extra: Sweep { timestamp, sample, key, labels, images } }
 }
 
 impl SurroundReader for NuScenes {
@@ -1064,7 +1110,7 @@ pub fn schema() -> DatasetSchema {
 mod tests {
     use super::*;
     use crate::surround::Surround;
-    use crate::testing::{load_err, shared_data};
+    use crate::testing::{load_err, shared_data, with_camera_sweeps};
     use dist4d_runtime::{Dataset, ItemSpace};
     use dist4d_types::artifact::Artifact;
 
@@ -1094,16 +1140,6 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let root = dir.path().join("synth");
         let config = dist4d_synth::SynthConfig { keyframes: 3, width: 160, height: 90, ..Default::default() };
-        dist4d_synth::write_dataset(&config, &root, &|_| {}).unwrap();
-        (dir, root)
-    }
-
-    /// A small synthetic nuScenes dataset with 12 Hz camera sweeps and its exact boxes.
-    fn with_camera_sweeps(keyframes: u32) -> (tempfile::TempDir, PathBuf) {
-        let dir = tempfile::tempdir().unwrap();
-        let root = dir.path().join("synth");
-        let config =
-            dist4d_synth::SynthConfig { keyframes, width: 96, height: 54, camera_sweeps: true, ..Default::default() };
         dist4d_synth::write_dataset(&config, &root, &|_| {}).unwrap();
         (dir, root)
     }

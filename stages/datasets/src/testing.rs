@@ -18,3 +18,13 @@ pub fn shared_data(name: &str) -> Option<PathBuf> {
 pub fn load_err(ds: &dyn Dataset, port: &str, item: &[u32]) -> String {
     format!("{:#}", ds.load_source(port, &ItemKey::new(item)).err().unwrap_or_else(|| panic!("{port} {item:?} loads")))
 }
+
+/// A small synthetic nuScenes dataset with 12 Hz camera sweeps and its exact boxes.
+pub fn with_camera_sweeps(keyframes: u32) -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("synth");
+    let config =
+        dist4d_synth::SynthConfig { keyframes, width: 96, height: 54, camera_sweeps: true, ..Default::default() };
+    dist4d_synth::write_dataset(&config, &root, &|_| {}).unwrap();
+    (dir, root)
+}
