@@ -182,3 +182,63 @@ fn a_dropped_camera_image_makes_an_incomplete_round_reported_and_nothing_else_fa
     assert_eq!(sources.len(), 77, "every other camera image is exported");
     assert!(!sources.contains_key("synth-0000/004/CAM_BACK"));
 }
+
+/// The 12 Hz tables: `dist4d export-12hz` writes them, the official devkit loads them and draws
+/// the boxes of a sample between keyframes, and dist4d's own pipelines run on them.
+#[test]
+fn the_12hz_tables_load_in_the_devkit_and_run_as_keyframes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    synth_camera_sweeps(&root, 160, 90);
+    let o = dist4d(&["export-12hz", "--root", root.to_str().unwrap()]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(t.contains("13 samples (3 keyframes, 10 camera rounds between)"), "{t}");
+    assert!(t.contains("NuScenes(version='interp_12Hz_mini'"), "{t}");
+
+    // dist4d reads it as keyframes: 13 frames x 6 cameras.
+    let o = run_lidar_depth_with(&root, &tmp.path().join("cache"), &tmp.path().join("out"), &[
+        "--set",
+        "dataset.version=\"interp_12Hz_mini\"",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let index: Value = serde_json::from_slice(&std::fs::read(tmp.path().join("out/index.json")).unwrap()).unwrap();
+    assert_eq!(index["sources"].as_object().unwrap().len(), 78, "{index}");
+
+    let Some(python) = peers_python() else { return };
+    let script = r#"
+import json, sys, matplotlib
+matplotlib.use("Agg")
+from nuscenes.nuscenes import NuScenes
+nusc = NuScenes(version="interp_12Hz_mini", dataroot=sys.argv[1], verbose=False)
+scene = nusc.scene[0]
+tokens, token = [], scene["first_sample_token"]
+while token:
+    tokens.append(token)
+    token = nusc.get("sample", token)["next"]
+between = [t for t in tokens if len(t) > 32]
+sample = nusc.get("sample", between[2])
+_, boxes, _ = nusc.get_sample_data(sample["data"]["CAM_FRONT"])
+nusc.render_sample(sample["token"], out_path=sys.argv[2], verbose=False)
+moving = [a for a in sample["anns"] if "moving" in json.dumps([nusc.get("attribute", t)["name"] for t in nusc.get("sample_annotation", a)["attribute_tokens"]])]
+speeds = [float((nusc.box_velocity(a)[:2] ** 2).sum() ** 0.5) for a in moving]
+print(json.dumps({"samples": len(tokens), "nbr_samples": scene["nbr_samples"], "between": len(between),
+                  "channels": sorted(sample["data"]), "anns": len(sample["anns"]), "boxes_in_cam_front": len(boxes),
+                  "moving_speeds": speeds}))
+"#;
+    let png = tmp.path().join("render.png");
+    let o = std::process::Command::new(&python)
+        .args(["-c", script, root.to_str().unwrap(), png.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let v: Value = serde_json::from_slice(o.stdout.trim_ascii()).unwrap();
+    assert_eq!((v["samples"].as_u64(), v["nbr_samples"].as_u64(), v["between"].as_u64()), (Some(13), Some(13), Some(10)));
+    let channels: Vec<&str> = v["channels"].as_array().unwrap().iter().map(|c| c.as_str().unwrap()).collect();
+    assert_eq!(channels.len(), 7, "six cameras and the LiDAR: {channels:?}");
+    assert!(v["anns"].as_u64() > Some(0) && v["boxes_in_cam_front"].as_u64() > Some(0), "{v}");
+    // The devkit's velocities from the 12 Hz tracks: moving agents drive at 3-15 m/s.
+    let speeds: Vec<f64> = v["moving_speeds"].as_array().unwrap().iter().filter_map(Value::as_f64).collect();
+    assert!(!speeds.is_empty() && speeds.iter().all(|s| (0.5..20.0).contains(s)), "{v}");
+    assert!(std::fs::metadata(&png).unwrap().len() > 10_000, "render_sample wrote its figure");
+}
