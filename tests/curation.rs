@@ -222,3 +222,41 @@ fn the_12_hz_pipeline_curates_every_camera_image_and_moving_objects_follow_their
     let unmoved = mean_of(&ablation, "gt_moving (raw)", 0);
     assert!(unmoved >= moving, "without FollowTracks {unmoved}, with {moving}");
 }
+
+/// pipelines/video_12hz.ron from the CLI on the shared real data: DGP's 10 Hz samples are its
+/// camera clock (`--set dataset=Dgp(..)` swaps the reader), and the nuScenes keyframe, which has
+/// no camera sweeps, gives one round and says so.
+#[test]
+fn the_12_hz_pipeline_runs_on_the_shared_dgp_scene_and_nuscenes_keyframe() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pipeline = repo().join("pipelines/video_12hz.ron");
+    let run = |name: &str, dataset: &str| {
+        let (cache, out) = (tmp.path().join(name).join("cache"), tmp.path().join(name).join("out"));
+        let mut args = vec!["run", pipeline.to_str().unwrap(), "--set", dataset, "--progress", "off"];
+        args.extend(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+        args.extend(["--set", "clips.frames=3", "--set", "clips.stride=1"]);
+        let o = dist4d(&args);
+        assert!(o.status.success(), "{}", text(&o));
+        (text(&o), out)
+    };
+    if let Some(nus) = shared_nuscenes() {
+        let (report, out) = run("nus", &format!("dataset.root={}", nus.display()));
+        assert!(report.contains("keyframe images only") && report.contains("gives 1 round(s)"), "{report}");
+        assert_eq!(executed(&report, "complete"), 6, "{report}");
+        assert_eq!(std::fs::read_to_string(out.join("scene-0061/clips.jsonl")).unwrap(), "", "1 round: no clip of 3");
+    }
+    let Some(dgp) = shared_dgp() else { return };
+    let (report, out) = run("dgp", &format!("dataset=Dgp(root: \"{}\")", dgp.display()));
+    assert_eq!(executed(&report, "complete"), 18, "3 samples x 6 cameras\n{report}");
+    let jsonl = std::fs::read_to_string(out.join("scene_02/clips.jsonl")).unwrap();
+    let clips: Vec<serde_json::Value> = jsonl.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(clips.len(), 1, "{jsonl}");
+    let frames = clips[0]["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 3);
+    for frame in frames {
+        for c in frame["cameras"].as_array().unwrap() {
+            assert!(dgp.join(c["image"].as_str().unwrap()).is_file(), "{c}");
+            assert!(out.join(c["depth"].as_str().unwrap()).is_file(), "{c}");
+        }
+    }
+}

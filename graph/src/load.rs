@@ -128,10 +128,27 @@ fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources
             continue;
         };
         let path_span = Span::new(id, 0, eq);
+        if &arg[..eq] == "dataset" {
+            // The whole dataset: the same pipeline on another dataset kind (`Dgp(root: ..)`).
+            match parse_override_value(arg, eq + 1, id) {
+                Ok(value) if matches!(value.kind, ValueKind::Struct(Some(_), _)) => {
+                    match root.fields_mut().and_then(|f| f.iter_mut().find(|f| f.name.text == "dataset")) {
+                        Some(dataset) => dataset.value = value,
+                        None => checker.diags.push(Diagnostic::error("the pipeline has no `dataset` to replace", path_span)),
+                    }
+                }
+                Ok(value) => checker.diags.push(
+                    Diagnostic::error("--set dataset=.. takes a dataset, like `Dgp(root: \"/data/ddad\")`", value.span)
+                        .with_label("not a dataset kind with its fields"),
+                ),
+                Err(d) => checker.diags.push(d),
+            }
+            continue;
+        }
         let parts: Vec<&str> = arg[..eq].split('.').collect();
         if parts.len() != 2 || parts.iter().any(|p| p.is_empty()) {
             checker.diags.push(
-                Diagnostic::error("a --set names `stage.param` or `dataset.field`", path_span)
+                Diagnostic::error("a --set names `stage.param`, `dataset.field` or `dataset`", path_span)
                     .with_label("expected two names joined by `.`"),
             );
             continue;

@@ -208,6 +208,16 @@ fn set_overrides_params_and_dataset_fields() {
 }
 
 #[test]
+fn set_replaces_the_whole_dataset_and_refuses_what_is_not_one() {
+    // Fields of the new dataset are checked and its relative paths are the working directory's.
+    let p = load(GOOD, &["dataset=NuScenes(root: \"other\", version: \"v1.0-test\")"]).unwrap();
+    assert_eq!(p.dataset.config.canonical, r#"(root:"/cwd/other",version:"v1.0-test")"#);
+    let out = errors(GOOD, &["dataset=NuScenes(rot: \"x\")", "dataset=[1]"]);
+    assert!(out.contains("unknown param `rot` of dataset NuScenes") && out.contains("--> --set:1:18"), "{out}");
+    assert!(out.contains("takes a dataset, like") && out.contains("--> --set:1:9"), "{out}");
+}
+
+#[test]
 fn set_errors_point_into_the_argument() {
     let out = errors(GOOD, &["project.min_dept=2", "nosuch.x=1", "project.border=-1"]);
     assert!(out.contains("unknown param `min_dept`"), "{out}");

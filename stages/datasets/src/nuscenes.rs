@@ -715,6 +715,15 @@ impl NuScenes {
                     let sample_of: HashMap<&str, usize> =
                         keys.iter().enumerate().map(|(i, k)| (k.token.as_str(), i)).collect();
                     let rounds = camera_rounds(&times, &offsets);
+                    let sweeps = chains.iter().flatten().flatten().any(|sd| !sd.is_key_frame);
+                    if !sweeps {
+                        warnings.push(format!(
+                            "scene {}: its cameras have keyframe images only (no sweeps between keyframes): frames: Camera \
+                             gives {} round(s), one per keyframe, not 12 Hz",
+                            scene.name,
+                            rounds.len()
+                        ));
+                    }
                     let complete: Vec<bool> = chains.iter().map(|c| c.is_ok()).collect();
                     if let Some(note) = incomplete_rounds(&scene.name, &cameras, &rounds, &complete) {
                         warnings.push(note);
