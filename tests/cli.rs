@@ -90,6 +90,32 @@ fn a_bad_pipeline_exits_2_with_every_problem() {
     assert_eq!(o.status.code(), Some(2));
 }
 
+/// The clip index's paths are the pipeline's export templates: renaming an export without the
+/// index (whose params are left at their defaults here) is a pipeline error, found before anything runs.
+#[test]
+fn a_clip_index_pointing_at_files_no_export_writes_is_a_pipeline_error() {
+    let tmp = tempfile::tempdir().unwrap();
+    let pipeline = tmp.path().join("video.ron");
+    let shipped = std::fs::read_to_string(repo().join("pipelines/video_12hz.ron")).unwrap();
+    let params = "\n            params: (depth: \"{scene}/{camera}/{frame}_depth.npy\", confidence: \"{scene}/{camera}/{frame}_support.npy\"),";
+    assert!(shipped.contains(params));
+    let edited = shipped
+        .replace(params, "")
+        .replace("\"{scene}/{camera}/{frame}_support.npy\"", "\"{scene}/{camera}/{frame}_conf.npy\"");
+    std::fs::write(&pipeline, edited).unwrap();
+    let o = dist4d(&["check", pipeline.to_str().unwrap()]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(2), "{t}");
+    assert!(
+        t.contains("param `confidence` of stage `clips` is `{scene}/{camera}/{frame}_support.npy`, which no export"),
+        "{t}"
+    );
+    assert!(!t.contains("param `depth`"), "the depth default is exported: {t}");
+    let o =
+        dist4d(&["check", pipeline.to_str().unwrap(), "--set", "clips.confidence={scene}/{camera}/{frame}_conf.npy"]);
+    assert!(o.status.success(), "{}", text(&o));
+}
+
 #[test]
 fn eval_of_a_pipeline_that_exports_no_scores_fails_before_running() {
     let tmp = tempfile::tempdir().unwrap();

@@ -197,10 +197,12 @@ fn the_12hz_tables_load_in_the_devkit_and_run_as_keyframes() {
     assert!(t.contains("NuScenes(version='interp_12Hz_mini'"), "{t}");
 
     // dist4d reads it as keyframes: 13 frames x 6 cameras.
-    let o = run_lidar_depth_with(&root, &tmp.path().join("cache"), &tmp.path().join("out"), &[
-        "--set",
-        "dataset.version=\"interp_12Hz_mini\"",
-    ]);
+    let o = run_lidar_depth_with(
+        &root,
+        &tmp.path().join("cache"),
+        &tmp.path().join("out"),
+        &["--set", "dataset.version=\"interp_12Hz_mini\""],
+    );
     assert!(o.status.success(), "{}", text(&o));
     let index: Value = serde_json::from_slice(&std::fs::read(tmp.path().join("out/index.json")).unwrap()).unwrap();
     assert_eq!(index["sources"].as_object().unwrap().len(), 78, "{index}");
@@ -233,7 +235,10 @@ print(json.dumps({"samples": len(tokens), "nbr_samples": scene["nbr_samples"], "
         .unwrap();
     assert!(o.status.success(), "{}", text(&o));
     let v: Value = serde_json::from_slice(o.stdout.trim_ascii()).unwrap();
-    assert_eq!((v["samples"].as_u64(), v["nbr_samples"].as_u64(), v["between"].as_u64()), (Some(13), Some(13), Some(10)));
+    assert_eq!(
+        (v["samples"].as_u64(), v["nbr_samples"].as_u64(), v["between"].as_u64()),
+        (Some(13), Some(13), Some(10))
+    );
     let channels: Vec<&str> = v["channels"].as_array().unwrap().iter().map(|c| c.as_str().unwrap()).collect();
     assert_eq!(channels.len(), 7, "six cameras and the LiDAR: {channels:?}");
     assert!(v["anns"].as_u64() > Some(0) && v["boxes_in_cam_front"].as_u64() > Some(0), "{v}");

@@ -63,6 +63,10 @@ pub struct StageSchema {
     /// Whether the stage draws random numbers from its task's seed: its task keys then include
     /// the item key, since its output depends on the item and not only on its inputs.
     pub seeded: bool,
+    /// Params (string fields) that say where the pipeline exports a file, for records that point
+    /// at it (an index of training clips): each must be the path template of one of the
+    /// pipeline's exports, so the two cannot drift apart.
+    pub export_template_params: Vec<&'static str>,
 }
 
 /// A dataset kind as the graph sees it.

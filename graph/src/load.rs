@@ -134,7 +134,9 @@ fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources
                 Ok(value) if matches!(value.kind, ValueKind::Struct(Some(_), _)) => {
                     match root.fields_mut().and_then(|f| f.iter_mut().find(|f| f.name.text == "dataset")) {
                         Some(dataset) => dataset.value = value,
-                        None => checker.diags.push(Diagnostic::error("the pipeline has no `dataset` to replace", path_span)),
+                        None => {
+                            checker.diags.push(Diagnostic::error("the pipeline has no `dataset` to replace", path_span))
+                        }
                     }
                 }
                 Ok(value) => checker.diags.push(
@@ -445,8 +447,52 @@ impl<'c> Checker<'c> {
             (Some(f), Some(dims)) => self.exports(&f.value, &nodes, dims),
             _ => Vec::new(),
         };
+        self.export_template_params(root, &nodes, &exports);
         let (decl, dims, _) = dataset?;
         Some(Pipeline { name, path, dataset: decl?, dims, nodes, order, exports })
+    }
+
+    /// Params that say where an export writes (a clip index's paths) must be one of the
+    /// pipeline's export templates: a record pointing at a file the run does not write is found
+    /// here, not by the loader that opens it.
+    fn export_template_params(&mut self, root: &Value, nodes: &[Node], exports: &[Export]) {
+        let Some(Value { kind: ValueKind::Map(entries), .. }) = root.field("stages").map(|f| &f.value) else { return };
+        for node in nodes {
+            let Some(stage) = node.stage() else { continue };
+            let Some(schema) = self.catalog.stage(&stage.kind) else { continue };
+            let declared = entries.iter().find(|(k, _)| k.as_str() == Some(node.name.as_str()));
+            for &field in &schema.export_template_params {
+                let written = declared.and_then(|(_, v)| v.field("params")).and_then(|p| p.value.field(field));
+                let value = match written {
+                    Some(f) => f.value.as_str().map(String::from),
+                    None => canonical_field(&stage.params.canonical, field),
+                };
+                let Some(value) = value else { continue };
+                if exports.iter().any(|e| e.template == value) {
+                    continue;
+                }
+                let span = written.map(|f| f.value.span).or(declared.map(|(k, _)| k.span));
+                let message = format!(
+                    "param `{field}` of stage `{}` is `{value}`, which no export of this pipeline writes",
+                    node.name
+                );
+                let mut d = match span {
+                    Some(s) => Diagnostic::error(message, s).with_label("not an export template"),
+                    None => Diagnostic::without_span(message),
+                };
+                let listed: Vec<String> = exports
+                    .iter()
+                    .map(|e| {
+                        format!("{}.{} -> \"{}\"", nodes[e.node].name, nodes[e.node].outputs[e.port].name, e.template)
+                    })
+                    .collect();
+                d = d.with_note(format!(
+                    "it is where the stage's records say the file is; exports: {}",
+                    listed.join(", ")
+                ));
+                self.err(d);
+            }
+        }
     }
 
     #[allow(clippy::type_complexity)]
@@ -1065,6 +1111,14 @@ impl<'c> Checker<'c> {
 }
 
 /// How inputs are written, with the dataset's dimension names when it is known.
+/// A string field of canonical params text (`(a:1,depth:"x")`), as its default is written there.
+fn canonical_field(canonical: &str, field: &str) -> Option<String> {
+    let mut sources = Sources::default();
+    let id = sources.add("", canonical);
+    let value = syntax::parse_value(canonical, id).ok()?;
+    value.field(field).and_then(|f| f.value.as_str()).map(String::from)
+}
+
 fn selector_usage(dims: Option<&[Dim]>) -> String {
     let ordered = dims.and_then(|d| d.iter().position(|d| d.ordered)).map_or("dim", |k| dim_name(dims, k));
     let innermost = dims.map_or("dim", |d| dim_name(dims, d.len().saturating_sub(1)));

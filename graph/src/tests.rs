@@ -110,7 +110,17 @@ fn stage(
     grains: Vec<&'static str>,
     params: ParamsSpec,
 ) -> StageSchema {
-    StageSchema { kind, version: 1, summary: "", inputs, outputs, grains, params, seeded: false }
+    StageSchema {
+        kind,
+        version: 1,
+        summary: "",
+        inputs,
+        outputs,
+        grains,
+        params,
+        seeded: false,
+        export_template_params: vec![],
+    }
 }
 
 fn catalog() -> Cat {

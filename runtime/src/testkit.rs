@@ -128,6 +128,7 @@ fn kind(kind: &'static str, inputs: Vec<PortSpec>, outputs: Vec<PortSpec>, grain
         grains,
         params: ParamsSpec::of::<EchoParams>(),
         seeded: false,
+        export_template_params: vec![],
     }
 }
 

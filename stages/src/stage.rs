@@ -40,6 +40,9 @@ pub trait Stage: Sized + Send + Sync + 'static {
     const GRAINS: &'static [&'static str];
     /// Stages that draw random numbers (from [`TaskContext::seed`]) get the item in their task key.
     const SEEDED: bool = false;
+    /// Params that must be the path template of one of the pipeline's exports (see
+    /// [`dist4d_graph::StageSchema::export_template_params`]).
+    const EXPORT_TEMPLATE_PARAMS: &'static [&'static str] = &[];
     type Params: Params;
     type Inputs: Ports;
     type Outputs: Ports;
@@ -258,6 +261,7 @@ impl StageDef {
                 grains: S::GRAINS.to_vec(),
                 params: ParamsSpec::of::<S::Params>(),
                 seeded: S::SEEDED,
+                export_template_params: S::EXPORT_TEMPLATE_PARAMS.to_vec(),
             },
             build: Box::new(|checked, wired| {
                 let params = checked.get::<S::Params>().ok_or_else(|| {

@@ -6,7 +6,8 @@
 //! redoing any matching: the image (file relative to the dataset root, token, timestamp), the
 //! intrinsics, camera -> ego, ego -> world at the image's time, the boxes at that time, and the
 //! curated depth and its confidence (paths relative to the output folder, from the `depth` and
-//! `confidence` templates, which must be the pipeline's export templates of those files); and the
+//! `confidence` templates, which must be the pipeline's export templates of those files: `check`
+//! refuses one that no export has); and the
 //! clip's ego trajectory (the first camera's ego pose at each frame). Everything comes from the
 //! dataset's `image_info` port, which answers for a missing image too (a dropped frame): clips
 //! holding one are left out, not the scene. Record layout and a numpy-only loader:
@@ -29,7 +30,8 @@ pub struct Params {
     /// Frames from one clip's start to the next's (= `frames`: clips do not overlap).
     pub stride: u32,
     /// Where the curated depth of an image is, relative to the output folder: the pipeline's
-    /// export template of it (`{scene}`, `{frame}`, `{camera}` are the item's labels).
+    /// export template of it (`{scene}`, `{frame}`, `{camera}` are the item's labels; a template
+    /// that no export of the pipeline has is a pipeline error).
     pub depth: String,
     /// Where its confidence (the completion's support distance) is, the same way.
     pub confidence: String,
@@ -186,6 +188,7 @@ impl Stage for ClipIndex {
     const SUMMARY: &'static str =
         "A scene's camera items -> its training clips (frames x cameras: image, calibration, poses, boxes, depth paths) as JSON lines";
     const GRAINS: &'static [&'static str] = &["scene"];
+    const EXPORT_TEMPLATE_PARAMS: &'static [&'static str] = &["depth", "confidence"];
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;
