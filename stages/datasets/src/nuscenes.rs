@@ -1033,10 +1033,7 @@ impl NuScenes {
             if self.config.lone_tracks == LoneTracks::Drop || dt.abs() > reach {
                 return None;
             }
-            let s = dt as f64 * 1e-6;
-            let center =
-                [0, 1, 2].map(|i| b.center[i] + if b.velocity[i].is_finite() { b.velocity[i] * s } else { 0.0 });
-            Some(Box3D { center, num_lidar_pts: 0, extrapolated: true, ..b })
+            Some(Box3D { center: b.advanced(dt as f64 * 1e-6), num_lidar_pts: 0, extrapolated: true, ..b })
         };
         let early: Vec<Box3D> = before.map(own).unwrap_or_default();
         let late: Vec<Box3D> = if after < keys.len() { own(after) } else { Vec::new() };

@@ -174,11 +174,7 @@ pub trait SurroundReader: Send + Sync {
         let boxes = frame
             .boxes
             .into_iter()
-            .map(|b| {
-                let center =
-                    [0, 1, 2].map(|i| b.center[i] + if b.velocity[i].is_finite() { b.velocity[i] * s } else { 0.0 });
-                Box3D { center, ..b }
-            })
+            .map(|b| Box3D { center: b.advanced(s), ..b })
             .collect();
         Ok(Boxes3D { timestamp_us: t, boxes })
     }

@@ -67,7 +67,7 @@ pub fn follow_tracks(
     let motions: Vec<(BoxTest, Se3)> = boxes
         .boxes
         .iter()
-        .filter(|b| b.velocity[0].hypot(b.velocity[1]) > params.moving_speed)
+        .filter(|b| b.speed() > params.moving_speed)
         .filter_map(|b| {
             let later = image_boxes.boxes.iter().find(|c| c.instance == b.instance)?;
             let (from, to) = (Se3::from_wxyz_t(b.rotation, b.center), Se3::from_wxyz_t(later.rotation, later.center));

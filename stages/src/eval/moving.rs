@@ -71,7 +71,7 @@ pub fn on_moving_objects(
     let moving: Vec<BoxTest> = boxes
         .boxes
         .iter()
-        .filter(|b| b.velocity[0].hypot(b.velocity[1]) > params.min_speed)
+        .filter(|b| b.speed() > params.min_speed)
         .map(|b| b.test(&cam_from_world, params.box_margin, params.ground_clearance))
         .collect();
     let w = depth.width as usize;

@@ -146,7 +146,17 @@ impl Box3D {
 
     /// Moving by attribute (`*.moving`), or faster than `min_speed` m/s.
     pub fn is_moving(&self, min_speed: f64) -> bool {
-        self.attributes.iter().any(|a| a.ends_with(".moving")) || self.velocity[0].hypot(self.velocity[1]) > min_speed
+        self.attributes.iter().any(|a| a.ends_with(".moving")) || self.speed() > min_speed
+    }
+
+    /// Speed over the ground (m/s): NaN when the velocity is unknown, so never faster than a bound.
+    pub fn speed(&self) -> f64 {
+        self.velocity[0].hypot(self.velocity[1])
+    }
+
+    /// The centre `seconds` later along the velocity; an unknown component stays where it is.
+    pub fn advanced(&self, seconds: f64) -> [f64; 3] {
+        [0, 1, 2].map(|i| self.center[i] + if self.velocity[i].is_finite() { self.velocity[i] * seconds } else { 0.0 })
     }
 }
 
