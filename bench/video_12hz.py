@@ -41,14 +41,14 @@ def stage_seconds(report):
 
 
 def main():
+    global DIST4D
     ap = argparse.ArgumentParser()
     ap.add_argument("--data", default="/tmp/dist4d-video12-data")
     ap.add_argument("--keyframes", type=int, default=40)
-    ap.add_argument("--dist4d", default=str(DIST4D))
+    ap.add_argument("--dist4d", default=None, help="the binary to measure [default: target/release/dist4d]")
     ap.add_argument("--jobs", type=int, default=0, help="worker threads (default: dist4d's, the cores)")
     a = ap.parse_args()
-    global DIST4D
-    DIST4D = Path(a.dist4d)
+    DIST4D = Path(a.dist4d) if a.dist4d else DIST4D
     data = Path(a.data)
     if not (data / "v1.0-mini").is_dir():
         print(f"synthesizing {data} ({a.keyframes} keyframes with camera sweeps) ...", file=sys.stderr)

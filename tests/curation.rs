@@ -241,7 +241,7 @@ fn the_12_hz_pipeline_runs_on_the_shared_dgp_scene_and_nuscenes_keyframe() {
     };
     if let Some(nus) = shared_nuscenes() {
         let (report, out) = run("nus", &format!("dataset.root={}", nus.display()));
-        assert!(report.contains("keyframe images only") && report.contains("gives 1 round(s)"), "{report}");
+        assert!(report.contains("at keyframes only") && report.contains("(first: scene-0061, 1 round(s))"), "{report}");
         assert_eq!(executed(&report, "complete"), 6, "{report}");
         assert_eq!(std::fs::read_to_string(out.join("scene-0061/clips.jsonl")).unwrap(), "", "1 round: no clip of 3");
     }

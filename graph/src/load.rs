@@ -117,7 +117,9 @@ pub fn load_str(
 
 /// Applies `--set target.field=value` arguments to the parsed tree.
 fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources, cwd: &Path, checker: &mut Checker) {
-    for arg in overrides {
+    // A whole new dataset first, so that `dataset.field=..` given with it applies to it.
+    let whole = |arg: &&String| arg.starts_with("dataset=");
+    for arg in overrides.iter().filter(whole).chain(overrides.iter().filter(|a| !whole(a))) {
         let id = sources.add("--set", arg.clone());
         checker.bases.insert(id, cwd.to_path_buf());
         let whole = Span::new(id, 0, arg.len());
@@ -1110,7 +1112,6 @@ impl<'c> Checker<'c> {
     }
 }
 
-/// How inputs are written, with the dataset's dimension names when it is known.
 /// A string field of canonical params text (`(a:1,depth:"x")`), as its default is written there.
 fn canonical_field(canonical: &str, field: &str) -> Option<String> {
     let mut sources = Sources::default();
@@ -1119,6 +1120,7 @@ fn canonical_field(canonical: &str, field: &str) -> Option<String> {
     value.field(field).and_then(|f| f.value.as_str()).map(String::from)
 }
 
+/// How inputs are written, with the dataset's dimension names when it is known.
 fn selector_usage(dims: Option<&[Dim]>) -> String {
     let ordered = dims.and_then(|d| d.iter().position(|d| d.ordered)).map_or("dim", |k| dim_name(dims, k));
     let innermost = dims.map_or("dim", |d| dim_name(dims, d.len().saturating_sub(1)));

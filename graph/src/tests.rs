@@ -222,6 +222,9 @@ fn set_replaces_the_whole_dataset_and_refuses_what_is_not_one() {
     // Fields of the new dataset are checked and its relative paths are the working directory's.
     let p = load(GOOD, &["dataset=NuScenes(root: \"other\", version: \"v1.0-test\")"]).unwrap();
     assert_eq!(p.dataset.config.canonical, r#"(root:"/cwd/other",version:"v1.0-test")"#);
+    // A field set beside it applies to the new dataset, whatever the order.
+    let p = load(GOOD, &["dataset.version=v1.0-trainval", "dataset=NuScenes(root: \"other\")"]).unwrap();
+    assert_eq!(p.dataset.config.canonical, r#"(root:"/cwd/other",version:"v1.0-trainval")"#);
     let out = errors(GOOD, &["dataset=NuScenes(rot: \"x\")", "dataset=[1]"]);
     assert!(out.contains("unknown param `rot` of dataset NuScenes") && out.contains("--> --set:1:18"), "{out}");
     assert!(out.contains("takes a dataset, like") && out.contains("--> --set:1:9"), "{out}");

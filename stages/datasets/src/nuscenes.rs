@@ -91,6 +91,8 @@ struct SceneRow {
 #[derive(Deserialize)]
 struct SampleRow {
     token: String,
+    #[serde(default)]
+    scene_token: String,
     #[serde(deserialize_with = "microseconds")]
     timestamp: i64,
     next: String,
@@ -228,6 +230,8 @@ struct Annotation {
 pub struct NuScenes {
     pub config: NuScenesConfig,
     tree: Tree<Keyframes, Sweep>,
+    /// The `scene` token of each scene of the tree.
+    scene_tokens: Vec<String>,
     annotations: Vec<Annotation>,
     annotation_by_token: HashMap<String, usize>,
     sample_time: HashMap<String, i64>,
@@ -603,12 +607,16 @@ impl NuScenes {
 
         let mut out = Vec::new();
         let mut skipped: Vec<&str> = Vec::new();
+        let mut keyframes_only: Vec<(&str, usize)> = Vec::new();
+        let scenes_sampled: std::collections::HashSet<&str> = samples.iter().map(|s| s.scene_token.as_str()).collect();
+        let mut scene_tokens = Vec::new();
         for scene in &scenes {
             let mut keys: Vec<&SampleRow> = Vec::new();
             let mut token = scene.first_sample_token.as_str();
-            if !token.is_empty() && !sample_by.contains_key(token) {
+            if !token.is_empty() && !sample_by.contains_key(token) && !scenes_sampled.contains(scene.token.as_str()) {
                 // ASAP's interp_12Hz folders keep every scene of trainval but the samples of the
-                // val split only: such a scene has no frames, which the open report says.
+                // val split only: a scene no sample names has no frames, which the open report
+                // says. (A scene with samples but a wrong first token is still an error below.)
                 skipped.push(scene.name.as_str());
                 continue;
             }
@@ -715,14 +723,8 @@ impl NuScenes {
                     let sample_of: HashMap<&str, usize> =
                         keys.iter().enumerate().map(|(i, k)| (k.token.as_str(), i)).collect();
                     let rounds = camera_rounds(&times, &offsets);
-                    let sweeps = chains.iter().flatten().flatten().any(|sd| !sd.is_key_frame);
-                    if !sweeps {
-                        warnings.push(format!(
-                            "scene {}: its cameras have keyframe images only (no sweeps between keyframes): frames: Camera \
-                             gives {} round(s), one per keyframe, not 12 Hz",
-                            scene.name,
-                            rounds.len()
-                        ));
+                    if rounds.len() <= keys.len() && chains.iter().any(Result::is_ok) {
+                        keyframes_only.push((scene.name.as_str(), rounds.len()));
                     }
                     let complete: Vec<bool> = chains.iter().map(|c| c.is_ok()).collect();
                     if let Some(note) = incomplete_rounds(&scene.name, &cameras, &rounds, &complete) {
@@ -759,6 +761,14 @@ impl NuScenes {
                 }
             };
             out.push(Scene { name: scene.name.clone(), frames, extra: samples_of_scene });
+            scene_tokens.push(scene.token.clone());
+        }
+        if let Some((first, rounds)) = keyframes_only.first() {
+            warnings.push(format!(
+                "{} scene(s) have camera images at keyframes only (no sweeps between them): frames: Camera gives one \
+                 round per keyframe, not 12 Hz (first: {first}, {rounds} round(s))",
+                keyframes_only.len()
+            ));
         }
         if let Some(first) = skipped.first() {
             warnings.push(format!(
@@ -773,7 +783,7 @@ impl NuScenes {
         let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
         let tree = Tree { root, cameras, scenes: out, sidecars };
-        Ok(NuScenes { config, tree, annotations, annotation_by_token, sample_time, warnings })
+        Ok(NuScenes { config, tree, scene_tokens, annotations, annotation_by_token, sample_time, warnings })
     }
 
     /// The devkit's `box_velocity`: centre difference of the neighbouring annotations, NaN when

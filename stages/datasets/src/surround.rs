@@ -171,11 +171,7 @@ pub trait SurroundReader: Send + Sync {
         let frame = self.boxes(&item.prefix(2))?;
         let t = self.tree().reading("image", item)?.pose.timestamp_us;
         let s = (t - frame.timestamp_us) as f64 * 1e-6;
-        let boxes = frame
-            .boxes
-            .into_iter()
-            .map(|b| Box3D { center: b.advanced(s), ..b })
-            .collect();
+        let boxes = frame.boxes.into_iter().map(|b| Box3D { center: b.advanced(s), ..b }).collect();
         Ok(Boxes3D { timestamp_us: t, boxes })
     }
 }

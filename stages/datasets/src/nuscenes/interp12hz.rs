@@ -29,6 +29,7 @@
 
 use super::*;
 use glam::DVec3;
+use rayon::prelude::*;
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashSet};
 use std::io::Write;
@@ -130,9 +131,7 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
     let config = NuScenesConfig { frames: FrameMode::Camera, ..config.clone() };
     let ds = NuScenes::open(config.clone())?;
     let tables = Path::new(&config.root).join(&config.version);
-    if out.canonicalize().ok().is_some_and(|o| tables.canonicalize().ok().as_ref() == Some(&o)) {
-        bail!("{} is the dataset's own table folder: give the 12 Hz tables another one", out.display());
-    }
+    check_destination(out, Path::new(&config.root), &tables)?;
     let mut report = Export12Hz { out: out.to_path_buf(), warnings: ds.warnings.clone(), ..Default::default() };
 
     let sample_table = Table::read(&tables, "sample", true)?;
@@ -166,8 +165,9 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
         key_rows_of.entry(text(sd, "sample_token").to_string()).or_default().push(text(sd, "token").to_string());
     }
     let mut unanchored = 0usize;
+    let mut uncounted = 0usize;
     let tree_scene: HashMap<&str, usize> =
-        ds.tree.scenes.iter().enumerate().map(|(i, s)| (s.name.as_str(), i)).collect();
+        ds.scene_tokens.iter().enumerate().map(|(i, token)| (token.as_str(), i)).collect();
 
     let mut out_samples: Vec<Value> = Vec::new();
     let mut written_samples: HashSet<String> = HashSet::new();
@@ -176,7 +176,7 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
     let mut tracks: BTreeMap<String, Vec<(usize, usize, String)>> = BTreeMap::new();
     let scene_rows: Vec<Value> = scenes.rows.clone();
     for (scene_no, scene_row) in scene_rows.iter().enumerate() {
-        let Some(&tree_index) = tree_scene.get(text(scene_row, "name")) else { continue };
+        let Some(&tree_index) = tree_scene.get(text(scene_row, "token")) else { continue };
         let scene = &ds.tree.scenes[tree_index];
         let scene_token = text(scene_row, "token").to_string();
         // The keyframes, walked as the reader did.
@@ -191,59 +191,73 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
         let key_rows: HashSet<String> =
             keys.iter().flat_map(|k| key_rows_of.get(text(k, "token")).into_iter().flatten().cloned()).collect();
         let mut taken: HashSet<String> = key_rows.clone();
-        // The LiDAR: the sweep the reader gives the round (the nearest), unless a keyframe or an
-        // earlier round holds it; the sample's time is that sweep's.
+        // The round's images (those no keyframe holds), then per non-camera channel the reading
+        // nearest the sample no other sample holds, within half the channel's period: the LiDAR
+        // first (the sample's time becomes its sweep's, as a keyframe's is), then radar.
+        let chains = channel_chains(&sample_data, &key_rows, &modality_channel);
+        let lidar_chain: &[(String, i64)] = chains.get(&config.lidar).map_or(&[], Vec::as_slice);
         let mut sweeps: HashMap<usize, &Reading> = HashMap::new();
         for (i, s) in list.iter_mut().enumerate() {
             let Some(round) = s.round.filter(|_| s.key.is_none()) else { continue };
             let frame = &scene.frames[round];
-            s.rows.extend(frame.extra.images.iter().flatten().cloned());
-            if let Ok(lidar) = &frame.lidar {
-                if taken.insert(lidar.token.clone()) {
-                    s.rows.push(lidar.token.clone());
-                    s.time = lidar.pose.timestamp_us;
-                    sweeps.insert(i, lidar);
+            for image in frame.extra.images.iter().flatten() {
+                if taken.insert(image.clone()) {
+                    s.rows.push(image.clone());
+                }
+            }
+            if let Some(j) = nearest_free(lidar_chain, s.time, &taken) {
+                let (token, t) = &lidar_chain[j];
+                taken.insert(token.clone());
+                s.rows.push(token.clone());
+                s.time = *t;
+                // The reader resolved the round's nearest sweep: its points are counted in the boxes.
+                if let Some(reading) = frame.lidar.as_ref().ok().filter(|r| &r.token == token) {
+                    sweeps.insert(i, reading);
                 }
             }
         }
-        // The other non-camera channels (radar): each new sample takes the nearest reading no
-        // other sample holds, within half the channel's period.
-        let chains = channel_chains(&sample_data, &key_rows, &modality_channel, &config.lidar);
-        for chain in chains.values() {
-            let mut steps: Vec<i64> = chain.windows(2).map(|w| w[1].1 - w[0].1).filter(|&d| d > 0).collect();
-            steps.sort_unstable();
-            let half = steps.get(steps.len() / 2).copied().unwrap_or(0) / 2;
+        for (channel, chain) in &chains {
+            if *channel == config.lidar {
+                continue;
+            }
             for s in list.iter_mut().filter(|s| s.key.is_none()) {
-                let nearest = chain.iter().filter(|(t, _)| !taken.contains(t)).min_by_key(|(_, t)| (t - s.time).abs());
-                if let Some((token, _)) = nearest.filter(|(_, t)| (t - s.time).abs() <= half) {
-                    taken.insert(token.clone());
-                    s.rows.push(token.clone());
+                if let Some(j) = nearest_free(chain, s.time, &taken) {
+                    taken.insert(chain[j].0.clone());
+                    s.rows.push(chain[j].0.clone());
                 }
             }
         }
 
-        // Annotations of the new samples.
-        let mut boxes_of: Vec<Vec<String>> = vec![Vec::new(); list.len()];
+        // Annotations of the new samples; their boxes' points counted in parallel (a trainval
+        // export reads ~170k sweeps).
+        let boxes: Vec<Vec<Box3D>> =
+            list.iter().map(|s| if s.key.is_some() { Vec::new() } else { ds.boxes_at(scene, s.time, None) }).collect();
+        let counts: Vec<Option<Result<Vec<u32>>>> = (0..list.len())
+            .into_par_iter()
+            .map(|i| sweeps.get(&i).map(|reading| points_in_boxes(reading, &boxes[i])))
+            .collect();
+        // Per sample, its annotations as (token, instance).
+        let mut boxes_of: Vec<Vec<(String, String)>> = vec![Vec::new(); list.len()];
         for (i, s) in list.iter().enumerate() {
-            if s.key.is_some() {
-                let key_token = text(keys[s.key.unwrap_or(0)], "token");
-                boxes_of[i].extend(annotations_of.get(key_token).into_iter().flatten().cloned());
+            if let Some(k) = s.key {
+                for t in annotations_of.get(text(keys[k], "token")).into_iter().flatten() {
+                    let instance = annotations.get(t).map_or("", |a| text(a, "instance_token"));
+                    boxes_of[i].push((t.clone(), instance.to_string()));
+                }
                 continue;
             }
-            let boxes = ds.boxes_at(scene, s.time, None);
-            let counts = match sweeps.get(&i) {
-                Some(reading) => match points_in_boxes(reading, &boxes) {
-                    Ok(c) => Some(c),
-                    Err(e) => {
-                        report
-                            .warnings
-                            .push(format!("num_lidar_pts of sample {} kept from the keyframe: {e:#}", s.token));
-                        None
-                    }
-                },
-                None => None,
+            let counts = match &counts[i] {
+                Some(Ok(c)) => Some(c),
+                Some(Err(e)) => {
+                    report.warnings.push(format!("num_lidar_pts of sample {} kept from the keyframe: {e:#}", s.token));
+                    None
+                }
+                None => {
+                    uncounted += 1;
+                    None
+                }
             };
-            for (b, bx) in boxes.iter().enumerate() {
+            for (b, bx) in boxes[i].iter().enumerate() {
                 // The track's annotation on the keyframe before (`<annotation><n>`), else on the
                 // one after (`<annotation>p<n>`, a track entering the annotated range).
                 let named = |(n, k): (usize, usize), back: bool| {
@@ -261,26 +275,20 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
                 row["translation"] = json!(bx.center);
                 row["size"] = json!(bx.size);
                 row["rotation"] = json!(bx.rotation);
-                if let Some(c) = &counts {
+                if let Some(c) = counts {
                     row["num_lidar_pts"] = json!(c[b]);
                 }
                 if let Some(o) = row.as_object_mut() {
                     o.remove("category_name");
                 }
                 report.extrapolated += bx.extrapolated as usize;
-                boxes_of[i].push(token);
+                boxes_of[i].push((token, bx.instance.clone()));
                 new_annotations.push(row);
             }
         }
-        let new_index: HashMap<String, usize> =
-            new_annotations.iter().enumerate().map(|(i, a)| (text(a, "token").to_string(), i)).collect();
-        for (i, tokens) in boxes_of.iter().enumerate() {
-            for t in tokens {
-                let instance = match new_index.get(t) {
-                    Some(&n) => text(&new_annotations[n], "instance_token"),
-                    None => annotations.get(t).map_or("", |a| text(a, "instance_token")),
-                };
-                tracks.entry(instance.to_string()).or_default().push((scene_no, i, t.clone()));
+        for (i, held) in boxes_of.into_iter().enumerate() {
+            for (token, instance) in held {
+                tracks.entry(instance).or_default().push((scene_no, i, token));
             }
         }
 
@@ -332,6 +340,11 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
         report.samples += list.len();
         report.keyframes += list.iter().filter(|s| s.key.is_some()).count();
     }
+    if uncounted > 0 {
+        report.warnings.push(format!(
+            "{uncounted} sample(s) whose sweep is not the one nearest their round keep the keyframe's num_lidar_pts"
+        ));
+    }
     if unanchored > 0 {
         report.warnings.push(format!(
             "{unanchored} interpolated box(es) left out: their track has no annotation on the keyframes around them"
@@ -366,20 +379,17 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
     }
     annotations.rows.extend(new_annotations);
 
-    let mut files: Vec<(String, Vec<u8>)> = vec![
+    let files: Vec<(String, Vec<u8>)> = vec![
         ("sample".into(), serde_json::to_vec(&out_samples)?),
         ("sample_data".into(), serde_json::to_vec(&sample_data.rows)?),
         ("sample_annotation".into(), serde_json::to_vec(&annotations.rows)?),
         ("scene".into(), serde_json::to_vec(&scenes.rows)?),
         ("instance".into(), serde_json::to_vec(&instances.rows)?),
     ];
-    for name in COPIED {
-        let path = tables.join(format!("{name}.json"));
-        if path.exists() {
-            files.push((name.into(), std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?));
-        }
-    }
-    write_folder(out, &files)?;
+    let copied: Vec<PathBuf> =
+        COPIED.iter().map(|name| tables.join(format!("{name}.json"))).filter(|p| p.exists()).collect();
+    let marker = json!({"from": config.version, "lone_tracks": format!("{:?}", config.lone_tracks)}).to_string();
+    write_folder(out, &files, &copied, &marker)?;
     Ok(report)
 }
 
@@ -451,24 +461,54 @@ fn scene_samples(scene: &Scene<Keyframes, Sweep>, keys: &[&Value]) -> Vec<Sample
     list
 }
 
-/// The scene's non-camera channels other than the LiDAR (radar), each its chain of (token, time)
-/// through the scene's keyframe rows.
+/// The scene's non-camera channels (LiDAR, radar), each its chain of (token, time) through the
+/// scene's keyframe rows.
 fn channel_chains(
     sample_data: &Table,
     key_rows: &HashSet<String>,
     modality_channel: &dyn Fn(&Value) -> (String, String),
-    lidar: &str,
 ) -> BTreeMap<String, Vec<(String, i64)>> {
     let mut chains: BTreeMap<String, Vec<(String, i64)>> = BTreeMap::new();
     for token in key_rows {
         let Some(row) = sample_data.get(token) else { continue };
         let (modality, channel) = modality_channel(row);
-        if modality == "camera" || channel == lidar || chains.contains_key(&channel) {
+        if modality == "camera" || chains.contains_key(&channel) {
             continue;
         }
         chains.insert(channel, walk(sample_data, row));
     }
     chains
+}
+
+/// The reading of `chain` (in time order) nearest `t` that no sample holds yet, within the chain's
+/// median period (a dropped sweep leaves the round its neighbour rather than no LiDAR).
+fn nearest_free(chain: &[(String, i64)], t: i64, taken: &HashSet<String>) -> Option<usize> {
+    let mut steps: Vec<i64> = chain.windows(2).map(|w| w[1].1 - w[0].1).filter(|&d| d > 0).collect();
+    steps.sort_unstable();
+    let reach = steps.get(steps.len() / 2).copied().unwrap_or(0);
+    let at = chain.partition_point(|(_, ct)| *ct < t);
+    let (mut lo, mut hi) = (at.checked_sub(1), (at < chain.len()).then_some(at));
+    loop {
+        let dl = lo.map(|i| t - chain[i].1);
+        let dh = hi.map(|i| chain[i].1 - t);
+        let (i, d) = match (dl, dh) {
+            (Some(a), Some(b)) if a <= b => (lo?, a),
+            (_, Some(b)) => (hi?, b),
+            (Some(a), None) => (lo?, a),
+            (None, None) => return None,
+        };
+        if d > reach {
+            return None;
+        }
+        if !taken.contains(&chain[i].0) {
+            return Some(i);
+        }
+        if Some(i) == lo {
+            lo = i.checked_sub(1);
+        } else {
+            hi = (i + 1 < chain.len()).then_some(i + 1);
+        }
+    }
 }
 
 /// The whole `prev`/`next` chain through `row`, as (token, time); a broken link ends it.
@@ -502,9 +542,30 @@ fn points_in_boxes(reading: &Reading, boxes: &[Box3D]) -> Result<Vec<u32>> {
         .collect())
 }
 
-/// Writes the tables into a new folder beside `out` and moves it into place (the old one, if
-/// any, is moved aside first and removed after), so a reader never sees half a version.
-fn write_folder(out: &Path, files: &[(String, Vec<u8>)]) -> Result<()> {
+/// Marks a folder as written by this export: only such a folder is ever replaced.
+const MARKER: &str = ".dist4d-export-12hz";
+
+/// `out` must not hold the dataset (its root, its tables or a folder above them), and an existing
+/// `out` must be an earlier export (an ASAP folder, or anything else, is left alone).
+fn check_destination(out: &Path, root: &Path, tables: &Path) -> Result<()> {
+    let absolute = |p: &Path| p.canonicalize().or_else(|_| std::path::absolute(p)).unwrap_or_else(|_| p.to_path_buf());
+    let (o, r, t) = (absolute(out), absolute(root), absolute(tables));
+    if o == t || r.starts_with(&o) {
+        bail!("{} holds the dataset itself: give the 12 Hz tables a folder of their own", out.display());
+    }
+    if out.exists() && !out.join(MARKER).is_file() {
+        bail!(
+            "{} exists and was not written by `dist4d export-12hz` (no {MARKER} in it): remove it or give another --out",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
+/// Writes the tables into a new folder beside `out` and moves it into place (the old export, if
+/// any, moved aside first, put back if the move fails, removed after), so a loader never sees half
+/// a version; the copied tables are copied file to file.
+fn write_folder(out: &Path, files: &[(String, Vec<u8>)], copied: &[PathBuf], marker: &str) -> Result<()> {
     let name =
         out.file_name().and_then(|n| n.to_str()).ok_or_else(|| anyhow!("{} has no folder name", out.display()))?;
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
@@ -512,16 +573,41 @@ fn write_folder(out: &Path, files: &[(String, Vec<u8>)]) -> Result<()> {
     let tmp = parent.join(format!(".{name}.tmp-{}", std::process::id()));
     let old = parent.join(format!(".{name}.old-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
-    std::fs::create_dir(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
-    for (table, bytes) in files {
-        let path = tmp.join(format!("{table}.json"));
-        let mut f = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
-        f.write_all(bytes).and_then(|_| f.sync_all()).with_context(|| format!("writing {}", path.display()))?;
+    let written = (|| -> Result<()> {
+        std::fs::create_dir(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+        let whole = files
+            .iter()
+            .map(|(t, b)| (format!("{t}.json"), b.as_slice()))
+            .chain([(MARKER.to_string(), marker.as_bytes())]);
+        for (file, bytes) in whole {
+            let path = tmp.join(file);
+            let mut f = std::fs::File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+            f.write_all(bytes).and_then(|_| f.sync_all()).with_context(|| format!("writing {}", path.display()))?;
+        }
+        for source in copied {
+            let path = tmp.join(source.file_name().unwrap_or_default());
+            std::fs::copy(source, &path)
+                .with_context(|| format!("copying {} to {}", source.display(), path.display()))?;
+            std::fs::File::open(&path)
+                .and_then(|f| f.sync_all())
+                .with_context(|| format!("syncing {}", path.display()))?;
+        }
+        Ok(())
+    })();
+    if let Err(e) = written {
+        let _ = std::fs::remove_dir_all(&tmp);
+        return Err(e);
     }
     if out.exists() {
         std::fs::rename(out, &old).with_context(|| format!("moving the old {} aside", out.display()))?;
     }
-    std::fs::rename(&tmp, out).with_context(|| format!("moving {} to {}", tmp.display(), out.display()))?;
+    if let Err(e) = std::fs::rename(&tmp, out) {
+        if old.exists() {
+            let _ = std::fs::rename(&old, out);
+        }
+        let _ = std::fs::remove_dir_all(&tmp);
+        return Err(e).with_context(|| format!("moving {} to {}", tmp.display(), out.display()));
+    }
     if old.exists() {
         std::fs::remove_dir_all(&old).with_context(|| format!("removing the old tables {}", old.display()))?;
     }
@@ -617,9 +703,18 @@ mod tests {
             walk.iter().map(|t| t.replace(&keys[0], "K0").replace(&keys[1], "K1").replace(&keys[2], "K2")).collect();
         assert_eq!(names, ["K0", "K01", "K02", "K03", "K04", "K05", "K1", "K11", "K12", "K13", "K14", "K15", "K2"]);
         assert!(samples.iter().all(|s| s["timestamp"].is_i64()), "times are integers");
-        // Each camera image is a key frame of one sample; every row names a sample.
-        for sd in &sd1 {
-            assert!(sample_by.contains_key(text(sd, "sample_token")), "{sd}");
+        let times: Vec<i64> = walk.iter().map(|t| time(sample_by[t.as_str()])).collect();
+        assert!(times.windows(2).all(|w| w[0] < w[1]), "{times:?}");
+        // Each sample holds the six images and a sweep; every other row names the first sample at
+        // or after its time (the devkit's get_boxes interpolates towards it).
+        for t in &walk {
+            let held =
+                sd1.iter().filter(|sd| text(sd, "sample_token") == t && sd["is_key_frame"] == json!(true)).count();
+            assert_eq!(held, 7, "sample {t}");
+        }
+        for sd in sd1.iter().filter(|sd| sd["is_key_frame"] == json!(false)) {
+            let at = times.partition_point(|&s| s < time(sd)).min(times.len() - 1);
+            assert_eq!(text(sd, "sample_token"), walk[at], "{sd}");
         }
         let images = sd1.iter().filter(|sd| text(sd, "filename").contains("CAM_")).count();
         let key_images =
@@ -642,9 +737,47 @@ mod tests {
             assert_eq!(text(ann_by[text(&inst, "first_annotation_token")], "prev"), "");
             assert_eq!(text(ann_by[text(&inst, "last_annotation_token")], "next"), "");
         }
-        // The boxes of a new sample count their own sweep's points.
-        let new = anns.iter().filter(|a| text(a, "sample_token").ends_with('3'));
-        assert!(new.clone().any(|a| a["num_lidar_pts"].as_u64() > Some(0)));
+        // The boxes of a new sample count their own sweep's points (counted here again by hand).
+        let sweep = sd1
+            .iter()
+            .find(|sd| {
+                text(sd, "sample_token") == walk[3]
+                    && sd["is_key_frame"] == json!(true)
+                    && text(sd, "filename").contains("LIDAR_TOP")
+            })
+            .unwrap();
+        let pose = |table: &str, token: &str| {
+            let row = self::table(&tables, table).into_iter().find(|r| text(r, "token") == token).unwrap();
+            let q: Vec<f64> = row["rotation"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+            let t: Vec<f64> = row["translation"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+            (glam::DQuat::from_xyzw(q[1], q[2], q[3], q[0]).normalize(), DVec3::new(t[0], t[1], t[2]))
+        };
+        let (cq, ct) = pose("calibrated_sensor", text(sweep, "calibrated_sensor_token"));
+        let (eq, et) = pose("ego_pose", text(sweep, "ego_pose_token"));
+        let cloud = read_pcd_bin(&root.join(text(sweep, "filename"))).unwrap();
+        let world: Vec<DVec3> = cloud
+            .points
+            .iter()
+            .map(|p| eq * (cq * DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64) + ct) + et)
+            .collect();
+        let mut counted = 0;
+        for a in anns.iter().filter(|a| text(a, "sample_token") == walk[3]) {
+            let v = |f: &str, i: usize| a[f][i].as_f64().unwrap();
+            let q = glam::DQuat::from_xyzw(v("rotation", 1), v("rotation", 2), v("rotation", 3), v("rotation", 0));
+            let c = DVec3::new(v("translation", 0), v("translation", 1), v("translation", 2));
+            let inside = world
+                .iter()
+                .filter(|p| {
+                    let l = q.inverse() * (**p - c);
+                    l.x.abs() <= v("size", 1) / 2.0
+                        && l.y.abs() <= v("size", 0) / 2.0
+                        && l.z.abs() <= v("size", 2) / 2.0
+                })
+                .count();
+            assert_eq!(a["num_lidar_pts"], json!(inside), "{a}");
+            counted += (inside > 0) as usize;
+        }
+        assert!(counted > 3, "boxes with points in sample {}: {counted}", walk[3]);
 
         // Dropping lone tracks writes fewer boxes; the folder is replaced whole, nothing left beside it.
         let drop = NuScenesConfig { lone_tracks: LoneTracks::Drop, ..config(&root, "v1.0-mini", FrameMode::Keyframes) };
@@ -654,8 +787,106 @@ mod tests {
         let beside: Vec<String> =
             std::fs::read_dir(&root).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
         assert!(!beside.iter().any(|n| n.starts_with('.')), "{beside:?}");
-        let err = write_interp_12hz(&config(&root, "v1.0-mini", FrameMode::Keyframes), &root.join("v1.0-mini"));
-        assert!(format!("{:#}", err.unwrap_err()).contains("the dataset's own table folder"));
+    }
+
+    #[test]
+    fn a_dropped_sweep_leaves_its_round_a_neighbour_and_radar_joins_every_sample() {
+        let (_tmp, root) = with_camera_sweeps(3);
+        let tables = root.join("v1.0-mini");
+        let write = |name: &str, rows: &[Value]| {
+            std::fs::write(tables.join(format!("{name}.json")), serde_json::to_vec(rows).unwrap()).unwrap()
+        };
+        let mut sd = table(&tables, "sample_data");
+        let lidar = |r: &Value| text(r, "filename").contains("LIDAR_TOP");
+        // A radar firing 7 ms after each sweep, with its own chain and keyframes.
+        let radar: Vec<Value> = sd
+            .iter()
+            .filter(|r| lidar(r))
+            .map(|r| {
+                let mut x = r.clone();
+                for f in ["token", "prev", "next"] {
+                    if !text(r, f).is_empty() {
+                        x[f] = json!(format!("r{}", text(r, f)));
+                    }
+                }
+                x["calibrated_sensor_token"] = json!("radar-cs");
+                x["filename"] = json!("samples/RADAR_FRONT/none.pcd");
+                x["timestamp"] = json!(time(r) + 7_000);
+                x
+            })
+            .collect();
+        sd.extend(radar);
+        // The third sweep is lost: its neighbours link to each other.
+        let lost = sd.iter().filter(|r| lidar(r)).nth(2).unwrap().clone();
+        assert_eq!(lost["is_key_frame"], json!(false));
+        for r in sd.iter_mut() {
+            if text(r, "next") == text(&lost, "token") {
+                r["next"] = lost["next"].clone();
+            }
+            if text(r, "prev") == text(&lost, "token") {
+                r["prev"] = lost["prev"].clone();
+            }
+        }
+        sd.retain(|r| text(r, "token") != text(&lost, "token"));
+        write("sample_data", &sd);
+        let mut sensors = table(&tables, "sensor");
+        sensors.push(json!({"token": "radar-sensor", "channel": "RADAR_FRONT", "modality": "radar"}));
+        write("sensor", &sensors);
+        let mut cs = table(&tables, "calibrated_sensor");
+        let mut radar_cs =
+            cs.iter().find(|c| c["camera_intrinsic"].as_array().is_none_or(|k| k.is_empty())).unwrap().clone();
+        radar_cs["token"] = json!("radar-cs");
+        radar_cs["sensor_token"] = json!("radar-sensor");
+        cs.push(radar_cs);
+        write("calibrated_sensor", &cs);
+
+        let out = default_folder(&root, "v1.0-mini");
+        let report = write_interp_12hz(&config(&root, "v1.0-mini", FrameMode::Keyframes), &out).unwrap();
+        assert_eq!(report.samples, 13, "{report:?}");
+        let samples = table(&out, "sample");
+        let rows = table(&out, "sample_data");
+        assert_eq!(rows.len(), sd.len(), "every row kept");
+        chains_hold(&rows, "sample_data");
+        let mut times: Vec<i64> = samples.iter().map(time).collect();
+        times.sort();
+        for s in &samples {
+            let held: Vec<&str> = rows
+                .iter()
+                .filter(|r| text(r, "sample_token") == text(s, "token") && r["is_key_frame"] == json!(true))
+                .map(|r| text(r, "filename"))
+                .collect();
+            assert_eq!(held.len(), 8, "six images, a sweep and a radar reading: {held:?}");
+            assert!(held.iter().any(|f| f.contains("LIDAR_TOP")) && held.iter().any(|f| f.contains("RADAR")));
+        }
+        // The sample that would have had the lost sweep still has times in order.
+        let mut chain = vec![text(&table(&out, "scene")[0], "first_sample_token").to_string()];
+        let by = by_token(&samples);
+        while let Some(n) = by.get(chain.last().unwrap().as_str()).map(|s| text(s, "next")).filter(|n| !n.is_empty()) {
+            chain.push(n.to_string());
+        }
+        let ordered: Vec<i64> = chain.iter().map(|t| time(by[t.as_str()])).collect();
+        assert!(ordered.windows(2).all(|w| w[0] < w[1]), "{ordered:?}");
+        assert_eq!(ordered, times);
+    }
+
+    #[test]
+    fn only_an_earlier_export_is_ever_replaced() {
+        let (_tmp, root) = with_camera_sweeps(2);
+        let cfg = config(&root, "v1.0-mini", FrameMode::Keyframes);
+        for holds_data in [root.clone(), root.join("v1.0-mini"), root.parent().unwrap().to_path_buf()] {
+            let e = format!("{:#}", write_interp_12hz(&cfg, &holds_data).unwrap_err());
+            assert!(e.contains("holds the dataset itself"), "{e}");
+        }
+        let theirs = root.join("interp_12Hz_mini");
+        std::fs::create_dir(&theirs).unwrap();
+        std::fs::write(theirs.join("sample.json"), "[]").unwrap();
+        let e = format!("{:#}", write_interp_12hz(&cfg, &theirs).unwrap_err());
+        assert!(e.contains("was not written by `dist4d export-12hz`"), "{e}");
+        assert_eq!(std::fs::read(theirs.join("sample.json")).unwrap(), b"[]", "left as it was");
+        std::fs::remove_dir_all(&theirs).unwrap();
+        write_interp_12hz(&cfg, &theirs).unwrap();
+        write_interp_12hz(&cfg, &theirs).unwrap();
+        assert!(root.join("samples").is_dir() && root.join("v1.0-mini/sample.json").is_file(), "the dataset is whole");
     }
 
     /// Writes `interp_12Hz_trainval/` from `v1.0-mini/` by the rules of ASAP's
