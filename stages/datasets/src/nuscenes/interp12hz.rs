@@ -102,8 +102,9 @@ fn text<'a>(row: &'a Value, field: &str) -> &'a str {
     row.get(field).and_then(Value::as_str).unwrap_or("")
 }
 
+/// A row's `timestamp`, read as the reader reads it (a fraction rounded to the microsecond).
 fn time(row: &Value) -> i64 {
-    row.get("timestamp").and_then(|t| t.as_i64().or_else(|| t.as_f64().map(|f| f.round() as i64))).unwrap_or(0)
+    row.get("timestamp").and_then(|t| super::microseconds(t).ok()).unwrap_or(0)
 }
 
 /// One sample of the 12 Hz table: an original keyframe or a new camera round.
@@ -192,8 +193,8 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
             keys.iter().flat_map(|k| key_rows_of.get(text(k, "token")).into_iter().flatten().cloned()).collect();
         let mut taken: HashSet<String> = key_rows.clone();
         // The round's images (those no keyframe holds), then per non-camera channel the reading
-        // nearest the sample no other sample holds, within half the channel's period: the LiDAR
-        // first (the sample's time becomes its sweep's, as a keyframe's is), then radar.
+        // nearest the sample that no other sample holds (`nearest_free`): the LiDAR first (the
+        // sample's time becomes its sweep's, as a keyframe's is), then radar.
         let chains = channel_chains(&sample_data, &key_rows, &modality_channel);
         let lidar_chain: &[(String, i64)] = chains.get(&config.lidar).map_or(&[], Vec::as_slice);
         let mut sweeps: HashMap<usize, &Reading> = HashMap::new();
@@ -342,7 +343,7 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
     }
     if uncounted > 0 {
         report.warnings.push(format!(
-            "{uncounted} sample(s) whose sweep is not the one nearest their round keep the keyframe's num_lidar_pts"
+            "{uncounted} sample(s) without their round's nearest sweep keep the keyframe's num_lidar_pts"
         ));
     }
     if unanchored > 0 {
