@@ -7,6 +7,7 @@ pub mod curation;
 pub mod eval;
 pub mod hull;
 pub mod middlebury;
+pub mod novel_view;
 pub mod output;
 pub mod reference;
 pub mod stage;
@@ -29,7 +30,7 @@ pub struct Registry {
 impl Default for Registry {
     fn default() -> Self {
         Registry {
-            stages: [curation::stages(), eval::stages(), output::stages()].into_iter().flatten().collect(),
+            stages: [curation::stages(), eval::stages(), novel_view::stages(), output::stages()].into_iter().flatten().collect(),
             nuscenes: dist4d_datasets::nuscenes::schema(),
             dgp: dist4d_datasets::dgp::schema(),
         }

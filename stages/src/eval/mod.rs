@@ -3,6 +3,7 @@
 
 pub mod boundary;
 pub mod canny;
+pub mod image_scores;
 pub mod report;
 pub mod sky;
 

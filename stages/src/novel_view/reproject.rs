@@ -1,0 +1,165 @@
+//! `Reproject`: RGB-D images of one or more cameras and frames drawn into one target camera (any
+//! pose, intrinsics and resolution): the image and depth conditions of DiST-S and SCC (paper Sec.
+//! 3.3-3.4) and the valid mask. How points are splatted is in [`super::splat`].
+
+use super::splat::{reproject, PinholeView, RgbdView, SplatParams};
+use crate::stage::Stage;
+use anyhow::{bail, ensure, Context, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::TaskContext;
+use dist4d_types::artifact::{Calibration, DepthMap, Image, Mask, Pose};
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Output width and height (px); 0 and 0 = the target camera's own image size. The target's
+    /// intrinsics scale with the image ([`PinholeView::resized`]).
+    pub width: u32,
+    pub height: u32,
+    pub splat: SplatParams,
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut checks = ParamChecks::new();
+        checks.count("width", self.width as u64, 0, 16384).count("height", self.height as u64, 0, 16384).check(
+            (self.width == 0) == (self.height == 0),
+            "width",
+            || "and `height` are both 0 (the target's size) or both set".into(),
+        );
+        self.splat.check(&mut checks);
+        checks.done()
+    }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// the source images (one, a window of frames, or a gather of cameras), matched to the
+        /// depths, calibrations and poses by position
+        images: Many<Image>,
+        /// the sources' metric depth (dense curated depth, or ground truth), 0 = none
+        depths: Many<DepthMap>,
+        /// the sources' camera calibrations
+        calibs: Many<Calibration>,
+        /// the sources' ego poses
+        poses: Many<Pose>,
+        /// the target camera's mounting, intrinsics and image size
+        target_calib: One<Calibration>,
+        /// the target's ego pose
+        target_pose: One<Pose>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// image condition: the sources' colours where they land, black elsewhere
+        image: One<Image>,
+        /// depth condition: metres along the target's optical axis, 0 = nothing landed
+        depth: One<DepthMap>,
+        /// 1 where something landed
+        mask: One<Mask>,
+    }
+}
+
+pub struct Reproject {
+    params: Params,
+}
+
+impl Stage for Reproject {
+    const KIND: &'static str = "Reproject";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "RGB-D of one or more cameras/frames drawn into a target camera with footprint splats and a soft z-buffer";
+    const GRAINS: &'static [&'static str] = &["camera", "frame", "scene"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+
+    fn new(params: Params) -> Result<Self> {
+        Ok(Reproject { params })
+    }
+
+    fn run(&self, _ctx: &TaskContext, inputs: Inputs) -> Result<Outputs> {
+        let target = PinholeView::new(&inputs.target_calib, &inputs.target_pose).context("target camera")?;
+        let target = match (self.params.width, self.params.height) {
+            (0, 0) => target,
+            (w, h) => target.resized(w, h),
+        };
+        let sources = Sources::match_by_position(&inputs)?;
+        let views: Vec<PinholeView> = sources
+            .iter()
+            .map(|s| PinholeView::new(s.calib, s.pose).with_context(|| format!("source at position {}", s.pos)))
+            .collect::<Result<_>>()?;
+        let rgbd: Vec<RgbdView> = sources
+            .iter()
+            .zip(&views)
+            .map(|(s, view)| {
+                ensure!(
+                    (s.image.width, s.image.height) == (view.width, view.height)
+                        && (s.depth.width, s.depth.height) == (view.width, view.height),
+                    "source at position {}: image {}x{} and depth {}x{} do not match the calibration's {}x{}",
+                    s.pos,
+                    s.image.width,
+                    s.image.height,
+                    s.depth.width,
+                    s.depth.height,
+                    view.width,
+                    view.height
+                );
+                Ok(RgbdView { rgb: &s.image.rgb, depth: &s.depth.data, view })
+            })
+            .collect::<Result<_>>()?;
+        let out = reproject(&rgbd, &target, &self.params.splat)?;
+        Ok(Outputs {
+            image: Image { width: out.width, height: out.height, rgb: out.rgb },
+            depth: DepthMap { width: out.width, height: out.height, data: out.depth },
+            mask: Mask { width: out.width, height: out.height, data: out.valid },
+        })
+    }
+}
+
+/// One source of a task: the four inputs at one position.
+struct Source<'a> {
+    pos: i64,
+    image: &'a Image,
+    depth: &'a DepthMap,
+    calib: &'a Calibration,
+    pose: &'a Pose,
+}
+
+struct Sources;
+
+impl Sources {
+    /// The sources in position order; every position must be in all four inputs (a window clipped
+    /// differently on one port, or a gather over other cameras, is a wiring mistake to report).
+    fn match_by_position(inputs: &Inputs) -> Result<Vec<Source<'_>>> {
+        let mut out = Vec::with_capacity(inputs.images.len());
+        for (pos, image) in &inputs.images {
+            let depth = at(&inputs.depths, *pos, "depths")?;
+            let calib = at(&inputs.calibs, *pos, "calibs")?;
+            let pose = at(&inputs.poses, *pos, "poses")?;
+            out.push(Source { pos: *pos, image, depth, calib, pose });
+        }
+        for (port, n) in
+            [("depths", inputs.depths.len()), ("calibs", inputs.calibs.len()), ("poses", inputs.poses.len())]
+        {
+            if n != out.len() {
+                bail!(
+                    "input `{port}` has {n} sources and `images` {}: they must be wired with the same selector",
+                    out.len()
+                );
+            }
+        }
+        out.sort_by_key(|s| s.pos);
+        Ok(out)
+    }
+}
+
+/// The artifact at position `pos` of input `port`.
+fn at<'a, A>(list: &'a [(i64, A)], pos: i64, port: &str) -> Result<&'a A> {
+    list.iter()
+        .find(|(p, _)| *p == pos)
+        .map(|(_, a)| a)
+        .with_context(|| format!("input `{port}` has nothing at position {pos}, which `images` has"))
+}
