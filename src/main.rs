@@ -339,14 +339,17 @@ fn execute(
     let engine = Engine { pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
     let rec = engine.run(&opts)?.record;
     println!(
-        "{:<16} {:<18} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
-        "stage", "kind", "total", "executed", "cached", "failed", "skipped", "seconds"
+        "{:<16} {:<18} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9}",
+        "stage", "kind", "total", "executed", "cached", "failed", "skipped", "n/a", "seconds"
     );
     for s in &rec.stages {
         println!(
-            "{:<16} {:<18} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.2}",
-            s.stage, s.kind, s.total, s.executed, s.cached, s.failed, s.skipped, s.seconds
+            "{:<16} {:<18} {:>8} {:>8} {:>8} {:>8} {:>8} {:>8} {:>9.2}",
+            s.stage, s.kind, s.total, s.executed, s.cached, s.failed, s.skipped, s.not_applicable, s.seconds
         );
+    }
+    if rec.stages.iter().any(|s| s.not_applicable > 0) {
+        println!("(n/a: tasks with nothing to make, e.g. a pair whose target frame is past the scene's end; counted within executed/cached when they ran)");
     }
     let recomputed: u64 = rec.stages.iter().map(|s| s.recomputed).sum();
     if recomputed > 0 {
@@ -531,7 +534,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 } else {
                     String::new()
                 };
-                println!("{} ({}): {} cached, {} will run{failed}", s.stage, s.kind, s.cached, s.will_run);
+                let nothing = if s.not_applicable > 0 {
+                    format!(", {} with nothing to make", s.not_applicable)
+                } else {
+                    String::new()
+                };
+                println!("{} ({}): {} cached, {} will run{failed}{nothing}", s.stage, s.kind, s.cached, s.will_run);
                 for (reason, (n, example)) in &s.reasons {
                     println!("    {n} x {reason}  (e.g. {example})");
                 }

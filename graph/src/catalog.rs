@@ -3,7 +3,9 @@
 //! The graph knows nothing about driving: artifact types are names, dimensions are names. The
 //! `stages` crate describes its stages and datasets through these schemas.
 
-use crate::params::ParamsSpec;
+use crate::params::{ParamsSpec, ParamsValue};
+use serde::Serialize;
+use std::collections::BTreeMap;
 
 /// One input or output port of a stage.
 #[derive(Clone, Copy, Debug)]
@@ -67,6 +69,45 @@ pub struct StageSchema {
     /// at it (an index of training clips): each must be the path template of one of the
     /// pipeline's exports, so the two cannot drift apart.
     pub export_template_params: Vec<&'static str>,
+    /// For a stage that runs once per variant of its params (e.g. a training pair per frame
+    /// offset), how to split checked params into the variants: such a stage runs per `variant`,
+    /// the dimension [`VARIANT_DIM`] the pipeline then gets under the dataset's innermost one.
+    pub variants: Option<fn(&ParamsValue) -> Option<Variants>>,
+}
+
+/// The name of the dimension a pipeline gets when a stage declares variants: export templates
+/// write `{variant}`, stages run per it with `grain: variant`.
+pub const VARIANT_DIM: &str = "variant";
+
+/// A stage's params split into what every variant shares and each variant's own part, in label
+/// order. A task of one variant is keyed by the shared part and its own part only, so editing
+/// one variant reruns that variant alone.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Variants {
+    /// The params without their variants, canonical.
+    pub shared: String,
+    /// Each variant's label and canonical text.
+    pub each: Vec<(String, String)>,
+}
+
+impl Variants {
+    /// Splits `params`, whose variants `take` removes (leaving the rest to be shared).
+    pub fn split<P: Serialize + Clone, V: Serialize>(
+        params: &P,
+        take: impl FnOnce(&mut P) -> BTreeMap<String, V>,
+    ) -> Option<Variants> {
+        let mut shared = params.clone();
+        let variants = take(&mut shared);
+        let each = variants
+            .iter()
+            .map(|(label, v)| crate::canonical::to_canonical(v).ok().map(|text| (label.clone(), text)))
+            .collect::<Option<Vec<_>>>()?;
+        Some(Variants { shared: crate::canonical::to_canonical(&shared).ok()?, each })
+    }
+
+    pub fn labels(&self) -> Vec<String> {
+        self.each.iter().map(|(label, _)| label.clone()).collect()
+    }
 }
 
 /// A dataset kind as the graph sees it.

@@ -421,7 +421,13 @@ impl<'c> Checker<'c> {
         };
         // A known dataset kind gives dimensions and ports even when its config is bad, so that
         // the stages can still be checked.
-        let dims: Option<Vec<Dim>> = dataset.as_ref().map(|(_, dims, _)| dims.clone());
+        let dataset_dims: Option<Vec<Dim>> = dataset.as_ref().map(|(_, dims, _)| dims.clone());
+        // Stages may run per variant, a dimension under the dataset's innermost one that exists
+        // when a stage declares variants (checked once every stage is known).
+        let mut dims = dataset_dims.clone().map(|mut d| {
+            d.push(Dim { name: crate::VARIANT_DIM.into(), ordered: false });
+            d
+        });
 
         let mut nodes: Vec<Node> = Vec::new();
         let mut declared: Vec<Declared> = Vec::new();
@@ -438,6 +444,16 @@ impl<'c> Checker<'c> {
             None => self.err(Diagnostic::error("the pipeline has no `stages`", root.span)),
         }
 
+        let variants = self.variant_labels(&nodes, &declared, dims.as_deref());
+        if variants.is_empty() {
+            // Stages run per variant here were reported: like a refused grain, theirs is none.
+            let variant_grain = dims.as_ref().map_or(0, |d| d.len());
+            for n in nodes.iter_mut().filter(|n| n.grain == variant_grain) {
+                n.grain = 0;
+            }
+            dims = dataset_dims;
+        }
+
         // Inputs, now that every stage name is known. Sources are added as they are referenced.
         let source_ports = dataset.as_ref().map(|(_, _, ports)| ports.clone()).unwrap_or_default();
         for d in &declared {
@@ -450,8 +466,8 @@ impl<'c> Checker<'c> {
             _ => Vec::new(),
         };
         self.export_template_params(root, &nodes, &exports);
-        let (decl, dims, _) = dataset?;
-        Some(Pipeline { name, path, dataset: decl?, dims, nodes, order, exports })
+        let (decl, _, _) = dataset?;
+        Some(Pipeline { name, path, dataset: decl?, dims: dims?, nodes, order, exports, variants })
     }
 
     /// Params that say where an export writes (a clip index's paths) must be one of the
@@ -668,6 +684,7 @@ impl<'c> Checker<'c> {
                 describe_ports(&schema.inputs)
             )));
         }
+        let variants = schema.variants.zip(params.as_ref()).and_then(|(split, p)| split(p));
         let node = nodes.len();
         nodes.push(Node {
             name: name.to_string(),
@@ -679,6 +696,7 @@ impl<'c> Checker<'c> {
                 params: params.unwrap_or_default(),
                 seeded: schema.seeded,
                 inputs: Vec::new(),
+                variants,
             }),
         });
         declared.push(Declared {
@@ -688,6 +706,68 @@ impl<'c> Checker<'c> {
             schema_inputs: schema.inputs.clone(),
             kind_span: kind.span,
         });
+    }
+
+    /// The labels of the variant dimension: those of the stages that declare variants (which
+    /// must agree), or none when no stage does. A stage running per variant without any stage
+    /// declaring them is an error, and so is a declaring stage run per another grain.
+    fn variant_labels(&mut self, nodes: &[Node], declared: &[Declared], dims: Option<&[Dim]>) -> Vec<String> {
+        let Some(dims) = dims else { return Vec::new() };
+        let variant_grain = dims.len();
+        let mut labels: Option<(Vec<String>, &str)> = None;
+        for d in declared {
+            let node = &nodes[d.node];
+            let Some(stage) = node.stage() else { continue };
+            let Some(v) = &stage.variants else { continue };
+            let these = v.labels();
+            if node.grain != 0 && node.grain != variant_grain {
+                self.err(
+                    Diagnostic::error(
+                        format!("stage `{}` declares variants, so it runs per `{}`", node.name, crate::VARIANT_DIM),
+                        d.name_span,
+                    )
+                    .with_note("remove its `grain`"),
+                );
+            }
+            match &labels {
+                None => labels = Some((these, &node.name)),
+                Some((first, first_stage)) if *first != these => {
+                    self.err(
+                        Diagnostic::error(
+                            format!(
+                                "stage `{}` declares the variants {}, and stage `{first_stage}` {}: a pipeline has one variant dimension",
+                                node.name,
+                                these.join(", "),
+                                first.join(", ")
+                            ),
+                            d.name_span,
+                        )
+                        .with_note("give both the same variant labels"),
+                    );
+                }
+                Some(_) => {}
+            }
+        }
+        let labels = labels.map(|(l, _)| l).unwrap_or_default();
+        if labels.is_empty() {
+            for d in declared {
+                let node = &nodes[d.node];
+                if node.grain == variant_grain && node.stage().is_some_and(|s| s.variants.is_none()) {
+                    self.err(
+                        Diagnostic::error(
+                            format!(
+                                "stage `{}` runs per `{}`, but no stage of this pipeline declares variants",
+                                node.name,
+                                crate::VARIANT_DIM
+                            ),
+                            d.name_span,
+                        )
+                        .with_note("variants come from a stage whose params list them (e.g. a `variants: {..}` map)"),
+                    );
+                }
+            }
+        }
+        labels
     }
 
     fn text(&self, v: &Value) -> String {

@@ -78,6 +78,9 @@ pub struct StageNode {
     pub params: ParamsValue,
     pub seeded: bool,
     pub inputs: Vec<Input>,
+    /// For a stage that declares variants: its params split per variant (it runs per
+    /// [`crate::VARIANT_DIM`]).
+    pub variants: Option<crate::Variants>,
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -144,6 +147,9 @@ pub struct Pipeline {
     /// Node ids in an order where every node comes after its inputs.
     pub order: Vec<NodeId>,
     pub exports: Vec<Export>,
+    /// The labels of the variant dimension (the last of `dims`, named [`crate::VARIANT_DIM`])
+    /// when a stage declares variants; empty otherwise.
+    pub variants: Vec<String>,
 }
 
 impl Pipeline {

@@ -120,6 +120,7 @@ fn stage(
         params,
         seeded: false,
         export_template_params: vec![],
+        variants: None,
     }
 }
 

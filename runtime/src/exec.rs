@@ -17,7 +17,7 @@ use crate::digest::{Digest, DigestBuilder};
 use crate::export::{ExportJob, Exporter, FileStat};
 use crate::item::{ItemKey, ItemSpace};
 use crate::keys::{Decision, Input, Keys, Unknown};
-use crate::operator::{Artifact, Blob, Dataset, Operator, Output, TaskContext};
+use crate::operator::{Artifact, Blob, Dataset, NotApplicable, Operator, Output, TaskContext};
 use crate::plan::{plan_outer, InputSrc, OuterPlan, View};
 use crate::progress::{Counters, ProgressMode, Reporter};
 use crate::record::{OutputRef, RecordInput, TaskRecord, INLINE_MAX};
@@ -202,6 +202,16 @@ enum Outcome {
     /// Key, outputs, microseconds, and the task record when it waits for exports to be appended
     /// (outputs kept only in the output folder); `None` when the worker appended it.
     Executed(Digest, Vec<Produced>, u64, Option<Box<TaskRecord>>),
+}
+
+impl Outcome {
+    /// How many outputs the task made (none: it had nothing to make).
+    fn outputs(&self) -> usize {
+        match self {
+            Outcome::Cached(_, outs) => outs.len(),
+            Outcome::Executed(_, produced, ..) => produced.len(),
+        }
+    }
 }
 
 enum Msg {
@@ -482,12 +492,17 @@ impl<'a> Engine<'a> {
             artifacts.push(list);
         }
         let ctx = TaskContext { item: job.item, seed: keys.seed(job.node, &job.item), label: &label };
-        let outs = self.operators[job.node]
+        let outs = match self.operators[job.node]
             .as_ref()
             .ok_or_else(|| anyhow!("no operator for stage `{}`", node.name))?
             .run(&ctx, &artifacts)
-            .with_context(|| format!("{} ({})", node.name, stage.kind))?;
-        if outs.len() != node.outputs.len() {
+        {
+            Ok(outs) => outs,
+            // Recorded with no outputs, like a task that made them (see NotApplicable).
+            Err(e) if e.downcast_ref::<NotApplicable>().is_some() => Vec::new(),
+            Err(e) => return Err(e.context(format!("{} ({})", node.name, stage.kind))),
+        };
+        if !outs.is_empty() && outs.len() != node.outputs.len() {
             bail!(
                 "stage `{}` ({}) returned {} outputs, its kind declares {}; nothing was stored",
                 node.name,
@@ -675,9 +690,15 @@ impl Coord {
                     }
                 }
                 self.counters.done[ci].fetch_add(1, Ordering::Relaxed);
+                let nothing = outcome.outputs() == 0 && !e.pipeline.nodes[node].outputs.is_empty();
                 self.complete(e, slot, t, outcome)?;
-                let dependents = run_of(&self.active, slot).plan.tasks[t].dependents.clone();
-                self.release(slot, &dependents);
+                if nothing {
+                    self.stats[ci].not_applicable += 1;
+                    self.pass_over(e, slot, t);
+                } else {
+                    let dependents = run_of(&self.active, slot).plan.tasks[t].dependents.clone();
+                    self.release(slot, &dependents);
+                }
             }
             Err(err) => {
                 self.stats[ci].failed += 1;
@@ -723,6 +744,39 @@ impl Coord {
                 self.ready.push(entry(run, slot, d as u32, &self.rank));
             }
         }
+    }
+
+    /// Task `t` had nothing to make: its outputs leave the inputs of the tasks that read them,
+    /// which then go on without them, or, when that leaves one of their inputs with nothing,
+    /// have nothing to make either (and so on downstream).
+    fn pass_over(&mut self, e: &Engine, slot: u32, t: usize) {
+        let mut stack = vec![t];
+        while let Some(u) = stack.pop() {
+            let run = self.active[slot as usize].as_mut().unwrap();
+            let dependents = run.plan.tasks[u].dependents.clone();
+            for d in dependents {
+                let d = d as usize;
+                if run.state[d] != State::Waiting {
+                    continue;
+                }
+                if run.plan.drop_upstream(d as u32, u as u32) {
+                    run.state[d] = State::Skipped;
+                    let dn = self.counter_of[run.plan.tasks[d].node as usize];
+                    self.stats[dn].not_applicable += 1;
+                    self.counters.done[dn].fetch_add(1, Ordering::Relaxed);
+                    release_inputs(run, d);
+                    run.open -= 1;
+                    self.live_tasks -= 1;
+                    stack.push(d);
+                } else {
+                    run.waiting[d] -= 1;
+                    if run.waiting[d] == 0 {
+                        self.ready.push(entry(run, slot, d as u32, &self.rank));
+                    }
+                }
+            }
+        }
+        let _ = e;
     }
 
     /// Frees the slot of an outer item whose tasks, exports and reruns have all ended.

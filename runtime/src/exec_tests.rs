@@ -784,3 +784,113 @@ fn explain_looks_for_outputs_kept_only_in_the_output_folder_where_the_run_would(
     assert_eq!((file.cached, file.will_run), (0, 8));
     assert_eq!(executed(&run_with(&p, &grid, &store, &exporting(&out)))["file"], 1, "as explained");
 }
+
+/// Per camera: a task per variant (`a`, `b`), each exported, and a gather of the variants.
+const VARIANTS: &str = r#"Pipeline(
+    dataset: Grid(scenes: 1, frames: 3, cameras: 2),
+    stages: {
+        "vary": Vary(inputs: {"x": "dataset.camera_value"}, params: (variants: {"a": 1, "b": 2})),
+        "after": Echo(inputs: {"x": "vary.y"}, grain: variant),
+        "file": ToFile(inputs: {"x": "after.y"}, grain: variant),
+        "both": Merge(inputs: {"xs": Gather("after.y", variant)}, grain: camera),
+    },
+    export: {"file.file": "{scene}/{frame}_{camera}_{variant}.bin"},
+)"#;
+
+fn with_variants(p: &Pipeline) -> crate::WithVariants {
+    crate::WithVariants { inner: Box::new(testkit::grid_of(p)), depth: 3, labels: p.variants.clone() }
+}
+
+fn run_on(p: &Pipeline, dataset: &dyn crate::Dataset, store: &Path, opts: &RunOptions) -> RunRecord {
+    let store = Store::open(store, Access::Shared).unwrap();
+    let ops = testkit::operators(p);
+    Engine { pipeline: p, dataset, operators: &ops, store: &store }.run(opts).unwrap().record
+}
+
+#[test]
+fn a_stage_with_variants_runs_per_variant_and_an_edited_variant_reruns_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(VARIANTS, &[]);
+    assert_eq!(p.variants, ["a", "b"]);
+    assert_eq!(p.dims.last().unwrap().name, "variant");
+    let ds = with_variants(&p);
+    let r = run_on(&p, &ds, &store, &exporting(&out));
+    assert_eq!(r.status, RunStatus::Complete);
+    assert_eq!(executed(&r), counts(&[("vary", 12), ("after", 12), ("file", 12), ("both", 6)]));
+    // The variants differ (their own salts), and the exports name them.
+    let a = std::fs::read(out.join("s0/001_cam1_a.bin")).unwrap();
+    let b = std::fs::read(out.join("s0/001_cam1_b.bin")).unwrap();
+    assert_ne!(a, b);
+    // Variant b's salt edited: only b's tasks and the gathers run again.
+    let edited = testkit::load(VARIANTS, &["vary.variants={\"a\": 1, \"b\": 3}"]);
+    let r = run_on(&edited, &with_variants(&edited), &store, &exporting(&out));
+    assert_eq!(executed(&r), counts(&[("vary", 6), ("after", 6), ("file", 6), ("both", 6)]));
+    assert_eq!(std::fs::read(out.join("s0/001_cam1_a.bin")).unwrap(), a);
+    assert_ne!(std::fs::read(out.join("s0/001_cam1_b.bin")).unwrap(), b);
+}
+
+#[test]
+fn variants_must_be_declared_once_and_agree() {
+    let text = VARIANTS.replace(
+        r#""after": Echo(inputs: {"x": "vary.y"}, grain: variant),"#,
+        r#""after": Vary(inputs: {"x": "vary.y"}, params: (variants: {"a": 1, "c": 2})),"#,
+    );
+    let err = dist4d_graph::load_str(
+        "t.ron",
+        &text,
+        Path::new("t.ron"),
+        Path::new("."),
+        &[],
+        Path::new("."),
+        &testkit::TestCatalog::default(),
+    )
+    .unwrap_err()
+    .render();
+    assert!(err.contains("declares the variants a, c, and stage `vary` a, b"), "{err}");
+    let none = VARIANTS.replace(
+        r#""vary": Vary(inputs: {"x": "dataset.camera_value"}, params: (variants: {"a": 1, "b": 2})),"#,
+        r#""vary": Echo(inputs: {"x": "dataset.camera_value"}),"#,
+    );
+    let err = dist4d_graph::load_str(
+        "t.ron",
+        &none,
+        Path::new("t.ron"),
+        Path::new("."),
+        &[],
+        Path::new("."),
+        &testkit::TestCatalog::default(),
+    )
+    .unwrap_err()
+    .render();
+    assert!(err.contains("stage `after` runs per `variant`, but no stage of this pipeline declares variants"), "{err}");
+}
+
+#[test]
+fn a_task_with_nothing_to_make_is_recorded_its_gathers_go_on_without_it_and_its_readers_are_passed_over() {
+    let dir = tempfile::tempdir().unwrap();
+    let (store, out) = (dir.path().join("store"), dir.path().join("out"));
+    let p = testkit::load(VARIANTS, &["after.nothing_on=[\"s0/002/cam0/b\"]"]);
+    let ds = with_variants(&p);
+    let r = run_on(&p, &ds, &store, &exporting(&out));
+    assert_eq!(r.status, RunStatus::Complete, "nothing to make is not a failure: {:?}", r.failures);
+    let by = |r: &RunRecord, n: &str| r.stages.iter().find(|s| s.stage == n).unwrap().clone();
+    assert_eq!((by(&r, "after").executed, by(&r, "after").not_applicable), (12, 1));
+    // Its file has nothing to make either; the gather of that camera runs on variant a alone.
+    assert_eq!((by(&r, "file").executed, by(&r, "file").not_applicable), (11, 1));
+    assert_eq!((by(&r, "both").executed, by(&r, "both").not_applicable), (6, 0));
+    assert!(!out.join("s0/002_cam0_b.bin").exists() && out.join("s0/002_cam0_a.bin").exists());
+    // Recorded: the rerun asks nobody again, and explain says so.
+    let again = run_on(&p, &ds, &store, &exporting(&out));
+    assert_eq!(again.executed(), 0);
+    assert_eq!((by(&again, "after").cached, by(&again, "after").not_applicable), (12, 1));
+    assert_eq!(by(&again, "file").not_applicable, 1);
+    let store = Store::open(&store, Access::Shared).unwrap();
+    let ops = testkit::operators(&p);
+    let engine = Engine { pipeline: &p, dataset: &ds, operators: &ops, store: &store };
+    let report = crate::explain::explain(&engine, None, None, Some(&out)).unwrap();
+    let e = |n: &str| report.iter().find(|s| s.stage == n).unwrap().clone();
+    assert_eq!((e("after").cached, e("after").not_applicable, e("after").will_run), (11, 1, 0));
+    assert_eq!((e("file").cached, e("file").not_applicable, e("file").will_run), (11, 1, 0));
+    assert_eq!((e("both").cached, e("both").will_run), (6, 0));
+}

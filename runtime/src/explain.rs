@@ -22,6 +22,9 @@ pub struct StageExplain {
     pub kind: String,
     pub cached: u64,
     pub will_run: u64,
+    /// Tasks that had nothing to make (cached as such), or that have nothing because an input
+    /// they need had nothing (see [`crate::NotApplicable`]).
+    pub not_applicable: u64,
     /// Tasks that will run and failed in the last run of this pipeline.
     pub failed_last_run: u64,
     /// Reason -> (how many tasks, an example item).
@@ -98,18 +101,37 @@ pub fn explain(
         out[n].kind = p.nodes[n].stage().unwrap().kind.clone();
     }
     for outer in outers {
-        let plan = plan_outer(p, &view, outer);
+        let mut plan = plan_outer(p, &view, outer);
         // Output digests of tasks known to be cached; None = will run.
         let mut outputs: Vec<Option<Vec<Digest>>> = vec![None; plan.tasks.len()];
-        for (t, task) in plan.tasks.iter().enumerate() {
+        // Tasks with nothing to make, as a run would pass them over (known only from the records
+        // of tasks that said so).
+        let mut nothing = vec![false; plan.tasks.len()];
+        for t in 0..plan.tasks.len() {
+            let task = &plan.tasks[t];
             let node = task.node as usize;
+            if nothing[t] {
+                out[node].not_applicable += 1;
+                for d in plan.tasks[t].dependents.clone() {
+                    nothing[d as usize] |= plan.drop_upstream(d, t as u32);
+                }
+                continue;
+            }
+            let task = &plan.tasks[t];
             let stage = p.nodes[node].stage().unwrap();
             let label = engine.dataset.path(&task.item);
             // The same resolution and decision as a run, hashing changed raw files as a run would.
-            let upstream = |u: u32, port: u16| outputs[u as usize].as_ref().map(|o| o[port as usize]);
+            let upstream = |u: u32, port: u16| outputs[u as usize].as_ref().and_then(|o| o.get(port as usize).copied());
             let inputs = keys.resolve(&plan, t as u32, upstream, true);
             let e = &mut out[node];
             let lost = match keys.decide(node, &task.item, &inputs, true) {
+                Decision::Cached { outputs: outs, .. } if outs.is_empty() && !p.nodes[node].outputs.is_empty() => {
+                    e.not_applicable += 1;
+                    for d in plan.tasks[t].dependents.clone() {
+                        nothing[d as usize] |= plan.drop_upstream(d, t as u32);
+                    }
+                    continue;
+                }
                 Decision::Cached { outputs: outs, .. } => {
                     e.cached += 1;
                     outputs[t] = Some(outs.iter().map(|o| o.digest).collect());

@@ -24,6 +24,9 @@ use dist4d_graph::{NodeId, NodeKind, ParamsValue, Pipeline, StageNode};
 use std::path::Path;
 use std::sync::Arc;
 
+/// Domain of the params digests of variants' tasks.
+const VARIANT_PARAMS_DOMAIN: &str = "dist4d-variant-params-v1";
+
 /// Domain of task keys. Bump it when the key layout or the canonical params printer changes, so
 /// that old records are never mistaken for new ones.
 pub const TASK_KEY_DOMAIN: &str = "dist4d-task-v2";
@@ -40,6 +43,12 @@ pub const STORED_EXPORT_MAX: u64 = 16 << 10;
 /// The digest of checked params, as task keys and task records hold it.
 pub fn params_digest(params: &ParamsValue) -> Digest {
     Digest::of(params.canonical.as_bytes())
+}
+
+/// The params digest of one variant's tasks: the shared params, the label and the variant's own
+/// params (see [`dist4d_graph::Variants`]).
+pub fn variant_params_digest(shared: &str, label: &str, own: &str) -> Digest {
+    DigestBuilder::new(VARIANT_PARAMS_DOMAIN).str(shared).str(label).str(own).finish()
 }
 
 /// The task key of `stage` on `item` with params digest `params` and, per input port (in the
@@ -128,6 +137,8 @@ pub struct Keys<'a> {
     store: &'a Store,
     /// Params digest per node (default for sources).
     params: Vec<Digest>,
+    /// Per node declaring variants, the params digest of each variant's tasks (empty otherwise).
+    variant_params: Vec<Vec<Digest>>,
     /// The output folder of the run, when it exports.
     folder: Option<Arc<OutputFolder>>,
     /// Per node and output port: exported into `folder` and read by no stage (all false without a folder).
@@ -137,8 +148,16 @@ pub struct Keys<'a> {
 impl<'a> Keys<'a> {
     pub fn new(pipeline: &'a Pipeline, dataset: &'a dyn Dataset, store: &'a Store) -> Keys<'a> {
         let params = pipeline.nodes.iter().map(|n| n.stage().map(|s| params_digest(&s.params)).unwrap_or_default());
+        let variant_params = pipeline
+            .nodes
+            .iter()
+            .map(|n| match n.stage().and_then(|s| s.variants.as_ref()) {
+                Some(v) => v.each.iter().map(|(label, own)| variant_params_digest(&v.shared, label, own)).collect(),
+                None => Vec::new(),
+            })
+            .collect();
         let only_exported = pipeline.nodes.iter().map(|n| vec![false; n.outputs.len()]).collect();
-        Keys { pipeline, dataset, store, params: params.collect(), folder: None, only_exported }
+        Keys { pipeline, dataset, store, params: params.collect(), variant_params, folder: None, only_exported }
     }
 
     /// Keys for a run that exports into `folder`. Outputs that it exports and that no stage of
@@ -177,9 +196,22 @@ impl<'a> Keys<'a> {
         self.params[node]
     }
 
+    /// The params digest the tasks of stage node `node` on `item` are keyed and seeded by: the
+    /// node's, or for a stage with variants the shared part's and the item's own variant's, so
+    /// that editing one variant reruns only its tasks.
+    pub fn task_params(&self, node: NodeId, item: &ItemKey) -> Digest {
+        match self.variant_params[node].as_slice() {
+            [] => self.params[node],
+            each => {
+                let i = item.coords().last().map_or(0, |&i| i as usize);
+                each.get(i).copied().unwrap_or(self.params[node])
+            }
+        }
+    }
+
     /// The seed of stage node `node` on `item` (see [`task_seed`]).
     pub fn seed(&self, node: NodeId, item: &ItemKey) -> u64 {
-        task_seed(&self.stage(node).kind, &self.params[node], item)
+        task_seed(&self.stage(node).kind, &self.task_params(node, item), item)
     }
 
     /// Every input artifact of task `task` of `plan`, per input port in port order, with its
@@ -232,7 +264,7 @@ impl<'a> Keys<'a> {
     /// is set, else the answer is `Unknown`). A record whose bytes are gone is not a hit.
     pub fn decide(&self, node: NodeId, item: &ItemKey, inputs: &[Vec<Input>], hash: bool) -> Decision {
         let Some(digests) = known_digests(inputs) else { return Decision::Unknown };
-        let key = task_key(self.stage(node), &self.params[node], item, &digests);
+        let key = task_key(self.stage(node), &self.task_params(node, item), item, &digests);
         let Some(rec) = self.store.lookup(&key) else { return Decision::Run { key, lost: None } };
         let mut unsure = false;
         for (port, o) in rec.outputs.iter().enumerate() {
@@ -350,6 +382,7 @@ mod tests {
             many,
         };
         StageNode {
+            variants: None,
             kind: "Pinned".into(),
             version: 3,
             params: ParamsValue::new(params).unwrap(),

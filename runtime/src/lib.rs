@@ -21,7 +21,7 @@ pub mod store;
 pub use digest::{Digest, DigestBuilder};
 pub use exec::{Engine, RunOptions, RunSummary};
 pub use item::{ItemKey, ItemSpace};
-pub use operator::{Artifact, Blob, Dataset, FileDigests, Operator, Output, TaskContext};
+pub use operator::{Artifact, Blob, Dataset, FileDigests, NotApplicable, Operator, Output, TaskContext, WithVariants};
 pub use progress::ProgressMode;
 pub use runs::{RunRecord, RunStatus};
 pub use store::{Access, Store};

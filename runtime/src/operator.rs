@@ -54,6 +54,22 @@ pub struct TaskContext<'a> {
     pub label: &'a str,
 }
 
+/// What a stage returns (as its error) when its item has nothing to make: a training pair whose
+/// target frame lies past the scene's end, a view of a camera the item does not have. Not a
+/// failure: the run records the task with no outputs (a rerun does not ask again), drops it from
+/// the lists of the tasks that gather it, passes the others over (they have nothing to make
+/// either), and counts them all as "not applicable".
+#[derive(Debug)]
+pub struct NotApplicable(pub String);
+
+impl std::fmt::Display for NotApplicable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "not applicable: {}", self.0)
+    }
+}
+
+impl std::error::Error for NotApplicable {}
+
 /// One output of a task: its bytes and the artifact type they are encoded as. The runtime checks
 /// the type against the one the output port declares before anything is stored, so a wrongly
 /// encoded output fails its own task instead of a reader downstream.
@@ -67,4 +83,44 @@ pub struct Output {
 /// (per output port, in port order). Must be deterministic: same inputs, same bytes.
 pub trait Operator: Send + Sync {
     fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Vec<Output>>;
+}
+
+/// A dataset seen through a pipeline with variants: its items, each of the innermost dimension
+/// extended by one coordinate per variant (the pipeline's last dimension). Sources are never per
+/// variant, so everything else is the dataset's.
+pub struct WithVariants {
+    pub inner: Box<dyn Dataset>,
+    /// The dataset's own number of dimensions.
+    pub depth: usize,
+    pub labels: Vec<String>,
+}
+
+impl ItemSpace for WithVariants {
+    fn count(&self, prefix: &ItemKey) -> u32 {
+        if prefix.depth as usize == self.depth {
+            self.labels.len() as u32
+        } else {
+            self.inner.count(prefix)
+        }
+    }
+    fn label(&self, item: &ItemKey) -> String {
+        if item.depth as usize == self.depth + 1 {
+            self.labels.get(item.idx[self.depth] as usize).cloned().unwrap_or_else(|| "?".into())
+        } else {
+            self.inner.label(item)
+        }
+    }
+}
+
+impl Dataset for WithVariants {
+    fn source_digest(&self, port: &str, item: &ItemKey, files: &dyn FileDigests) -> Result<Option<Digest>> {
+        self.inner.source_digest(port, item, files)
+    }
+    fn load_source(&self, port: &str, item: &ItemKey) -> Result<Vec<u8>> {
+        self.inner.load_source(port, item)
+    }
+    fn source_record(&self, item: &ItemKey) -> Option<serde_json::Value> {
+        // A variant item's sources are its dataset item's.
+        self.inner.source_record(&item.prefix(item.depth.min(self.depth as u8) as usize))
+    }
 }

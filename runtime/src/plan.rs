@@ -96,6 +96,22 @@ impl View<'_> {
     }
 }
 
+impl OuterPlan {
+    /// Upstream task `u` of task `d` turned out to have nothing to make: its artifacts leave
+    /// `d`'s inputs. Whether one of `d`'s inputs is left with nothing (then `d` has nothing to
+    /// make either).
+    pub fn drop_upstream(&mut self, d: u32, u: u32) -> bool {
+        let task = &mut self.tasks[d as usize];
+        let mut emptied = false;
+        for srcs in &mut task.inputs {
+            let before = srcs.len();
+            srcs.retain(|s| !matches!(s, InputSrc::Task { task, .. } if *task == u));
+            emptied |= before > 0 && srcs.is_empty();
+        }
+        emptied
+    }
+}
+
 /// Plans every task under outer item `outer`. Tasks whose single input does not exist (an `Offset`
 /// past the end of a dimension) are not planned, nor are tasks that depend on them.
 pub fn plan_outer(pipeline: &Pipeline, view: &View, outer: u32) -> OuterPlan {

@@ -17,6 +17,10 @@ pub struct StageStats {
     pub failed: u64,
     /// Not run because an input failed.
     pub skipped: u64,
+    /// Finished with nothing to make (see [`crate::NotApplicable`]), or passed over because an
+    /// input they need had nothing; counted here and not as failed.
+    #[serde(default)]
+    pub not_applicable: u64,
     /// Finished tasks run again because a blob of theirs was found missing or corrupt.
     #[serde(default)]
     pub recomputed: u64,

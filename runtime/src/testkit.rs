@@ -97,6 +97,10 @@ pub struct EchoParams {
     pub sleep_ms: u64,
     /// Tag the output with a type no port declares (for the runtime's output type check).
     pub mistag: bool,
+    /// Item paths on which the task has nothing to make ([`crate::NotApplicable`]).
+    pub nothing_on: Vec<String>,
+    /// For `Vary`: a salt per variant label (the stage runs once per variant).
+    pub variants: std::collections::BTreeMap<String, u32>,
 }
 
 // Test params: any value is usable.
@@ -129,12 +133,13 @@ fn kind(kind: &'static str, inputs: Vec<PortSpec>, outputs: Vec<PortSpec>, grain
         params: ParamsSpec::of::<EchoParams>(),
         seeded: false,
         export_template_params: vec![],
+        variants: None,
     }
 }
 
 impl Default for TestCatalog {
     fn default() -> Self {
-        let all = vec!["camera", "frame", "scene"];
+        let all = vec!["camera", "frame", "scene", "variant"];
         TestCatalog {
             kinds: vec![
                 kind("Echo", vec![PortSpec::one("x", "Bytes", "")], vec![PortSpec::one("y", "Bytes", "")], all.clone()),
@@ -151,6 +156,18 @@ impl Default for TestCatalog {
                     all.clone(),
                 ),
                 kind("FromFile", vec![PortSpec::one("file", "File", "")], vec![PortSpec::one("y", "Bytes", "")], all),
+                StageSchema {
+                    variants: Some(|p| {
+                        p.get::<EchoParams>()
+                            .and_then(|e| dist4d_graph::Variants::split(e, |e| std::mem::take(&mut e.variants)))
+                    }),
+                    ..kind(
+                        "Vary",
+                        vec![PortSpec::one("x", "Bytes", "")],
+                        vec![PortSpec::one("y", "Bytes", "")],
+                        vec!["variant"],
+                    )
+                },
             ],
             grid: DatasetSchema {
                 kind: "Grid",
@@ -197,8 +214,15 @@ impl Operator for EchoOp {
         if params.fail_on.iter().any(|f| f == ctx.label) {
             bail!("asked to fail on {}", ctx.label);
         }
+        if params.nothing_on.iter().any(|f| f == ctx.label) {
+            return Err(crate::NotApplicable(format!("asked for nothing on {}", ctx.label)).into());
+        }
         let mut b = DigestBuilder::new("echo");
         b.u64(params.salt as u64);
+        if !params.variants.is_empty() {
+            let i = *ctx.item.coords().last().unwrap_or(&0) as usize;
+            b.u64(*params.variants.values().nth(i).unwrap_or(&0) as u64);
+        }
         for input in inputs {
             for a in input {
                 b.u64(a.pos as u64).bytes(&a.bytes);

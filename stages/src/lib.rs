@@ -30,7 +30,10 @@ pub struct Registry {
 impl Default for Registry {
     fn default() -> Self {
         Registry {
-            stages: [curation::stages(), eval::stages(), novel_view::stages(), output::stages()].into_iter().flatten().collect(),
+            stages: [curation::stages(), eval::stages(), novel_view::stages(), output::stages()]
+                .into_iter()
+                .flatten()
+                .collect(),
             nuscenes: dist4d_datasets::nuscenes::schema(),
             dgp: dist4d_datasets::dgp::schema(),
         }
@@ -47,8 +50,17 @@ impl Registry {
         &self.stages
     }
 
-    /// Opens the dataset a pipeline names.
+    /// Opens the dataset a pipeline names (with the pipeline's variants under its items, when
+    /// a stage declares them).
     pub fn open_dataset(&self, p: &Pipeline) -> Result<Box<dyn Dataset>> {
+        let inner = self.open_dataset_only(p)?;
+        if p.variants.is_empty() {
+            return Ok(inner);
+        }
+        Ok(Box::new(dist4d_runtime::WithVariants { inner, depth: p.dims.len() - 1, labels: p.variants.clone() }))
+    }
+
+    fn open_dataset_only(&self, p: &Pipeline) -> Result<Box<dyn Dataset>> {
         match p.dataset.kind.as_str() {
             "NuScenes" => {
                 let ds = dist4d_datasets::nuscenes::NuScenes::open(config(&p.dataset.config)?)

@@ -43,11 +43,35 @@ pub trait Stage: Sized + Send + Sync + 'static {
     /// Params that must be the path template of one of the pipeline's exports (see
     /// [`dist4d_graph::StageSchema::export_template_params`]).
     const EXPORT_TEMPLATE_PARAMS: &'static [&'static str] = &[];
+    /// Stages that run once per variant of their params (a pair per frame offset, a novel view
+    /// per lateral shift) say so, and split their params in [`Stage::variants`]: they run per
+    /// `variant`, and [`Stage::run`] finds its variant with [`variant_of`].
+    const VARIANTS: bool = false;
     type Params: Params;
     type Inputs: Ports;
     type Outputs: Ports;
     fn new(params: Self::Params) -> Result<Self>;
+    /// The params split into the shared part and the variants, in label order (see
+    /// [`dist4d_graph::Variants::split`]); only called when [`Stage::VARIANTS`] is set.
+    fn variants(_params: &Self::Params) -> Option<dist4d_graph::Variants> {
+        None
+    }
     fn run(&self, ctx: &TaskContext, inputs: Self::Inputs) -> Result<Self::Outputs>;
+}
+
+/// The variant a task of a variant-declaring stage runs: the entry of `variants` (the params'
+/// map, in label order as [`Stage::variants`] gave it) at the item's innermost coordinate.
+pub fn variant_of<'v, V>(
+    ctx: &TaskContext,
+    variants: &'v std::collections::BTreeMap<String, V>,
+) -> Result<(&'v str, &'v V)> {
+    let coords = ctx.item.coords();
+    let i = *coords.last().ok_or_else(|| anyhow!("{}: a stage with variants runs per variant", ctx.label))? as usize;
+    variants
+        .iter()
+        .nth(i)
+        .map(|(label, v)| (label.as_str(), v))
+        .ok_or_else(|| anyhow!("{}: no variant {i} (the params have {})", ctx.label, variants.len()))
 }
 
 /// The input artifacts of one task, by port name (as the runtime hands them over: one list per
@@ -262,6 +286,7 @@ impl StageDef {
                 params: ParamsSpec::of::<S::Params>(),
                 seeded: S::SEEDED,
                 export_template_params: S::EXPORT_TEMPLATE_PARAMS.to_vec(),
+                variants: S::VARIANTS.then_some(|p: &ParamsValue| p.get::<S::Params>().and_then(S::variants)),
             },
             build: Box::new(|checked, wired| {
                 let params = checked.get::<S::Params>().ok_or_else(|| {
