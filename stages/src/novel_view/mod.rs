@@ -7,5 +7,6 @@ pub mod splat;
 mod exactness_tests;
 
 crate::stage_modules! {
+    frame_pair::FramePair,
     reproject::Reproject,
 }

@@ -93,7 +93,7 @@ impl Stage for EncodeDepth {
     //    the preview's colours from a table (same values, other bytes).
     const VERSION: u32 = 3;
     const SUMMARY: &'static str = "DepthMap -> OpenEXR (float32 m), 16-bit PNG (x256), NPY and a turbo colour preview";
-    const GRAINS: &'static [&'static str] = &["camera", "frame", "scene"];
+    const GRAINS: &'static [&'static str] = &["camera", "frame", "scene", "variant"];
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;

@@ -3,6 +3,9 @@
 crate::stage_modules! {
     clips::ClipIndex,
     encode_depth::EncodeDepth,
+    encode_image::EncodeImage,
     encode_points::EncodePoints,
+    pair_index::PairIndex,
+    pair_sheet::PairSheet,
     sheet::DepthSheet,
 }
