@@ -101,7 +101,8 @@ fn dist_s_pairs_from_the_cli_on_synthetic_data_with_an_index_a_loader_reads() {
 }
 
 /// On the shared real data: DGP's 3 frames give the t-2 / t+2 pairs between its first and last
-/// frames; the single nuScenes keyframe has no second frame, so its pairs have nothing to make.
+/// frames; the single nuScenes keyframe has no second frame, so its pairs have nothing to make;
+/// SCC pairs come from every image of both.
 #[test]
 fn dist_s_pairs_run_on_the_shared_real_data() {
     let (Some(nusc), Some(dgp)) = (shared_nuscenes(), shared_dgp()) else { return };
@@ -115,4 +116,149 @@ fn dist_s_pairs_run_on_the_shared_real_data() {
     let pipeline = repo().join("pipelines/dist_s_pairs.ron");
     let report = pairs_run(&pipeline, &nusc, &tmp.path().join("nusc"), &[]);
     assert_eq!(column(&report, "pairs", 7), 36, "{report}");
+    // SCC pairs need no second frame: one per image on both.
+    let report = pairs_run(&repo().join("pipelines/scc.ron"), &nusc, &tmp.path().join("nusc_scc"), &[]);
+    assert_eq!(index(&tmp.path().join("nusc_scc/out")).len(), 6, "{report}");
+    let dgp_scc = tmp.path().join("dgp_scc.ron");
+    std::fs::write(&dgp_scc, with_dataset("scc", "Dgp(root: \"\")")).unwrap();
+    let report = pairs_run(&dgp_scc, &dgp, &tmp.path().join("dgp_scc"), &[]);
+    assert_eq!(index(&tmp.path().join("dgp_scc/out")).len() as u64, column(&report, "complete", 3), "{report}");
+}
+
+/// pipelines/scc.ron: a seeded shift per image, the novel view generated and reprojected back;
+/// the same seed gives the same bytes, another seed other shifts.
+#[test]
+fn scc_pairs_are_deterministic_per_seed_and_share_the_pair_format() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let o =
+        dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "3", "--width", "480", "--height", "270"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let pipeline = repo().join("pipelines/scc.ron");
+    let small = [
+        "--set",
+        "pairs.width=384",
+        "--set",
+        "pairs.height=224",
+        "--set",
+        "back.width=384",
+        "--set",
+        "back.height=224",
+    ];
+    let report = pairs_run(&pipeline, &data, &tmp.path().join("a"), &small);
+    assert_eq!(column(&report, "sheet", 3), 18, "3 frames x 6 cameras, one random shift each\n{report}");
+    let pairs = index(&tmp.path().join("a/out"));
+    assert_eq!(pairs.len(), 18);
+    let mut shifts = Vec::new();
+    for p in &pairs {
+        assert_eq!(p["kind"], "scc");
+        let tau = p["shift"].as_f64().unwrap();
+        assert!((-3.0..=3.0).contains(&tau), "{p}");
+        shifts.push(tau);
+        assert_eq!(p["source"]["frame"], p["target"]["frame"]);
+        for (_, f) in p["files"].as_object().unwrap() {
+            assert!(tmp.path().join("a/out").join(f.as_str().unwrap()).is_file(), "{p}");
+        }
+    }
+    assert!(shifts.iter().any(|&t| t < -0.5) && shifts.iter().any(|&t| t > 0.5), "shifts {shifts:?}");
+    // Another store, the same seed: the same bytes.
+    pairs_run(&pipeline, &data, &tmp.path().join("b"), &small);
+    let bytes = |dir: &str, f: &str| std::fs::read(tmp.path().join(dir).join("out/synth-0000").join(f)).unwrap();
+    assert_eq!(bytes("a", "pairs.jsonl"), bytes("b", "pairs.jsonl"));
+    assert_eq!(bytes("a", "CAM_FRONT/001_random_cond.png"), bytes("b", "CAM_FRONT/001_random_cond.png"));
+    // A new seed: new shifts; the curation is reused.
+    let mut seeded = small.to_vec();
+    seeded.extend(["--set", "shift.seed=1"]);
+    let again = pairs_run(&pipeline, &data, &tmp.path().join("a"), &seeded);
+    assert_eq!((column(&again, "complete", 3), column(&again, "shift", 3)), (0, 18), "{again}");
+    let reseeded: Vec<f64> = index(&tmp.path().join("a/out")).iter().map(|p| p["shift"].as_f64().unwrap()).collect();
+    assert!(reseeded.iter().zip(&shifts).all(|(a, b)| a != b), "{reseeded:?} vs {shifts:?}");
+}
+
+/// The condition of an SCC pair is the original view come back: where it has a point, its depth
+/// agrees with the target's (both the curated depth, through a shift and back).
+#[test]
+fn an_scc_condition_lands_on_its_own_target() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    assert!(dist4d(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--keyframes",
+        "2",
+        "--width",
+        "480",
+        "--height",
+        "270"
+    ])
+    .status
+    .success());
+    let shift = r#"shift.variants={"left_2m": (lateral: 2)}"#;
+    pairs_run(&repo().join("pipelines/scc.ron"), &data, tmp.path(), &["--set", shift]);
+    let out = tmp.path().join("out/synth-0000/CAM_FRONT");
+    let cond = read_npy(&out.join("000_left_2m_cond_depth.npy"));
+    let target = read_npy(&out.join("000_left_2m_target_depth.npy"));
+    let (mut n, mut good) = (0, 0);
+    for (&c, &t) in cond.iter().zip(&target) {
+        if c > 0.0 && t > 0.0 && t < 80.0 {
+            n += 1;
+            good += (((c - t) / t).abs() < 0.05) as usize;
+        }
+    }
+    assert!(n > 100_000 && good as f64 > 0.9 * n as f64, "{good} of {n} condition depths within 5% of the target");
+}
+
+/// A float32 NPY's values (the files dist4d writes: little endian, C order).
+fn read_npy(path: &Path) -> Vec<f32> {
+    let b = std::fs::read(path).unwrap();
+    let header = u16::from_le_bytes([b[8], b[9]]) as usize;
+    b[10 + header..].chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect()
+}
+
+/// pipelines/novel_views.ron: the baseline's scores against the exact views, per shift, from
+/// `dist4d eval`; farther shifts score worse.
+#[test]
+fn novel_view_scores_are_tabulated_per_shift() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    assert!(dist4d(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--keyframes",
+        "2",
+        "--width",
+        "480",
+        "--height",
+        "270"
+    ])
+    .status
+    .success());
+    let root = format!("dataset.root={}", data.display());
+    let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
+    let o = dist4d(&[
+        "eval",
+        repo().join("pipelines/novel_views.ron").to_str().unwrap(),
+        "--set",
+        &root,
+        "--cache",
+        cache.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let row = |variant: &str| -> Vec<f64> {
+        let line =
+            t.lines().find(|l| l.starts_with(&format!("| {variant} |"))).unwrap_or_else(|| panic!("{variant}\n{t}"));
+        line.split('|').map(str::trim).filter(|s| !s.is_empty()).skip(1).map(|s| s.parse().unwrap()).collect()
+    };
+    // Columns: views, PSNR, SSIM, PSNR valid, SSIM valid, abs_rel, d<1.25, ...
+    for side in ["left", "right"] {
+        let (near, far) = (row(&format!("{side}_1m")), row(&format!("{side}_4m")));
+        assert_eq!(near[0], 12.0);
+        assert!(near[1] > far[1] && near[2] > far[2], "{side}: PSNR/SSIM at 1 m {near:?}, at 4 m {far:?}");
+        assert!(near[3] > 24.0 && near[4] > 0.8, "{side} 1 m on valid pixels: {near:?}");
+    }
 }

@@ -20,7 +20,7 @@ pub(crate) const DIMS: [DimSpec; 3] = [
     DimSpec { name: "frame", ordered: true },
     DimSpec { name: "camera", ordered: false },
 ];
-pub(crate) const PORTS: [SourcePortSpec; 11] = [
+pub(crate) const PORTS: [SourcePortSpec; 12] = [
     SourcePortSpec {
         name: "lidar",
         ty: "PointCloud",
@@ -60,6 +60,12 @@ pub(crate) const PORTS: [SourcePortSpec; 11] = [
         ty: "DepthMap",
         grain: "camera",
         doc: "dense ground-truth depth (groundtruth/depth/, synthetic data); empty when the dataset has none",
+    },
+    SourcePortSpec {
+        name: "synth_world",
+        ty: "File",
+        grain: "scene",
+        doc: "a synthetic dataset's world, to render any view exactly: JSON {\"scene\": label, \"synth\": groundtruth/synth.json}; empty for other datasets",
     },
     SourcePortSpec {
         name: "semantic",
@@ -215,6 +221,19 @@ impl<R: SurroundReader> Dataset for Surround<R> {
                 let r = tree.reading("image", item)?;
                 sidecar_digest(&tree.sidecars, port, tree.camera(item), &r.file, files)?
             }
+            "synth_world" => {
+                let mut b = DigestBuilder::new(port);
+                b.str(&self.label(&item.prefix(1)));
+                let path = tree.root.join(SYNTH_WORLD);
+                if path.is_file() {
+                    let Some(d) = files.file_digest(&path).with_context(|| format!("reading {}", path.display()))?
+                    else {
+                        return Ok(None);
+                    };
+                    b.digest(&d);
+                }
+                Some(b.finish())
+            }
             _ => Some(Digest::of(&self.load_source(port, item)?)),
         })
     }
@@ -224,6 +243,18 @@ impl<R: SurroundReader> Dataset for Surround<R> {
         match port {
             "boxes" => return Ok(self.0.boxes(item)?.encode()),
             "camera_boxes" => return Ok(self.0.camera_boxes(item)?.encode()),
+            "synth_world" => {
+                let path = tree.root.join(SYNTH_WORLD);
+                if !path.is_file() {
+                    return Ok(Vec::new());
+                }
+                let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+                let synth: serde_json::Value =
+                    serde_json::from_str(&text).with_context(|| format!("{} is not JSON", path.display()))?;
+                return Ok(serde_json::to_vec(
+                    &serde_json::json!({ "scene": self.label(&item.prefix(1)), "synth": synth }),
+                )?);
+            }
             "image_info" => {
                 let labels = ImageInfo {
                     scene: self.label(&item.prefix(1)),
@@ -290,6 +321,10 @@ impl<R: SurroundReader> Dataset for Surround<R> {
 }
 
 /// Digest of a sidecar port: its file's content digest, or a fixed "none" when there is no file.
+/// Where a dataset written by `dist4d synth` keeps its world's config (dist4d-synth's
+/// `GROUND_TRUTH_DIR/synth.json`).
+const SYNTH_WORLD: &str = "groundtruth/synth.json";
+
 fn sidecar_digest(
     sidecars: &Sidecars,
     port: &str,

@@ -11,4 +11,6 @@ crate::stage_modules! {
     above_fov::AboveLidarFov,
     depth::EvalDepth,
     moving::OnMovingObjects,
+    novel_view::EvalNovelView,
+    render_synthetic::RenderSynthetic,
 }

@@ -24,6 +24,7 @@ const KIND: &str = "EvalDepth";
 /// each exports its scores (the tables are read from the exported files), so that a run that
 /// could not be reported on is refused before it starts.
 pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<(&str, Params)>> {
+    let views = view_stages(pipeline)?;
     let stages: Vec<(usize, &str, Params)> = pipeline
         .nodes
         .iter()
@@ -33,7 +34,11 @@ pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<(&str, Params)>> {
             Some((id, n.name.as_str(), s.params.get::<Params>().cloned().unwrap_or_default()))
         })
         .collect();
-    ensure!(!stages.is_empty(), "{}: the pipeline has no {KIND} stage to report", pipeline.path.display());
+    ensure!(
+        !stages.is_empty() || !views.is_empty(),
+        "{}: the pipeline has no {KIND} or {VIEW_KIND} stage to report",
+        pipeline.path.display()
+    );
     for (id, name, _) in &stages {
         ensure!(
             pipeline.exports.iter().any(|e| e.node == *id),
@@ -49,7 +54,7 @@ pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<(&str, Params)>> {
 /// exported into `out_dir`.
 pub fn tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
     let index = dist4d_runtime::export::read_index(out_dir)?;
-    let mut text = String::new();
+    let mut text = view_tables(pipeline, &index, out_dir)?;
     for (stage, p) in scored_stages(pipeline)? {
         let mut images = Vec::new();
         for entry in index.iter().filter(|e| e.stage == stage) {
@@ -281,4 +286,96 @@ mod tests {
         assert!(t.contains("| CAM_C | 1 | - | - | - | - | - |"), "{t}");
         assert!(t.contains("| mean | 2 | 0.6000 |"), "{t}");
     }
+}
+
+/// The stage kind whose exported novel-view scores are tabulated.
+const VIEW_KIND: &str = "EvalNovelView";
+
+/// The `EvalNovelView` stages of `pipeline`; an error when one does not export its scores.
+fn view_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
+    let mut out = Vec::new();
+    for (id, n) in pipeline.nodes.iter().enumerate() {
+        if n.stage().is_some_and(|s| s.kind == VIEW_KIND) {
+            ensure!(
+                pipeline.exports.iter().any(|e| e.node == id),
+                "{}: stage `{}` ({VIEW_KIND}) is not exported, and `dist4d eval` reads the scores from the \
+                 exported files: add `\"{}.json\": \"{{scene}}/{{camera}}/{{frame}}_{{variant}}_view.json\"` to `export`",
+                pipeline.path.display(),
+                n.name,
+                n.name
+            );
+            out.push(n.name.as_str());
+        }
+    }
+    Ok(out)
+}
+
+/// Per `EvalNovelView` stage, one table: a row per variant (the item's last label: the shift),
+/// each score the mean over the images that have it, and a `mean` row over the variants.
+fn view_tables(pipeline: &Pipeline, index: &[dist4d_runtime::export::IndexEntry], out_dir: &Path) -> Result<String> {
+    use super::novel_view::ViewScores;
+    let mut text = String::new();
+    for stage in view_stages(pipeline)? {
+        let mut by_variant: BTreeMap<String, Vec<ViewScores>> = BTreeMap::new();
+        for entry in index.iter().filter(|e| e.stage == stage) {
+            let path = out_dir.join(&entry.path);
+            let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+            let scores: ViewScores = serde_json::from_slice(&bytes)
+                .with_context(|| format!("{} is not an {VIEW_KIND} score file", path.display()))?;
+            let variant = entry.item.rsplit('/').next().unwrap_or_default().to_string();
+            by_variant.entry(variant).or_default().push(scores);
+        }
+        ensure!(
+            !by_variant.is_empty(),
+            "stage `{stage}` exported no scores to {}: export its `json` port",
+            out_dir.display()
+        );
+        let n: usize = by_variant.values().map(Vec::len).sum();
+        text.push_str(&format!(
+            "\n# {stage}: {n} views; PSNR (dB) and SSIM (Wang et al. 2004, 11x11 Gaussian, sigma 1.5) on RGB over the \
+             whole image and over the condition's valid pixels; depth where the reference is structure\n\n{stage}\n"
+        ));
+        type Get = fn(&ViewScores) -> Option<f64>;
+        let cols: [(&str, usize, Get); 9] = [
+            ("PSNR", 2, |s| s.psnr.filter(|p| p.is_finite())),
+            ("SSIM", 4, |s| s.ssim),
+            ("PSNR valid", 2, |s| s.psnr_valid.filter(|p| p.is_finite())),
+            ("SSIM valid", 4, |s| s.ssim_valid),
+            ("abs_rel", 4, |s| s.abs_rel),
+            ("d<1.25", 4, |s| s.delta1),
+            ("abs_rel valid", 4, |s| s.abs_rel_valid),
+            ("d<1.25 valid", 4, |s| s.delta1_valid),
+            ("valid", 4, |s| Some(s.valid_share)),
+        ];
+        text.push_str("| variant | views |");
+        for (h, _, _) in &cols {
+            text.push_str(&format!(" {h} |"));
+        }
+        text.push_str("\n|---|---:|");
+        text.push_str(&"---:|".repeat(cols.len()));
+        text.push('\n');
+        let mut means: Vec<Vec<f64>> = vec![Vec::new(); cols.len()];
+        for (variant, scores) in &by_variant {
+            text.push_str(&format!("| {variant} | {} |", scores.len()));
+            for (k, (_, decimals, get)) in cols.iter().enumerate() {
+                match mean(scores.iter().filter_map(get)) {
+                    Some(v) => {
+                        means[k].push(v);
+                        text.push_str(&format!(" {v:.decimals$} |"));
+                    }
+                    None => text.push_str(" - |"),
+                }
+            }
+            text.push('\n');
+        }
+        text.push_str(&format!("| mean | {n} |"));
+        for (k, (_, decimals, _)) in cols.iter().enumerate() {
+            match mean(means[k].iter().copied()) {
+                Some(v) => text.push_str(&format!(" {v:.decimals$} |")),
+                None => text.push_str(" - |"),
+            }
+        }
+        text.push('\n');
+    }
+    Ok(text)
 }

@@ -7,6 +7,9 @@ pub mod splat;
 mod exactness_tests;
 
 crate::stage_modules! {
+    cycle_pair::CyclePair,
+    fill_baseline::FillViewBaseline,
     frame_pair::FramePair,
     reproject::Reproject,
+    shift_view::ShiftView,
 }

@@ -71,7 +71,7 @@ impl Stage for Reproject {
     const VERSION: u32 = 1;
     const SUMMARY: &'static str =
         "RGB-D of one or more cameras/frames drawn into a target camera with footprint splats and a soft z-buffer";
-    const GRAINS: &'static [&'static str] = &["camera", "frame", "scene"];
+    const GRAINS: &'static [&'static str] = &["camera", "variant", "frame", "scene"];
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;

@@ -175,16 +175,27 @@ impl Renderer {
         let path = root.join(GROUND_TRUTH_DIR).join("synth.json");
         let text = std::fs::read_to_string(&path)
             .with_context(|| format!("reading {} (is this a dist4d synthetic dataset?)", path.display()))?;
-        let file: writer::SynthFile =
+        let value: serde_json::Value =
             serde_json::from_str(&text).with_context(|| format!("malformed {}", path.display()))?;
+        Renderer::from_json(value).with_context(|| path.display().to_string())
+    }
+
+    /// The renderer of a `groundtruth/synth.json`'s content.
+    pub fn from_json(value: serde_json::Value) -> Result<Renderer> {
+        let file: writer::SynthFile = serde_json::from_value(value).context("malformed synth.json")?;
         anyhow::ensure!(
             file.generator_version == GENERATOR_VERSION,
-            "{} was written by generator version {}, this build renders version {}",
-            path.display(),
+            "written by generator version {}, this build renders version {}",
             file.generator_version,
             GENERATOR_VERSION
         );
         Ok(Renderer::new(file.config))
+    }
+
+    /// The index of the scene the dataset names `name` (`synth-0003` -> 3).
+    pub fn scene_index(&self, name: &str) -> Option<u32> {
+        let i: u32 = name.strip_prefix("synth-")?.parse().ok()?;
+        (i < self.config.scenes).then_some(i)
     }
 
     pub fn world(&self, scene: u32) -> Option<&World> {

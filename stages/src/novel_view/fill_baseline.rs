@@ -1,0 +1,216 @@
+//! `FillViewBaseline`: the built-in novel-view generator, a baseline so that every pipeline runs
+//! without a GPU: the reprojected condition with its holes filled background first. The learned
+//! DiST-S takes the same inputs and gives the same outputs (dense RGB-D at the novel view), so a
+//! worker stage replaces this one without rewiring.
+//!
+//! The holes of a reprojection are mostly disocclusions: background that a nearer object hid
+//! from the source camera. Filling them from the nearer side would grow the object; here each
+//! hole pixel looks for the nearest valid pixel along its row and column (four directions) and
+//! takes, of those found, the ones on the farthest surface (within `background_tolerance` of the
+//! farthest depth), averaged with weights 1 / distance. Holes with no valid pixel on any of the
+//! four lines (a corner the source never saw) take the nearest filled value the same way in a
+//! second pass. The result is blurry and streaky inside large holes: it is a baseline, not a
+//! generator, and its scores (docs/BENCHMARKS.md) are what a learned model must beat.
+
+use crate::stage::Stage;
+use anyhow::{ensure, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::TaskContext;
+use dist4d_types::artifact::{DepthMap, Image, Mask};
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Candidates within this fraction of the farthest candidate's depth are the background.
+    pub background_tolerance: f32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { background_tolerance: 0.1 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        ParamChecks::new().within("background_tolerance", self.background_tolerance as f64, 0.0, 10.0).done()
+    }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// the image condition (reprojected colours)
+        image: One<Image>,
+        /// the depth condition (m, 0 = none)
+        depth: One<DepthMap>,
+        /// where the condition has a point
+        mask: One<Mask>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// dense RGB at the novel view
+        image: One<Image>,
+        /// dense depth at the novel view (m)
+        depth: One<DepthMap>,
+    }
+}
+
+pub struct FillViewBaseline(Params);
+
+impl Stage for FillViewBaseline {
+    const KIND: &'static str = "FillViewBaseline";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "baseline novel-view generator: the reprojected condition with its holes filled background first";
+    const GRAINS: &'static [&'static str] = &["variant", "camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(FillViewBaseline(params))
+    }
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let (w, h) = (i.image.width as usize, i.image.height as usize);
+        ensure!(
+            i.image.rgb.len() == 3 * w * h && i.depth.data.len() == w * h && i.mask.data.len() == w * h,
+            "the condition's image, depth and mask must all be {w}x{h}"
+        );
+        let valid: Vec<bool> = i.mask.data.iter().zip(&i.depth.data).map(|(&m, &z)| m != 0 && z > 0.0).collect();
+        let (rgb, depth) = fill(&i.image.rgb, &i.depth.data, &valid, w, h, self.0.background_tolerance);
+        Ok(Outputs {
+            image: Image { width: w as u32, height: h as u32, rgb },
+            depth: DepthMap { width: w as u32, height: h as u32, data: depth },
+        })
+    }
+}
+
+/// Per pixel, the index of the nearest valid pixel in each of the four directions (or none).
+fn nearest_valid(valid: &[bool], w: usize, h: usize) -> [Vec<u32>; 4] {
+    const NONE: u32 = u32::MAX;
+    let mut left = vec![NONE; w * h];
+    let mut right = vec![NONE; w * h];
+    let mut up = vec![NONE; w * h];
+    let mut down = vec![NONE; w * h];
+    for y in 0..h {
+        let mut last = NONE;
+        for x in 0..w {
+            let i = y * w + x;
+            left[i] = last;
+            if valid[i] {
+                last = i as u32;
+            }
+        }
+        last = NONE;
+        for x in (0..w).rev() {
+            let i = y * w + x;
+            right[i] = last;
+            if valid[i] {
+                last = i as u32;
+            }
+        }
+    }
+    let mut last = vec![NONE; w];
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            up[i] = last[x];
+            if valid[i] {
+                last[x] = i as u32;
+            }
+        }
+    }
+    last.iter_mut().for_each(|l| *l = NONE);
+    for y in (0..h).rev() {
+        for x in 0..w {
+            let i = y * w + x;
+            down[i] = last[x];
+            if valid[i] {
+                last[x] = i as u32;
+            }
+        }
+    }
+    [left, right, up, down]
+}
+
+/// The hole filling of the module doc: returns the filled RGB and depth.
+pub fn fill(rgb: &[u8], depth: &[f32], valid: &[bool], w: usize, h: usize, tolerance: f32) -> (Vec<u8>, Vec<f32>) {
+    let mut out_rgb = rgb.to_vec();
+    let mut out_depth: Vec<f32> = depth.iter().zip(valid).map(|(&z, &v)| if v { z } else { 0.0 }).collect();
+    let mut filled = valid.to_vec();
+    // Two passes: the second reaches holes whose lines held no valid pixel, from the first's fill.
+    for _ in 0..2 {
+        let near = nearest_valid(&filled, w, h);
+        let (src_rgb, src_depth, src_filled) = (out_rgb.clone(), out_depth.clone(), filled.clone());
+        for i in 0..w * h {
+            if src_filled[i] {
+                continue;
+            }
+            let (x, y) = ((i % w) as i64, (i / w) as i64);
+            let mut cand: [(f32, usize); 4] = [(0.0, 0); 4];
+            let mut n = 0;
+            let mut far = 0f32;
+            for dir in &near {
+                let j = dir[i];
+                if j != u32::MAX {
+                    let j = j as usize;
+                    let dist = ((j % w) as i64 - x).abs() + ((j / w) as i64 - y).abs();
+                    cand[n] = (dist as f32, j);
+                    n += 1;
+                    far = far.max(src_depth[j]);
+                }
+            }
+            if n == 0 {
+                continue;
+            }
+            let (mut wsum, mut acc, mut zacc) = (0f32, [0f32; 3], 0f32);
+            for &(dist, j) in &cand[..n] {
+                if src_depth[j] >= far * (1.0 - tolerance) {
+                    let wt = 1.0 / dist.max(1.0);
+                    wsum += wt;
+                    zacc += wt * src_depth[j];
+                    for k in 0..3 {
+                        acc[k] += wt * src_rgb[3 * j + k] as f32;
+                    }
+                }
+            }
+            out_depth[i] = zacc / wsum;
+            for k in 0..3 {
+                out_rgb[3 * i + k] = (acc[k] / wsum).round() as u8;
+            }
+            filled[i] = true;
+        }
+    }
+    (out_rgb, out_depth)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_disocclusion_is_filled_from_the_background_not_the_object() {
+        // A row: object (5 m, red) | hole | wall (20 m, grey).
+        let w = 10;
+        let depth = [5.0, 5.0, 5.0, 0.0, 0.0, 0.0, 20.0, 20.0, 20.0, 20.0];
+        let valid: Vec<bool> = depth.iter().map(|&z| z > 0.0).collect();
+        let rgb: Vec<u8> = depth.iter().flat_map(|&z| if z == 5.0 { [250, 0, 0] } else { [100, 100, 100] }).collect();
+        let (rgb, depth) = fill(&rgb, &depth, &valid, w, 1, 0.1);
+        for x in 3..6 {
+            assert_eq!(depth[x], 20.0, "{x}");
+            assert_eq!(&rgb[3 * x..3 * x + 3], &[100, 100, 100]);
+        }
+    }
+
+    #[test]
+    fn every_pixel_is_filled_when_anything_is_valid() {
+        let (w, h) = (7, 5);
+        let mut depth = vec![0.0f32; w * h];
+        depth[w * 2 + 3] = 10.0;
+        let valid: Vec<bool> = depth.iter().map(|&z| z > 0.0).collect();
+        let (_, out) = fill(&vec![9; 3 * w * h], &depth, &valid, w, h, 0.1);
+        assert!(out.iter().all(|&z| z == 10.0), "{out:?}");
+    }
+}
