@@ -900,7 +900,8 @@ impl<'c> Checker<'c> {
         let _ = d.name_span;
     }
 
-    /// Parses `"stage.port"`, `Same(..)`, `Window("stage.port", dim, -1, 1)`, `Offset(..)`, `Gather(..)`, `All(..)`.
+    /// Parses `"stage.port"`, `Same(..)`, `Window("stage.port", dim, -1, 1)`, `Offset(..)`, `Gather(..)`,
+    /// `Across(..)`, `All(..)`.
     fn selector(&mut self, v: &Value, dims: Option<&[Dim]>) -> Option<(String, Span, Selector)> {
         if let Some(s) = v.as_str() {
             return Some((s.to_string(), v.span, Selector::Same));
@@ -922,7 +923,7 @@ impl<'c> Checker<'c> {
         };
         let arity = match name.text.as_str() {
             "Same" | "All" => 1,
-            "Gather" => 2,
+            "Gather" | "Across" => 2,
             "Offset" => 3,
             "Window" => 4,
             _ => {
@@ -1001,6 +1002,7 @@ impl<'c> Checker<'c> {
             "Same" => Selector::Same,
             "All" => Selector::All,
             "Gather" => Selector::Gather { dim: dim(self, 1, false)? },
+            "Across" => Selector::Across { dim: dim(self, 1, false)? },
             "Offset" => Selector::Offset { dim: dim(self, 1, true)?, by: int(self, 2)? },
             _ => {
                 let (dim, before, after) = (dim(self, 1, true)?, int(self, 2)?, int(self, 3)?);
@@ -1203,10 +1205,15 @@ fn canonical_field(canonical: &str, field: &str) -> Option<String> {
 /// How inputs are written, with the dataset's dimension names when it is known.
 fn selector_usage(dims: Option<&[Dim]>) -> String {
     let ordered = dims.and_then(|d| d.iter().position(|d| d.ordered)).map_or("dim", |k| dim_name(dims, k));
-    let innermost = dims.map_or("dim", |d| dim_name(dims, d.len().saturating_sub(1)));
+    // The dataset's innermost dimension (not the pipeline's variants).
+    let innermost = dims.map_or("dim", |d| {
+        let n = d.iter().filter(|d| d.name != crate::VARIANT_DIM).count();
+        dim_name(dims, n.saturating_sub(1))
+    });
     format!(
         "an input is \"stage.port\", Same(\"stage.port\"), Window(\"stage.port\", {ordered}, -1, 1), \
-         Offset(\"stage.port\", {ordered}, 2), Gather(\"stage.port\", {innermost}) or All(\"stage.port\")"
+         Offset(\"stage.port\", {ordered}, 2), Gather(\"stage.port\", {innermost}), Across(\"stage.port\", {innermost}) \
+         or All(\"stage.port\")"
     )
 }
 
@@ -1234,6 +1241,12 @@ fn grain_allows(sel: Selector, u: usize, d: usize, dims: &[Dim]) -> Result<(), S
             dims[dim].name
         )),
         Selector::All => Ok(()),
+        Selector::Across { dim } if u <= d && dim < u => Ok(()),
+        Selector::Across { dim } => Err(format!(
+            "cannot be taken across `{}`: the upstream must be per `{}` or coarser and have that dimension",
+            dims[dim].name,
+            dims[d - 1].name
+        )),
     }
 }
 

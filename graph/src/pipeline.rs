@@ -24,12 +24,15 @@ pub enum Selector {
     Gather { dim: usize },
     /// Every upstream item under the same outer item (the item of the outermost dimension).
     All,
+    /// The upstream items at this item's coordinates except along `dim`, which takes every value
+    /// (all cameras of this frame, for a task of one camera): the "surround" of an item.
+    Across { dim: usize },
 }
 
 impl Selector {
     /// Whether the selector can give more than one artifact.
     pub fn gives_many(self) -> bool {
-        matches!(self, Selector::Window { .. } | Selector::Gather { .. } | Selector::All)
+        matches!(self, Selector::Window { .. } | Selector::Gather { .. } | Selector::All | Selector::Across { .. })
     }
 
     /// RON form, for `graph` output and messages.
@@ -42,6 +45,7 @@ impl Selector {
             Selector::Offset { dim, by } => format!("Offset({}, {by})", dims[dim].name),
             Selector::Gather { dim } => format!("Gather({})", dims[dim].name),
             Selector::All => "All".into(),
+            Selector::Across { dim } => format!("Across({})", dims[dim].name),
         }
     }
 }

@@ -894,3 +894,34 @@ fn a_task_with_nothing_to_make_is_recorded_its_gathers_go_on_without_it_and_its_
     assert_eq!((e("file").cached, e("file").not_applicable, e("file").will_run), (11, 1, 0));
     assert_eq!((e("both").cached, e("both").will_run), (6, 0));
 }
+
+#[test]
+fn across_gives_a_task_its_siblings_and_a_changed_sibling_reruns_them_all() {
+    let text = r#"Pipeline(
+        dataset: Grid(scenes: 1, frames: 2, cameras: 3),
+        stages: {
+            "a": Echo(inputs: {"x": "dataset.camera_value"}),
+            "surround": Merge(inputs: {"xs": Across("a.y", camera)}, grain: camera),
+        },
+    )"#;
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(text, &[]);
+    let plan = crate::plan::plan_outer(&p, &crate::plan::View { space: &testkit::grid_of(&p), second_dim_limit: None }, 0);
+    let surround: Vec<_> = plan.tasks.iter().filter(|t| t.node as usize == p.node_by_name("surround").unwrap()).collect();
+    assert_eq!(surround.len(), 6);
+    for t in &surround {
+        let positions: Vec<i64> = t.inputs[0]
+            .iter()
+            .map(|s| match s {
+                crate::plan::InputSrc::Task { pos, .. } => *pos,
+                other => panic!("{other:?}"),
+            })
+            .collect();
+        assert_eq!(positions, [0, 1, 2], "every camera of the frame, by camera index");
+    }
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    grid.bump("camera_value", ItemKey::new(&[0, 1, 2]));
+    let r = run(&p, &grid, dir.path());
+    assert_eq!(executed(&r), counts(&[("a", 1), ("surround", 3)]));
+}

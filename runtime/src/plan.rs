@@ -78,6 +78,16 @@ impl View<'_> {
                 self.shifted(item.prefix(up), dim, by).map(|k| vec![(k, by as i64)]).unwrap_or_default()
             }
             Selector::Gather { .. } => (0..self.count(&item)).map(|j| (item.child(j), j as i64)).collect(),
+            Selector::Across { dim } => {
+                let base = item.prefix(up);
+                (0..self.count(&base.prefix(dim)))
+                    .filter_map(|j| {
+                        let mut k = base;
+                        k.idx[dim] = j;
+                        self.exists(&k).then_some((k, j as i64))
+                    })
+                    .collect()
+            }
             Selector::All => {
                 let mut all = Vec::new();
                 self.items_under(item.prefix(1), up, &mut all);
