@@ -48,29 +48,30 @@ fn dist_s_pairs_from_the_cli_on_synthetic_data_with_an_index_a_loader_reads() {
     let pipeline = repo().join("pipelines/dist_s_pairs.ron");
     let small = ["--set", "pairs.width=384", "--set", "pairs.height=224"];
     let report = pairs_run(&pipeline, &data, tmp.path(), &small);
-    // 6 frames x 6 cameras x 6 variants; t-2 / t+2 (and their voxel twins) have no target on two
-    // frames each, t-4 / t+4 on four.
-    assert_eq!(column(&report, "pairs", 3), 216, "{report}");
+    // 6 frames x 6 cameras x 7 variants; t-2 / t+2 (and their voxel twins) have no target on two
+    // frames each, t-4 / t+4 on four; the cross-camera pairs are on every frame.
+    assert_eq!(column(&report, "pairs", 3), 252, "{report}");
     assert_eq!(column(&report, "pairs", 7), 96, "{report}");
-    assert_eq!(column(&report, "sheet", 3), 120, "{report}");
+    assert_eq!(column(&report, "sheet", 3), 156, "{report}");
     let out = tmp.path().join("out");
     let pairs = index(&out);
-    assert_eq!(pairs.len(), 120);
+    assert_eq!(pairs.len(), 156);
     for p in &pairs {
         for (_, f) in p["files"].as_object().unwrap() {
             assert!(out.join(f.as_str().unwrap()).is_file(), "{p}");
         }
-        let (src, tgt) = (&p["source"], &p["target"]);
+        let (src, tgt) = (&p["sources"][0], &p["target"]);
         let offset = p["offset"].as_i64().unwrap();
         let frame = |v: &Value| v["frame"].as_str().unwrap().parse::<i64>().unwrap();
         assert_eq!(frame(tgt) - frame(src), offset, "{p}");
+        let cross = p["variant"] == "cross";
+        assert_eq!(p["sources"].as_array().unwrap().len(), if cross { 5 } else { 1 }, "{p}");
+        assert_eq!(src["camera_to_ego"] != tgt["camera_to_ego"], cross, "{p}");
         assert_eq!(p["size"], serde_json::json!([224, 384]));
         assert!(data.join(src["image"].as_str().unwrap()).is_file());
-        assert_eq!(
-            tgt["timestamp_us"].as_i64().unwrap() - src["timestamp_us"].as_i64().unwrap(),
-            offset * 500_000,
-            "{p}"
-        );
+        // Keyframes are 0.5 s apart; the cameras of one frame fire within 50 ms of each other.
+        let dt = tgt["timestamp_us"].as_i64().unwrap() - src["timestamp_us"].as_i64().unwrap();
+        assert!((dt - offset * 500_000).abs() < 50_000, "{p}");
     }
     // The voxel twins are sparser than their dense pairs.
     let valid = |label: &str| {
@@ -84,7 +85,7 @@ fn dist_s_pairs_from_the_cli_on_synthetic_data_with_an_index_a_loader_reads() {
     let again = pairs_run(&pipeline, &data, tmp.path(), &small);
     assert_eq!(column(&again, "pairs", 3), 0, "{again}");
     let mut edited = small.to_vec();
-    let v = r#"pairs.variants={"t-2": (offset: -2), "t+2": (offset: 2), "t-4": (offset: -4), "t+4": (offset: 4), "t-2_voxel": (offset: -2, voxel: 0.2), "t+2_voxel": (offset: 2, voxel: 0.3)}"#;
+    let v = r#"pairs.variants={"t-2": (offset: -2), "t+2": (offset: 2), "t-4": (offset: -4), "t+4": (offset: 4), "t-2_voxel": (offset: -2, voxel: 0.2), "t+2_voxel": (offset: 2, voxel: 0.3), "cross": (offset: 0, from: Others)}"#;
     edited.extend(["--set", v]);
     let one = pairs_run(&pipeline, &data, tmp.path(), &edited);
     assert_eq!((column(&one, "pairs", 3), column(&one, "complete", 3)), (36, 0), "{one}");
@@ -111,11 +112,18 @@ fn dist_s_pairs_run_on_the_shared_real_data() {
     std::fs::write(&dgp_pipeline, with_dataset("dist_s_pairs", "Dgp(root: \"\")")).unwrap();
     let report = pairs_run(&dgp_pipeline, &dgp, &tmp.path().join("dgp"), &[]);
     let cameras = column(&report, "complete", 3) / 3;
-    assert_eq!(column(&report, "sheet", 3), 4 * cameras, "t-2, t+2 and their voxel twins, one frame each\n{report}");
-    assert_eq!(index(&tmp.path().join("dgp/out")).len() as u64, 4 * cameras);
+    assert_eq!(
+        column(&report, "sheet", 3),
+        7 * cameras,
+        "t-2, t+2 and their voxel twins, one frame each; cross on 3\n{report}"
+    );
+    assert_eq!(index(&tmp.path().join("dgp/out")).len() as u64, 7 * cameras);
     let pipeline = repo().join("pipelines/dist_s_pairs.ron");
     let report = pairs_run(&pipeline, &nusc, &tmp.path().join("nusc"), &[]);
     assert_eq!(column(&report, "pairs", 7), 36, "{report}");
+    let cross = index(&tmp.path().join("nusc/out"));
+    assert_eq!(cross.len(), 6, "the cross-camera pair of each camera\n{report}");
+    assert!(cross.iter().all(|p| p["variant"] == "cross"));
     // SCC pairs need no second frame: one per image on both.
     let report = pairs_run(&repo().join("pipelines/scc.ron"), &nusc, &tmp.path().join("nusc_scc"), &[]);
     assert_eq!(index(&tmp.path().join("nusc_scc/out")).len(), 6, "{report}");
@@ -155,7 +163,7 @@ fn scc_pairs_are_deterministic_per_seed_and_share_the_pair_format() {
         let tau = p["shift"].as_f64().unwrap();
         assert!((-3.0..=3.0).contains(&tau), "{p}");
         shifts.push(tau);
-        assert_eq!(p["source"]["frame"], p["target"]["frame"]);
+        assert_eq!(p["sources"][0]["frame"], p["target"]["frame"]);
         for (_, f) in p["files"].as_object().unwrap() {
             assert!(tmp.path().join("a/out").join(f.as_str().unwrap()).is_file(), "{p}");
         }

@@ -98,7 +98,8 @@ impl Stage for CyclePair {
             "size": [h, w],
             // The generated novel view the condition was reprojected from (no image of the
             // dataset: its pose is the original's moved `shift` metres to the left).
-            "source": novel,
+            "from": "Own",
+            "sources": [novel],
             "target": frame_record(&i.info, &view.resized(w, h)),
         });
         Ok(Outputs {

@@ -20,19 +20,32 @@ use serde::{Deserialize, Serialize};
 use serde_json::json;
 use std::collections::BTreeMap;
 
+/// Whose RGB-D a pair's condition is drawn from.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Sources {
+    /// The pair's own camera at frame t.
+    #[default]
+    Own,
+    /// Every other camera of the rig at frame t (the surround, through the `surround_*` inputs):
+    /// with offset 0, a cross-camera pair, which a single frame can give.
+    Others,
+}
+
 /// One kind of pair.
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct PairVariant {
-    /// Target frame = source frame + offset (frames of the dataset's clock).
+    /// Target frame = source frame + offset (frames of the dataset's clock); 0 only with
+    /// `from: Others`.
     pub offset: i32,
     /// Thin the source cloud to one point per voxel of this size (m) first; 0 = every point.
     pub voxel: f32,
+    pub from: Sources,
 }
 
 impl Default for PairVariant {
     fn default() -> Self {
-        PairVariant { offset: 2, voxel: 0.0 }
+        PairVariant { offset: 2, voxel: 0.0, from: Sources::Own }
     }
 }
 
@@ -49,7 +62,7 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        let v = |offset| PairVariant { offset, voxel: 0.0 };
+        let v = |offset| PairVariant { offset, ..PairVariant::default() };
         Params {
             width: 768,
             height: 448,
@@ -68,9 +81,16 @@ impl Validate for Params {
         let labels: Vec<String> = self.variants.keys().cloned().collect();
         c.path_names("variants", &labels);
         for (label, v) in &self.variants {
-            c.check(v.offset != 0 && v.offset.unsigned_abs() <= 10_000, "variants", || {
-                format!("`{label}`: `offset` must be a non-zero number of frames, found {}", v.offset)
-            });
+            c.check(
+                (v.offset != 0 || v.from == Sources::Others) && v.offset.unsigned_abs() <= 10_000,
+                "variants",
+                || {
+                    format!(
+                    "`{label}`: `offset` must be a non-zero number of frames (0 only with `from: Others`), found {}",
+                    v.offset
+                )
+                },
+            );
             c.check(v.voxel.is_finite() && (0.0..=100.0).contains(&v.voxel), "variants", || {
                 format!("`{label}`: `voxel` must be in [0, 100] m, found {}", v.voxel)
             });
@@ -88,6 +108,12 @@ crate::ports! {
         depths: Many<DepthMap>,
         /// what each image is and where it was taken, over the same window
         infos: Many<ImageInfo>,
+        /// every camera's image at frame t (`Across("dataset.image", camera)`), for `from: Others`
+        surround_images: OptionalMany<Image>,
+        /// every camera's curated depth at frame t
+        surround_depths: OptionalMany<DepthMap>,
+        /// every camera's image info at frame t
+        surround_infos: OptionalMany<ImageInfo>,
     }
 }
 
@@ -157,18 +183,62 @@ impl Stage for FramePair {
             ))
             .into());
         };
-        let src_view = view_of(src_info, src_image, src_depth).context("the source frame")?;
         let tgt_full = view_of(tgt_info, tgt_image, tgt_depth).context("the target frame")?;
         let tgt_view = tgt_full.resized(self.params.width, self.params.height);
-        let thinned;
-        let depth = if variant.voxel > 0.0 {
-            thinned = thin_to_voxels(&src_depth.data, &src_view, variant.voxel);
-            &thinned
-        } else {
-            &src_depth.data
+        // The sources: this camera at t, or every other camera at t.
+        let sources: Vec<(&Image, &DepthMap, &ImageInfo)> = match variant.from {
+            Sources::Own => vec![(src_image, src_depth, src_info)],
+            Sources::Others => {
+                let s = &inputs;
+                anyhow::ensure!(
+                    !s.surround_images.is_empty() && s.surround_images.len() == s.surround_depths.len() && s.surround_images.len() == s.surround_infos.len(),
+                    "variant `{label}` draws from the other cameras: wire `surround_images`, `surround_depths` and `surround_infos` with Across(.., camera)"
+                );
+                let mut out = Vec::new();
+                for ((pi, image), ((pd, depth), (pn, info))) in
+                    s.surround_images.iter().zip(s.surround_depths.iter().zip(&s.surround_infos))
+                {
+                    anyhow::ensure!(
+                        pi == pd && pd == pn,
+                        "the `surround_*` inputs must be wired with the same selector"
+                    );
+                    if info.camera != src_info.camera && info.missing.is_none() {
+                        out.push((image, depth, info));
+                    }
+                }
+                out
+            }
         };
-        let cond =
-            reproject(&[RgbdView { rgb: &src_image.rgb, depth, view: &src_view }], &tgt_view, &self.params.splat)?;
+        let views: Vec<PinholeView> = sources
+            .iter()
+            .map(|(image, depth, info)| {
+                view_of(info, image, depth).with_context(|| format!("the source {}", info.camera))
+            })
+            .collect::<Result<_>>()?;
+        let thinned: Vec<Vec<f32>> = sources
+            .iter()
+            .zip(&views)
+            .map(
+                |((_, depth, _), view)| {
+                    if variant.voxel > 0.0 {
+                        thin_to_voxels(&depth.data, view, variant.voxel)
+                    } else {
+                        Vec::new()
+                    }
+                },
+            )
+            .collect();
+        let rgbd: Vec<RgbdView> = sources
+            .iter()
+            .zip(&views)
+            .zip(&thinned)
+            .map(|(((image, depth, _), view), thin)| RgbdView {
+                rgb: &image.rgb,
+                depth: if variant.voxel > 0.0 { thin } else { &depth.data },
+                view,
+            })
+            .collect();
+        let cond = reproject(&rgbd, &tgt_view, &self.params.splat)?;
         let (w, h) = (self.params.width, self.params.height);
         let record = json!({
             "kind": "dist_s",
@@ -180,7 +250,8 @@ impl Stage for FramePair {
             "shift": 0.0,
             "augmentation": { "offset": variant.offset.abs() > 2, "voxel": variant.voxel },
             "size": [h, w],
-            "source": frame_record(src_info, &src_view),
+            "from": variant.from,
+            "sources": sources.iter().zip(&views).map(|((_, _, info), view)| frame_record(info, view)).collect::<Vec<_>>(),
             "target": frame_record(tgt_info, &tgt_view),
         });
         Ok(Outputs {
