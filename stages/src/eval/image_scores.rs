@@ -82,6 +82,30 @@ pub fn psnr(a: &[u8], b: &[u8], width: usize, height: usize, mask: Option<&[bool
 /// or the sizes do not fit. Rows of the map are summed in order whatever the thread count, so the
 /// score does not depend on how rayon splits the work.
 pub fn ssim(a: &[u8], b: &[u8], width: usize, height: usize, mask: Option<&[bool]>) -> Option<f64> {
+    match mask {
+        None => ssim_with_mask(a, b, width, height, None).map(|(all, _)| all),
+        Some(_) => ssim_with_mask(a, b, width, height, mask).and_then(|(_, masked)| masked),
+    }
+}
+
+/// The SSIM over every scored pixel and over the counted ones (as [`ssim`] with and without the
+/// mask), from one pass over the images: a novel view is scored both ways.
+pub fn ssim_both(a: &[u8], b: &[u8], width: usize, height: usize, mask: &[bool]) -> (Option<f64>, Option<f64>) {
+    match ssim_with_mask(a, b, width, height, Some(mask)) {
+        Some((all, masked)) => (Some(all), masked),
+        None => (None, None),
+    }
+}
+
+/// (SSIM over all scored pixels, SSIM over the counted ones); `None` when the sizes do not fit
+/// or the image is smaller than the window.
+fn ssim_with_mask(
+    a: &[u8],
+    b: &[u8],
+    width: usize,
+    height: usize,
+    mask: Option<&[bool]>,
+) -> Option<(f64, Option<f64>)> {
     checked_pixels(a, b, width, height, mask)?;
     if width < TAPS || height < TAPS {
         return None;
@@ -94,8 +118,14 @@ pub fn ssim(a: &[u8], b: &[u8], width: usize, height: usize, mask: Option<&[bool
     let images = Pair { a, b, width, mask };
     let mut rows = vec![RowSum::default(); scored_rows];
     rows.par_chunks_mut(band).enumerate().for_each(|(i, sums)| images.score_band(RADIUS + i * band, sums));
-    let (sum, counted) = rows.iter().fold((0.0, 0usize), |(s, n), r| (s + r.ssim, n + r.counted));
-    (counted > 0).then(|| sum / (3 * counted) as f64)
+    let total = rows.iter().fold(RowSum::default(), |t, r| RowSum {
+        all: t.all + r.all,
+        all_n: t.all_n + r.all_n,
+        masked: t.masked + r.masked,
+        masked_n: t.masked_n + r.masked_n,
+    });
+    let all = total.all / (3 * total.all_n.max(1)) as f64;
+    Some((all, (total.masked_n > 0).then(|| total.masked / (3 * total.masked_n) as f64)))
 }
 
 /// The pixel count, if both images are `width * height * 3` bytes and the mask `width * height`.
@@ -117,11 +147,14 @@ fn gaussian_taps() -> [f64; TAPS] {
     taps
 }
 
-/// One scored row's SSIM summed over its counted pixels and the three channels.
+/// One scored row's SSIM summed over the three channels: over all its pixels and over its counted
+/// ones (all of them without a mask), with the pixel counts.
 #[derive(Clone, Copy, Default)]
 struct RowSum {
-    ssim: f64,
-    counted: usize,
+    all: f64,
+    all_n: usize,
+    masked: f64,
+    masked_n: usize,
 }
 
 /// The two images (validated) and the mask.
@@ -163,10 +196,12 @@ impl Pair<'_> {
                     weighted_sum(&rows, &taps, &mut moments[m * scored_width..(m + 1) * scored_width]);
                 }
                 let mask = self.mask.map(|m| &m[centre * width + RADIUS..][..scored_width]);
-                let (ssim, counted) = ssim_row(&moments, scored_width, mask);
+                let (all, masked, counted) = ssim_row(&moments, scored_width, mask);
                 let sum = &mut sums[centre - first];
-                sum.ssim += ssim;
-                sum.counted = counted;
+                sum.all += all;
+                sum.all_n = scored_width;
+                sum.masked += masked;
+                sum.masked_n = counted;
             }
         }
     }
@@ -206,23 +241,25 @@ fn weighted_sum(inputs: &[&[f64]; TAPS], taps: &[f64; TAPS], out: &mut [f64]) {
     }
 }
 
-/// The SSIM of one channel's scored row summed over the counted pixels, and their count.
-fn ssim_row(moments: &[f64], scored_width: usize, mask: Option<&[bool]>) -> (f64, usize) {
+/// The SSIM of one channel's scored row summed over all pixels and over the counted ones, and
+/// the count of those.
+fn ssim_row(moments: &[f64], scored_width: usize, mask: Option<&[bool]>) -> (f64, f64, usize) {
     let (means, products) = moments.split_at(2 * scored_width);
     let (mean_a, mean_b) = means.split_at(scored_width);
     let (squares, cross) = products.split_at(scored_width);
-    let (mut sum, mut counted) = (0.0, 0);
+    let (mut all, mut sum, mut counted) = (0.0, 0.0, 0);
     for i in 0..scored_width {
-        if mask.is_some_and(|m| !m[i]) {
-            continue;
-        }
         let (ma, mb) = (mean_a[i], mean_b[i]);
         let luminance = (2.0 * ma * mb + C1) / (ma * ma + mb * mb + C1);
         let structure = (2.0 * (cross[i] - ma * mb) + C2) / (squares[i] - ma * ma - mb * mb + C2);
-        sum += luminance * structure;
-        counted += 1;
+        let v = luminance * structure;
+        all += v;
+        if mask.is_none_or(|m| m[i]) {
+            sum += v;
+            counted += 1;
+        }
     }
-    (sum, counted)
+    (all, sum, counted)
 }
 
 #[cfg(test)]
@@ -611,5 +648,17 @@ for spec in sys.argv[2:]:
             "SSIM {w}x{h}: {one_thread:?} on 1 thread, {all_threads:?} on {} threads; PSNR {psnr_time:?}",
             rayon::current_num_threads()
         );
+    }
+
+    #[test]
+    fn both_ssims_from_one_pass_equal_the_two_calls() {
+        let (w, h) = (64, 48);
+        let a = scene(w, h);
+        let b = noisy(&a, 20, 3);
+        let mask: Vec<bool> = (0..w * h).map(|i| (i / w) % 3 != 0).collect();
+        let (all, masked) = ssim_both(&a, &b, w, h, &mask);
+        assert_eq!(all, ssim(&a, &b, w, h, None));
+        assert_eq!(masked, ssim(&a, &b, w, h, Some(&mask)));
+        assert_ne!(all, masked);
     }
 }

@@ -4,7 +4,7 @@
 //! reference is structure within `min_depth..max_depth` (the sky and beyond are left out, as in
 //! the depth evaluation). `dist4d eval` tabulates the scores per variant (the shift).
 
-use super::image_scores::{psnr, ssim};
+use super::image_scores::{psnr, ssim_both};
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -112,11 +112,12 @@ pub fn score(p: &Params, i: &Inputs) -> Result<ViewScores> {
     }
     let rel = |a: (f64, u64, u64)| (a.2 > 0).then(|| a.0 / a.2 as f64);
     let d1 = |a: (f64, u64, u64)| (a.2 > 0).then(|| a.1 as f64 / a.2 as f64);
+    let (ssim, ssim_valid) = ssim_both(&i.image.rgb, &i.ref_image.rgb, w, h, &valid);
     Ok(ViewScores {
         psnr: psnr(&i.image.rgb, &i.ref_image.rgb, w, h, None),
-        ssim: ssim(&i.image.rgb, &i.ref_image.rgb, w, h, None),
+        ssim,
         psnr_valid: psnr(&i.image.rgb, &i.ref_image.rgb, w, h, Some(&valid)),
-        ssim_valid: ssim(&i.image.rgb, &i.ref_image.rgb, w, h, Some(&valid)),
+        ssim_valid,
         abs_rel: rel(acc[0]),
         delta1: d1(acc[0]),
         abs_rel_valid: rel(acc[1]),
