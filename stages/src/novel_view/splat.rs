@@ -22,7 +22,15 @@
 //! do here without widening objects).
 //!
 //! Everything runs in source-row order on one thread, so the output is the same bytes whatever the
-//! thread count (tasks run in parallel instead).
+//! thread count (tasks run in parallel instead), and whatever the CPU: the per-row loops are
+//! written to vectorise (a second build for AVX2 where the CPU has it), and vector lanes do the
+//! scalar code's operations in its order.
+//!
+//! Per source row: project it (one array per quantity), work out every point's footprint in
+//! vectorised loops (for a footprint of one target pixel, the common case when the target is
+//! smaller than the source, also its pixel, weight and depth), then draw the points in order.
+//! A 1600x900 frame into a 768x448 view takes about 10 ms on one core with AVX2, 26 ms without
+//! (benches/novel_view.rs; 30 ms before the row loops were vectorised).
 
 use anyhow::{ensure, Context, Result};
 use dist4d_types::artifact::{Calibration, Pose};
@@ -162,6 +170,52 @@ struct Splat {
     rgb: [f32; 3],
 }
 
+/// The pixels a footprint of half-size `h` centred at `c` covers along one axis: the first and
+/// last whose centres it reaches, clipped to `0..size` (first > last when none). As floats: they
+/// are whole numbers, and the weights and depths are computed from them as floats.
+#[inline(always)]
+fn covered(c: f32, h: f32, size: f32) -> (f32, f32) {
+    (max((c - h - 0.5).ceil(), 0.0), min((c + h - 0.5).floor(), size - 1.0))
+}
+
+/// The tent weight, along one axis, of a pixel centre `d` from the centre of a footprint of
+/// half-size `h`.
+#[inline(always)]
+fn tent(d: f32, h: f32) -> f32 {
+    h + 0.5 - d.abs()
+}
+
+/// The depth (dx, dy) pixels from a point of inverse depth `iz` whose slope is (`gu`, `gv`): the
+/// inverse depth of a plane is affine in the image, so this is exact on planes, where the point's
+/// own depth would be off by its distance from the pixel centre (1-2% on a road seen at a grazing
+/// angle). The slope may only refine the depth, never flip it (a bad fit near an edge).
+#[inline(always)]
+fn depth_at(iz: f32, gu: f32, gv: f32, dx: f32, dy: f32) -> f32 {
+    let at = iz + gu * dx + gv * dy;
+    1.0 / if (at > 0.5 * iz) & (at < 2.0 * iz) { at } else { iz }
+}
+
+/// The smaller of two numbers that are not NaN: one instruction, where `f32::min`'s NaN rules
+/// cost three and tip the vectoriser's cost model against the row loops.
+#[inline(always)]
+fn min(a: f32, b: f32) -> f32 {
+    if a < b {
+        a
+    } else {
+        b
+    }
+}
+
+/// The larger of two numbers that are not NaN (see [`min`]).
+#[inline(always)]
+fn max(a: f32, b: f32) -> f32 {
+    if a > b {
+        a
+    } else {
+        b
+    }
+}
+
 /// The soft z-buffer: per pixel the front depth and the weighted sums of the front surface.
 struct Accumulator {
     width: usize,
@@ -172,9 +226,11 @@ struct Accumulator {
 }
 
 impl Accumulator {
+    /// Adds a point's weight `w` at depth `z` to cell `i`: a point nearer than the tolerance
+    /// resets the cell, one within it joins the front surface, a farther one is dropped.
     #[inline]
-    fn add(&mut self, x: usize, y: usize, w: f32, z: f32, rgb: [f32; 3]) {
-        let c = &mut self.cells[y * self.width + x];
+    fn add(&mut self, i: usize, w: f32, z: f32, rgb: [f32; 3]) {
+        let c = &mut self.cells[i];
         if c[1] == 0.0 || z < c[0] * (1.0 - self.tolerance) {
             *c = [z, w, w * rgb[0], w * rgb[1], w * rgb[2], w * z];
         } else if z <= c[0] * (1.0 + self.tolerance) {
@@ -187,33 +243,25 @@ impl Accumulator {
         }
     }
 
-    /// Splats a point at continuous pixel (u, v) over the box of half-sizes (hx, hy). Its depth
-    /// at each covered pixel centre comes from its inverse depth `iz` and that quantity's slope
-    /// (`gu`, `gv` per target pixel): the inverse depth of a plane is affine in the image, so
-    /// this is exact on planes, where the point's own depth would be off by its distance from the
-    /// pixel centre (1-2% on a road seen at a grazing angle).
-    #[inline]
+    /// Splats a point at continuous pixel (u, v) over the box of half-sizes (hx, hy), with tent
+    /// weights and the depth of [`depth_at`] at each covered pixel centre. (Footprints of one
+    /// pixel, the common case, are worked out in [`footprints`] and only [`Accumulator::add`]ed.)
     fn splat(&mut self, p: &Splat) {
         let Splat { u, v, iz, gu, gv, hx, hy, rgb } = *p;
-        let x0 = (u - hx - 0.5).ceil().max(0.0);
-        let x1 = (u + hx - 0.5).floor().min(self.width as f32 - 1.0);
-        let y0 = (v - hy - 0.5).ceil().max(0.0);
-        let y1 = (v + hy - 0.5).floor().min(self.height as f32 - 1.0);
-        if x0 > x1 || y0 > y1 {
-            return;
-        }
-        let (x0, x1, y0, y1) = (x0 as usize, x1 as usize, y0 as usize, y1 as usize);
-        for y in y0..=y1 {
-            let dy = y as f32 + 0.5 - v;
-            let wy = hy + 0.5 - dy.abs();
-            for x in x0..=x1 {
-                let dx = x as f32 + 0.5 - u;
-                let wx = hx + 0.5 - dx.abs();
-                // The slope may only refine the depth, never flip it (a bad fit near an edge).
-                let at = iz + gu * dx + gv * dy;
-                let z = if at > 0.5 * iz && at < 2.0 * iz { 1.0 / at } else { 1.0 / iz };
-                self.add(x, y, wx * wy, z, rgb);
+        let (x0, x1) = covered(u, hx, self.width as f32);
+        let (y0, y1) = covered(v, hy, self.height as f32);
+        let mut y = y0;
+        while y <= y1 {
+            let dy = y + 0.5 - v;
+            let wy = tent(dy, hy);
+            let row = y as usize * self.width;
+            let mut x = x0;
+            while x <= x1 {
+                let dx = x + 0.5 - u;
+                self.add(row + x as usize, tent(dx, hx) * wy, depth_at(iz, gu, gv, dx, dy), rgb);
+                x += 1.0;
             }
+            y += 1.0;
         }
     }
 
@@ -234,13 +282,334 @@ impl Accumulator {
     }
 }
 
-/// A source row projected into the target: per pixel (u, v, target depth, source depth); source
-/// depth 0 where the pixel draws nothing.
-type ProjectedRow = Vec<[f32; 4]>;
+/// Whether to run the row loops' AVX2 builds (see [`footprints`]).
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn has_avx2() -> bool {
+    std::arch::is_x86_feature_detected!("avx2")
+}
+
+/// A source row projected into the target, one array per quantity so that the loops over a row
+/// vectorise, with an empty pixel at each end so that the first and last pixels' neighbours need
+/// no test: pixel x of the row is entry x + 1.
+struct ProjectedRow {
+    u: Vec<f32>,
+    v: Vec<f32>,
+    /// Target depth and its inverse (stored: each point reads its neighbours' several times).
+    z: Vec<f32>,
+    iz: Vec<f32>,
+    /// Source depth, 0 where the pixel draws nothing, and its inverse (0 there too).
+    d: Vec<f32>,
+    id: Vec<f32>,
+}
+
+/// A run of a [`ProjectedRow`] (see [`ProjectedRow::window`]).
+struct RowWindow<'a> {
+    u: &'a [f32],
+    v: &'a [f32],
+    z: &'a [f32],
+    iz: &'a [f32],
+    d: &'a [f32],
+    id: &'a [f32],
+}
+
+impl ProjectedRow {
+    fn new(w: usize) -> ProjectedRow {
+        let zeros = || vec![0.0; w + 2];
+        ProjectedRow { u: zeros(), v: zeros(), z: zeros(), iz: zeros(), d: zeros(), id: zeros() }
+    }
+
+    /// Entries `shift..shift + n`: with `shift` 0, 1 or 2, each pixel's left neighbour, itself
+    /// or its right neighbour.
+    #[inline(always)]
+    fn window(&self, shift: usize, n: usize) -> RowWindow<'_> {
+        let r = shift..shift + n;
+        RowWindow {
+            u: &self.u[r.clone()],
+            v: &self.v[r.clone()],
+            z: &self.z[r.clone()],
+            iz: &self.iz[r.clone()],
+            d: &self.d[r.clone()],
+            id: &self.id[r],
+        }
+    }
+
+    /// The row below the image: nothing drawn.
+    fn clear(&mut self) {
+        for a in [&mut self.u, &mut self.v, &mut self.z, &mut self.iz, &mut self.d, &mut self.id] {
+            a.fill(0.0);
+        }
+    }
+}
+
+/// How a source camera's pixels move into the target camera.
+struct Projection {
+    /// A source pixel centre q = (x, y, 1) at depth d is the target-frame point d M q + t, at
+    /// pixel (d K_t M q + K_t t) / its z.
+    m: DMat3,
+    km: DMat3,
+    t: DVec3,
+    kt: DVec3,
+    max_depth: f32,
+    near: f64,
+}
+
+impl Projection {
+    /// Projects source row `y` (its depths `depth`) into `out`.
+    fn row(&self, y: usize, depth: &[f32], out: &mut ProjectedRow) {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2.
+            return unsafe { self.row_avx2(y, depth, out) };
+        }
+        self.row_portable(y, depth, out)
+    }
+
+    /// [`Projection::row`] built for AVX2 (see [`footprints`]).
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn row_avx2(&self, y: usize, depth: &[f32], out: &mut ProjectedRow) {
+        self.row_portable(y, depth, out)
+    }
+
+    /// Branch-free (a pixel that draws nothing is computed, then zeroed) so that it vectorises.
+    #[inline(always)]
+    fn row_portable(&self, y: usize, depth: &[f32], out: &mut ProjectedRow) {
+        let yc = y as f64 + 0.5;
+        // Per row: the projection of (0, y, 1); each column adds x times the first column.
+        let base = self.km * DVec3::new(0.0, yc, 1.0);
+        let step = self.km.x_axis;
+        let zbase = (self.m * DVec3::new(0.0, yc, 1.0)).z;
+        let zstep = self.m.x_axis.z;
+        let (t, kt, max_depth, near) = (self.t, self.kt, self.max_depth, self.near);
+        let n = depth.len();
+        let (u, v, z_out, iz, d_out, id) = (
+            &mut out.u[1..n + 1],
+            &mut out.v[1..n + 1],
+            &mut out.z[1..n + 1],
+            &mut out.iz[1..n + 1],
+            &mut out.d[1..n + 1],
+            &mut out.id[1..n + 1],
+        );
+        for x in 0..n {
+            let d = depth[x];
+            // Through i32: SSE converts signed integers to floats in vectors, not unsigned ones.
+            let xc = x as i32 as f64 + 0.5;
+            let d64 = d as f64;
+            // The target depth, z = (d M q + t).z, is also the third coordinate of the target's
+            // homogeneous pixel (K_t's last row is 0 0 1), to the bit.
+            let z = d64 * (zbase + xc * zstep) + t.z;
+            let hx = d64 * (base.x + xc * step.x) + kt.x;
+            let hy = d64 * (base.y + xc * step.y) + kt.y;
+            let drawn = (d > 0.0) & (d <= max_depth) & (z > near);
+            let keep = |value: f32| if drawn { value } else { 0.0 };
+            u[x] = keep((hx / z) as f32);
+            v[x] = keep((hy / z) as f32);
+            z_out[x] = keep(z as f32);
+            d_out[x] = keep(d);
+        }
+        // The inverses in a loop of their own: all f32, it vectorises where the f64 one may not.
+        for x in 0..n {
+            let drawn = d_out[x] != 0.0;
+            iz[x] = if drawn { 1.0 / z_out[x] } else { 0.0 };
+            id[x] = if drawn { 1.0 / d_out[x] } else { 0.0 };
+        }
+    }
+}
+
+/// What [`footprints`] needs besides the rows.
+struct FootprintParams {
+    edge_tolerance: f32,
+    max_splat_px: f32,
+    /// Target over source focal length (geometric means).
+    focal_ratio: f32,
+    /// The target image's size.
+    width: u32,
+    height: u32,
+}
+
+/// The footprints of a row's points.
+struct Footprints {
+    /// Half-sizes and the inverse depth's slope (see [`Splat`]).
+    hx: Vec<f32>,
+    hy: Vec<f32>,
+    gu: Vec<f32>,
+    gv: Vec<f32>,
+    /// The target pixel (row-major index) of a footprint that covers exactly one, with the
+    /// point's weight and depth there; [`SEVERAL`] for the others, [`NOTHING`] for a pixel
+    /// that draws nothing.
+    pixel: Vec<u32>,
+    weight: Vec<f32>,
+    depth: Vec<f32>,
+}
+
+/// [`Footprints::pixel`] of a footprint that covers more than one pixel, or none.
+const SEVERAL: u32 = u32::MAX;
+/// [`Footprints::pixel`] of a source pixel that draws nothing.
+const NOTHING: u32 = u32::MAX - 1;
+
+/// A whole number in 0..2^23 as an integer, read from its bits: adding 2^23 leaves it in the
+/// mantissa's low bits. Where `as` (which saturates) is done lane by lane by the vectoriser, this
+/// is an add and a subtract on all lanes at once. (Garbage, not a panic, for other numbers.)
+#[inline(always)]
+fn whole_to_u32(f: f32) -> u32 {
+    const TWO_TO_23: f32 = 8_388_608.0;
+    (f + TWO_TO_23).to_bits().wrapping_sub(TWO_TO_23.to_bits())
+}
+
+impl Footprints {
+    fn new(w: usize) -> Footprints {
+        let zeros = || vec![0.0; w];
+        Footprints {
+            hx: zeros(),
+            hy: zeros(),
+            gu: zeros(),
+            gv: zeros(),
+            pixel: vec![SEVERAL; w],
+            weight: zeros(),
+            depth: zeros(),
+        }
+    }
+}
+
+/// Whether neighbour `n` (with `o` opposite it, both as (source depth, its inverse)) lies on the
+/// surface of the point of source depth `d`: their depths are within the edge tolerance, or the
+/// inverse depth goes on through the three at the same slope (10%). A plane's inverse depth is
+/// affine in the image, so a road seen at a grazing angle, whose depth grows by more than the
+/// tolerance from one row to the next, is still one surface, and a depth edge is not. Written
+/// with `&` and `|` (no early returns) so that the row loop vectorises.
+#[inline(always)]
+fn same_surface(d: f32, id: f32, n: (f32, f32), o: (f32, f32), edge: f32) -> bool {
+    let (a, b) = (n.1 - id, id - o.1);
+    (n.0 != 0.0) & (((n.0 - d).abs() <= edge * d) | ((o.0 != 0.0) & ((a - b).abs() <= 0.1 * max(a.abs(), b.abs()))))
+}
+
+/// Footprints of row `cur` (with the rows above and below) into `out`: half the distance to the
+/// same-surface grid neighbours, or a source pixel's isotropic size for an isolated point, and
+/// the inverse depth's slope fitted through a same-surface neighbour along the row and one along
+/// the column; for a footprint of one target pixel (most of them when the target is smaller than
+/// the source), that pixel, weight and depth, so that drawing it is one [`Accumulator::add`].
+///
+/// Every quantity is computed for every pixel and the cases are selects, so that the loop
+/// vectorises; the selects give the same numbers as the branches they replace, and the lanes do
+/// the scalar code's operations in its order (Rust fuses no multiply-adds), so the output is the
+/// same bits with or without vectors. The loop vectoriser judges 4 SSE lanes not worth it and 8
+/// AVX2 lanes well worth it (a 1600x900 frame: 16 ms scalar, 3.6 ms in AVX2), so where the CPU
+/// has AVX2 the loops run from a second build for it (as `stereo::kernels` does).
+fn footprints(up: &ProjectedRow, cur: &ProjectedRow, down: &ProjectedRow, fp: &FootprintParams, out: &mut Footprints) {
+    #[cfg(target_arch = "x86_64")]
+    if has_avx2() {
+        // SAFETY: the CPU has AVX2.
+        return unsafe { footprints_avx2(up, cur, down, fp, out) };
+    }
+    footprints_portable(up, cur, down, fp, out)
+}
+
+/// [`footprints`] built for AVX2.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn footprints_avx2(
+    up: &ProjectedRow,
+    cur: &ProjectedRow,
+    down: &ProjectedRow,
+    fp: &FootprintParams,
+    out: &mut Footprints,
+) {
+    footprints_portable(up, cur, down, fp, out)
+}
+
+#[inline(always)]
+fn footprints_portable(
+    up: &ProjectedRow,
+    cur: &ProjectedRow,
+    down: &ProjectedRow,
+    fp: &FootprintParams,
+    out: &mut Footprints,
+) {
+    let n = out.hx.len();
+    let (edge, max_h, focal_ratio) = (fp.edge_tolerance, fp.max_splat_px, fp.focal_ratio);
+    let (width, height, stride) = (fp.width as f32, fp.height as f32, fp.width);
+    // The point, its left and right, up and down neighbours: slices of exactly n entries.
+    let (p, l, r, t, b) = (cur.window(1, n), cur.window(0, n), cur.window(2, n), up.window(1, n), down.window(1, n));
+    let (hx_out, hy_out, gu_out, gv_out) = (&mut out.hx[..n], &mut out.hy[..n], &mut out.gu[..n], &mut out.gv[..n]);
+    for x in 0..n {
+        let (pu, pv, piz, pd, pid) = (p.u[x], p.v[x], p.iz[x], p.d[x], p.id[x]);
+        let (lu, lv, liz, ld, lid) = (l.u[x], l.v[x], l.iz[x], l.d[x], l.id[x]);
+        let (ru, rv, riz, rd, rid) = (r.u[x], r.v[x], r.iz[x], r.d[x], r.id[x]);
+        let (tu, tv, tiz, td, tid) = (t.u[x], t.v[x], t.iz[x], t.d[x], t.id[x]);
+        let (bu, bv, biz, bd, bid) = (b.u[x], b.v[x], b.iz[x], b.d[x], b.id[x]);
+        let same_left = same_surface(pd, pid, (ld, lid), (rd, rid), edge);
+        let same_right = same_surface(pd, pid, (rd, rid), (ld, lid), edge);
+        let same_up = same_surface(pd, pid, (td, tid), (bd, bid), edge);
+        let same_down = same_surface(pd, pid, (bd, bid), (td, tid), edge);
+        // Half-sizes: the farthest same-surface neighbour along each axis (0 for the others).
+        let reach = |linked: bool, delta: f32| if linked { delta.abs() } else { 0.0 };
+        let hx = max(
+            max(reach(same_left, lu - pu), reach(same_right, ru - pu)),
+            max(reach(same_up, tu - pu), reach(same_down, bu - pu)),
+        );
+        let hy = max(
+            max(reach(same_left, lv - pv), reach(same_right, rv - pv)),
+            max(reach(same_up, tv - pv), reach(same_down, bv - pv)),
+        );
+        // The slope: solve [du dv] g = d(1/z) for a neighbour along the row (right first) and
+        // one along the column (down first).
+        let (au, av, ai) = if same_right { (ru - pu, rv - pv, riz - piz) } else { (lu - pu, lv - pv, liz - piz) };
+        let (cu, cv, ci) = if same_down { (bu - pu, bv - pv, biz - piz) } else { (tu - pu, tv - pv, tiz - piz) };
+        let det = au * cv - av * cu;
+        let fitted = (same_right | same_left) & (same_down | same_up) & (det.abs() > 1e-3);
+        let gu = if fitted { (ai * cv - ci * av) / det } else { 0.0 };
+        let gv = if fitted { (au * ci - cu * ai) / det } else { 0.0 };
+        let linked = same_left | same_right | same_up | same_down;
+        // An isolated point: a source pixel's size at its depth, (d / f_s) * (f_t / z_t).
+        let isotropic = 0.5 * pd * focal_ratio / p.z[x];
+        // max-min rather than clamp, whose check that 0.5 <= max_h would stop the vectoriser.
+        let hx = min(max(if linked { hx * 0.5 } else { isotropic }, 0.5), max_h);
+        let hy = min(max(if linked { hy * 0.5 } else { isotropic }, 0.5), max_h);
+        (hx_out[x], hy_out[x], gu_out[x], gv_out[x]) = (hx, hy, gu, gv);
+    }
+    // A second loop: in the first, the vectoriser would have to check 7 outputs against 25
+    // inputs for overlap, and gives up.
+    let (hx, hy, gu, gv) = (&out.hx[..n], &out.hy[..n], &out.gu[..n], &out.gv[..n]);
+    let (pixel, weight, depth) = (&mut out.pixel[..n], &mut out.weight[..n], &mut out.depth[..n]);
+    for x in 0..n {
+        // One target pixel: what Accumulator::splat would add there.
+        let (pu, pv, piz) = (p.u[x], p.v[x], p.iz[x]);
+        let (x0, x1) = covered(pu, hx[x], width);
+        let (y0, y1) = covered(pv, hy[x], height);
+        let (dx, dy) = (x0 + 0.5 - pu, y0 + 0.5 - pv);
+        let one = (x0 == x1) & (y0 == y1);
+        let index = whole_to_u32(y0).wrapping_mul(stride).wrapping_add(whole_to_u32(x0));
+        pixel[x] = if p.d[x] == 0.0 {
+            NOTHING
+        } else if one {
+            index
+        } else {
+            SEVERAL
+        };
+        weight[x] = tent(dx, hx[x]) * tent(dy, hy[x]);
+        depth[x] = depth_at(piz, gu[x], gv[x], dx, dy);
+    }
+}
 
 /// Draws `sources` into `target`, in order (see the module doc).
 pub fn reproject(sources: &[RgbdView], target: &PinholeView, params: &SplatParams) -> Result<Reprojected> {
     ensure!(target.width > 0 && target.height > 0, "the target camera has an empty image size");
+    // Pixel coordinates become integers by their bits (see `whole_to_u32`), indices are u32.
+    ensure!(
+        target.width < 1 << 23
+            && target.height < 1 << 23
+            && (target.width as u64 * target.height as u64) < NOTHING as u64,
+        "the target camera's image ({}x{}) is too large to draw into",
+        target.width,
+        target.height
+    );
     let mut acc = Accumulator {
         width: target.width as usize,
         height: target.height as usize,
@@ -261,129 +630,58 @@ fn draw(acc: &mut Accumulator, src: &RgbdView, target: &PinholeView, params: &Sp
         src.rgb.len(),
         src.depth.len()
     );
-    // Target camera frame from the source camera frame; a source pixel centre q = (x, y, 1) at
-    // depth d is the target-frame point d * M q + t, at pixel (K_t (d M q + t)) / its z.
     let t_from_s = target.world_from_cam.inverse().then_from(&src.view.world_from_cam);
     let m = t_from_s.matrix() * src.view.k_inverse();
-    let km = target.k_matrix() * m;
-    let kt = target.k_matrix() * t_from_s.translation;
-    let t = t_from_s.translation;
-    // The isotropic footprint of a source pixel: (d / f_s) * (f_t / z_t), with the focal lengths'
-    // geometric means (pixels may be slightly non-square after a resize).
-    let focal_ratio = ((target.k[0][0] * target.k[1][1]) / (src.view.k[0][0] * src.view.k[1][1])).sqrt() as f32;
-    let max_depth = params.max_depth;
-    let near = params.near as f64;
-    let project_row = |y: usize, out: &mut ProjectedRow| {
-        let yc = y as f64 + 0.5;
-        // Per row: the projection of (0, y, 1); each column adds x times the first column.
-        let base = km * DVec3::new(0.0, yc, 1.0);
-        let step = km.x_axis;
-        let zbase = (m * DVec3::new(0.0, yc, 1.0)).z;
-        let zstep = m.x_axis.z;
-        for (x, o) in out.iter_mut().enumerate() {
-            let d = src.depth[y * w + x];
-            *o = [0.0; 4];
-            if !(d > 0.0 && d <= max_depth) {
-                continue;
-            }
-            let xc = x as f64 + 0.5;
-            let d64 = d as f64;
-            let z = d64 * (zbase + xc * zstep) + t.z;
-            if z <= near {
-                continue;
-            }
-            let hx = d64 * (base.x + xc * step.x) + kt.x;
-            let hy = d64 * (base.y + xc * step.y) + kt.y;
-            let hz = d64 * (base.z + xc * step.z) + kt.z;
-            *o = [(hx / hz) as f32, (hy / hz) as f32, z as f32, d];
-        }
+    let projection = Projection {
+        m,
+        km: target.k_matrix() * m,
+        t: t_from_s.translation,
+        kt: target.k_matrix() * t_from_s.translation,
+        max_depth: params.max_depth,
+        near: params.near as f64,
     };
-    let mut rows: [ProjectedRow; 3] = [vec![[0.0; 4]; w], vec![[0.0; 4]; w], vec![[0.0; 4]; w]];
+    let fp = FootprintParams {
+        edge_tolerance: params.edge_tolerance,
+        max_splat_px: params.max_splat_px,
+        // The isotropic footprint of a source pixel: (d / f_s) * (f_t / z_t), with the focal
+        // lengths' geometric means (pixels may be slightly non-square after a resize).
+        focal_ratio: ((target.k[0][0] * target.k[1][1]) / (src.view.k[0][0] * src.view.k[1][1])).sqrt() as f32,
+        width: target.width,
+        height: target.height,
+    };
+    // rows[0] = y - 1, rows[1] = y, rows[2] = y + 1 (all empty beyond the image).
+    let mut rows: [ProjectedRow; 3] = std::array::from_fn(|_| ProjectedRow::new(w));
+    let mut feet = Footprints::new(w);
     if h > 0 {
-        project_row(0, &mut rows[1]);
+        projection.row(0, &src.depth[..w], &mut rows[1]);
     }
-    let edge = params.edge_tolerance;
-    let max_h = params.max_splat_px;
     for y in 0..h {
-        // rows[0] = y - 1, rows[1] = y, rows[2] = y + 1 (all zero beyond the image).
         if y + 1 < h {
-            project_row(y + 1, &mut rows[2]);
+            projection.row(y + 1, &src.depth[(y + 1) * w..(y + 2) * w], &mut rows[2]);
         } else {
-            rows[2].iter_mut().for_each(|p| *p = [0.0; 4]);
+            rows[2].clear();
         }
-        let (up, cur, down) = (&rows[0], &rows[1], &rows[2]);
+        footprints(&rows[0], &rows[1], &rows[2], &fp, &mut feet);
+        let cur = rows[1].window(1, w);
         let rgb_row = &src.rgb[3 * y * w..3 * (y + 1) * w];
-        for x in 0..w {
-            let p = cur[x];
-            let d = p[3];
-            if d == 0.0 {
-                continue;
+        // Slices of exactly w entries: no bounds checks in the loop.
+        let (pixel, weight, depth) = (&feet.pixel[..w], &feet.weight[..w], &feet.depth[..w]);
+        for (x, rgb) in rgb_row.chunks_exact(3).enumerate() {
+            let rgb = [rgb[0], rgb[1], rgb[2]].map(f32::from);
+            match pixel[x] {
+                NOTHING => {}
+                SEVERAL => acc.splat(&Splat {
+                    u: cur.u[x],
+                    v: cur.v[x],
+                    iz: cur.iz[x],
+                    gu: feet.gu[x],
+                    gv: feet.gv[x],
+                    hx: feet.hx[x],
+                    hy: feet.hy[x],
+                    rgb,
+                }),
+                i => acc.add(i as usize, weight[x], depth[x], rgb),
             }
-            let (mut hx, mut hy, mut linked) = (0f32, 0f32, false);
-            let left = if x > 0 { cur[x - 1] } else { [0.0; 4] };
-            let right = if x + 1 < w { cur[x + 1] } else { [0.0; 4] };
-            // Neighbour `n` (with `o` opposite it) lies on this point's surface when their source
-            // depths are within the edge tolerance, or when the inverse depth goes on through the
-            // three at the same slope (10%): a plane's inverse depth is affine in the image, so a
-            // road seen at a grazing angle, whose depth grows by more than the tolerance from
-            // one row to the next, is still one surface, and a depth edge is not.
-            let same = |n: [f32; 4], o: [f32; 4]| {
-                if n[3] == 0.0 {
-                    return false;
-                }
-                if (n[3] - d).abs() <= edge * d {
-                    return true;
-                }
-                if o[3] == 0.0 {
-                    return false;
-                }
-                let (a, b) = (1.0 / n[3] - 1.0 / d, 1.0 / d - 1.0 / o[3]);
-                (a - b).abs() <= 0.1 * a.abs().max(b.abs())
-            };
-            let (same_left, same_right, same_up, same_down) =
-                (same(left, right), same(right, left), same(up[x], down[x]), same(down[x], up[x]));
-            for (n, linked_to) in [(left, same_left), (right, same_right), (up[x], same_up), (down[x], same_down)] {
-                if linked_to {
-                    hx = hx.max((n[0] - p[0]).abs());
-                    hy = hy.max((n[1] - p[1]).abs());
-                    linked = true;
-                }
-            }
-            let iz = 1.0 / p[2];
-            let (mut gu, mut gv) = (0.0, 0.0);
-            let along_row = if same_right {
-                Some(right)
-            } else if same_left {
-                Some(left)
-            } else {
-                None
-            };
-            let along_col = if same_down {
-                Some(down[x])
-            } else if same_up {
-                Some(up[x])
-            } else {
-                None
-            };
-            if let (Some(a), Some(b)) = (along_row, along_col) {
-                // Solve [du dv] g = d(1/z) for the two neighbours.
-                let (au, av, ai) = (a[0] - p[0], a[1] - p[1], 1.0 / a[2] - iz);
-                let (bu, bv, bi) = (b[0] - p[0], b[1] - p[1], 1.0 / b[2] - iz);
-                let det = au * bv - av * bu;
-                if det.abs() > 1e-3 {
-                    gu = (ai * bv - bi * av) / det;
-                    gv = (au * bi - bu * ai) / det;
-                }
-            }
-            if linked {
-                hx *= 0.5;
-                hy *= 0.5;
-            } else {
-                hx = 0.5 * d * focal_ratio / p[2];
-                hy = hx;
-            }
-            let rgb = [rgb_row[3 * x] as f32, rgb_row[3 * x + 1] as f32, rgb_row[3 * x + 2] as f32];
-            acc.splat(&Splat { u: p[0], v: p[1], iz, gu, gv, hx: hx.clamp(0.5, max_h), hy: hy.clamp(0.5, max_h), rgb });
         }
         rows.rotate_left(1);
     }
