@@ -73,6 +73,8 @@ fn dist_s_pairs_from_the_cli_on_synthetic_data_with_an_index_a_loader_reads() {
         let dt = tgt["timestamp_us"].as_i64().unwrap() - src["timestamp_us"].as_i64().unwrap();
         assert!((dt - offset * 500_000).abs() < 50_000, "{p}");
     }
+    // The synthetic agents drive: some pairs move their objects to the target's time.
+    assert!(pairs.iter().any(|p| p["moving"]["followed"].as_u64().unwrap_or(0) > 0), "no object followed");
     // The voxel twins are sparser than their dense pairs.
     let valid = |label: &str| {
         let png = out.join(format!("synth-0000/CAM_FRONT/002_{label}_mask.png"));

@@ -10,6 +10,7 @@
 //! make: it is counted as such, not as a failure. The record (JSON) says what the pair is; the
 //! `PairIndex` stage collects the records of a scene into its index with the exported paths.
 
+use super::moving::{split, Moved, Moving};
 use super::splat::{reproject, PinholeView, RgbdView, SplatParams};
 use crate::stage::{variant_of, Stage};
 use anyhow::{bail, ensure, Context, Result};
@@ -57,6 +58,9 @@ pub struct Params {
     pub height: u32,
     /// The pairs made per camera image, by label (labels name the exported files).
     pub variants: BTreeMap<String, PairVariant>,
+    /// Objects that moved between the source and target times ([`Moving`]): by default drawn
+    /// where their box is at the target's time.
+    pub moving: Moving,
     pub splat: SplatParams,
 }
 
@@ -67,6 +71,7 @@ impl Default for Params {
             width: 768,
             height: 448,
             variants: [("t-2".to_string(), v(-2)), ("t+2".to_string(), v(2))].into_iter().collect(),
+            moving: Moving::Follow,
             // The curated sky (100 m) is a convention, not a surface: moved with the ego it would
             // land 5-10 m nearer in the target, so it is left out of the condition.
             splat: SplatParams { max_depth: 99.0, ..SplatParams::default() },
@@ -140,7 +145,8 @@ pub struct FramePair {
 
 impl Stage for FramePair {
     const KIND: &'static str = "FramePair";
-    const VERSION: u32 = 1;
+    // 2: moving objects follow their boxes to the target's time.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str =
         "DiST-S training pairs: frame t's RGB-D cloud drawn into frame t+offset of the same camera, per variant";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -215,29 +221,25 @@ impl Stage for FramePair {
                 view_of(info, image, depth).with_context(|| format!("the source {}", info.camera))
             })
             .collect::<Result<_>>()?;
-        let thinned: Vec<Vec<f32>> = sources
-            .iter()
-            .zip(&views)
-            .map(
-                |((_, depth, _), view)| {
-                    if variant.voxel > 0.0 {
-                        thin_to_voxels(&depth.data, view, variant.voxel)
-                    } else {
-                        Vec::new()
-                    }
-                },
-            )
-            .collect();
-        let rgbd: Vec<RgbdView> = sources
-            .iter()
-            .zip(&views)
-            .zip(&thinned)
-            .map(|(((image, depth, _), view), thin)| RgbdView {
-                rgb: &image.rgb,
-                depth: if variant.voxel > 0.0 { thin } else { &depth.data },
-                view,
-            })
-            .collect();
+        // Each source thinned to voxels (an augmentation), then split into its static rest and
+        // the objects that moved between its time and the target's.
+        let mut moved = Moved::default();
+        let mut pieces = Vec::new();
+        for ((image, depth, info), view) in sources.iter().zip(&views) {
+            let thinned;
+            let depth = if variant.voxel > 0.0 {
+                thinned = thin_to_voxels(&depth.data, view, variant.voxel);
+                &thinned
+            } else {
+                &depth.data
+            };
+            let (parts, m) = split(depth, view, &info.boxes.boxes, &tgt_info.boxes.boxes, self.params.moving);
+            moved.followed += m.followed;
+            moved.dropped += m.dropped;
+            pieces.extend(parts.into_iter().map(|p| (*image, p)));
+        }
+        let rgbd: Vec<RgbdView> =
+            pieces.iter().map(|(image, p)| RgbdView { rgb: &image.rgb, depth: &p.depth, view: &p.view }).collect();
         let cond = reproject(&rgbd, &tgt_view, &self.params.splat)?;
         let (w, h) = (self.params.width, self.params.height);
         let record = json!({
@@ -251,6 +253,7 @@ impl Stage for FramePair {
             "augmentation": { "offset": variant.offset.abs() > 2, "voxel": variant.voxel },
             "size": [h, w],
             "from": variant.from,
+            "moving": { "mode": self.params.moving, "followed": moved.followed, "dropped": moved.dropped },
             "sources": sources.iter().zip(&views).map(|((_, _, info), view)| frame_record(info, view)).collect::<Vec<_>>(),
             "target": frame_record(tgt_info, &tgt_view),
         });
