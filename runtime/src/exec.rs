@@ -148,7 +148,10 @@ struct OuterRun {
     seq: u64,
     state: Vec<State>,
     waiting: Vec<u32>,
-    readers_left: Vec<u32>,
+    /// Per task and output port, the tasks that still have to read it: a port's bytes are kept
+    /// in memory until its last reader has them (per port, not per task: a scene-wide index that
+    /// reads one small port of every task must not keep their images in memory until it runs).
+    readers_left: Vec<Vec<u32>>,
     outputs: Vec<Option<Arc<Vec<Produced>>>>,
     open: usize,
     /// Export writes of this outer item still running: it stays active until they end, so that
@@ -635,7 +638,7 @@ impl Coord {
             seq,
             state: vec![State::Waiting; n],
             waiting: plan.tasks.iter().map(|t| t.upstream).collect(),
-            readers_left: plan.tasks.iter().map(|t| t.dependents.len() as u32).collect(),
+            readers_left: readers_per_port(&plan, p),
             outputs: vec![None; n],
             open: n,
             exports_pending: 0,
@@ -853,7 +856,7 @@ impl Coord {
             }
         }
         let produced = Arc::new(produced);
-        run.outputs[t] = Some(if run.readers_left[t] > 0 { produced } else { strip(&produced) });
+        run.outputs[t] = Some(strip_unread(&produced, &run.readers_left[t]));
         match awaiting {
             Some(a) if a.files_left > 0 => {
                 self.awaiting.insert(id, a);
@@ -1069,19 +1072,20 @@ fn entry(run: &OuterRun, slot: u32, task: u32, rank: &[u32]) -> ReadyEntry {
 
 /// A task no longer needs its inputs: upstream outputs nobody else will read drop their bytes.
 fn release_inputs(run: &mut OuterRun, t: usize) {
-    let mut seen: Vec<u32> = Vec::new();
+    let mut seen: Vec<(u32, u16)> = Vec::new();
     for srcs in &run.plan.tasks[t].inputs {
         for src in srcs {
-            if let InputSrc::Task { task: u, .. } = *src {
-                if seen.contains(&u) {
+            if let InputSrc::Task { task: u, port, .. } = *src {
+                if seen.contains(&(u, port)) {
                     continue;
                 }
-                seen.push(u);
-                let u = u as usize;
-                run.readers_left[u] -= 1;
-                if run.readers_left[u] == 0 {
+                seen.push((u, port));
+                let (u, port) = (u as usize, port as usize);
+                let Some(left) = run.readers_left[u].get_mut(port) else { continue };
+                *left = left.saturating_sub(1);
+                if *left == 0 {
                     if let Some(o) = &run.outputs[u] {
-                        run.outputs[u] = Some(strip(o));
+                        run.outputs[u] = Some(strip_unread(o, &run.readers_left[u]));
                     }
                 }
             }
@@ -1089,8 +1093,38 @@ fn release_inputs(run: &mut OuterRun, t: usize) {
     }
 }
 
-fn strip(p: &Arc<Vec<Produced>>) -> Arc<Vec<Produced>> {
-    Arc::new(p.iter().map(|x| Produced { mem: None, ..x.clone() }).collect())
+/// Per task of `plan` and output port, how many tasks read it.
+fn readers_per_port(plan: &OuterPlan, p: &Pipeline) -> Vec<Vec<u32>> {
+    let mut readers: Vec<Vec<u32>> = plan.tasks.iter().map(|t| vec![0; p.nodes[t.node as usize].outputs.len()]).collect();
+    let mut seen: Vec<(u32, u16)> = Vec::new();
+    for t in &plan.tasks {
+        seen.clear();
+        for src in t.inputs.iter().flatten() {
+            if let InputSrc::Task { task: u, port, .. } = *src {
+                if !seen.contains(&(u, port)) {
+                    seen.push((u, port));
+                    if let Some(n) = readers[u as usize].get_mut(port as usize) {
+                        *n += 1;
+                    }
+                }
+            }
+        }
+    }
+    readers
+}
+
+/// The outputs with the in-memory bytes of every port no task still has to read dropped (they
+/// are in the store, or in the output folder for the exports).
+fn strip_unread(p: &Arc<Vec<Produced>>, readers_left: &[u32]) -> Arc<Vec<Produced>> {
+    if p.iter().enumerate().all(|(i, x)| x.mem.is_none() || readers_left.get(i).is_some_and(|&n| n > 0)) {
+        return p.clone();
+    }
+    Arc::new(
+        p.iter()
+            .enumerate()
+            .map(|(i, x)| if readers_left.get(i).is_some_and(|&n| n > 0) { x.clone() } else { Produced { mem: None, ..x.clone() } })
+            .collect(),
+    )
 }
 
 fn count_items(view: &View, prefix: ItemKey, depth: usize) -> u64 {
