@@ -349,7 +349,7 @@ fn execute(
         );
     }
     if rec.stages.iter().any(|s| s.not_applicable > 0) {
-        println!("(n/a: tasks with nothing to make, e.g. a pair whose target frame is past the scene's end; counted within executed/cached when they ran)");
+        println!("(n/a: tasks with nothing to make, e.g. the exact view of a dataset that is not synthetic, and the tasks that needed them)");
     }
     let recomputed: u64 = rec.stages.iter().map(|s| s.recomputed).sum();
     if recomputed > 0 {

@@ -88,6 +88,20 @@ pub struct Variants {
     pub shared: String,
     /// Each variant's label and canonical text.
     pub each: Vec<(String, String)>,
+    /// How each variant's tasks are planned.
+    pub plans: Vec<VariantPlan>,
+}
+
+/// What the planner needs to know of one variant.
+#[derive(Clone, Debug, PartialEq, Eq, Default)]
+pub struct VariantPlan {
+    /// The variant's offset along an ordered dimension: `Offset("s.p", frame, variant)` reads the
+    /// item that far away (a pair's target frame), and a task whose offset falls outside the
+    /// items is not planned.
+    pub offset: i32,
+    /// Optional input ports this variant's tasks do not read: they are planned without them
+    /// (nothing loaded for a pair that does not use the other cameras).
+    pub unused: Vec<&'static str>,
 }
 
 impl Variants {
@@ -96,13 +110,23 @@ impl Variants {
         params: &P,
         take: impl FnOnce(&mut P) -> BTreeMap<String, V>,
     ) -> Option<Variants> {
+        Variants::split_planned(params, take, |_| VariantPlan::default())
+    }
+
+    /// Like [`Variants::split`], with each variant's [`VariantPlan`].
+    pub fn split_planned<P: Serialize + Clone, V: Serialize>(
+        params: &P,
+        take: impl FnOnce(&mut P) -> BTreeMap<String, V>,
+        plan: impl Fn(&V) -> VariantPlan,
+    ) -> Option<Variants> {
         let mut shared = params.clone();
         let variants = take(&mut shared);
         let each = variants
             .iter()
             .map(|(label, v)| crate::canonical::to_canonical(v).ok().map(|text| (label.clone(), text)))
             .collect::<Option<Vec<_>>>()?;
-        Some(Variants { shared: crate::canonical::to_canonical(&shared).ok()?, each })
+        let plans = variants.values().map(plan).collect();
+        Some(Variants { shared: crate::canonical::to_canonical(&shared).ok()?, each, plans })
     }
 
     pub fn labels(&self) -> Vec<String> {

@@ -15,7 +15,9 @@ pub mod pipeline;
 pub mod source;
 pub mod syntax;
 
-pub use catalog::{Catalog, DatasetSchema, DimSpec, PortSpec, SourcePortSpec, StageSchema, Variants, VARIANT_DIM};
+pub use catalog::{
+    Catalog, DatasetSchema, DimSpec, PortSpec, SourcePortSpec, StageSchema, VariantPlan, Variants, VARIANT_DIM,
+};
 pub use checks::{ParamChecks, ParamProblem, Validate};
 pub use diag::Diagnostic;
 pub use load::{load_file, load_str, LoadError};

@@ -718,8 +718,17 @@ impl<'c> Checker<'c> {
         for d in declared {
             let node = &nodes[d.node];
             let Some(stage) = node.stage() else { continue };
-            let Some(v) = &stage.variants else { continue };
-            let these = v.labels();
+            let declares = self.catalog.stage(&stage.kind).is_some_and(|k| k.variants.is_some());
+            let these = match &stage.variants {
+                Some(v) => v.labels(),
+                // Its params were refused (and reported): it still declares variants, so the
+                // stages run per variant and the exports naming `{variant}` are not errors too.
+                None if declares => {
+                    labels.get_or_insert((vec!["?".to_string()], &node.name));
+                    continue;
+                }
+                None => continue,
+            };
             if node.grain != 0 && node.grain != variant_grain {
                 self.err(
                     Diagnostic::error(
@@ -1003,6 +1012,9 @@ impl<'c> Checker<'c> {
             "All" => Selector::All,
             "Gather" => Selector::Gather { dim: dim(self, 1, false)? },
             "Across" => Selector::Across { dim: dim(self, 1, false)? },
+            "Offset" if matches!(&items[2].kind, ValueKind::Ident(v) if v == crate::VARIANT_DIM) => {
+                Selector::VariantOffset { dim: dim(self, 1, true)? }
+            }
             "Offset" => Selector::Offset { dim: dim(self, 1, true)?, by: int(self, 2)? },
             _ => {
                 let (dim, before, after) = (dim(self, 1, true)?, int(self, 2)?, int(self, 3)?);
@@ -1231,6 +1243,12 @@ fn grain_allows(sel: Selector, u: usize, d: usize, dims: &[Dim]) -> Result<(), S
     match sel {
         Selector::Same if u <= d => Ok(()),
         Selector::Same => Err(format!("is finer: gather it with Gather(\"..\", {})", dims[d].name)),
+        Selector::VariantOffset { dim } if u <= d && dim < u && d == dims.len() && dims[d - 1].name == crate::VARIANT_DIM => {
+            Ok(())
+        }
+        Selector::VariantOffset { .. } => {
+            Err("moves by the task's variant's offset, so the stage must run per `variant`".into())
+        }
         Selector::Window { dim, .. } | Selector::Offset { dim, .. } if u <= d && dim < u => Ok(()),
         Selector::Window { dim, .. } | Selector::Offset { dim, .. } => {
             Err(format!("cannot be moved along `{}` that way: the upstream must be per `{}` or coarser and have that dimension", dims[dim].name, dims[d - 1].name))

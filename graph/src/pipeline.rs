@@ -24,6 +24,9 @@ pub enum Selector {
     Gather { dim: usize },
     /// Every upstream item under the same outer item (the item of the outermost dimension).
     All,
+    /// The one item at `i + offset` along `dim`, the offset being the task's variant's (see
+    /// [`crate::VariantPlan`]); tasks whose offset falls outside the items are not planned.
+    VariantOffset { dim: usize },
     /// The upstream items at this item's coordinates except along `dim`, which takes every value
     /// (all cameras of this frame, for a task of one camera): the "surround" of an item.
     Across { dim: usize },
@@ -43,6 +46,7 @@ impl Selector {
                 format!("Window({}, {before}, {after})", dims[dim].name)
             }
             Selector::Offset { dim, by } => format!("Offset({}, {by})", dims[dim].name),
+            Selector::VariantOffset { dim } => format!("Offset({}, variant)", dims[dim].name),
             Selector::Gather { dim } => format!("Gather({})", dims[dim].name),
             Selector::All => "All".into(),
             Selector::Across { dim } => format!("Across({})", dims[dim].name),
@@ -164,6 +168,15 @@ impl Pipeline {
     /// Ids of the stage nodes (not sources), in topological order.
     pub fn stage_order(&self) -> impl Iterator<Item = NodeId> + '_ {
         self.order.iter().copied().filter(|&n| self.nodes[n].stage().is_some())
+    }
+
+    /// The offset of variant `i` (from the stage that declares the variants; 0 when it gives none).
+    pub fn variant_offset(&self, i: usize) -> i32 {
+        self.nodes
+            .iter()
+            .filter_map(|n| n.stage()?.variants.as_ref())
+            .find_map(|v| v.plans.get(i).map(|p| p.offset))
+            .unwrap_or(0)
     }
 
     /// Name of a grain (its innermost dimension).

@@ -327,7 +327,10 @@ fn all_reads_every_upstream_item_under_the_outer_item() {
     let out = errors(&text.replace("All(", "Scene("), &[]);
     assert!(out.contains("unknown selector `Scene`"), "{out}");
     assert!(out.contains(r#"Window("stage.port", frame, -1, 1)"#), "{out}");
-    assert!(out.contains(r#"Gather("stage.port", camera), Across("stage.port", camera) or All("stage.port")"#), "{out}");
+    assert!(
+        out.contains(r#"Gather("stage.port", camera), Across("stage.port", camera) or All("stage.port")"#),
+        "{out}"
+    );
 }
 
 #[test]

@@ -685,15 +685,17 @@ impl Coord {
         let ci = self.counter_of[node];
         match result {
             Ok(outcome) => {
+                // A task with nothing to make counts as that, not as executed or cached.
+                let nothing = outcome.outputs() == 0 && !e.pipeline.nodes[node].outputs.is_empty();
                 match &outcome {
-                    Outcome::Cached(..) => self.stats[ci].cached += 1,
+                    Outcome::Cached(..) if !nothing => self.stats[ci].cached += 1,
                     Outcome::Executed(_, _, micros, _) => {
-                        self.stats[ci].executed += 1;
+                        self.stats[ci].executed += !nothing as u64;
                         self.stats[ci].seconds += *micros as f64 / 1e6;
                     }
+                    Outcome::Cached(..) => {}
                 }
                 self.counters.done[ci].fetch_add(1, Ordering::Relaxed);
-                let nothing = outcome.outputs() == 0 && !e.pipeline.nodes[node].outputs.is_empty();
                 self.complete(e, slot, t, outcome)?;
                 if nothing {
                     self.stats[ci].not_applicable += 1;
@@ -1095,7 +1097,8 @@ fn release_inputs(run: &mut OuterRun, t: usize) {
 
 /// Per task of `plan` and output port, how many tasks read it.
 fn readers_per_port(plan: &OuterPlan, p: &Pipeline) -> Vec<Vec<u32>> {
-    let mut readers: Vec<Vec<u32>> = plan.tasks.iter().map(|t| vec![0; p.nodes[t.node as usize].outputs.len()]).collect();
+    let mut readers: Vec<Vec<u32>> =
+        plan.tasks.iter().map(|t| vec![0; p.nodes[t.node as usize].outputs.len()]).collect();
     let mut seen: Vec<(u32, u16)> = Vec::new();
     for t in &plan.tasks {
         seen.clear();
@@ -1122,7 +1125,13 @@ fn strip_unread(p: &Arc<Vec<Produced>>, readers_left: &[u32]) -> Arc<Vec<Produce
     Arc::new(
         p.iter()
             .enumerate()
-            .map(|(i, x)| if readers_left.get(i).is_some_and(|&n| n > 0) { x.clone() } else { Produced { mem: None, ..x.clone() } })
+            .map(|(i, x)| {
+                if readers_left.get(i).is_some_and(|&n| n > 0) {
+                    x.clone()
+                } else {
+                    Produced { mem: None, ..x.clone() }
+                }
+            })
             .collect(),
     )
 }

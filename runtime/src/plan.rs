@@ -74,6 +74,8 @@ impl View<'_> {
             Selector::Window { dim, before, after } => (before..=after)
                 .filter_map(|delta| self.shifted(item.prefix(up), dim, delta).map(|k| (k, delta as i64)))
                 .collect(),
+            // Resolved to an `Offset` by the planner, which knows the variants.
+            Selector::VariantOffset { .. } => Vec::new(),
             Selector::Offset { dim, by } => {
                 self.shifted(item.prefix(up), dim, by).map(|k| vec![(k, by as i64)]).unwrap_or_default()
             }
@@ -137,10 +139,23 @@ pub fn plan_outer(pipeline: &Pipeline, view: &View, outer: u32) -> OuterPlan {
         'items: for &item in &items {
             let mut inputs = Vec::with_capacity(stage.inputs.len());
             let mut ups: Vec<u32> = Vec::new();
+            // A variant's plan: its offset, and the optional inputs it does not read.
+            let plan = stage.variants.as_ref().and_then(|v| v.plans.get(*item.coords().last().unwrap_or(&0) as usize));
             for input in &stage.inputs {
                 let from = &pipeline.nodes[input.from];
+                if plan.is_some_and(|p| p.unused.contains(&input.port.as_str())) {
+                    inputs.push(Vec::new());
+                    continue;
+                }
+                let selector = match input.selector {
+                    Selector::VariantOffset { dim } => {
+                        let by = pipeline.variant_offset(item.coords().last().copied().unwrap_or(0) as usize);
+                        Selector::Offset { dim, by }
+                    }
+                    other => other,
+                };
                 let mut srcs = Vec::new();
-                for (key, pos) in view.select(input.selector, item, from.grain) {
+                for (key, pos) in view.select(selector, item, from.grain) {
                     match &from.kind {
                         NodeKind::Source { .. } => {
                             srcs.push(InputSrc::Source { node: input.from as u32, item: key, pos })

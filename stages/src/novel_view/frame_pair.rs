@@ -6,16 +6,19 @@
 //! triangle filter (antialiased), the target depth by nearest sample (no depth mixed across an
 //! edge), the target camera's intrinsics scaled with the image ([`PinholeView::resized`]).
 //!
-//! A variant whose target frame the scene does not have (t+2 on its last frames) has nothing to
-//! make: it is counted as such, not as a failure. The record (JSON) says what the pair is; the
-//! `PairIndex` stage collects the records of a scene into its index with the exported paths.
+//! The target frame comes in through `Offset(.., frame, variant)`: each variant's tasks read the
+//! frame its offset away, and a pair whose target frame the scene does not have (t+2 on its last
+//! two frames) is not planned. Variants that draw from the other cameras (`from: Others`) read
+//! them through `Across(.., camera)`; the others are planned without those inputs. The record
+//! (JSON) says what the pair is; the `PairIndex` stage collects the records of a scene into its
+//! index with the exported paths.
 
 use super::moving::{split, Moved, Moving};
 use super::splat::{reproject, PinholeView, RgbdView, SplatParams};
 use crate::stage::{variant_of, Stage};
 use anyhow::{bail, ensure, Context, Result};
-use dist4d_graph::{ParamChecks, ParamProblem, Validate, Variants};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate, VariantPlan, Variants};
+use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::{DepthMap, File, Image, ImageInfo, Mask};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
@@ -107,13 +110,21 @@ impl Validate for Params {
 
 crate::ports! {
     pub struct Inputs {
-        /// the camera's images over a window of frames covering every variant's offset
-        images: Many<Image>,
-        /// the curated dense depth over the same window
-        depths: Many<DepthMap>,
-        /// what each image is and where it was taken, over the same window
-        infos: Many<ImageInfo>,
-        /// every camera's image at frame t (`Across("dataset.image", camera)`), for `from: Others`
+        /// the pair's own image at frame t
+        image: One<Image>,
+        /// its curated dense depth
+        depth: One<DepthMap>,
+        /// what the image is and where it was taken
+        info: One<ImageInfo>,
+        /// the target frame's image: `Offset("dataset.image", frame, variant)`, the variant's
+        /// offset (a pair whose target frame the scene does not have is not planned)
+        target_image: One<Image>,
+        /// the target frame's curated depth, the same way
+        target_depth: One<DepthMap>,
+        /// the target frame's image info, the same way
+        target_info: One<ImageInfo>,
+        /// every camera's image at frame t (`Across("dataset.image", camera)`), read by the
+        /// `from: Others` variants only
         surround_images: OptionalMany<Image>,
         /// every camera's curated depth at frame t
         surround_depths: OptionalMany<DepthMap>,
@@ -146,7 +157,8 @@ pub struct FramePair {
 impl Stage for FramePair {
     const KIND: &'static str = "FramePair";
     // 2: moving objects follow their boxes to the target's time.
-    const VERSION: u32 = 2;
+    // 3: the own and target frames as single inputs (Offset by the variant).
+    const VERSION: u32 = 3;
     const SUMMARY: &'static str =
         "DiST-S training pairs: frame t's RGB-D cloud drawn into frame t+offset of the same camera, per variant";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -160,35 +172,23 @@ impl Stage for FramePair {
     }
 
     fn variants(params: &Params) -> Option<Variants> {
-        Variants::split(params, |p| std::mem::take(&mut p.variants))
+        Variants::split_planned(
+            params,
+            |p| std::mem::take(&mut p.variants),
+            |v| VariantPlan {
+                offset: v.offset,
+                unused: match v.from {
+                    Sources::Own => vec!["surround_images", "surround_depths", "surround_infos"],
+                    Sources::Others => Vec::new(),
+                },
+            },
+        )
     }
 
     fn run(&self, ctx: &TaskContext, inputs: Inputs) -> Result<Outputs> {
         let (label, variant) = variant_of(ctx, &self.params.variants)?;
-        let at = |offset: i32| -> Result<Option<(&Image, &DepthMap, &ImageInfo)>> {
-            let pos = offset as i64;
-            let image = inputs.images.iter().find(|(p, _)| *p == pos).map(|(_, a)| a);
-            let depth = inputs.depths.iter().find(|(p, _)| *p == pos).map(|(_, a)| a);
-            let info = inputs.infos.iter().find(|(p, _)| *p == pos).map(|(_, a)| a);
-            match (image, depth, info) {
-                (Some(i), Some(d), Some(n)) => Ok(Some((i, d, n))),
-                (None, None, None) => Ok(None),
-                _ => bail!(
-                    "the inputs `images`, `depths` and `infos` must be wired with the same window: frame offset {offset} is in some and not others"
-                ),
-            }
-        };
-        let (src_image, src_depth, src_info) =
-            at(0)?.context("the window of `images` must hold the pair's own frame (offset 0)")?;
-        let Some((tgt_image, tgt_depth, tgt_info)) = at(variant.offset)? else {
-            // The planner clips windows at the scene's ends; a window narrower than the offset
-            // would make every task of this variant say so (wire it at least as wide).
-            return Err(NotApplicable(format!(
-                "no frame t{:+} in the window of `images` (the scene ends there, or the window is narrower than the offset)",
-                variant.offset
-            ))
-            .into());
-        };
+        let (src_image, src_depth, src_info) = (&inputs.image, &inputs.depth, &inputs.info);
+        let (tgt_image, tgt_depth, tgt_info) = (&inputs.target_image, &inputs.target_depth, &inputs.target_info);
         let tgt_full = view_of(tgt_info, tgt_image, tgt_depth).context("the target frame")?;
         let tgt_view = tgt_full.resized(self.params.width, self.params.height);
         // The sources: this camera at t, or every other camera at t.
@@ -200,7 +200,7 @@ impl Stage for FramePair {
                     !s.surround_images.is_empty() && s.surround_images.len() == s.surround_depths.len() && s.surround_images.len() == s.surround_infos.len(),
                     "variant `{label}` draws from the other cameras: wire `surround_images`, `surround_depths` and `surround_infos` with Across(.., camera)"
                 );
-                let mut out = Vec::new();
+                let mut out: Vec<(&Image, &DepthMap, &ImageInfo)> = Vec::new();
                 for ((pi, image), ((pd, depth), (pn, info))) in
                     s.surround_images.iter().zip(s.surround_depths.iter().zip(&s.surround_infos))
                 {
@@ -212,6 +212,11 @@ impl Stage for FramePair {
                         out.push((image, depth, info));
                     }
                 }
+                anyhow::ensure!(
+                    !out.is_empty(),
+                    "variant `{label}` draws from the other cameras of frame t, and the `surround_*` inputs hold none \
+                     (they are wired with Across(.., camera))"
+                );
                 out
             }
         };
@@ -250,7 +255,8 @@ impl Stage for FramePair {
             "variant": label,
             "offset": variant.offset,
             "shift": 0.0,
-            "augmentation": { "offset": variant.offset.abs() > 2, "voxel": variant.voxel },
+            // The f32 as written (0.2, not 0.20000000298023224).
+            "augmentation": { "offset": variant.offset.abs() > 2, "voxel": variant.voxel.to_string().parse::<f64>().unwrap_or(0.0) },
             "size": [h, w],
             "from": variant.from,
             "moving": { "mode": self.params.moving, "followed": moved.followed, "dropped": moved.dropped },
@@ -301,6 +307,7 @@ pub fn view_of(info: &ImageInfo, image: &Image, depth: &DepthMap) -> Result<Pinh
 pub fn frame_record(info: &ImageInfo, view: &PinholeView) -> serde_json::Value {
     let t = |s: &dist4d_types::geometry::Se3| json!({ "translation": s.translation.to_array(), "rotation": s.wxyz() });
     json!({
+        "camera": info.camera,
         "frame": info.frame,
         "token": info.token,
         "image": info.file,

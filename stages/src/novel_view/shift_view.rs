@@ -1,17 +1,18 @@
 //! `ShiftView`: the ego pose of a camera image moved sideways, one variant per shift: the novel
 //! trajectories of DiST-4D's self-supervised cycle consistency (paper Sec. 3.4: a lateral shift
 //! tau in [-3, 3] m) and of its novel-view evaluation (Table 5: +-1, +-2, +-4 m). A shift is along
-//! the ego vehicle's left axis (+y: positive = left), so every camera of the rig moves together
-//! and keeps its orientation. A variant gives a fixed `lateral` shift or a `range` to draw it
-//! from: the draw is seeded by the task (its item and params, `seed` included), so a rerun gives
-//! the same shifts and another `seed` new ones.
+//! the ego vehicle's left axis (+y: positive = left), and every camera of a frame gets the same
+//! one: the rig moves together and keeps its orientation (each camera from its own ego pose, at
+//! its own time). A variant gives a fixed `lateral` shift or a `range` to draw it from: the draw is
+//! seeded by the frame (the item's scene and frame), the variant and `seed`, so a rerun gives the
+//! same shifts and another `seed` new ones.
 
 use crate::stage::{variant_of, Stage};
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate, Variants};
 use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::Pose;
-use dist4d_types::rng::Rng;
+use dist4d_types::rng::{mix, Rng};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -81,7 +82,8 @@ pub struct ShiftView(Params);
 
 impl Stage for ShiftView {
     const KIND: &'static str = "ShiftView";
-    const VERSION: u32 = 1;
+    // 2: one drawn shift per frame, shared by its cameras.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str = "an image's ego pose moved sideways by a fixed or seeded lateral shift, per variant";
     const GRAINS: &'static [&'static str] = &["variant"];
     const SEEDED: bool = true;
@@ -96,9 +98,23 @@ impl Stage for ShiftView {
         Variants::split(params, |p| std::mem::take(&mut p.variants))
     }
     fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
-        let (_, shift) = variant_of(ctx, &self.0.variants)?;
+        let (label, shift) = variant_of(ctx, &self.0.variants)?;
         let tau = match shift.range {
-            Some([lo, hi]) => Rng::new(ctx.seed).range(lo, hi),
+            Some([lo, hi]) => {
+                // One draw per frame, shared by its cameras: the item's scene and frame
+                // coordinates (not its camera), the variant and the seed.
+                let c = ctx.item.coords();
+                let mut seed = mix(self.0.seed ^ 0x5348_4946_5456_4945);
+                for &x in c.iter().take(2) {
+                    seed = mix(seed ^ x as u64);
+                }
+                // The label, not the variant's index: adding a variant leaves the others' draws.
+                let label_hash = blake3::hash(label.as_bytes());
+                let mut first = [0u8; 8];
+                first.copy_from_slice(&label_hash.as_bytes()[..8]);
+                seed = mix(seed ^ u64::from_le_bytes(first));
+                Rng::new(seed).range(lo, hi)
+            }
             None => shift.lateral,
         };
         Ok(Outputs { pose: shifted(&i.pose, tau) })
