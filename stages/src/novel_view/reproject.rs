@@ -68,7 +68,8 @@ pub struct Reproject {
 
 impl Stage for Reproject {
     const KIND: &'static str = "Reproject";
-    const VERSION: u32 = 1;
+    // 2: sources of another size than their calibration are seen by it resized.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str =
         "RGB-D of one or more cameras/frames drawn into a target camera with footprint splats and a soft z-buffer";
     const GRAINS: &'static [&'static str] = &["camera", "variant", "frame", "scene"];
@@ -87,29 +88,34 @@ impl Stage for Reproject {
             (w, h) => target.resized(w, h),
         };
         let sources = Sources::match_by_position(&inputs)?;
+        // A source image of another size than its calibration's (a view generated at the model's
+        // size) is seen by the calibrated camera resized to it: intrinsics scale with the image.
         let views: Vec<PinholeView> = sources
             .iter()
-            .map(|s| PinholeView::new(s.calib, s.pose).with_context(|| format!("source at position {}", s.pos)))
-            .collect::<Result<_>>()?;
-        let rgbd: Vec<RgbdView> = sources
-            .iter()
-            .zip(&views)
-            .map(|(s, view)| {
+            .map(|s| {
+                let view =
+                    PinholeView::new(s.calib, s.pose).with_context(|| format!("source at position {}", s.pos))?;
                 ensure!(
-                    (s.image.width, s.image.height) == (view.width, view.height)
-                        && (s.depth.width, s.depth.height) == (view.width, view.height),
-                    "source at position {}: image {}x{} and depth {}x{} do not match the calibration's {}x{}",
+                    (s.image.width, s.image.height) == (s.depth.width, s.depth.height),
+                    "source at position {}: image {}x{} and depth {}x{} differ in size",
                     s.pos,
                     s.image.width,
                     s.image.height,
                     s.depth.width,
-                    s.depth.height,
-                    view.width,
-                    view.height
+                    s.depth.height
                 );
-                Ok(RgbdView { rgb: &s.image.rgb, depth: &s.depth.data, view })
+                Ok(if (s.image.width, s.image.height) == (view.width, view.height) {
+                    view
+                } else {
+                    view.resized(s.image.width, s.image.height)
+                })
             })
             .collect::<Result<_>>()?;
+        let rgbd: Vec<RgbdView> = sources
+            .iter()
+            .zip(&views)
+            .map(|(s, view)| RgbdView { rgb: &s.image.rgb, depth: &s.depth.data, view })
+            .collect();
         let out = reproject(&rgbd, &target, &self.params.splat)?;
         Ok(Outputs {
             image: Image { width: out.width, height: out.height, rgb: out.rgb },
