@@ -112,23 +112,24 @@ fn nearest_valid(valid: &[bool], w: usize, h: usize) -> [Vec<u32>; 4] {
             }
         }
     }
+    // Per column, the last valid pixel seen going down (then up) the image.
     let mut last = vec![NONE; w];
     for y in 0..h {
-        for x in 0..w {
+        for (x, l) in last.iter_mut().enumerate() {
             let i = y * w + x;
-            up[i] = last[x];
+            up[i] = *l;
             if valid[i] {
-                last[x] = i as u32;
+                *l = i as u32;
             }
         }
     }
     last.iter_mut().for_each(|l| *l = NONE);
     for y in (0..h).rev() {
-        for x in 0..w {
+        for (x, l) in last.iter_mut().enumerate() {
             let i = y * w + x;
-            down[i] = last[x];
+            down[i] = *l;
             if valid[i] {
-                last[x] = i as u32;
+                *l = i as u32;
             }
         }
     }
