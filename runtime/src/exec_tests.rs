@@ -822,8 +822,19 @@ fn a_stage_with_variants_runs_per_variant_and_an_edited_variant_reruns_alone() {
     let a = std::fs::read(out.join("s0/001_cam1_a.bin")).unwrap();
     let b = std::fs::read(out.join("s0/001_cam1_b.bin")).unwrap();
     assert_ne!(a, b);
-    // Variant b's salt edited: only b's tasks and the gathers run again.
+    // Variant b's salt edited: explain names that variant; only b's tasks and the gathers run again.
     let edited = testkit::load(VARIANTS, &["vary.variants={\"a\": 1, \"b\": 3}"]);
+    {
+        let store = Store::open(&store, Access::Shared).unwrap();
+        let ops = testkit::operators(&edited);
+        let ds = with_variants(&edited);
+        let engine = Engine { pipeline: &edited, dataset: &ds, operators: &ops, store: &store };
+        let report = crate::explain::explain(&engine, None, None, Some(&out)).unwrap();
+        let vary = report.iter().find(|s| s.stage == "vary").unwrap();
+        assert_eq!((vary.cached, vary.will_run), (6, 6));
+        let reasons: Vec<&String> = vary.reasons.keys().collect();
+        assert_eq!(reasons, ["variant `b` changed: 2 -> 3"], "{reasons:?}");
+    }
     let r = run_on(&edited, &with_variants(&edited), &store, &exporting(&out));
     assert_eq!(executed(&r), counts(&[("vary", 6), ("after", 6), ("file", 6), ("both", 6)]));
     assert_eq!(std::fs::read(out.join("s0/001_cam1_a.bin")).unwrap(), a);

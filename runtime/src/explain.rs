@@ -54,10 +54,12 @@ pub fn explain(
     let outers = select_outer(engine.dataset, &p.dims[0].name, outer_items)?;
 
     // The latest record of every (stage, item), for saying what changed.
-    let mut previous: HashMap<(String, ItemKey), Previous> = HashMap::new();
+    // Keyed by kind too: pipelines sharing a store may give one stage name to stages of different
+    // kinds, whose params have nothing to compare.
+    let mut previous: HashMap<(String, String, ItemKey), Previous> = HashMap::new();
     for (_, payload) in store.all_records() {
         let Ok(rec) = TaskRecord::decode(payload) else { continue };
-        let slot = previous.entry((rec.stage.clone(), rec.item));
+        let slot = previous.entry((rec.stage.clone(), rec.kind.clone(), rec.item));
         let newer = match &slot {
             std::collections::hash_map::Entry::Occupied(o) => o.get().finished_ms <= rec.finished_ms,
             std::collections::hash_map::Entry::Vacant(_) => true,
@@ -165,7 +167,7 @@ pub fn explain(
                 e.failed_last_run += 1;
                 reasons.push(format!("failed in the last run: {}", first_line(err)));
             }
-            match previous.get(&(p.nodes[node].name.clone(), task.item)) {
+            match previous.get(&(p.nodes[node].name.clone(), stage.kind.clone(), task.item)) {
                 None => reasons.push("never run".into()),
                 Some(prev) => {
                     if prev.version != stage.version {
@@ -173,7 +175,9 @@ pub fn explain(
                     }
                     if prev.params != keys.params(node) {
                         let old = store.get_blob(&prev.params).ok().and_then(|b| String::from_utf8(b).ok());
-                        reasons.extend(param_changes(old.as_deref(), &stage.params.canonical));
+                        // A stage with variants: what changed in this task's own variant.
+                        let variant = stage.variants.as_ref().map(|_| label.rsplit('/').next().unwrap_or_default());
+                        reasons.extend(param_changes(old.as_deref(), &stage.params.canonical, variant));
                     }
                     reasons.extend(unknown_inputs.iter().cloned());
                     if let Some(digests) = &digests {
@@ -213,27 +217,43 @@ fn first_line(s: &str) -> &str {
     s.lines().next().unwrap_or("")
 }
 
-/// `param `min_depth` changed: 1.0 -> 2.0` for each field whose canonical text differs.
-fn param_changes(old: Option<&str>, new: &str) -> Vec<String> {
+/// `param `min_depth` changed: 1.0 -> 2.0` for each field whose canonical text differs. For a
+/// task of a stage with variants (`variant`: its label), the `variants` map is compared at that
+/// label only: `variant `t+2` changed: (offset:2,..) -> (..)`.
+fn param_changes(old: Option<&str>, new: &str, variant: Option<&str>) -> Vec<String> {
     let Some(old) = old else { return vec!["params changed".into()] };
-    let fields = |text: &str| -> BTreeMap<String, String> {
+    let fields = |text: &str| -> (BTreeMap<String, String>, Option<String>) {
         let mut sources = dist4d_graph::source::Sources::default();
         let id = sources.add("p", text);
         match dist4d_graph::syntax::parse(text, id) {
-            Ok(v) => v
-                .fields()
-                .unwrap_or(&[])
-                .iter()
-                .map(|f| (f.name.text.clone(), sources.slice(f.value.span).to_string()))
-                .collect(),
-            Err(_) => BTreeMap::new(),
+            Ok(v) => {
+                let fields = v.fields().unwrap_or(&[]);
+                let own = variant.and_then(|label| {
+                    let map = fields.iter().find(|f| f.name.text == "variants")?;
+                    let dist4d_graph::syntax::ValueKind::Map(entries) = &map.value.kind else { return None };
+                    let (_, value) = entries.iter().find(|(k, _)| k.as_str() == Some(label))?;
+                    Some(sources.slice(value.span).to_string())
+                });
+                let all =
+                    fields.iter().map(|f| (f.name.text.clone(), sources.slice(f.value.span).to_string())).collect();
+                (all, own)
+            }
+            Err(_) => (BTreeMap::new(), None),
         }
     };
-    let (a, b) = (fields(old), fields(new));
+    let ((a, own_a), (b, own_b)) = (fields(old), fields(new));
     let mut out = Vec::new();
     for (k, v) in &b {
         match a.get(k) {
             Some(o) if o == v => {}
+            Some(_) if k == "variants" && variant.is_some() => {
+                let label = variant.unwrap_or_default();
+                match (own_a.as_deref(), own_b.as_deref()) {
+                    (Some(o), Some(n)) if o != n => out.push(format!("variant `{label}` changed: {o} -> {n}")),
+                    (None, Some(_)) => out.push(format!("variant `{label}` is new")),
+                    _ => {}
+                }
+            }
             Some(o) => out.push(format!("param `{k}` changed: {o} -> {v}")),
             None => out.push(format!("param `{k}` is new: {v}")),
         }
