@@ -323,7 +323,8 @@ pub fn frame_record(info: &ImageInfo, view: &PinholeView) -> serde_json::Value {
 /// set to 0: the paper's voxel downsampling of the source cloud, done on the map so the kept
 /// points are splatted like any other (isolated, they get a source pixel's footprint).
 pub fn thin_to_voxels(depth: &[f32], view: &PinholeView, size: f32) -> Vec<f32> {
-    let mut seen = std::collections::HashSet::with_capacity(depth.len() / 8);
+    let mut seen: std::collections::HashSet<(i64, i64, i64), std::hash::BuildHasherDefault<VoxelHasher>> =
+        std::collections::HashSet::with_capacity_and_hasher(depth.len() / 8, Default::default());
     let mut out = vec![0.0; depth.len()];
     let k = view.k;
     let w = view.width as usize;
@@ -344,6 +345,28 @@ pub fn thin_to_voxels(depth: &[f32], view: &PinholeView, size: f32) -> Vec<f32> 
         }
     }
     out
+}
+
+/// A multiply-rotate hasher for voxel keys (the FxHash recipe): the default SipHash cost more
+/// than the thinning itself. Keys come from our own geometry, not from an adversary.
+#[derive(Default)]
+pub struct VoxelHasher(u64);
+
+impl std::hash::Hasher for VoxelHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.write_u64(*b as u64);
+        }
+    }
+    fn write_u64(&mut self, x: u64) {
+        self.0 = (self.0.rotate_left(5) ^ x).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
+    }
+    fn write_i64(&mut self, x: i64) {
+        self.write_u64(x as u64);
+    }
 }
 
 /// An image resized with a triangle filter (widened when shrinking, so it averages).

@@ -81,6 +81,8 @@ pub fn split(
     let (w, h) = (view.width as usize, view.height as usize);
     let cam_from_world = view.world_from_cam.inverse();
     let mut owner = vec![u16::MAX; w * h];
+    // Per object, its pixels (so that building its piece does not scan the whole image).
+    let mut members: Vec<Vec<u32>> = vec![Vec::new(); objects.len()];
     let k = view.k;
     let unproject = |x: usize, y: usize, z: f64| {
         let yc = (y as f64 + 0.5 - k[1][2]) / k[1][1];
@@ -94,7 +96,7 @@ pub fn split(
         let (lo, hi) = test.corners();
         let box_to_cam = cam_from_world.then_from(&pose(b));
         let (mut x0, mut y0, mut x1, mut y1) = (f64::INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY);
-        let mut behind = false;
+        let mut behind = 0;
         for c in 0..8 {
             let corner = DVec3::new(
                 if c & 1 == 0 { lo.x } else { hi.x },
@@ -103,13 +105,17 @@ pub fn split(
             );
             let p = box_to_cam.apply(corner);
             if p.z <= 0.05 {
-                behind = true;
-                break;
+                behind += 1;
+                continue;
             }
             let (u, v, _) = view.project(p);
             (x0, y0, x1, y1) = (x0.min(u), y0.min(v), x1.max(u), y1.max(v));
         }
-        let (x0, y0, x1, y1) = if behind {
+        if behind == 8 {
+            // Wholly behind the camera (most boxes of a scene, for any one camera).
+            continue;
+        }
+        let (x0, y0, x1, y1) = if behind > 0 {
             (0, 0, w, h)
         } else {
             if x1 < 0.0 || y1 < 0.0 || x0 >= w as f64 || y0 >= h as f64 {
@@ -128,6 +134,7 @@ pub fn split(
                 let z = depth[i];
                 if owner[i] == u16::MAX && z > 0.0 && z.is_finite() && test.contains(unproject(x, y, z as f64)) {
                     owner[i] = o as u16;
+                    members[o].push(i as u32);
                 }
             }
         }
@@ -135,21 +142,19 @@ pub fn split(
     let mut moved = Moved::default();
     let mut still_depth = depth.to_vec();
     let mut pieces = Vec::new();
-    for (o, (_, motion)) in objects.iter().enumerate() {
-        let mut piece = vec![0.0f32; w * h];
-        let mut any = false;
-        for i in 0..w * h {
-            if owner[i] == o as u16 {
-                still_depth[i] = 0.0;
-                piece[i] = depth[i];
-                any = true;
-            }
-        }
-        if !any {
+    for ((_, motion), pixels) in objects.iter().zip(&members) {
+        if pixels.is_empty() {
             continue;
+        }
+        for &i in pixels {
+            still_depth[i as usize] = 0.0;
         }
         match motion {
             Some(m) => {
+                let mut piece = vec![0.0f32; w * h];
+                for &i in pixels {
+                    piece[i as usize] = depth[i as usize];
+                }
                 moved.followed += 1;
                 pieces.push(Piece {
                     depth: piece,

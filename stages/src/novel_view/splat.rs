@@ -649,14 +649,18 @@ fn draw(acc: &mut Accumulator, src: &RgbdView, target: &PinholeView, params: &Sp
         width: target.width,
         height: target.height,
     };
-    // rows[0] = y - 1, rows[1] = y, rows[2] = y + 1 (all empty beyond the image).
+    // Only the rows between the first and the last pixel with a depth: a piece of a source (one
+    // moving object, see `moving`) is mostly empty, and its empty rows draw nothing.
+    let Some(first) = src.depth.iter().position(|&d| d > 0.0) else { return Ok(()) };
+    let last = src.depth.iter().rposition(|&d| d > 0.0).unwrap_or(first);
+    let (y0, y_end) = (first / w, last / w + 1);
+    // rows[0] = y - 1, rows[1] = y, rows[2] = y + 1 (all empty beyond the drawn rows, which
+    // hold no depth).
     let mut rows: [ProjectedRow; 3] = std::array::from_fn(|_| ProjectedRow::new(w));
     let mut feet = Footprints::new(w);
-    if h > 0 {
-        projection.row(0, &src.depth[..w], &mut rows[1]);
-    }
-    for y in 0..h {
-        if y + 1 < h {
+    projection.row(y0, &src.depth[y0 * w..(y0 + 1) * w], &mut rows[1]);
+    for y in y0..y_end {
+        if y + 1 < y_end {
             projection.row(y + 1, &src.depth[(y + 1) * w..(y + 2) * w], &mut rows[2]);
         } else {
             rows[2].clear();
