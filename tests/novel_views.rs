@@ -282,3 +282,29 @@ fn novel_view_scores_are_tabulated_per_shift() {
         assert!(near[3] > 24.0 && near[4] > 0.8, "{side} 1 m on valid pixels: {near:?}");
     }
 }
+
+/// A cross-camera variant without the other cameras wired is refused by `check`, before anything
+/// runs (not by every task of the run).
+#[test]
+fn a_variant_that_needs_the_other_cameras_is_checked_to_have_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let shipped = std::fs::read_to_string(repo().join("pipelines/dist_s_pairs.ron")).unwrap();
+    let cut: String = shipped.lines().filter(|l| !l.contains("\"surround_")).map(|l| format!("{l}\n")).collect();
+    assert!(cut.len() < shipped.len());
+    let file = tmp.path().join("pairs.ron");
+    std::fs::write(&file, cut).unwrap();
+    let o = dist4d(&["check", file.to_str().unwrap(), "--set", &format!("dataset.root={}", tmp.path().display())]);
+    let t = text(&o);
+    assert!(!o.status.success(), "{t}");
+    assert!(t.contains("variant `cross` of stage `pairs` reads input `surround_images`, which is not wired"), "{t}");
+    // Without the cross-camera variant, the other cameras are not needed.
+    let o = dist4d(&[
+        "check",
+        file.to_str().unwrap(),
+        "--set",
+        &format!("dataset.root={}", tmp.path().display()),
+        "--set",
+        r#"pairs.variants={"t+2": (offset: 2)}"#,
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+}

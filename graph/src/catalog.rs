@@ -102,6 +102,9 @@ pub struct VariantPlan {
     /// Optional input ports this variant's tasks do not read: they are planned without them
     /// (nothing loaded for a pair that does not use the other cameras).
     pub unused: Vec<&'static str>,
+    /// Optional input ports this variant's tasks cannot do without: `check` refuses the
+    /// pipeline when one is not wired (a pair drawn from the other cameras, without them).
+    pub needs: Vec<&'static str>,
 }
 
 impl Variants {

@@ -460,6 +460,8 @@ impl<'c> Checker<'c> {
             self.inputs(d, dims.as_deref(), &source_ports, dataset.is_some(), &mut nodes);
         }
 
+        self.variant_inputs(&nodes, &declared);
+
         let order = self.order(&nodes, &declared)?;
         let exports = match (root.field("export"), dims.as_deref()) {
             (Some(f), Some(dims)) => self.exports(&f.value, &nodes, dims),
@@ -777,6 +779,32 @@ impl<'c> Checker<'c> {
             }
         }
         labels
+    }
+
+    /// Every optional input a stage's variant cannot do without must be wired.
+    fn variant_inputs(&mut self, nodes: &[Node], declared: &[Declared]) {
+        for d in declared {
+            let Some(stage) = nodes[d.node].stage() else { continue };
+            let Some(v) = &stage.variants else { continue };
+            for ((label, _), plan) in v.each.iter().zip(&v.plans) {
+                for need in &plan.needs {
+                    if stage.inputs.iter().any(|i| i.port == *need) {
+                        continue;
+                    }
+                    let doc = d.schema_inputs.iter().find(|p| p.name == *need).map_or("", |p| p.doc);
+                    self.err(
+                        Diagnostic::error(
+                            format!(
+                                "variant `{label}` of stage `{}` reads input `{need}`, which is not wired",
+                                nodes[d.node].name
+                            ),
+                            d.inputs.map(|v| v.span).unwrap_or(d.kind_span),
+                        )
+                        .with_note(format!("wire it: \"{need}\": .. ({doc})")),
+                    );
+                }
+            }
+        }
     }
 
     fn text(&self, v: &Value) -> String {

@@ -175,12 +175,12 @@ impl Stage for FramePair {
         Variants::split_planned(
             params,
             |p| std::mem::take(&mut p.variants),
-            |v| VariantPlan {
-                offset: v.offset,
-                unused: match v.from {
-                    Sources::Own => vec!["surround_images", "surround_depths", "surround_infos"],
-                    Sources::Others => Vec::new(),
-                },
+            |v| {
+                let surround = vec!["surround_images", "surround_depths", "surround_infos"];
+                match v.from {
+                    Sources::Own => VariantPlan { offset: v.offset, unused: surround, needs: Vec::new() },
+                    Sources::Others => VariantPlan { offset: v.offset, unused: Vec::new(), needs: surround },
+                }
             },
         )
     }
