@@ -46,7 +46,8 @@ fn dist_s_pairs_from_the_cli_on_synthetic_data_with_an_index_a_loader_reads() {
         dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "6", "--width", "480", "--height", "270"]);
     assert!(o.status.success(), "{}", text(&o));
     let pipeline = repo().join("pipelines/dist_s_pairs.ron");
-    let small = ["--set", "pairs.width=384", "--set", "pairs.height=224"];
+    let small =
+        ["--set", "pairs.width=384", "--set", "pairs.height=224", "--set", "fit.width=384", "--set", "fit.height=224"];
     let report = pairs_run(&pipeline, &data, tmp.path(), &small);
     // 6 frames x 6 cameras x 7 variants, less those whose target frame is past the scene's ends
     // (not planned): t-2 / t+2 and their voxel twins lack two frames each, t-4 / t+4 four; the

@@ -158,7 +158,8 @@ impl Stage for FramePair {
     const KIND: &'static str = "FramePair";
     // 2: moving objects follow their boxes to the target's time.
     // 3: the own and target frames as single inputs (Offset by the variant).
-    const VERSION: u32 = 3;
+    // 4: the target may come resized already.
+    const VERSION: u32 = 4;
     const SUMMARY: &'static str =
         "DiST-S training pairs: frame t's RGB-D cloud drawn into frame t+offset of the same camera, per variant";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -189,7 +190,10 @@ impl Stage for FramePair {
         let (label, variant) = variant_of(ctx, &self.params.variants)?;
         let (src_image, src_depth, src_info) = (&inputs.image, &inputs.depth, &inputs.info);
         let (tgt_image, tgt_depth, tgt_info) = (&inputs.target_image, &inputs.target_depth, &inputs.target_info);
-        let tgt_full = view_of(tgt_info, tgt_image, tgt_depth).context("the target frame")?;
+        // The target may come at the camera's size or already at the pair's (`ResizeView`, once
+        // per frame instead of once per pair that reads it); any other size is resized to the
+        // pair's (its camera is the target's, resized to the pair's size, either way).
+        let tgt_full = info_view(tgt_info).context("the target frame")?;
         let tgt_view = tgt_full.resized(self.params.width, self.params.height);
         // The sources: this camera at t, or every other camera at t.
         let sources: Vec<(&Image, &DepthMap, &ImageInfo)> = match variant.from {
@@ -274,12 +278,23 @@ impl Stage for FramePair {
     }
 }
 
-/// The camera of an image, checked against the image and depth it comes with.
-pub fn view_of(info: &ImageInfo, image: &Image, depth: &DepthMap) -> Result<PinholeView> {
+/// The camera of an image, as its info gives it.
+pub fn info_view(info: &ImageInfo) -> Result<PinholeView> {
     if let Some(why) = &info.missing {
         bail!("{}/{}/{} has no image: {why}", info.scene, info.frame, info.camera);
     }
     let k = info.intrinsics.with_context(|| format!("{}/{}/{}: no intrinsics", info.scene, info.frame, info.camera))?;
+    Ok(PinholeView {
+        k,
+        width: info.width,
+        height: info.height,
+        world_from_cam: info.ego_to_world.then_from(&info.camera_to_ego),
+    })
+}
+
+/// The camera of an image, checked against the image and depth it comes with.
+pub fn view_of(info: &ImageInfo, image: &Image, depth: &DepthMap) -> Result<PinholeView> {
+    let view = info_view(info)?;
     ensure!(
         (image.width, image.height) == (info.width, info.height)
             && (depth.width, depth.height) == (info.width, info.height),
@@ -294,12 +309,7 @@ pub fn view_of(info: &ImageInfo, image: &Image, depth: &DepthMap) -> Result<Pinh
         info.width,
         info.height
     );
-    Ok(PinholeView {
-        k,
-        width: info.width,
-        height: info.height,
-        world_from_cam: info.ego_to_world.then_from(&info.camera_to_ego),
-    })
+    Ok(view)
 }
 
 /// What a pair's record says of one of its frames: which image, when, and the camera as the

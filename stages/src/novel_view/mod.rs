@@ -12,5 +12,6 @@ crate::stage_modules! {
     fill_baseline::FillViewBaseline,
     frame_pair::FramePair,
     reproject::Reproject,
+    resize_view::ResizeView,
     shift_view::ShiftView,
 }
