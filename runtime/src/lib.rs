@@ -17,6 +17,7 @@ pub mod record;
 pub mod runs;
 pub mod segment;
 pub mod store;
+pub mod worker;
 
 pub use digest::{Digest, DigestBuilder};
 pub use exec::{Engine, RunOptions, RunSummary};

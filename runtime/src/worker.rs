@@ -1,0 +1,420 @@
+//! External workers: long-lived subprocesses (a GPU model in Python, or anything else) that
+//! serve requests over newline-delimited JSON on stdin/stdout, logging on stderr. The protocol
+//! mirrors Bazel's persistent workers (a request names its inputs by path and digest, the reply
+//! names its outputs) and LSP's lifecycle (a handshake first, `shutdown` last):
+//!
+//! - worker -> engine, first line: `{"type": "hello", "protocol": 1, "name": "..", "version": "..",
+//!   "weights_digest": "..", "ops": ["complete_depth"], "max_batch": 4}`; its name, version and
+//!   weights digest are what task keys hold, so a new model version reruns exactly its stage.
+//! - engine -> worker: `{"type": "request", "id": 7, "op": "..", "inputs": [{"name": "image",
+//!   "path": "..", "digest": ".."}], "params": {..}, "out_dir": ".."}`; the worker writes its
+//!   outputs into `out_dir` and replies `{"type": "reply", "id": 7, "status": "ok", "outputs":
+//!   [{"name": "depth", "path": ".."}]}`, or `"status": "error"` / `"retryable"` with a `message`.
+//! - `{"type": "ping", "id": 8}` -> `{"type": "pong", "id": 8}`; `{"type": "cancel", "id": 7}`;
+//!   `{"type": "shutdown"}`, after which the worker exits.
+//!
+//! This module is one worker process: starting it (in its own process group, so a deadline kills
+//! the model and everything it spawned), the handshake, calls with deadlines, and the tail of its
+//! stderr for error chains. Nothing here knows what the worker computes.
+
+use anyhow::{anyhow, bail, Context, Result};
+use crossbeam_channel::{Receiver, RecvTimeoutError};
+use serde::{Deserialize, Serialize};
+use std::collections::VecDeque;
+use std::io::{BufRead, BufReader, Write};
+use std::os::unix::process::CommandExt;
+use std::process::{Child, ChildStdin, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// The protocol version this engine speaks.
+pub const PROTOCOL: u32 = 1;
+
+/// Lines of a worker's stderr kept for error messages.
+const STDERR_TAIL: usize = 20;
+
+/// How to start a worker.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct WorkerCommand {
+    pub program: String,
+    pub args: Vec<String>,
+}
+
+/// What a worker says of itself when it starts.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Hello {
+    pub protocol: u32,
+    pub name: String,
+    pub version: String,
+    #[serde(default)]
+    pub weights_digest: String,
+    pub ops: Vec<String>,
+    #[serde(default = "one")]
+    pub max_batch: u32,
+}
+
+fn one() -> u32 {
+    1
+}
+
+/// One input or output file of a request.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FileRef {
+    pub name: String,
+    pub path: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub digest: Option<String>,
+}
+
+/// A request, as the engine sends it (the `id` is the worker's own).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Request {
+    pub op: String,
+    pub inputs: Vec<FileRef>,
+    pub params: serde_json::Value,
+    pub out_dir: String,
+}
+
+/// How a request ended, as the worker says.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Status {
+    Ok,
+    /// This item cannot be done (its inputs are bad for the model): fail the item.
+    Error,
+    /// Worth another try (out of GPU memory, a transient fault).
+    Retryable,
+}
+
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Reply {
+    pub status: Status,
+    #[serde(default)]
+    pub outputs: Vec<FileRef>,
+    #[serde(default)]
+    pub message: String,
+}
+
+/// Why a call did not give a reply.
+#[derive(Debug)]
+pub enum CallError {
+    /// No reply within the deadline: the worker's process group was killed.
+    Timeout(Duration),
+    /// The worker exited (or closed stdout) before replying.
+    Died(String),
+    /// It wrote something that is not the protocol.
+    Malformed(String),
+}
+
+impl std::fmt::Display for CallError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            CallError::Timeout(d) => write!(f, "no reply within {:.1} s: the worker was killed", d.as_secs_f64()),
+            CallError::Died(why) => write!(f, "the worker died: {why}"),
+            CallError::Malformed(why) => write!(f, "the worker broke the protocol: {why}"),
+        }
+    }
+}
+
+impl std::error::Error for CallError {}
+
+/// A line from the worker's stdout, or its end.
+enum Line {
+    Json(serde_json::Value),
+    Bad(String),
+    Closed,
+}
+
+/// A running worker process.
+pub struct Worker {
+    pub hello: Hello,
+    command: WorkerCommand,
+    child: Child,
+    stdin: ChildStdin,
+    lines: Receiver<Line>,
+    stderr: Arc<Mutex<VecDeque<String>>>,
+    next_id: u64,
+}
+
+impl Worker {
+    /// Starts `command` and waits up to `startup` for its hello.
+    pub fn start(command: &WorkerCommand, startup: Duration) -> Result<Worker> {
+        let what = || format!("worker `{}`", command.program);
+        let mut child = Command::new(&command.program)
+            .args(&command.args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            // Its own process group: a deadline kills the model and whatever it started.
+            .process_group(0)
+            .spawn()
+            .with_context(|| format!("starting {}", what()))?;
+        let stdin = child.stdin.take().context("the worker has no stdin")?;
+        let stdout = child.stdout.take().context("the worker has no stdout")?;
+        let stderr_pipe = child.stderr.take().context("the worker has no stderr")?;
+        let (tx, lines) = crossbeam_channel::unbounded();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if line.trim().is_empty() {
+                    continue;
+                }
+                let msg = match serde_json::from_str(&line) {
+                    Ok(v) => Line::Json(v),
+                    Err(_) => Line::Bad(line.chars().take(200).collect()),
+                };
+                if tx.send(msg).is_err() {
+                    return;
+                }
+            }
+            let _ = tx.send(Line::Closed);
+        });
+        let stderr = Arc::new(Mutex::new(VecDeque::new()));
+        let tail = stderr.clone();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr_pipe).lines() {
+                let Ok(line) = line else { break };
+                if let Ok(mut t) = tail.lock() {
+                    if t.len() == STDERR_TAIL {
+                        t.pop_front();
+                    }
+                    t.push_back(line);
+                }
+            }
+        });
+        let mut worker = Worker {
+            hello: Hello {
+                protocol: 0,
+                name: String::new(),
+                version: String::new(),
+                weights_digest: String::new(),
+                ops: vec![],
+                max_batch: 1,
+            },
+            command: command.clone(),
+            child,
+            stdin,
+            lines,
+            stderr,
+            next_id: 1,
+        };
+        let hello = match worker.next_line(Instant::now() + startup) {
+            Ok(v) if v["type"] == "hello" => serde_json::from_value::<Hello>(v.clone())
+                .map_err(|e| anyhow!("{}: its hello is malformed ({e}): {v}", what()))?,
+            Ok(v) => {
+                worker.kill();
+                bail!("{}: its first line must be a hello, found {v}{}", what(), worker.stderr_tail())
+            }
+            Err(e) => {
+                worker.kill();
+                bail!("{} did not start: {e}{}", what(), worker.stderr_tail())
+            }
+        };
+        if hello.protocol != PROTOCOL {
+            worker.kill();
+            bail!("{} speaks protocol {}, this engine {PROTOCOL}", what(), hello.protocol);
+        }
+        worker.hello = hello;
+        Ok(worker)
+    }
+
+    /// The next JSON line before `deadline`.
+    fn next_line(&mut self, deadline: Instant) -> std::result::Result<serde_json::Value, CallError> {
+        let wait = deadline.saturating_duration_since(Instant::now());
+        match self.lines.recv_timeout(wait) {
+            Ok(Line::Json(v)) => Ok(v),
+            Ok(Line::Bad(line)) => Err(CallError::Malformed(format!("not JSON: {line}"))),
+            Ok(Line::Closed) | Err(RecvTimeoutError::Disconnected) => {
+                let status = self.child.wait().map(|s| s.to_string()).unwrap_or_else(|e| e.to_string());
+                Err(CallError::Died(status))
+            }
+            Err(RecvTimeoutError::Timeout) => Err(CallError::Timeout(wait)),
+        }
+    }
+
+    fn send(&mut self, msg: &serde_json::Value) -> std::result::Result<(), CallError> {
+        let mut line = serde_json::to_vec(msg).map_err(|e| CallError::Malformed(e.to_string()))?;
+        line.push(b'\n');
+        self.stdin
+            .write_all(&line)
+            .and_then(|_| self.stdin.flush())
+            .map_err(|e| CallError::Died(format!("writing to it: {e}")))
+    }
+
+    /// Sends `request` and waits up to `deadline` for its reply. A timeout kills the worker (its
+    /// whole process group): a model stuck on one item must not hold the others.
+    pub fn call(&mut self, request: &Request, deadline: Duration) -> std::result::Result<Reply, CallError> {
+        let id = self.next_id;
+        self.next_id += 1;
+        let mut msg = serde_json::to_value(request).map_err(|e| CallError::Malformed(e.to_string()))?;
+        msg["type"] = "request".into();
+        msg["id"] = id.into();
+        self.send(&msg)?;
+        let until = Instant::now() + deadline;
+        loop {
+            let v = match self.next_line(until) {
+                Ok(v) => v,
+                Err(e @ CallError::Timeout(_)) => {
+                    self.kill();
+                    return Err(e);
+                }
+                Err(e) => return Err(e),
+            };
+            match v["type"].as_str() {
+                Some("reply") if v["id"] == id => {
+                    return serde_json::from_value(v.clone())
+                        .map_err(|e| CallError::Malformed(format!("a reply ({e}): {v}")));
+                }
+                // A late reply to a request given up on, or a pong: not this call's.
+                Some("reply") | Some("pong") => continue,
+                _ => return Err(CallError::Malformed(format!("expected a reply, found {v}"))),
+            }
+        }
+    }
+
+    /// Whether the worker answers a ping within `timeout`.
+    pub fn ping(&mut self, timeout: Duration) -> bool {
+        let id = self.next_id;
+        self.next_id += 1;
+        if self.send(&serde_json::json!({"type": "ping", "id": id})).is_err() {
+            return false;
+        }
+        let until = Instant::now() + timeout;
+        loop {
+            match self.next_line(until) {
+                Ok(v) if v["type"] == "pong" && v["id"] == id => return true,
+                Ok(_) => continue,
+                Err(_) => return false,
+            }
+        }
+    }
+
+    /// The last lines the worker wrote to stderr, as a suffix for an error message.
+    pub fn stderr_tail(&self) -> String {
+        let lines: Vec<String> = self.stderr.lock().map(|t| t.iter().cloned().collect()).unwrap_or_default();
+        if lines.is_empty() {
+            String::new()
+        } else {
+            format!("\n  worker stderr (last lines):\n    {}", lines.join("\n    "))
+        }
+    }
+
+    pub fn command(&self) -> &WorkerCommand {
+        &self.command
+    }
+
+    /// Asks the worker to exit, and kills it if it does not within `grace`.
+    pub fn shutdown(mut self, grace: Duration) {
+        let _ = self.send(&serde_json::json!({"type": "shutdown"}));
+        let until = Instant::now() + grace;
+        while Instant::now() < until {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        self.kill();
+    }
+
+    /// Kills the worker's process group and reaps it.
+    pub fn kill(&mut self) {
+        let pid = self.child.id() as libc::pid_t;
+        // SAFETY: kill(2) with a negative pid signals the process group we created in `start`
+        // (its id is the child's pid); it has no memory effects.
+        unsafe {
+            libc::kill(-pid, libc::SIGKILL);
+        }
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Worker {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            self.kill();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A reference worker of `workers/` run with the system's Python.
+    fn reference(name: &str, args: &[&str]) -> WorkerCommand {
+        let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../workers").join(name);
+        let mut all = vec![script.display().to_string()];
+        all.extend(args.iter().map(|s| s.to_string()));
+        WorkerCommand { program: "python3".into(), args: all }
+    }
+
+    fn request(text: &str) -> Request {
+        Request {
+            op: "echo".into(),
+            inputs: vec![FileRef { name: "x".into(), path: text.into(), digest: None }],
+            params: serde_json::json!({}),
+            out_dir: "/tmp".into(),
+        }
+    }
+
+    #[test]
+    fn a_worker_says_hello_answers_requests_and_pings_and_shuts_down() {
+        let mut w = Worker::start(&reference("protocol_test_worker.py", &[]), Duration::from_secs(10)).unwrap();
+        assert_eq!(
+            (w.hello.name.as_str(), w.hello.protocol, w.hello.ops.clone()),
+            ("protocol-test", 1, vec!["echo".to_string()])
+        );
+        for i in 0..3 {
+            let reply = w.call(&request(&format!("item{i}")), Duration::from_secs(5)).unwrap();
+            assert_eq!(reply.status, Status::Ok);
+            assert_eq!(reply.outputs[0].path, format!("item{i}"));
+        }
+        assert!(w.ping(Duration::from_secs(5)));
+        w.shutdown(Duration::from_secs(5));
+    }
+
+    #[test]
+    fn a_hanging_worker_is_killed_at_the_deadline_and_a_crash_or_garbage_is_reported() {
+        let mut w = Worker::start(&reference("protocol_test_worker.py", &[]), Duration::from_secs(10)).unwrap();
+        let t = Instant::now();
+        let err = w.call(&request("hang"), Duration::from_millis(300)).unwrap_err();
+        assert!(matches!(err, CallError::Timeout(_)), "{err}");
+        assert!(t.elapsed() < Duration::from_secs(3));
+        assert!(!w.ping(Duration::from_millis(200)), "killed");
+
+        let mut w = Worker::start(&reference("protocol_test_worker.py", &[]), Duration::from_secs(10)).unwrap();
+        let err = w.call(&request("crash"), Duration::from_secs(5)).unwrap_err();
+        assert!(matches!(err, CallError::Died(_)), "{err}");
+        assert!(w.stderr_tail().contains("asked to crash"), "{}", w.stderr_tail());
+
+        let mut w = Worker::start(&reference("protocol_test_worker.py", &[]), Duration::from_secs(10)).unwrap();
+        let err = w.call(&request("garbage"), Duration::from_secs(5)).unwrap_err();
+        assert!(matches!(err, CallError::Malformed(_)), "{err}");
+
+        let reply = Worker::start(&reference("protocol_test_worker.py", &[]), Duration::from_secs(10))
+            .unwrap()
+            .call(&request("bad item"), Duration::from_secs(5))
+            .unwrap();
+        assert_eq!((reply.status, reply.message.as_str()), (Status::Error, "cannot do `bad item`"));
+    }
+
+    #[test]
+    fn a_worker_that_dies_at_start_or_speaks_another_protocol_is_refused_with_its_stderr() {
+        let err = Worker::start(&reference("protocol_test_worker.py", &["--die-at-start"]), Duration::from_secs(10))
+            .err()
+            .unwrap();
+        let msg = format!("{err:#}");
+        assert!(msg.contains("did not start") && msg.contains("no model here"), "{msg}");
+        let err = Worker::start(&reference("protocol_test_worker.py", &["--protocol", "9"]), Duration::from_secs(10))
+            .err()
+            .unwrap();
+        assert!(format!("{err:#}").contains("speaks protocol 9"), "{err:#}");
+        let err = Worker::start(
+            &WorkerCommand { program: "/nonexistent/worker".into(), args: vec![] },
+            Duration::from_secs(1),
+        )
+        .err()
+        .unwrap();
+        assert!(format!("{err:#}").contains("starting worker `/nonexistent/worker`"), "{err:#}");
+    }
+}
