@@ -18,6 +18,7 @@ pub mod runs;
 pub mod segment;
 pub mod store;
 pub mod worker;
+pub mod worker_pool;
 
 pub use digest::{Digest, DigestBuilder};
 pub use exec::{Engine, RunOptions, RunSummary};
