@@ -264,9 +264,11 @@ impl<'a> Engine<'a> {
             }
             _ => None,
         };
+        let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
+        let identities = crate::operator::identities(self.operators, &names)?;
         let keys = match &exporter {
-            Some(x) => Keys::new(p, self.dataset, self.store).exporting_to(x.folder()),
-            None => Keys::new(p, self.dataset, self.store),
+            Some(x) => Keys::new(p, self.dataset, self.store).with_identities(&identities).exporting_to(x.folder()),
+            None => Keys::new(p, self.dataset, self.store).with_identities(&identities),
         };
         // Canonical params are stored as blobs so that explain can show what changed.
         for n in p.stage_order() {

@@ -89,7 +89,9 @@ pub fn explain(
         .map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect())
         .unwrap_or_default();
 
-    let mut keys = Keys::new(p, engine.dataset, store);
+    let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
+    let identities = crate::operator::identities(engine.operators, &names)?;
+    let mut keys = Keys::new(p, engine.dataset, store).with_identities(&identities);
     if let Some(dir) = out_dir.filter(|_| !p.exports.is_empty()) {
         // A folder another pipeline owns holds nothing of this one's (a run would refuse it).
         let folder = OutputFolder::read(dir, &p.dims)?;
@@ -262,7 +264,7 @@ fn param_changes(old: Option<&str>, new: &str, variant: Option<&str>) -> Vec<Str
         out.push(format!("param `{k}` was removed"));
     }
     if out.is_empty() {
-        out.push("params changed".into());
+        out.push("params or the stage's worker (its name, version or weights) changed".into());
     }
     out
 }

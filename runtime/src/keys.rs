@@ -24,6 +24,9 @@ use dist4d_graph::{NodeId, NodeKind, ParamsValue, Pipeline, StageNode};
 use std::path::Path;
 use std::sync::Arc;
 
+/// Domain of params digests with an operator's identity folded in.
+const IDENTITY_DOMAIN: &str = "dist4d-operator-identity-v1";
+
 /// Domain of the params digests of variants' tasks.
 const VARIANT_PARAMS_DOMAIN: &str = "dist4d-variant-params-v1";
 
@@ -158,6 +161,21 @@ impl<'a> Keys<'a> {
             .collect();
         let only_exported = pipeline.nodes.iter().map(|n| vec![false; n.outputs.len()]).collect();
         Keys { pipeline, dataset, store, params: params.collect(), variant_params, folder: None, only_exported }
+    }
+
+    /// Keys with each operator's identity ([`crate::Operator::identity`]) folded into its params
+    /// digest.
+    pub fn with_identities(mut self, identities: &[Option<String>]) -> Keys<'a> {
+        let fold = |d: &Digest, id: &str| DigestBuilder::new(IDENTITY_DOMAIN).digest(d).str(id).finish();
+        for (node, id) in identities.iter().enumerate() {
+            if let Some(id) = id {
+                self.params[node] = fold(&self.params[node], id);
+                for v in &mut self.variant_params[node] {
+                    *v = fold(v, id);
+                }
+            }
+        }
+        self
     }
 
     /// Keys for a run that exports into `folder`. Outputs that it exports and that no stage of

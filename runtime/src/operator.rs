@@ -4,7 +4,7 @@
 
 use crate::digest::Digest;
 use crate::item::{ItemKey, ItemSpace};
-use anyhow::Result;
+use anyhow::{Context, Result};
 use std::path::Path;
 use std::sync::Arc;
 
@@ -83,6 +83,27 @@ pub struct Output {
 /// (per output port, in port order). Must be deterministic: same inputs, same bytes.
 pub trait Operator: Send + Sync {
     fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Vec<Output>>;
+    /// What, besides its params, decides this operator's outputs and is known only when it runs:
+    /// an external worker's name, version and weights digest. Folded into its task keys, so a new
+    /// model version reruns exactly its stage and what depends on it. `None` for code that the
+    /// stage version covers.
+    fn identity(&self) -> Result<Option<String>> {
+        Ok(None)
+    }
+}
+
+/// The identities of a pipeline's operators (see [`Operator::identity`]), by node.
+pub fn identities(operators: &[Option<Box<dyn Operator>>], names: &[String]) -> Result<Vec<Option<String>>> {
+    operators
+        .iter()
+        .zip(names)
+        .map(|(op, name)| match op {
+            Some(op) => {
+                op.identity().with_context(|| format!("stage `{name}`: its identity (is its worker starting?)"))
+            }
+            None => Ok(None),
+        })
+        .collect()
 }
 
 /// A dataset seen through a pipeline with variants: its items, each of the innermost dimension

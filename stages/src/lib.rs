@@ -7,6 +7,7 @@ pub mod curation;
 pub mod eval;
 pub mod hull;
 pub mod middlebury;
+pub mod model_worker;
 pub mod novel_view;
 pub mod output;
 pub mod reference;

@@ -51,6 +51,11 @@ pub trait Stage: Sized + Send + Sync + 'static {
     type Inputs: Ports;
     type Outputs: Ports;
     fn new(params: Self::Params) -> Result<Self>;
+    /// What besides params and version decides the outputs (an external worker's identity; see
+    /// [`dist4d_runtime::Operator::identity`]).
+    fn identity(&self) -> Result<Option<String>> {
+        Ok(None)
+    }
     /// The params split into the shared part and the variants, in label order (see
     /// [`dist4d_graph::Variants::split`]); only called when [`Stage::VARIANTS`] is set.
     fn variants(_params: &Self::Params) -> Option<dist4d_graph::Variants> {
@@ -332,6 +337,9 @@ impl<S: Stage> Operator for StageOp<S> {
     fn run(&self, ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Encoded>> {
         let inputs = S::Inputs::decode(&InputSet { wired: &self.wired, lists: inputs })?;
         self.stage.run(ctx, inputs)?.encode()
+    }
+    fn identity(&self) -> Result<Option<String>> {
+        self.stage.identity()
     }
 }
 

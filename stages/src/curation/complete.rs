@@ -18,9 +18,9 @@
 //! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
 
 use crate::stage::Stage;
-use dist4d_runtime::TaskContext;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::{DepthMap, Image, Mask};
 use serde::{Deserialize, Serialize};
 
@@ -62,11 +62,32 @@ pub struct Params {
     pub refine_weight: f32,
     /// Only pixels within this distance (px) of a depth edge of the filled map are refined.
     pub refine_band: u32,
+    /// A learned completer as an external worker (DepthLab-style: RGB + the prompt in, dense depth
+    /// out; docs/workers.md) in place of the built-in one: `Some((program: "python3", args:
+    /// ["my_completer.py"]))`. Its name, version and weights enter the task keys. The sky and the
+    /// support map are the engine's, as with the built-in completer.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub worker: Option<crate::model_worker::WorkerSpec>,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { row_gap: 12, column_gap: 120, tolerance: 0.1, sky_depth: 100.0, grow: 0.13, smooth_from: 1.0, smooth_sigma: 30.0, smooth_edge: 40.0, smooth_iterations: 3, refine_iterations: 50, refine_sigma: 5.0, refine_weight: 100.0, refine_band: 6 }
+        Params {
+            row_gap: 12,
+            column_gap: 120,
+            tolerance: 0.1,
+            sky_depth: 100.0,
+            grow: 0.13,
+            smooth_from: 1.0,
+            smooth_sigma: 30.0,
+            smooth_edge: 40.0,
+            smooth_iterations: 3,
+            refine_iterations: 50,
+            refine_sigma: 5.0,
+            refine_weight: 100.0,
+            refine_band: 6,
+            worker: None,
+        }
     }
 }
 
@@ -93,6 +114,18 @@ impl Validate for Params {
             .above("refine_weight", self.refine_weight as f64, 0.0, 1e9)
             .count("refine_band", self.refine_band as u64, 0, MAX_GAP_PX)
             .done()
+            .into_iter()
+            .chain(
+                self.worker
+                    .as_ref()
+                    .map(|w| {
+                        let mut c = ParamChecks::new();
+                        w.check(&mut c);
+                        c.done()
+                    })
+                    .unwrap_or_default(),
+            )
+            .collect()
     }
 }
 
@@ -481,7 +514,12 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
     // Steps from each pixel of `[from, to)` to the pixel `back` before it.
     let steps = |out: &mut [u16], from: usize, to: usize, back: usize| {
         let (r, g, b, s) = (plane(0, from, to), plane(1, from, to), plane(2, from, to), &sky[from..to]);
-        let (r0, g0, b0, s0) = (plane(0, from - back, to - back), plane(1, from - back, to - back), plane(2, from - back, to - back), &sky[from - back..to - back]);
+        let (r0, g0, b0, s0) = (
+            plane(0, from - back, to - back),
+            plane(1, from - back, to - back),
+            plane(2, from - back, to - back),
+            &sky[from - back..to - back],
+        );
         for (i, o) in out.iter_mut().enumerate() {
             let d = r[i].abs_diff(r0[i]) as u16 + g[i].abs_diff(g0[i]) as u16 + b[i].abs_diff(b0[i]) as u16;
             *o = if (s[i] | s0[i]) != 0 { CUT } else { d };
@@ -626,7 +664,10 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: 
             return 0.0;
         }
         let (a, b) = (&rgb[3 * i..3 * i + 3], &rgb[3 * j..3 * j + 3]);
-        factor[a[0].abs_diff(b[0]) as usize] * factor[a[1].abs_diff(b[1]) as usize] * factor[a[2].abs_diff(b[2]) as usize] + 1e-4
+        factor[a[0].abs_diff(b[0]) as usize]
+            * factor[a[1].abs_diff(b[1]) as usize]
+            * factor[a[2].abs_diff(b[2]) as usize]
+            + 1e-4
     };
     // The system A u = b over slots 1..=m, with a weight per link direction (0 where the
     // neighbour is outside the band: fixed, its value on the right-hand side). The diagonal holds
@@ -693,7 +734,8 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: 
             let out = &mut out[k..k + n];
             let (centre, east, west) = (&v[k..k + n], &v[k + 1..k + 1 + n], &v[k - 1..k - 1 + n]);
             let (north, south) = (&v[us..us + n], &v[ds..ds + n]);
-            let (dg, wl, wr, wu, wd) = (&diag[k..k + n], &left[k..k + n], &right[k..k + n], &up[k..k + n], &down[k..k + n]);
+            let (dg, wl, wr, wu, wd) =
+                (&diag[k..k + n], &left[k..k + n], &right[k..k + n], &up[k..k + n], &down[k..k + n]);
             for t in 0..n {
                 out[t] = dg[t] * centre[t] - wl[t] * west[t] - wr[t] * east[t] - wu[t] * north[t] - wd[t] * south[t];
             }
@@ -754,7 +796,8 @@ fn dot3(a: &[f32], b: &[f32], c: &[f32]) -> f64 {
         } else {
             let c = &c[start..start + a.len()];
             let (ca, cb, cc) = (a.chunks_exact(8), b.chunks_exact(8), c.chunks_exact(8));
-            tail += ca.remainder().iter().zip(cb.remainder()).zip(cc.remainder()).map(|((x, y), z)| x * y * z).sum::<f32>();
+            tail +=
+                ca.remainder().iter().zip(cb.remainder()).zip(cc.remainder()).map(|((x, y), z)| x * y * z).sum::<f32>();
             for ((x, y), z) in ca.zip(cb).zip(cc) {
                 for l in 0..8 {
                     lanes[l] += x[l] * y[l] * z[l];
@@ -787,7 +830,7 @@ crate::ports! {
     }
 }
 
-pub struct CompleteDepth(Params);
+pub struct CompleteDepth(Params, crate::model_worker::ModelWorker);
 
 impl Stage for CompleteDepth {
     const KIND: &'static str = "CompleteDepth";
@@ -799,12 +842,59 @@ impl Stage for CompleteDepth {
     type Inputs = Inputs;
     type Outputs = Outputs;
     fn new(params: Params) -> Result<Self> {
-        Ok(CompleteDepth(params))
+        let worker = crate::model_worker::ModelWorker::new(params.worker.clone());
+        Ok(CompleteDepth(params, worker))
+    }
+    fn identity(&self) -> Result<Option<String>> {
+        self.1.identity()
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        if self.1.is_set() {
+            return worker_completion(&self.0, &self.1, &i);
+        }
         let c = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, i.sky.as_ref())?;
         Ok(Outputs { depth: c.depth, support: c.support })
     }
+}
+
+/// The completion by the stage's worker (op `complete_depth`: inputs `image`, NPY uint8 H x W x 3,
+/// and `prompt`, NPY float32 H x W, 0 = none; output `depth`, NPY float32 H x W), checked (shape,
+/// finite, not negative), then the sky and the support map as the built-in completer makes them.
+fn worker_completion(p: &Params, worker: &crate::model_worker::ModelWorker, i: &Inputs) -> Result<Outputs> {
+    use crate::model_worker::{npy_rgb8, Exchange};
+    let (w, h) = (i.sparse.width, i.sparse.height);
+    ensure!(
+        (i.image.width, i.image.height) == (w, h),
+        "the image is {}x{}, the prompt {w}x{h}",
+        i.image.width,
+        i.image.height
+    );
+    let ex = Exchange::new()?;
+    let inputs = vec![
+        ex.put("image", "image.npy", &npy_rgb8(w, h, &i.image.rgb))?,
+        ex.put("prompt", "prompt.npy", &dist4d_types::formats::npy_f32(&[h as usize, w as usize], &i.sparse.data))?,
+    ];
+    let outputs = worker.call(&ex, "complete_depth", inputs, serde_json::json!({}))?;
+    let bytes = ex.get(&outputs, "depth")?;
+    let (shape, mut data) =
+        anyhow::Context::context(dist4d_types::formats::read_npy_f32(&bytes), "the worker's `depth` (float32 NPY)")?;
+    ensure!(shape == [h as usize, w as usize], "the worker's `depth` has shape {shape:?}, not [{h}, {w}]");
+    if let Some(bad) = data.iter().position(|z| !z.is_finite() || *z < 0.0) {
+        anyhow::bail!("the worker's `depth` holds {} at pixel {bad}: depths are finite and not negative", data[bad]);
+    }
+    if let Some(sky) = &i.sky {
+        ensure!(sky.data.len() == data.len(), "the sky mask is not {w}x{h}");
+        for (z, &s) in data.iter_mut().zip(&sky.data) {
+            if s != 0 {
+                *z = p.sky_depth;
+            }
+        }
+    }
+    let support = support_distance(&i.sparse.data, w as usize, h as usize);
+    Ok(Outputs {
+        depth: DepthMap { width: w, height: h, data },
+        support: DepthMap { width: w, height: h, data: support },
+    })
 }
 
 #[cfg(test)]
@@ -1057,7 +1147,15 @@ mod tests {
         }
         // Without iterations nothing moves.
         let mut same = start.clone();
-        refine(&Params { refine_iterations: 0, ..Params::default() }, &mut same, &image.rgb, &sparse, &vec![0; w * h], w, h);
+        refine(
+            &Params { refine_iterations: 0, ..Params::default() },
+            &mut same,
+            &image.rgb,
+            &sparse,
+            &vec![0; w * h],
+            w,
+            h,
+        );
         assert_eq!(same, start);
     }
 

@@ -1,0 +1,161 @@
+//! Stages that call an external model worker (docs/workers.md): the worker a pipeline names in a
+//! stage's `worker` param, a pool of it per stage (started at the first call), and the files a
+//! request exchanges (NPY, in a folder of the system's temporary directory, removed after the
+//! call). The engine validates what comes back before anything enters the store.
+
+use anyhow::{bail, ensure, Context, Result};
+use dist4d_graph::ParamChecks;
+use dist4d_runtime::worker::{FileRef, Request, WorkerCommand};
+use dist4d_runtime::worker_pool::{PoolOptions, WorkerPool};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::OnceLock;
+use std::time::Duration;
+
+/// A worker as a pipeline names it: `worker: Some((program: "python3", args: ["completer.py"]))`.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct WorkerSpec {
+    pub program: String,
+    pub args: Vec<String>,
+    /// Worker processes at most (one per GPU, typically).
+    pub max_workers: u32,
+    /// Seconds to a request's reply; a worker that misses it is killed and the item tried again.
+    pub deadline_s: f64,
+    /// Tries of one item in all.
+    pub tries: u32,
+}
+
+impl Default for WorkerSpec {
+    fn default() -> Self {
+        WorkerSpec { program: String::new(), args: Vec::new(), max_workers: 1, deadline_s: 600.0, tries: 3 }
+    }
+}
+
+impl WorkerSpec {
+    pub fn check(&self, c: &mut ParamChecks) {
+        c.check(!self.program.is_empty(), "worker", || "names no `program`".into())
+            .count("worker", self.max_workers as u64, 1, 64)
+            .above("worker", self.deadline_s, 0.0, 86_400.0)
+            .count("worker", self.tries as u64, 1, 10);
+    }
+}
+
+/// A stage's worker pool, started at its first use.
+#[derive(Default)]
+pub struct ModelWorker {
+    spec: Option<WorkerSpec>,
+    pool: OnceLock<WorkerPool>,
+}
+
+impl ModelWorker {
+    pub fn new(spec: Option<WorkerSpec>) -> ModelWorker {
+        ModelWorker { spec, pool: OnceLock::new() }
+    }
+
+    pub fn is_set(&self) -> bool {
+        self.spec.is_some()
+    }
+
+    fn pool(&self) -> Result<&WorkerPool> {
+        let spec = self.spec.as_ref().context("no worker")?;
+        Ok(self.pool.get_or_init(|| {
+            WorkerPool::new(
+                WorkerCommand { program: spec.program.clone(), args: spec.args.clone() },
+                PoolOptions {
+                    max_workers: spec.max_workers as usize,
+                    deadline: Duration::from_secs_f64(spec.deadline_s),
+                    tries: spec.tries,
+                    ..PoolOptions::default()
+                },
+            )
+        }))
+    }
+
+    /// The worker's name, version and weights digest (for task keys); `None` without a worker.
+    pub fn identity(&self) -> Result<Option<String>> {
+        if !self.is_set() {
+            return Ok(None);
+        }
+        let h = self.pool()?.hello()?;
+        Ok(Some(format!("{} {} weights {}", h.name, h.version, h.weights_digest)))
+    }
+
+    /// Runs `op` on the named input files (written by the caller into `exchange.dir`), returning
+    /// the paths of the outputs the worker names.
+    pub fn call(
+        &self,
+        exchange: &Exchange,
+        op: &str,
+        inputs: Vec<FileRef>,
+        params: serde_json::Value,
+    ) -> Result<Vec<FileRef>> {
+        let pool = self.pool()?;
+        ensure!(pool.hello()?.ops.iter().any(|o| o == op), "the worker does not serve `{op}`");
+        let reply =
+            pool.call(&Request { op: op.into(), inputs, params, out_dir: exchange.dir.display().to_string() })?;
+        Ok(reply.outputs)
+    }
+}
+
+/// A folder for one request's files, removed when dropped.
+pub struct Exchange {
+    pub dir: PathBuf,
+}
+
+impl Exchange {
+    pub fn new() -> Result<Exchange> {
+        static NEXT: AtomicU64 = AtomicU64::new(0);
+        let dir = std::env::temp_dir().join(format!(
+            "dist4d-worker-{}-{}",
+            std::process::id(),
+            NEXT.fetch_add(1, Ordering::Relaxed)
+        ));
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        Ok(Exchange { dir })
+    }
+
+    /// Writes `bytes` as `name` in the folder and names it for a request.
+    pub fn put(&self, name: &str, file: &str, bytes: &[u8]) -> Result<FileRef> {
+        let path = self.dir.join(file);
+        std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+        Ok(FileRef {
+            name: name.into(),
+            path: path.display().to_string(),
+            digest: Some(blake3::hash(bytes).to_hex().to_string()),
+        })
+    }
+
+    /// Reads the output `name` a reply names: it must be inside the folder.
+    pub fn get(&self, outputs: &[FileRef], name: &str) -> Result<Vec<u8>> {
+        let out =
+            outputs.iter().find(|o| o.name == name).with_context(|| format!("the worker returned no `{name}`"))?;
+        let path = Path::new(&out.path);
+        let inside = path.canonicalize().ok().zip(self.dir.canonicalize().ok()).is_some_and(|(p, d)| p.starts_with(d));
+        if !inside {
+            bail!("the worker's `{name}` ({}) is not in the request's folder {}", out.path, self.dir.display());
+        }
+        std::fs::read(path).with_context(|| format!("reading the worker's `{name}` at {}", path.display()))
+    }
+}
+
+impl Drop for Exchange {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// An RGB8 image as NPY (uint8, H x W x 3).
+pub fn npy_rgb8(width: u32, height: u32, rgb: &[u8]) -> Vec<u8> {
+    let mut header = format!("{{'descr': '|u1', 'fortran_order': False, 'shape': ({height}, {width}, 3), }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    out.extend_from_slice(rgb);
+    out
+}
