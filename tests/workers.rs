@@ -96,3 +96,59 @@ fn complete_depth_through_a_worker_is_cached_and_reruns_when_the_worker_changes(
     assert!(t.contains("could not do it: out of ideas"), "{t}");
     assert!(t.contains("failed: complete"), "{t}");
 }
+
+/// The SCC pipeline's novel-view generator through a worker (the reference generator of
+/// workers/): the pairs are made from its views, and a rerun asks it nothing.
+#[test]
+fn scc_pairs_through_a_generator_worker() {
+    let Some(python) = peers_python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    assert!(dist4d(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--keyframes",
+        "2",
+        "--width",
+        "320",
+        "--height",
+        "180"
+    ])
+    .status
+    .success());
+    let worker = format!(
+        "novel.worker=Some((program: \"{}\", args: [\"{}\"]))",
+        python.display(),
+        repo().join("workers/fill_generator.py").display()
+    );
+    let run = |out: &str, sets: &[&str]| {
+        let root = format!("dataset.root={}", data.display());
+        let (cache, out) = (tmp.path().join("cache"), tmp.path().join(out));
+        let mut args = vec![
+            "run",
+            "pipelines/scc.ron",
+            "--set",
+            &root,
+            "--cache",
+            cache.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend(sets);
+        let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
+        let t = text(&o);
+        assert!(o.status.success(), "{t}");
+        t
+    };
+    run("baseline", &[]);
+    let first = run("worker", &["--set", &worker]);
+    assert_eq!((executed(&first, "novel"), executed(&first, "complete")), (12, 0), "{first}");
+    let pairs = std::fs::read_to_string(tmp.path().join("worker/synth-0000/pairs.jsonl")).unwrap();
+    assert_eq!(pairs.lines().count(), 12);
+    let cond =
+        |dir: &str| std::fs::read(tmp.path().join(dir).join("synth-0000/CAM_FRONT/000_random_cond.png")).unwrap();
+    assert_ne!(cond("baseline"), cond("worker"), "the condition comes back from the worker's view");
+    let again = run("worker", &["--set", &worker]);
+    assert_eq!(executed(&again, "novel"), 0, "{again}");
+}

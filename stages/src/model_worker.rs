@@ -148,7 +148,45 @@ impl Drop for Exchange {
 
 /// An RGB8 image as NPY (uint8, H x W x 3).
 pub fn npy_rgb8(width: u32, height: u32, rgb: &[u8]) -> Vec<u8> {
-    let mut header = format!("{{'descr': '|u1', 'fortran_order': False, 'shape': ({height}, {width}, 3), }}");
+    npy_u8(&format!("({height}, {width}, 3)"), rgb)
+}
+
+/// A one-byte-per-pixel map (a mask) as NPY (uint8, H x W).
+pub fn npy_gray8(width: u32, height: u32, data: &[u8]) -> Vec<u8> {
+    npy_u8(&format!("({height}, {width})"), data)
+}
+
+/// An RGB8 image from an NPY file (uint8, H x W x 3, C order), checked against the size.
+pub fn read_npy_rgb8(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
+    ensure!(bytes.len() >= 10 && bytes.starts_with(b"\x93NUMPY"), "not an NPY file");
+    let (major, at) = (bytes[6], if bytes[6] == 1 { 10 } else { 12 });
+    ensure!(bytes.len() >= at, "a truncated NPY file");
+    let hlen = if major == 1 {
+        u16::from_le_bytes([bytes[8], bytes[9]]) as usize
+    } else {
+        u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize
+    };
+    let header = std::str::from_utf8(bytes.get(at..at + hlen).context("a truncated NPY header")?)
+        .context("an NPY header that is not text")?;
+    let compact: String = header.chars().filter(|c| !c.is_whitespace()).collect();
+    ensure!(compact.contains("'descr':'|u1'") || compact.contains("'descr':'<u1'"), "not uint8: {header}");
+    ensure!(compact.contains("'fortran_order':False"), "not in C order: {header}");
+    ensure!(
+        compact.contains(&format!("'shape':({height},{width},3)")),
+        "not of shape ({height}, {width}, 3): {header}"
+    );
+    let data = &bytes[at + hlen..];
+    ensure!(
+        data.len() == 3 * width as usize * height as usize,
+        "{} bytes of pixels, not {}",
+        data.len(),
+        3 * width * height
+    );
+    Ok(data.to_vec())
+}
+
+fn npy_u8(shape: &str, data: &[u8]) -> Vec<u8> {
+    let mut header = format!("{{'descr': '|u1', 'fortran_order': False, 'shape': {shape}, }}");
     while (10 + header.len() + 1) % 64 != 0 {
         header.push(' ');
     }
@@ -156,6 +194,6 @@ pub fn npy_rgb8(width: u32, height: u32, rgb: &[u8]) -> Vec<u8> {
     let mut out = b"\x93NUMPY\x01\x00".to_vec();
     out.extend_from_slice(&(header.len() as u16).to_le_bytes());
     out.extend_from_slice(header.as_bytes());
-    out.extend_from_slice(rgb);
+    out.extend_from_slice(data);
     out
 }
