@@ -152,3 +152,84 @@ fn scc_pairs_through_a_generator_worker() {
     let again = run("worker", &["--set", &worker]);
     assert_eq!(executed(&again, "novel"), 0, "{again}");
 }
+
+/// The sky from a segmenter worker (the reference one of workers/): the curation's sky follows
+/// its ids, and the depth there is the sky depth.
+#[test]
+fn the_sky_from_a_segmenter_worker() {
+    let Some(python) = peers_python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    assert!(dist4d(&[
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--keyframes",
+        "2",
+        "--width",
+        "320",
+        "--height",
+        "180"
+    ])
+    .status
+    .success());
+    let worker = format!(
+        "sky.worker=Some((program: \"{}\", args: [\"{}\"]))",
+        python.display(),
+        repo().join("workers/sky_segmenter.py").display()
+    );
+    let root = format!("dataset.root={}", data.display());
+    let out = tmp.path().join("out");
+    let o = std::process::Command::new(bin())
+        .current_dir(repo())
+        .args([
+            "run",
+            "pipelines/curation.ron",
+            "--set",
+            &root,
+            "--cache",
+            tmp.path().join("cache").to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+            "--set",
+            &worker,
+        ])
+        .output()
+        .unwrap();
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert_eq!(executed(&t, "sky"), 12, "{t}");
+    let depth_of = |out: &std::path::Path| -> Vec<f32> {
+        let npy = std::fs::read(out.join("synth-0000/CAM_FRONT/000_depth.npy")).unwrap();
+        let header = u16::from_le_bytes([npy[8], npy[9]]) as usize;
+        npy[10 + header..].chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect()
+    };
+    let top_sky = depth_of(&out)[..320].iter().filter(|&&z| z == 100.0).count();
+    assert!(top_sky > 0, "the reference segmenter finds the synthetic sky at the top");
+    // A segmenter that calls exactly the top ten rows sky: the depth there is the sky depth.
+    let ten_rows = format!(
+        "sky.worker=Some((program: \"{}\", args: [\"-c\", \"import sys,json,numpy as np; print(json.dumps({{'type':'hello','protocol':1,'name':'ten-rows','version':'1','ops':['segment']}}), flush=True)\\nfor l in sys.stdin:\\n m=json.loads(l)\\n if m['type']!='request': continue\\n im=np.load(m['inputs'][0]['path']); ids=np.full(im.shape[:2],7,np.uint8); ids[:10]=23; p=m['out_dir']+'/s.npy'; np.save(p,ids); print(json.dumps({{'type':'reply','id':m['id'],'status':'ok','outputs':[{{'name':'semantic','path':p}}]}}), flush=True)\"]))",
+        python.display()
+    );
+    let out2 = tmp.path().join("out2");
+    let o = std::process::Command::new(bin())
+        .current_dir(repo())
+        .args([
+            "run",
+            "pipelines/curation.ron",
+            "--set",
+            &root,
+            "--cache",
+            tmp.path().join("cache").to_str().unwrap(),
+            "--out",
+            out2.to_str().unwrap(),
+            "--set",
+            &ten_rows,
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let depth = depth_of(&out2);
+    assert!(depth[..10 * 320].iter().all(|&z| z == 100.0), "the ten sky rows at 100 m");
+    assert!(depth[10 * 320..].iter().filter(|&&z| z == 100.0).count() < 320, "below them, structure");
+}

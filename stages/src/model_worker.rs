@@ -158,6 +158,16 @@ pub fn npy_gray8(width: u32, height: u32, data: &[u8]) -> Vec<u8> {
 
 /// An RGB8 image from an NPY file (uint8, H x W x 3, C order), checked against the size.
 pub fn read_npy_rgb8(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
+    read_npy_u8(bytes, &format!("({height},{width},3)"), 3 * width as usize * height as usize)
+}
+
+/// A one-byte-per-pixel map from an NPY file (uint8, H x W, C order), checked against the size.
+pub fn read_npy_gray8(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
+    read_npy_u8(bytes, &format!("({height},{width})"), width as usize * height as usize)
+}
+
+/// The bytes of a uint8 NPY array of `shape` (written without spaces, as in `(2,3)`).
+fn read_npy_u8(bytes: &[u8], shape: &str, len: usize) -> Result<Vec<u8>> {
     ensure!(bytes.len() >= 10 && bytes.starts_with(b"\x93NUMPY"), "not an NPY file");
     let (major, at) = (bytes[6], if bytes[6] == 1 { 10 } else { 12 });
     ensure!(bytes.len() >= at, "a truncated NPY file");
@@ -171,17 +181,9 @@ pub fn read_npy_rgb8(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
     let compact: String = header.chars().filter(|c| !c.is_whitespace()).collect();
     ensure!(compact.contains("'descr':'|u1'") || compact.contains("'descr':'<u1'"), "not uint8: {header}");
     ensure!(compact.contains("'fortran_order':False"), "not in C order: {header}");
-    ensure!(
-        compact.contains(&format!("'shape':({height},{width},3)")),
-        "not of shape ({height}, {width}, 3): {header}"
-    );
+    ensure!(compact.contains(&format!("'shape':{shape}")), "not of shape {shape}: {header}");
     let data = &bytes[at + hlen..];
-    ensure!(
-        data.len() == 3 * width as usize * height as usize,
-        "{} bytes of pixels, not {}",
-        data.len(),
-        3 * width * height
-    );
+    ensure!(data.len() == len, "{} bytes of pixels, not {len}", data.len());
     Ok(data.to_vec())
 }
 

@@ -61,6 +61,11 @@ pub struct Params {
     pub min_area: f32,
     /// Largest enclosed non-sky speck without depth that becomes sky, as a fraction of the image area.
     pub max_hole: f32,
+    /// A semantic segmenter as an external worker (op `segment`: the image in, Cityscapes ids
+    /// out; docs/workers.md) in place of the estimate, when the dataset has no segmentation:
+    /// `Some((program: "python3", args: ["my_segmenter.py"]))`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub worker: Option<crate::model_worker::WorkerSpec>,
 }
 
 impl Default for Params {
@@ -74,6 +79,7 @@ impl Default for Params {
             max_first_row: 0.5,
             min_area: 0.0003,
             max_hole: 0.0005,
+            worker: None,
         }
     }
 }
@@ -90,6 +96,18 @@ impl Validate for Params {
             .within("min_area", self.min_area as f64, 0.0, 1.0)
             .within("max_hole", self.max_hole as f64, 0.0, 1.0)
             .done()
+            .into_iter()
+            .chain(
+                self.worker
+                    .as_ref()
+                    .map(|w| {
+                        let mut c = ParamChecks::new();
+                        w.check(&mut c);
+                        c.done()
+                    })
+                    .unwrap_or_default(),
+            )
+            .collect()
     }
 }
 
@@ -327,7 +345,7 @@ crate::ports! {
     }
 }
 
-pub struct EstimateSky(Params);
+pub struct EstimateSky(Params, crate::model_worker::ModelWorker);
 
 impl Stage for EstimateSky {
     const KIND: &'static str = "EstimateSky";
@@ -339,10 +357,27 @@ impl Stage for EstimateSky {
     type Inputs = Inputs;
     type Outputs = Outputs;
     fn new(params: Params) -> Result<Self> {
-        Ok(EstimateSky(params))
+        let worker = crate::model_worker::ModelWorker::new(params.worker.clone());
+        Ok(EstimateSky(params, worker))
+    }
+    fn identity(&self) -> Result<Option<String>> {
+        self.1.identity()
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let (w, h) = (i.image.width, i.image.height);
+        let has_semantic = i.semantic.as_ref().is_some_and(|s| s.width > 0 && s.height > 0);
+        if self.1.is_set() && !has_semantic {
+            // The segmenter's Cityscapes ids (op `segment`: `image` NPY uint8 H x W x 3 in,
+            // `semantic` NPY uint8 H x W out); sky = 23, as a dataset's segmentation.
+            use crate::model_worker::{npy_rgb8, read_npy_gray8, Exchange};
+            let ex = Exchange::new()?;
+            let inputs = vec![ex.put("image", "image.npy", &npy_rgb8(w, h, &i.image.rgb))?];
+            let outputs = self.1.call(&ex, "segment", inputs, serde_json::json!({}))?;
+            let ids = read_npy_gray8(&ex.get(&outputs, "semantic")?, w, h)
+                .map_err(|e| e.context("the worker's `semantic` (uint8 Cityscapes ids)"))?;
+            let data = ids.iter().map(|&id| (id == Segmentation::SKY) as u8).collect();
+            return Ok(Outputs { sky: Mask { width: w, height: h, data } });
+        }
         // Empty maps stand for a dataset without segmentations or a missing reference.
         if let Some(s) = i.semantic.filter(|s| s.width > 0 && s.height > 0) {
             ensure!(
@@ -394,9 +429,8 @@ mod tests {
         let skyline = |x: usize| if x < 30 { 12 } else { 20 };
         let sky = estimate_sky(&Params::default(), &scene(skyline), None);
         // The 3x3 smoothing blurs the skyline by one pixel, in both directions.
-        let wall_within = |x: usize, y: usize, r: usize| {
-            (x.saturating_sub(r)..(x + r + 1).min(60)).any(|xx| y + r >= skyline(xx))
-        };
+        let wall_within =
+            |x: usize, y: usize, r: usize| (x.saturating_sub(r)..(x + r + 1).min(60)).any(|xx| y + r >= skyline(xx));
         for y in 0..40 {
             for x in 0..60 {
                 if !wall_within(x, y, 1) {
