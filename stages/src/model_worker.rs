@@ -7,6 +7,7 @@ use anyhow::{bail, ensure, Context, Result};
 use dist4d_graph::ParamChecks;
 use dist4d_runtime::worker::{FileRef, Request, WorkerCommand};
 use dist4d_runtime::worker_pool::{PoolOptions, WorkerPool};
+use dist4d_types::formats::{npy_u8, read_npy_u8};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -148,54 +149,26 @@ impl Drop for Exchange {
 
 /// An RGB8 image as NPY (uint8, H x W x 3).
 pub fn npy_rgb8(width: u32, height: u32, rgb: &[u8]) -> Vec<u8> {
-    npy_u8(&format!("({height}, {width}, 3)"), rgb)
+    npy_u8(&[height as usize, width as usize, 3], rgb)
 }
 
 /// A one-byte-per-pixel map (a mask) as NPY (uint8, H x W).
 pub fn npy_gray8(width: u32, height: u32, data: &[u8]) -> Vec<u8> {
-    npy_u8(&format!("({height}, {width})"), data)
+    npy_u8(&[height as usize, width as usize], data)
 }
 
-/// An RGB8 image from an NPY file (uint8, H x W x 3, C order), checked against the size.
+/// An RGB8 image from an NPY file (uint8, H x W x 3), checked against the size.
 pub fn read_npy_rgb8(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
-    read_npy_u8(bytes, &format!("({height},{width},3)"), 3 * width as usize * height as usize)
+    read_shaped(bytes, &[height as usize, width as usize, 3])
 }
 
-/// A one-byte-per-pixel map from an NPY file (uint8, H x W, C order), checked against the size.
+/// A one-byte-per-pixel map from an NPY file (uint8, H x W), checked against the size.
 pub fn read_npy_gray8(bytes: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
-    read_npy_u8(bytes, &format!("({height},{width})"), width as usize * height as usize)
+    read_shaped(bytes, &[height as usize, width as usize])
 }
 
-/// The bytes of a uint8 NPY array of `shape` (written without spaces, as in `(2,3)`).
-fn read_npy_u8(bytes: &[u8], shape: &str, len: usize) -> Result<Vec<u8>> {
-    ensure!(bytes.len() >= 10 && bytes.starts_with(b"\x93NUMPY"), "not an NPY file");
-    let (major, at) = (bytes[6], if bytes[6] == 1 { 10 } else { 12 });
-    ensure!(bytes.len() >= at, "a truncated NPY file");
-    let hlen = if major == 1 {
-        u16::from_le_bytes([bytes[8], bytes[9]]) as usize
-    } else {
-        u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize
-    };
-    let header = std::str::from_utf8(bytes.get(at..at + hlen).context("a truncated NPY header")?)
-        .context("an NPY header that is not text")?;
-    let compact: String = header.chars().filter(|c| !c.is_whitespace()).collect();
-    ensure!(compact.contains("'descr':'|u1'") || compact.contains("'descr':'<u1'"), "not uint8: {header}");
-    ensure!(compact.contains("'fortran_order':False"), "not in C order: {header}");
-    ensure!(compact.contains(&format!("'shape':{shape}")), "not of shape {shape}: {header}");
-    let data = &bytes[at + hlen..];
-    ensure!(data.len() == len, "{} bytes of pixels, not {len}", data.len());
-    Ok(data.to_vec())
-}
-
-fn npy_u8(shape: &str, data: &[u8]) -> Vec<u8> {
-    let mut header = format!("{{'descr': '|u1', 'fortran_order': False, 'shape': {shape}, }}");
-    while (10 + header.len() + 1) % 64 != 0 {
-        header.push(' ');
-    }
-    header.push('\n');
-    let mut out = b"\x93NUMPY\x01\x00".to_vec();
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    out.extend_from_slice(data);
-    out
+fn read_shaped(bytes: &[u8], want: &[usize]) -> Result<Vec<u8>> {
+    let (shape, data) = read_npy_u8(bytes)?;
+    ensure!(shape == want, "an array of shape {shape:?}, not {want:?}");
+    Ok(data)
 }

@@ -162,20 +162,27 @@ pub fn png_bytes(width: u32, height: u32, px: &[u8], color: png::ColorType, dept
     Ok(out)
 }
 
-/// NPY v1.0 of a little-endian float32 array.
-pub fn npy_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
+/// The NPY v1.0 magic and header of an array of `descr` (`<f4`, `|u1`) and `shape`, C order,
+/// padded so that the data starts at a multiple of 64 bytes.
+fn npy_header(descr: &str, shape: &[usize], data_len: usize) -> Vec<u8> {
     let dims = shape.iter().map(|d| d.to_string()).collect::<Vec<_>>().join(", ");
     let shape = if shape.len() == 1 { format!("({dims},)") } else { format!("({dims})") };
-    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
     // Magic (6) + version (2) + length (2) + header + '\n' is a multiple of 64.
     while (10 + header.len() + 1) % 64 != 0 {
         header.push(' ');
     }
     header.push('\n');
-    let mut out = Vec::with_capacity(10 + header.len() + 4 * data.len());
+    let mut out = Vec::with_capacity(10 + header.len() + data_len);
     out.extend_from_slice(b"\x93NUMPY\x01\x00");
     out.extend_from_slice(&(header.len() as u16).to_le_bytes());
     out.extend_from_slice(header.as_bytes());
+    out
+}
+
+/// NPY v1.0 of a little-endian float32 array.
+pub fn npy_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
+    let mut out = npy_header("<f4", shape, 4 * data.len());
     let at = out.len();
     out.resize(at + 4 * data.len(), 0);
     for (x, le) in data.iter().zip(out[at..].chunks_exact_mut(4)) {
@@ -184,16 +191,23 @@ pub fn npy_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
     out
 }
 
-/// The shape and values of an NPY v1.0 little-endian float32 array in C order (what [`npy_f32`]
-/// writes).
-pub fn read_npy_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>)> {
+/// NPY v1.0 of a uint8 array (an RGB image H x W x 3, a mask H x W).
+pub fn npy_u8(shape: &[usize], data: &[u8]) -> Vec<u8> {
+    let mut out = npy_header("|u1", shape, data.len());
+    out.extend_from_slice(data);
+    out
+}
+
+/// The shape and the data bytes of an NPY v1.0 array of `descr` in C order, as numpy writes it,
+/// checked to hold `item_size` bytes per element.
+fn read_npy<'a>(bytes: &'a [u8], descr: &str, item_size: usize) -> Result<(Vec<usize>, &'a [u8])> {
     anyhow::ensure!(bytes.len() >= 10 && bytes.starts_with(b"\x93NUMPY\x01\x00"), "not an NPY v1.0 file");
     let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
     let header = bytes.get(10..10 + hlen).context("NPY header is truncated")?;
     let header = std::str::from_utf8(header).context("NPY header is not text")?;
     anyhow::ensure!(
-        header.contains("'descr': '<f4'") && header.contains("'fortran_order': False"),
-        "NPY array is not little-endian float32 in C order: {}",
+        header.contains(&format!("'descr': '{descr}'")) && header.contains("'fortran_order': False"),
+        "NPY array is not {descr} in C order: {}",
         header.trim()
     );
     let shape = header
@@ -209,11 +223,24 @@ pub fn read_npy_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>)> {
     let n = shape.iter().try_fold(1usize, |a, &b| a.checked_mul(b)).context("NPY shape overflows")?;
     let data = &bytes[10 + hlen..];
     anyhow::ensure!(
-        data.len() == n.checked_mul(4).context("NPY shape overflows")?,
+        data.len() == n.checked_mul(item_size).context("NPY shape overflows")?,
         "NPY holds {} bytes for shape {shape:?}",
         data.len()
     );
+    Ok((shape, data))
+}
+
+/// The shape and values of an NPY v1.0 little-endian float32 array in C order (what [`npy_f32`]
+/// writes).
+pub fn read_npy_f32(bytes: &[u8]) -> Result<(Vec<usize>, Vec<f32>)> {
+    let (shape, data) = read_npy(bytes, "<f4", 4)?;
     Ok((shape, data.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()))
+}
+
+/// The shape and values of an NPY v1.0 uint8 array in C order (what [`npy_u8`] and numpy write).
+pub fn read_npy_u8(bytes: &[u8]) -> Result<(Vec<usize>, Vec<u8>)> {
+    let (shape, data) = read_npy(bytes, "|u1", 1)?;
+    Ok((shape, data.to_vec()))
 }
 
 #[cfg(test)]
