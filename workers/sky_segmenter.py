@@ -5,7 +5,6 @@ used by the tests and as a template: see docs/workers.md.
 
     python3 workers/sky_segmenter.py
 """
-import json
 import os
 import sys
 from pathlib import Path
@@ -13,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from fill_completer import send  # noqa: E402
+from protocol import serve  # noqa: E402
 
 SKY, ROAD = 23, 7
 
@@ -27,28 +26,11 @@ def segment(image):
     return np.where(sky, SKY, ROAD).astype(np.uint8)
 
 
-def main():
-    send({"type": "hello", "protocol": 1, "name": "sky-segmenter", "version": "1",
-          "weights_digest": "none", "ops": ["segment"], "max_batch": 1})
-    for line in sys.stdin:
-        msg = json.loads(line)
-        if msg.get("type") == "shutdown":
-            return
-        if msg.get("type") == "ping":
-            send({"type": "pong", "id": msg["id"]})
-            continue
-        if msg.get("type") != "request":
-            continue
-        try:
-            files = {f["name"]: f["path"] for f in msg["inputs"]}
-            ids = segment(np.load(files["image"]))
-            out = Path(msg["out_dir"]) / "semantic.npy"
-            np.save(out, ids)
-            send({"type": "reply", "id": msg["id"], "status": "ok", "outputs": [{"name": "semantic", "path": str(out)}]})
-        except Exception as e:
-            print(f"request {msg.get('id')}: {e!r}", file=sys.stderr, flush=True)
-            send({"type": "reply", "id": msg["id"], "status": "error", "message": repr(e)})
+def handle(op, files, params, out_dir):
+    out = Path(out_dir) / "semantic.npy"
+    np.save(out, segment(np.load(files["image"])))
+    return {"semantic": out}
 
 
 if __name__ == "__main__":
-    main()
+    serve({"name": "sky-segmenter", "version": "1", "weights_digest": "none", "ops": ["segment"]}, handle)
