@@ -1,8 +1,10 @@
-//! End-to-end: a pipeline stage served by an external model worker (the reference completer of
+//! End-to-end: pipeline stages served by external model workers (the reference workers of
 //! workers/, numpy from the peer venv), from the CLI.
 
 mod common;
 use common::*;
+use std::path::{Path, PathBuf};
+use std::process::Output;
 
 /// The executed count of `stage` in a run table.
 fn executed(report: &str, stage: &str) -> u64 {
@@ -13,32 +15,44 @@ fn executed(report: &str, stage: &str) -> u64 {
     line.split_whitespace().nth(3).unwrap().parse().unwrap()
 }
 
-#[test]
-fn complete_depth_through_a_worker_is_cached_and_reruns_when_the_worker_changes() {
-    let Some(python) = peers_python() else { return };
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    assert!(dist4d(&[
-        "synth",
-        "--out",
-        data.to_str().unwrap(),
-        "--keyframes",
-        "2",
-        "--width",
-        "320",
-        "--height",
-        "180"
-    ])
-    .status
-    .success());
-    let script = repo().join("workers/fill_completer.py");
-    let worker = format!("complete.worker=Some((program: \"{}\", args: [\"{}\"]))", python.display(), script.display());
-    let run = |out: &str, sets: &[&str], version: &str| {
-        let root = format!("dataset.root={}", data.display());
-        let (cache, out) = (tmp.path().join("cache"), tmp.path().join(out));
+/// A 2-keyframe synthetic scene at 320 x 180 in a temporary folder, and runs of shipped
+/// pipelines on it (from the repository, so that relative worker paths resolve) into one cache.
+struct Scene {
+    tmp: tempfile::TempDir,
+    data: PathBuf,
+}
+
+impl Scene {
+    fn new() -> Scene {
+        let tmp = tempfile::tempdir().unwrap();
+        let data = tmp.path().join("data");
+        let o = dist4d(&[
+            "synth",
+            "--out",
+            data.to_str().unwrap(),
+            "--keyframes",
+            "2",
+            "--width",
+            "320",
+            "--height",
+            "180",
+        ]);
+        assert!(o.status.success(), "{}", text(&o));
+        Scene { tmp, data }
+    }
+
+    fn out(&self, name: &str) -> PathBuf {
+        self.tmp.path().join(name)
+    }
+
+    /// `dist4d run pipelines/<pipeline>.ron` into output folder `out`, with `sets` and `env`.
+    fn run(&self, pipeline: &str, out: &str, sets: &[&str], env: &[(&str, &str)]) -> Output {
+        let root = format!("dataset.root={}", self.data.display());
+        let (cache, out) = (self.out("cache"), self.out(out));
+        let file = format!("pipelines/{pipeline}.ron");
         let mut args = vec![
             "run",
-            "pipelines/curation.ron",
+            file.as_str(),
             "--set",
             &root,
             "--cache",
@@ -46,51 +60,58 @@ fn complete_depth_through_a_worker_is_cached_and_reruns_when_the_worker_changes(
             "--out",
             out.to_str().unwrap(),
         ];
-        args.extend(sets);
-        let o = std::process::Command::new(bin())
-            .current_dir(repo())
-            .args(&args)
-            .env("FILL_COMPLETER_VERSION", version)
-            .output()
-            .unwrap();
+        for s in sets {
+            args.extend(["--set", s]);
+        }
+        std::process::Command::new(bin()).current_dir(repo()).args(&args).envs(env.iter().copied()).output().unwrap()
+    }
+
+    /// Like [`Scene::run`], which must succeed: its report.
+    fn run_ok(&self, pipeline: &str, out: &str, sets: &[&str], env: &[(&str, &str)]) -> String {
+        let o = self.run(pipeline, out, sets, env);
         let t = text(&o);
         assert!(o.status.success(), "{t}");
         t
-    };
-    let builtin = run("builtin", &[], "1");
-    let first = run("worker", &["--set", &worker], "1");
+    }
+}
+
+/// `<stage>.worker=Some(..)` for a program and its arguments.
+fn worker_set(stage: &str, program: &Path, args: &[&str]) -> String {
+    let args: Vec<String> = args.iter().map(|a| format!("{a:?}")).collect();
+    format!("{stage}.worker=Some((program: {:?}, args: [{}]))", program.display().to_string(), args.join(", "))
+}
+
+/// The float32 values of an NPY file dist4d wrote.
+fn npy_values(path: &Path) -> Vec<f32> {
+    let npy = std::fs::read(path).unwrap();
+    let header = u16::from_le_bytes([npy[8], npy[9]]) as usize;
+    npy[10 + header..].chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect()
+}
+
+#[test]
+fn complete_depth_through_a_worker_is_cached_and_reruns_when_the_worker_changes() {
+    let Some(python) = peers_python() else { return };
+    let scene = Scene::new();
+    let script = repo().join("workers/fill_completer.py");
+    let worker = worker_set("complete", &python, &[&script.display().to_string()]);
+    let v1 = [("FILL_COMPLETER_VERSION", "1")];
+    scene.run_ok("curation", "builtin", &[], &v1);
+    let first = scene.run_ok("curation", "worker", &[&worker], &v1);
     assert_eq!((executed(&first, "complete"), executed(&first, "aggregate")), (12, 0), "{first}");
-    let read = |dir: &str| std::fs::read(tmp.path().join(dir).join("synth-0000/CAM_FRONT/000_depth.npy")).unwrap();
+    let read = |dir: &str| std::fs::read(scene.out(dir).join("synth-0000/CAM_FRONT/000_depth.npy")).unwrap();
     assert_ne!(read("builtin"), read("worker"), "the worker's completion is its own");
-    let _ = builtin;
     // Cached across runs: the worker is asked for its identity only.
-    let again = run("worker", &["--set", &worker], "1");
+    let again = scene.run_ok("curation", "worker", &[&worker], &v1);
     assert_eq!(executed(&again, "complete"), 0, "{again}");
     // A new version of the model: its stage reruns; the same bytes cut off what follows.
-    let new = run("worker", &["--set", &worker], "2");
+    let new = scene.run_ok("curation", "worker", &[&worker], &[("FILL_COMPLETER_VERSION", "2")]);
     assert_eq!((executed(&new, "complete"), executed(&new, "prompt"), executed(&new, "encode")), (12, 0, 0), "{new}");
     // A worker that fails an item fails that item only, with the worker's own words.
     let broken = format!(
         "complete.worker=Some((program: \"{}\", args: [\"-c\", \"import sys,json; print(json.dumps({{'type':'hello','protocol':1,'name':'broken','version':'1','ops':['complete_depth']}}), flush=True); [print(json.dumps({{'type':'reply','id':json.loads(l)['id'],'status':'error','message':'out of ideas'}}), flush=True) for l in sys.stdin if json.loads(l)['type']=='request']\"], tries: 1))",
         python.display()
     );
-    let root = format!("dataset.root={}", data.display());
-    let o = std::process::Command::new(bin())
-        .current_dir(repo())
-        .args([
-            "run",
-            "pipelines/curation.ron",
-            "--set",
-            &root,
-            "--cache",
-            tmp.path().join("cache").to_str().unwrap(),
-            "--out",
-            tmp.path().join("broken").to_str().unwrap(),
-            "--set",
-            &broken,
-        ])
-        .output()
-        .unwrap();
+    let o = scene.run("curation", "broken", &[&broken], &[]);
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert!(t.contains("could not do it: out of ideas"), "{t}");
@@ -102,54 +123,16 @@ fn complete_depth_through_a_worker_is_cached_and_reruns_when_the_worker_changes(
 #[test]
 fn scc_pairs_through_a_generator_worker() {
     let Some(python) = peers_python() else { return };
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    assert!(dist4d(&[
-        "synth",
-        "--out",
-        data.to_str().unwrap(),
-        "--keyframes",
-        "2",
-        "--width",
-        "320",
-        "--height",
-        "180"
-    ])
-    .status
-    .success());
-    let worker = format!(
-        "novel.worker=Some((program: \"{}\", args: [\"{}\"]))",
-        python.display(),
-        repo().join("workers/fill_generator.py").display()
-    );
-    let run = |out: &str, sets: &[&str]| {
-        let root = format!("dataset.root={}", data.display());
-        let (cache, out) = (tmp.path().join("cache"), tmp.path().join(out));
-        let mut args = vec![
-            "run",
-            "pipelines/scc.ron",
-            "--set",
-            &root,
-            "--cache",
-            cache.to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-        ];
-        args.extend(sets);
-        let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
-        let t = text(&o);
-        assert!(o.status.success(), "{t}");
-        t
-    };
-    run("baseline", &[]);
-    let first = run("worker", &["--set", &worker]);
+    let scene = Scene::new();
+    let worker = worker_set("novel", &python, &[&repo().join("workers/fill_generator.py").display().to_string()]);
+    scene.run_ok("scc", "baseline", &[], &[]);
+    let first = scene.run_ok("scc", "worker", &[&worker], &[]);
     assert_eq!((executed(&first, "novel"), executed(&first, "complete")), (12, 0), "{first}");
-    let pairs = std::fs::read_to_string(tmp.path().join("worker/synth-0000/pairs.jsonl")).unwrap();
+    let pairs = std::fs::read_to_string(scene.out("worker/synth-0000/pairs.jsonl")).unwrap();
     assert_eq!(pairs.lines().count(), 12);
-    let cond =
-        |dir: &str| std::fs::read(tmp.path().join(dir).join("synth-0000/CAM_FRONT/000_random_cond.png")).unwrap();
+    let cond = |dir: &str| std::fs::read(scene.out(dir).join("synth-0000/CAM_FRONT/000_random_cond.png")).unwrap();
     assert_ne!(cond("baseline"), cond("worker"), "the condition comes back from the worker's view");
-    let again = run("worker", &["--set", &worker]);
+    let again = scene.run_ok("scc", "worker", &[&worker], &[]);
     assert_eq!(executed(&again, "novel"), 0, "{again}");
 }
 
@@ -158,78 +141,21 @@ fn scc_pairs_through_a_generator_worker() {
 #[test]
 fn the_sky_from_a_segmenter_worker() {
     let Some(python) = peers_python() else { return };
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("data");
-    assert!(dist4d(&[
-        "synth",
-        "--out",
-        data.to_str().unwrap(),
-        "--keyframes",
-        "2",
-        "--width",
-        "320",
-        "--height",
-        "180"
-    ])
-    .status
-    .success());
-    let worker = format!(
-        "sky.worker=Some((program: \"{}\", args: [\"{}\"]))",
-        python.display(),
-        repo().join("workers/sky_segmenter.py").display()
-    );
-    let root = format!("dataset.root={}", data.display());
-    let out = tmp.path().join("out");
-    let o = std::process::Command::new(bin())
-        .current_dir(repo())
-        .args([
-            "run",
-            "pipelines/curation.ron",
-            "--set",
-            &root,
-            "--cache",
-            tmp.path().join("cache").to_str().unwrap(),
-            "--out",
-            out.to_str().unwrap(),
-            "--set",
-            &worker,
-        ])
-        .output()
-        .unwrap();
-    let t = text(&o);
-    assert!(o.status.success(), "{t}");
+    let scene = Scene::new();
+    let worker = worker_set("sky", &python, &[&repo().join("workers/sky_segmenter.py").display().to_string()]);
+    let t = scene.run_ok("curation", "out", &[&worker], &[]);
     assert_eq!(executed(&t, "sky"), 12, "{t}");
-    let depth_of = |out: &std::path::Path| -> Vec<f32> {
-        let npy = std::fs::read(out.join("synth-0000/CAM_FRONT/000_depth.npy")).unwrap();
-        let header = u16::from_le_bytes([npy[8], npy[9]]) as usize;
-        npy[10 + header..].chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect()
-    };
-    let top_sky = depth_of(&out)[..320].iter().filter(|&&z| z == 100.0).count();
+    let depth_of = |out: &str| npy_values(&scene.out(out).join("synth-0000/CAM_FRONT/000_depth.npy"));
+    let top_sky = depth_of("out")[..320].iter().filter(|&&z| z == 100.0).count();
     assert!(top_sky > 0, "the reference segmenter finds the synthetic sky at the top");
     // A segmenter that calls exactly the top ten rows sky: the depth there is the sky depth.
-    let ten_rows = format!(
-        "sky.worker=Some((program: \"{}\", args: [\"-c\", \"import sys,json,numpy as np; print(json.dumps({{'type':'hello','protocol':1,'name':'ten-rows','version':'1','ops':['segment']}}), flush=True)\\nfor l in sys.stdin:\\n m=json.loads(l)\\n if m['type']!='request': continue\\n im=np.load(m['inputs'][0]['path']); ids=np.full(im.shape[:2],7,np.uint8); ids[:10]=23; p=m['out_dir']+'/s.npy'; np.save(p,ids); print(json.dumps({{'type':'reply','id':m['id'],'status':'ok','outputs':[{{'name':'semantic','path':p}}]}}), flush=True)\"]))",
-        python.display()
+    let ten_rows = worker_set(
+        "sky",
+        &python,
+        &["-c", "import sys,json,numpy as np; print(json.dumps({'type':'hello','protocol':1,'name':'ten-rows','version':'1','ops':['segment']}), flush=True)\nfor l in sys.stdin:\n m=json.loads(l)\n if m['type']!='request': continue\n im=np.load(m['inputs'][0]['path']); ids=np.full(im.shape[:2],7,np.uint8); ids[:10]=23; p=m['out_dir']+'/s.npy'; np.save(p,ids); print(json.dumps({'type':'reply','id':m['id'],'status':'ok','outputs':[{'name':'semantic','path':p}]}), flush=True)"],
     );
-    let out2 = tmp.path().join("out2");
-    let o = std::process::Command::new(bin())
-        .current_dir(repo())
-        .args([
-            "run",
-            "pipelines/curation.ron",
-            "--set",
-            &root,
-            "--cache",
-            tmp.path().join("cache").to_str().unwrap(),
-            "--out",
-            out2.to_str().unwrap(),
-            "--set",
-            &ten_rows,
-        ])
-        .output()
-        .unwrap();
-    assert!(o.status.success(), "{}", text(&o));
-    let depth = depth_of(&out2);
+    scene.run_ok("curation", "out2", &[&ten_rows], &[]);
+    let depth = depth_of("out2");
     assert!(depth[..10 * 320].iter().all(|&z| z == 100.0), "the ten sky rows at 100 m");
     assert!(depth[10 * 320..].iter().filter(|&&z| z == 100.0).count() < 320, "below them, structure");
 }
