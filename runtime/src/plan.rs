@@ -131,6 +131,8 @@ pub fn plan_outer(pipeline: &Pipeline, view: &View, outer: u32) -> OuterPlan {
     let mut index: HashMap<(u32, ItemKey), u32> = HashMap::new();
     let outer_key = ItemKey::new(&[outer]);
     let mut items = Vec::new();
+    // Each variant's offset, found once per plan rather than once per task and input.
+    let variant_offsets: Vec<i32> = (0..pipeline.variants.len()).map(|i| pipeline.variant_offset(i)).collect();
     for node_id in pipeline.stage_order() {
         let node = &pipeline.nodes[node_id];
         let stage = node.stage().expect("stage_order yields stages");
@@ -149,7 +151,8 @@ pub fn plan_outer(pipeline: &Pipeline, view: &View, outer: u32) -> OuterPlan {
                 }
                 let selector = match input.selector {
                     Selector::VariantOffset { dim } => {
-                        let by = pipeline.variant_offset(item.coords().last().copied().unwrap_or(0) as usize);
+                        let v = item.coords().last().copied().unwrap_or(0) as usize;
+                        let by = variant_offsets.get(v).copied().unwrap_or(0);
                         Selector::Offset { dim, by }
                     }
                     other => other,

@@ -35,6 +35,15 @@ impl Default for WorkerSpec {
 }
 
 impl WorkerSpec {
+    /// The problems of a stage's optional `worker` param (none when it is not set).
+    pub fn problems_of(worker: Option<&WorkerSpec>) -> Vec<dist4d_graph::ParamProblem> {
+        let mut c = ParamChecks::new();
+        if let Some(w) = worker {
+            w.check(&mut c);
+        }
+        c.done()
+    }
+
     pub fn check(&self, c: &mut ParamChecks) {
         c.check(!self.program.is_empty(), "worker", || "names no `program`".into())
             .count("worker", self.max_workers as u64, 1, 64)
@@ -98,6 +107,21 @@ impl ModelWorker {
             pool.call(&Request { op: op.into(), inputs, params, out_dir: exchange.dir.display().to_string() })?;
         Ok(reply.outputs)
     }
+}
+
+/// The depth map a worker returned as output `name` (NPY float32, H x W), checked: its shape,
+/// and every depth finite and not negative (before anything of it enters the store).
+pub fn worker_depth(exchange: &Exchange, outputs: &[FileRef], name: &str, width: u32, height: u32) -> Result<Vec<f32>> {
+    let (shape, data) = dist4d_types::formats::read_npy_f32(&exchange.get(outputs, name)?)
+        .with_context(|| format!("the worker's `{name}` (float32 NPY)"))?;
+    ensure!(
+        shape == [height as usize, width as usize],
+        "the worker's `{name}` has shape {shape:?}, not [{height}, {width}]"
+    );
+    if let Some(bad) = data.iter().position(|z| !z.is_finite() || *z < 0.0) {
+        bail!("the worker's `{name}` holds {} at pixel {bad}: depths are finite and not negative", data[bad]);
+    }
+    Ok(data)
 }
 
 /// A folder for one request's files, removed when dropped.

@@ -115,16 +115,7 @@ impl Validate for Params {
             .count("refine_band", self.refine_band as u64, 0, MAX_GAP_PX)
             .done()
             .into_iter()
-            .chain(
-                self.worker
-                    .as_ref()
-                    .map(|w| {
-                        let mut c = ParamChecks::new();
-                        w.check(&mut c);
-                        c.done()
-                    })
-                    .unwrap_or_default(),
-            )
+            .chain(crate::model_worker::WorkerSpec::problems_of(self.worker.as_ref()))
             .collect()
     }
 }
@@ -875,13 +866,7 @@ fn worker_completion(p: &Params, worker: &crate::model_worker::ModelWorker, i: &
         ex.put("prompt", "prompt.npy", &dist4d_types::formats::npy_f32(&[h as usize, w as usize], &i.sparse.data))?,
     ];
     let outputs = worker.call(&ex, "complete_depth", inputs, serde_json::json!({}))?;
-    let bytes = ex.get(&outputs, "depth")?;
-    let (shape, mut data) =
-        anyhow::Context::context(dist4d_types::formats::read_npy_f32(&bytes), "the worker's `depth` (float32 NPY)")?;
-    ensure!(shape == [h as usize, w as usize], "the worker's `depth` has shape {shape:?}, not [{h}, {w}]");
-    if let Some(bad) = data.iter().position(|z| !z.is_finite() || *z < 0.0) {
-        anyhow::bail!("the worker's `depth` holds {} at pixel {bad}: depths are finite and not negative", data[bad]);
-    }
+    let mut data = crate::model_worker::worker_depth(&ex, &outputs, "depth", w, h)?;
     if let Some(sky) = &i.sky {
         ensure!(sky.data.len() == data.len(), "the sky mask is not {w}x{h}");
         for (z, &s) in data.iter_mut().zip(&sky.data) {

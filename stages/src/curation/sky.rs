@@ -97,16 +97,7 @@ impl Validate for Params {
             .within("max_hole", self.max_hole as f64, 0.0, 1.0)
             .done()
             .into_iter()
-            .chain(
-                self.worker
-                    .as_ref()
-                    .map(|w| {
-                        let mut c = ParamChecks::new();
-                        w.check(&mut c);
-                        c.done()
-                    })
-                    .unwrap_or_default(),
-            )
+            .chain(crate::model_worker::WorkerSpec::problems_of(self.worker.as_ref()))
             .collect()
     }
 }

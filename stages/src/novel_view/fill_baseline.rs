@@ -118,12 +118,7 @@ fn generate_by_worker(worker: &crate::model_worker::ModelWorker, i: &Inputs) -> 
     ];
     let outputs = worker.call(&ex, "generate_view", inputs, serde_json::json!({}))?;
     let rgb = read_npy_rgb8(&ex.get(&outputs, "image")?, w, h).context("the worker's `image`")?;
-    let (shape, data) = dist4d_types::formats::read_npy_f32(&ex.get(&outputs, "depth")?)
-        .context("the worker's `depth` (float32 NPY)")?;
-    ensure!(shape == [h as usize, w as usize], "the worker's `depth` has shape {shape:?}, not [{h}, {w}]");
-    if let Some(bad) = data.iter().position(|z| !z.is_finite() || *z < 0.0) {
-        anyhow::bail!("the worker's `depth` holds {} at pixel {bad}: depths are finite and not negative", data[bad]);
-    }
+    let data = crate::model_worker::worker_depth(&ex, &outputs, "depth", w, h)?;
     Ok(Outputs { image: Image { width: w, height: h, rgb }, depth: DepthMap { width: w, height: h, data } })
 }
 
