@@ -244,14 +244,36 @@ impl Worker {
     /// Sends `request` and waits up to `deadline` for its reply. A timeout kills the worker (its
     /// whole process group): a model stuck on one item must not hold the others.
     pub fn call(&mut self, request: &Request, deadline: Duration) -> std::result::Result<Reply, CallError> {
-        let id = self.next_id;
-        self.next_id += 1;
-        let mut msg = serde_json::to_value(request).map_err(|e| CallError::Malformed(e.to_string()))?;
-        msg["type"] = "request".into();
-        msg["id"] = id.into();
-        self.send(&msg)?;
+        Ok(self.call_batch(&[request], deadline)?.remove(0))
+    }
+
+    /// Sends `requests` as one batch (a GPU model runs them as one tensor batch) and waits up to
+    /// `deadline` for all their replies, which come back in the order of `requests`. One request
+    /// goes as a plain `request`; more as `{"type": "batch", "requests": [..]}`, each with its
+    /// own id, answered by one `reply` line per id in any order. At most the hello's `max_batch`.
+    pub fn call_batch(
+        &mut self,
+        requests: &[&Request],
+        deadline: Duration,
+    ) -> std::result::Result<Vec<Reply>, CallError> {
+        let first = self.next_id;
+        self.next_id += requests.len() as u64;
+        let mut msgs = Vec::with_capacity(requests.len());
+        for (i, r) in requests.iter().enumerate() {
+            let mut msg = serde_json::to_value(r).map_err(|e| CallError::Malformed(e.to_string()))?;
+            msg["type"] = "request".into();
+            msg["id"] = (first + i as u64).into();
+            msgs.push(msg);
+        }
+        match msgs.len() {
+            0 => return Ok(Vec::new()),
+            1 => self.send(&msgs[0])?,
+            _ => self.send(&serde_json::json!({"type": "batch", "requests": msgs}))?,
+        }
         let until = Instant::now() + deadline;
-        loop {
+        let mut replies: Vec<Option<Reply>> = vec![None; requests.len()];
+        let mut left = requests.len();
+        while left > 0 {
             let v = match self.next_line(until) {
                 Ok(v) => v,
                 Err(e @ CallError::Timeout(_)) => {
@@ -261,15 +283,25 @@ impl Worker {
                 Err(e) => return Err(e),
             };
             match v["type"].as_str() {
-                Some("reply") if v["id"] == id => {
-                    return serde_json::from_value(v.clone())
-                        .map_err(|e| CallError::Malformed(format!("a reply ({e}): {v}")));
+                Some("reply") => {
+                    // A late reply to a request given up on is not this call's.
+                    let Some(i) = v["id"].as_u64().and_then(|id| id.checked_sub(first)).map(|i| i as usize) else {
+                        continue;
+                    };
+                    if i >= replies.len() {
+                        continue;
+                    }
+                    let reply = serde_json::from_value(v.clone())
+                        .map_err(|e| CallError::Malformed(format!("a reply ({e}): {v}")))?;
+                    if replies[i].replace(reply).is_none() {
+                        left -= 1;
+                    }
                 }
-                // A late reply to a request given up on, or a pong: not this call's.
-                Some("reply") | Some("pong") => continue,
+                Some("pong") => continue,
                 _ => return Err(CallError::Malformed(format!("expected a reply, found {v}"))),
             }
         }
+        Ok(replies.into_iter().map(|r| r.expect("every reply arrived")).collect())
     }
 
     /// Whether the worker answers a ping within `timeout`.

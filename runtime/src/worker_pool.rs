@@ -3,11 +3,18 @@
 //! with a growing pause between starts; a call is tried again (on a fresh worker) after a crash,
 //! a deadline or a `retryable` reply, a bounded number of times. The pool knows nothing of what
 //! the workers compute.
+//!
+//! Batching: calls made at the same time (from the threads of a stage's resource class) wait in
+//! one queue; whichever caller gets a worker takes its own request and the oldest others, up to
+//! the worker's `max_batch`, sends them as one batch and hands each caller its reply. A batch
+//! that crashed its worker is tried again one request at a time, so that one bad item does not
+//! use up the tries of the items batched with it.
 
 use crate::worker::{CallError, Hello, Reply, Request, Status, Worker, WorkerCommand};
 use anyhow::{anyhow, bail, Result};
-use std::sync::{Condvar, Mutex};
-use std::time::Duration;
+use std::collections::{HashMap, VecDeque};
+use std::sync::{Condvar, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
 
 /// How a pool treats its workers.
 #[derive(Clone, Debug)]
@@ -16,12 +23,15 @@ pub struct PoolOptions {
     pub max_workers: usize,
     /// Time to the worker's hello.
     pub startup: Duration,
-    /// Time to a request's reply.
+    /// Time to a request's reply (to a batch's last reply).
     pub deadline: Duration,
     /// Tries of one call in all (the first included).
     pub tries: u32,
     /// Pause before the first restart after a failure, doubled for each one after.
     pub backoff: Duration,
+    /// A worker idle this long is pinged before it is given work, and replaced if it does not
+    /// answer (a process wedged between items).
+    pub ping_after: Duration,
 }
 
 impl Default for PoolOptions {
@@ -32,25 +42,48 @@ impl Default for PoolOptions {
             deadline: Duration::from_secs(600),
             tries: 3,
             backoff: Duration::from_millis(100),
+            ping_after: Duration::from_secs(30),
         }
     }
 }
 
+/// One call waiting for, or in, a batch.
+struct Ticket {
+    request: Request,
+    /// Tries made.
+    tries: u32,
+    /// Why the last try failed.
+    last: String,
+    /// Never batched with others again (it was in a batch that crashed its worker).
+    alone: bool,
+    /// Set when the call has its answer.
+    result: Option<Result<Reply>>,
+}
+
 struct State {
-    idle: Vec<Worker>,
+    /// Idle workers, with when they became idle.
+    idle: Vec<(Worker, Instant)>,
     /// Workers started and not yet returned or dropped.
     live: usize,
     /// Failures in a row (reset by a success): the restart pause grows with them.
     failures: u32,
     /// The last hello (a new worker must say the same: its identity is in the task keys).
     hello: Option<Hello>,
+    /// Calls waiting for a worker, oldest first.
+    queue: VecDeque<u64>,
+    tickets: HashMap<u64, Ticket>,
+    next_ticket: u64,
+    /// Requests sent in batches of more than one, and workers started (for tests and
+    /// benchmarks).
+    batched: u64,
+    starts: u64,
 }
 
 pub struct WorkerPool {
     command: WorkerCommand,
     options: PoolOptions,
     state: Mutex<State>,
-    freed: Condvar,
+    changed: Condvar,
 }
 
 impl WorkerPool {
@@ -58,135 +91,245 @@ impl WorkerPool {
         WorkerPool {
             command,
             options,
-            state: Mutex::new(State { idle: Vec::new(), live: 0, failures: 0, hello: None }),
-            freed: Condvar::new(),
+            state: Mutex::new(State {
+                idle: Vec::new(),
+                live: 0,
+                failures: 0,
+                hello: None,
+                queue: VecDeque::new(),
+                tickets: HashMap::new(),
+                next_ticket: 0,
+                batched: 0,
+                starts: 0,
+            }),
+            changed: Condvar::new(),
         }
+    }
+
+    pub fn options(&self) -> &PoolOptions {
+        &self.options
     }
 
     /// The workers' hello (starting one if none ran yet): name, version and weights digest are
     /// what a task key holds of a worker.
     pub fn hello(&self) -> Result<Hello> {
-        if let Some(h) = self.lock()?.hello.clone() {
+        let mut s = self.lock()?;
+        if let Some(h) = s.hello.clone() {
             return Ok(h);
         }
-        let w = self.take()?;
+        while s.idle.is_empty() && s.live >= self.options.max_workers {
+            s = self.wait(s)?;
+            if let Some(h) = s.hello.clone() {
+                return Ok(h);
+            }
+        }
+        let (w, s) = self.take(s)?;
         let h = w.hello.clone();
-        self.give_back(w);
+        self.give_back(s, w);
         Ok(h)
     }
 
-    fn lock(&self) -> Result<std::sync::MutexGuard<'_, State>> {
+    /// How many requests went in batches of more than one.
+    pub fn batched(&self) -> u64 {
+        self.state.lock().map(|s| s.batched).unwrap_or(0)
+    }
+
+    fn lock(&self) -> Result<MutexGuard<'_, State>> {
         self.state.lock().map_err(|_| anyhow!("worker pool poisoned"))
     }
 
-    /// An idle worker, a new one when fewer than `max_workers` live, or the next one freed.
-    fn take(&self) -> Result<Worker> {
-        let mut s = self.lock()?;
-        loop {
-            if let Some(w) = s.idle.pop() {
-                return Ok(w);
-            }
-            if s.live < self.options.max_workers {
-                s.live += 1;
-                let pause = (s.failures > 0).then(|| self.options.backoff * 2u32.saturating_pow(s.failures - 1));
-                drop(s);
-                if let Some(p) = pause {
-                    std::thread::sleep(p.min(Duration::from_secs(30)));
-                }
-                return match Worker::start(&self.command, self.options.startup) {
-                    Ok(w) => {
-                        let mut s = self.lock()?;
-                        let id = |h: &Hello| (h.name.clone(), h.version.clone(), h.weights_digest.clone());
-                        if let Some(h) = s.hello.clone().filter(|h| id(h) != id(&w.hello)) {
-                            s.live -= 1;
-                            drop(s);
-                            self.freed.notify_one();
-                            bail!(
-                                "worker `{}` restarted as {} {} (weights {}), not {} {} (weights {}): its results would not match their task keys",
-                                self.command.program,
-                                w.hello.name,
-                                w.hello.version,
-                                w.hello.weights_digest,
-                                h.name,
-                                h.version,
-                                h.weights_digest
-                            );
-                        }
-                        s.hello = Some(w.hello.clone());
-                        Ok(w)
-                    }
-                    Err(e) => {
-                        let mut s = self.lock()?;
-                        s.live -= 1;
-                        s.failures += 1;
-                        self.freed.notify_one();
-                        Err(e)
-                    }
-                };
-            }
-            s = self.freed.wait(s).map_err(|_| anyhow!("worker pool poisoned"))?;
-        }
+    fn wait<'g>(&self, s: MutexGuard<'g, State>) -> Result<MutexGuard<'g, State>> {
+        self.changed.wait(s).map_err(|_| anyhow!("worker pool poisoned"))
     }
 
-    fn give_back(&self, w: Worker) {
-        if let Ok(mut s) = self.state.lock() {
-            s.idle.push(w);
-        }
-        self.freed.notify_one();
-    }
-
-    /// A worker that failed: it is gone, and the next start waits a little longer.
-    fn lose(&self, w: Worker) {
-        drop(w);
-        if let Ok(mut s) = self.state.lock() {
+    /// An idle worker (pinged first if it has been idle long), or a new one; the caller checked
+    /// that one of these is possible. The lock is given up while a worker starts or is pinged.
+    fn take<'g>(&'g self, mut s: MutexGuard<'g, State>) -> Result<(Worker, MutexGuard<'g, State>)> {
+        while let Some((mut w, since)) = s.idle.pop() {
+            if since.elapsed() < self.options.ping_after {
+                return Ok((w, s));
+            }
+            drop(s);
+            let alive = w.ping(self.options.deadline.min(Duration::from_secs(5)));
+            s = self.lock()?;
+            if alive {
+                return Ok((w, s));
+            }
+            drop(w);
             s.live -= 1;
-            s.failures += 1;
         }
-        self.freed.notify_one();
+        s.live += 1;
+        s.starts += 1;
+        let pause = (s.failures > 0).then(|| self.options.backoff * 2u32.saturating_pow(s.failures - 1));
+        drop(s);
+        if let Some(p) = pause {
+            std::thread::sleep(p.min(Duration::from_secs(30)));
+        }
+        let started = Worker::start(&self.command, self.options.startup);
+        let mut s = self.lock()?;
+        let w = match started {
+            Ok(w) => w,
+            Err(e) => {
+                s.live -= 1;
+                s.failures += 1;
+                self.changed.notify_all();
+                return Err(e);
+            }
+        };
+        let id = |h: &Hello| (h.name.clone(), h.version.clone(), h.weights_digest.clone());
+        if let Some(h) = s.hello.clone().filter(|h| id(h) != id(&w.hello)) {
+            s.live -= 1;
+            self.changed.notify_all();
+            bail!(
+                "worker `{}` restarted as {} {} (weights {}), not {} {} (weights {}): its results would not match their task keys",
+                self.command.program,
+                w.hello.name,
+                w.hello.version,
+                w.hello.weights_digest,
+                h.name,
+                h.version,
+                h.weights_digest
+            );
+        }
+        s.hello = Some(w.hello.clone());
+        Ok((w, s))
     }
 
-    /// Runs `request` on a worker: a reply `ok` is returned; `error` is this item's failure; a
-    /// crash, a missed deadline or `retryable` are tried again on a fresh worker, `tries` times in
-    /// all. Errors carry the worker's stderr tail.
+    fn give_back(&self, mut s: MutexGuard<'_, State>, w: Worker) {
+        s.idle.push((w, Instant::now()));
+        drop(s);
+        self.changed.notify_all();
+    }
+
+    /// Runs `request` on a worker, batched with other calls waiting at the same time: a reply
+    /// `ok` is returned; `error` is this item's failure; a crash, a missed deadline or
+    /// `retryable` are tried again on a fresh worker, `tries` times in all. Errors carry the
+    /// worker's stderr tail.
     pub fn call(&self, request: &Request) -> Result<Reply> {
-        let mut last = String::new();
-        for attempt in 1..=self.options.tries.max(1) {
-            let mut w = self.take()?;
-            match w.call(request, self.options.deadline) {
-                Ok(reply) if reply.status == Status::Ok => {
-                    if let Ok(mut s) = self.state.lock() {
-                        s.failures = 0;
-                    }
-                    self.give_back(w);
-                    return Ok(reply);
-                }
-                Ok(reply) if reply.status == Status::Error => {
-                    let tail = w.stderr_tail();
-                    self.give_back(w);
-                    bail!("worker `{}` could not do it: {}{tail}", self.command.program, reply.message);
-                }
-                Ok(reply) => {
-                    last = format!("try {attempt}: retryable: {}", reply.message);
-                    self.give_back(w);
-                }
-                Err(e @ CallError::Malformed(_)) => {
-                    let tail = w.stderr_tail();
-                    self.lose(w);
-                    bail!("worker `{}`: {e}{tail}", self.command.program);
-                }
-                Err(e) => {
-                    last = format!("try {attempt}: {e}{}", w.stderr_tail());
-                    self.lose(w);
+        let mut s = self.lock()?;
+        let id = s.next_ticket;
+        s.next_ticket += 1;
+        s.tickets.insert(
+            id,
+            Ticket { request: request.clone(), tries: 0, last: String::new(), alone: false, result: None },
+        );
+        s.queue.push_back(id);
+        loop {
+            if s.tickets[&id].result.is_some() {
+                let t = s.tickets.remove(&id).expect("this call's ticket");
+                return t.result.expect("checked above");
+            }
+            let queued = s.queue.contains(&id);
+            if queued && (!s.idle.is_empty() || s.live < self.options.max_workers) {
+                s = self.lead(s, id)?;
+            } else {
+                s = self.wait(s)?;
+            }
+        }
+    }
+
+    /// Takes a worker and a batch (`own` first, then the oldest waiting calls up to the worker's
+    /// `max_batch`), runs it and settles every call in it.
+    fn lead<'g>(&'g self, mut s: MutexGuard<'g, State>, own: u64) -> Result<MutexGuard<'g, State>> {
+        s.queue.retain(|t| *t != own);
+        let mut batch = vec![own];
+        let max = s.hello.as_ref().map_or(1, |h| h.max_batch.max(1)) as usize;
+        if !s.tickets[&own].alone {
+            let mut i = 0;
+            while batch.len() < max && i < s.queue.len() {
+                let t = s.queue[i];
+                if s.tickets[&t].alone {
+                    i += 1;
+                } else {
+                    s.queue.remove(i);
+                    batch.push(t);
                 }
             }
         }
-        bail!("worker `{}` failed {} times: {last}", self.command.program, self.options.tries.max(1))
+        let (mut w, s2) = match self.take(s) {
+            Ok(x) => x,
+            Err(e) => {
+                // No worker: every call of the batch fails with why.
+                let mut s = self.lock()?;
+                let why = format!("{e:#}");
+                for t in &batch {
+                    s.tickets.get_mut(t).expect("a batched ticket").result = Some(Err(anyhow!("{why}")));
+                }
+                self.changed.notify_all();
+                return Ok(s);
+            }
+        };
+        s = s2;
+        let requests: Vec<Request> = batch.iter().map(|t| s.tickets[t].request.clone()).collect();
+        if batch.len() > 1 {
+            s.batched += batch.len() as u64;
+        }
+        drop(s);
+        let refs: Vec<&Request> = requests.iter().collect();
+        let answer = w.call_batch(&refs, self.options.deadline);
+        let mut s = self.lock()?;
+        let program = &self.command.program;
+        let tries = self.options.tries.max(1);
+        match answer {
+            Ok(replies) => {
+                let mut ok = false;
+                for (t, reply) in batch.iter().zip(replies) {
+                    let ticket = s.tickets.get_mut(t).expect("a batched ticket");
+                    ticket.tries += 1;
+                    match reply.status {
+                        Status::Ok => {
+                            ok = true;
+                            ticket.result = Some(Ok(reply));
+                        }
+                        Status::Error => {
+                            let tail = w.stderr_tail();
+                            ticket.result = Some(Err(anyhow!("worker `{program}` could not do it: {}{tail}", reply.message)));
+                        }
+                        Status::Retryable => {
+                            ticket.last = format!("try {}: retryable: {}", ticket.tries, reply.message);
+                            if ticket.tries >= tries {
+                                ticket.result = Some(Err(anyhow!("worker `{program}` failed {tries} times: {}", ticket.last)));
+                            } else {
+                                s.queue.push_front(*t);
+                            }
+                        }
+                    }
+                }
+                if ok {
+                    s.failures = 0;
+                }
+                self.give_back(s, w);
+                self.lock()
+            }
+            Err(e) => {
+                let tail = w.stderr_tail();
+                drop(w);
+                s.live -= 1;
+                s.failures += 1;
+                let malformed = matches!(e, CallError::Malformed(_));
+                for t in batch.iter().rev() {
+                    let ticket = s.tickets.get_mut(t).expect("a batched ticket");
+                    ticket.tries += 1;
+                    ticket.alone |= batch.len() > 1;
+                    ticket.last = format!("try {}: {e}{tail}", ticket.tries);
+                    if malformed {
+                        ticket.result = Some(Err(anyhow!("worker `{program}`: {e}{tail}")));
+                    } else if ticket.tries >= tries {
+                        ticket.result = Some(Err(anyhow!("worker `{program}` failed {tries} times: {}", ticket.last)));
+                    } else {
+                        s.queue.push_front(*t);
+                    }
+                }
+                self.changed.notify_all();
+                Ok(s)
+            }
+        }
     }
 
     /// Shuts every idle worker down.
     pub fn shutdown(&self) {
         let idle = self.state.lock().map(|mut s| std::mem::take(&mut s.idle)).unwrap_or_default();
-        for w in idle {
+        for (w, _) in idle {
             w.shutdown(Duration::from_secs(5));
         }
     }
@@ -280,5 +423,61 @@ mod tests {
         let err = format!("{:#}", pool.call(&request("a")).unwrap_err());
         assert!(err.contains("did not start") && err.contains("no model here"), "{err}");
         assert!(pool.hello().is_err());
+    }
+
+    /// Runs `what`s from one thread each, at the same time; their results in order.
+    fn call_together(pool: &Arc<WorkerPool>, whats: &[&str]) -> Vec<Result<String>> {
+        let threads: Vec<_> = whats
+            .iter()
+            .map(|w| {
+                let (pool, w) = (pool.clone(), w.to_string());
+                std::thread::spawn(move || pool.call(&request(&w)).map(|r| r.outputs[0].path.clone()))
+            })
+            .collect();
+        threads.into_iter().map(|t| t.join().unwrap()).collect()
+    }
+
+    #[test]
+    fn calls_made_together_go_in_batches_up_to_the_workers_max_and_each_gets_its_own_reply() {
+        let pool = Arc::new(WorkerPool::new(command(&["--max-batch", "3"]), quick()));
+        pool.hello().unwrap();
+        // The first call holds the one worker for a while, so the others queue up behind it.
+        let whats = ["sleep:0.3", "a", "b", "c", "d", "e", "f"];
+        let results = call_together(&pool, &whats);
+        for (w, r) in whats.iter().zip(&results) {
+            assert_eq!(r.as_ref().unwrap(), w);
+        }
+        assert!(pool.batched() >= 3, "the six waiting calls went in batches: {} batched", pool.batched());
+        // The worker asserts that no batch is larger than 3: it would have crashed.
+        assert_eq!(pool.state.lock().unwrap().failures, 0);
+    }
+
+    #[test]
+    fn a_batch_that_crashes_its_worker_is_retried_one_by_one_so_only_the_bad_item_fails() {
+        let pool = Arc::new(WorkerPool::new(command(&["--max-batch", "4"]), quick()));
+        pool.hello().unwrap();
+        let whats = ["sleep:0.3", "a", "crash", "b", "c"];
+        let results = call_together(&pool, &whats);
+        for (w, r) in whats.iter().zip(&results) {
+            match *w {
+                "crash" => {
+                    let err = format!("{:#}", r.as_ref().unwrap_err());
+                    assert!(err.contains("failed 3 times") && err.contains("asked to crash"), "{err}");
+                }
+                _ => assert_eq!(r.as_ref().unwrap(), w),
+            }
+        }
+        assert!(pool.batched() > 0, "the crash was in a batch");
+    }
+
+    #[test]
+    fn a_worker_idle_past_ping_after_is_pinged_kept_when_it_answers_and_replaced_when_not() {
+        for (args, starts) in [(&[][..], 1), (&["--no-pong"][..], 2)] {
+            let pool = WorkerPool::new(command(args), PoolOptions { ping_after: Duration::ZERO, ..quick() });
+            assert_eq!(pool.call(&request("a")).unwrap().outputs[0].path, "a");
+            assert_eq!(pool.call(&request("b")).unwrap().outputs[0].path, "b");
+            let s = pool.state.lock().unwrap();
+            assert_eq!((s.live, s.starts), (1, starts), "{args:?}");
+        }
     }
 }
