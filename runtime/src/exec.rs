@@ -27,7 +27,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use crossbeam_channel::{unbounded, Receiver, RecvTimeoutError, Sender};
 use dist4d_graph::{NodeKind, Pipeline};
 use std::cmp::Reverse;
-use std::collections::{BinaryHeap, HashMap};
+use std::collections::{BinaryHeap, HashMap, VecDeque};
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -221,6 +221,8 @@ enum Msg {
     Task {
         slot: u32,
         task: u32,
+        /// The resource class whose slot the task held, if any.
+        waited: Option<usize>,
         result: Result<Outcome>,
     },
     /// An export job ended; `awaiting` is the id of the task record waiting for it, if any.
@@ -320,6 +322,14 @@ impl<'a> Engine<'a> {
             .num_threads(opts.jobs.max(1))
             .thread_name(|i| format!("dist4d-worker-{i}"))
             .build()?;
+        // Tasks of operators that wait on an external resource (a model worker on a GPU) run on
+        // threads of their own, as many at once as the resource takes, so that waiting for a
+        // model does not hold the CPU threads the other stages need.
+        let classes = ResourceClasses::of(self.operators);
+        let wait_pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(classes.slots.iter().sum::<usize>().clamp(1, 256))
+            .thread_name(|i| format!("dist4d-wait-{i}"))
+            .build()?;
         let (tx, rx): (Sender<Msg>, Receiver<Msg>) = unbounded();
         let max_inflight = opts.jobs.max(1) * 2;
         let task_budget = 4096usize.max(opts.jobs * 256);
@@ -341,9 +351,13 @@ impl<'a> Engine<'a> {
         let ctx = Ctx { engine: self, keys: &keys };
         let mut next_outer = 0usize;
         let mut inflight = 0usize;
+        let mut busy = vec![0usize; classes.slots.len()];
+        let mut parked: Vec<VecDeque<Job>> = classes.slots.iter().map(|_| VecDeque::new()).collect();
+        let mut waiting = 0usize;
         let mut stopping: Option<RunStatus> = None;
 
-        // The scope guarantees every spawned job has ended before it returns, even on an error.
+        // The scopes guarantee every spawned job has ended before they return, even on an error.
+        wait_pool.in_place_scope(|wait_scope| -> Result<()> {
         pool.in_place_scope(|scope| -> Result<()> {
             loop {
                 if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
@@ -355,7 +369,7 @@ impl<'a> Engine<'a> {
                     next_outer += 1;
                 }
 
-                // Start ready tasks: cache hits complete here, the rest go to the pool.
+                // Start ready tasks: cache hits complete here, the rest go to the pools.
                 while stopping.is_none() && inflight < max_inflight {
                     let Some(Reverse((_, _, _, slot, task))) = c.ready.pop() else { break };
                     match ctx.prepare(c.active[slot as usize].as_ref().unwrap(), slot, task) {
@@ -365,18 +379,18 @@ impl<'a> Engine<'a> {
                         }
                         Ok(Prepared::Job(job)) => {
                             c.active[slot as usize].as_mut().unwrap().state[task as usize] = State::Running;
-                            inflight += 1;
-                            let tx = tx.clone();
-                            let keys = &keys;
-                            scope.spawn(move |_| {
-                                let (slot, task) = (job.slot, job.task);
-                                let result =
-                                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.execute(job, keys)))
-                                        .unwrap_or_else(|panic| {
-                                            Err(anyhow!("the stage panicked: {}", panic_message(&panic)))
-                                        });
-                                let _ = tx.send(Msg::Task { slot, task, result });
-                            });
+                            match classes.of_node[job.node] {
+                                None => {
+                                    inflight += 1;
+                                    spawn_task(scope, &ctx, &tx, job, None);
+                                }
+                                Some(k) if busy[k] < classes.slots[k] => {
+                                    busy[k] += 1;
+                                    waiting += 1;
+                                    spawn_task(wait_scope, &ctx, &tx, job, Some(k));
+                                }
+                                Some(k) => parked[k].push_back(job),
+                            }
                         }
                     }
                     if opts.fail_fast && !c.failures.is_empty() {
@@ -387,15 +401,26 @@ impl<'a> Engine<'a> {
 
                 let outers_left = stopping.is_none() && next_outer < outers.len();
                 let ready_left = stopping.is_none() && !c.ready.is_empty();
-                if inflight == 0 && !outers_left && !ready_left {
+                if inflight == 0 && waiting == 0 && !outers_left && !ready_left {
                     return Ok(());
                 }
-                if inflight == 0 {
+                if inflight == 0 && waiting == 0 {
                     continue;
                 }
                 match rx.recv_timeout(Duration::from_millis(200)) {
-                    Ok(Msg::Task { slot, task, result }) => {
-                        inflight -= 1;
+                    Ok(Msg::Task { slot, task, waited, result }) => {
+                        match waited {
+                            None => inflight -= 1,
+                            Some(k) => {
+                                waiting -= 1;
+                                busy[k] -= 1;
+                                if let Some(job) = parked[k].pop_front().filter(|_| stopping.is_none()) {
+                                    busy[k] += 1;
+                                    waiting += 1;
+                                    spawn_task(wait_scope, &ctx, &tx, job, Some(k));
+                                }
+                            }
+                        }
                         c.finish(self, slot, task, result)?;
                         inflight += c.spawn_exports(scope, &tx);
                     }
@@ -410,7 +435,9 @@ impl<'a> Engine<'a> {
                     stopping.get_or_insert(RunStatus::Stopped);
                 }
             }
+        })
         })?;
+        drop(wait_pool);
         drop(pool);
         drop(reporter);
         let Coord { mut stats, failures, mut keys_out, exporter, awaiting, .. } = c;
@@ -1052,6 +1079,47 @@ impl Ctx<'_, '_> {
             })
             .collect();
         Ok(Prepared::Job(Job { slot, task, node, item: t.item, key, inputs, srcs }))
+    }
+}
+
+/// Runs `job` on a thread of `scope`'s pool and reports its outcome on `tx`; a panic in the
+/// stage is that task's failure.
+fn spawn_task<'s>(scope: &rayon::Scope<'s>, ctx: &'s Ctx<'_, '_>, tx: &Sender<Msg>, job: Job, waited: Option<usize>) {
+    let tx = tx.clone();
+    scope.spawn(move |_| {
+        let (slot, task) = (job.slot, job.task);
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| ctx.engine.execute(job, ctx.keys)))
+            .unwrap_or_else(|panic| Err(anyhow!("the stage panicked: {}", panic_message(&panic))));
+        let _ = tx.send(Msg::Task { slot, task, waited, result });
+    });
+}
+
+/// The external resources a pipeline's operators wait on ([`crate::operator::Resource`]): one
+/// class per resource name, with its slots, and each node's class.
+struct ResourceClasses {
+    slots: Vec<usize>,
+    of_node: Vec<Option<usize>>,
+}
+
+impl ResourceClasses {
+    fn of(operators: &[Option<Box<dyn Operator>>]) -> ResourceClasses {
+        let mut names: Vec<String> = Vec::new();
+        let mut slots = Vec::new();
+        let of_node = operators
+            .iter()
+            .map(|op| {
+                let r = op.as_ref()?.resource()?;
+                Some(match names.iter().position(|n| *n == r.name) {
+                    Some(k) => k,
+                    None => {
+                        names.push(r.name);
+                        slots.push(r.slots.max(1));
+                        names.len() - 1
+                    }
+                })
+            })
+            .collect();
+        ResourceClasses { slots, of_node }
     }
 }
 

@@ -7,8 +7,11 @@ use crate::runs::{RunRecord, RunStatus};
 use crate::store::{Access, Store};
 use crate::testkit::{self, Grid};
 use dist4d_graph::Pipeline;
+use crate::operator::{Artifact, Operator, Output, Resource, TaskContext};
 use std::collections::BTreeMap;
 use std::path::Path;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
 
 const CHAIN: &str = r#"Pipeline(
     dataset: Grid(scenes: 2, frames: 4, cameras: 3),
@@ -937,4 +940,87 @@ fn across_gives_a_task_its_siblings_and_a_changed_sibling_reruns_them_all() {
     grid.bump("camera_value", ItemKey::new(&[0, 1, 2]));
     let r = run(&p, &grid, dir.path());
     assert_eq!(executed(&r), counts(&[("a", 1), ("surround", 3)]));
+}
+
+/// A stage whose tasks wait on an external resource: each holds its slot until a task of another
+/// stage has finished (or gives up after a while), and counts how many wait at once.
+struct Waiting {
+    slots: usize,
+    now: Arc<AtomicUsize>,
+    most: Arc<AtomicUsize>,
+    others_done: Arc<AtomicUsize>,
+    saw_others: Arc<AtomicUsize>,
+    inner: Box<dyn Operator>,
+}
+
+impl Operator for Waiting {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> anyhow::Result<Vec<Output>> {
+        let now = self.now.fetch_add(1, Ordering::SeqCst) + 1;
+        self.most.fetch_max(now, Ordering::SeqCst);
+        let start = self.others_done.load(Ordering::SeqCst);
+        let until = std::time::Instant::now() + std::time::Duration::from_secs(5);
+        while self.others_done.load(Ordering::SeqCst) == start && std::time::Instant::now() < until {
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        if self.others_done.load(Ordering::SeqCst) > start {
+            self.saw_others.fetch_add(1, Ordering::SeqCst);
+        }
+        self.now.fetch_sub(1, Ordering::SeqCst);
+        self.inner.run(ctx, inputs)
+    }
+    fn resource(&self) -> Option<Resource> {
+        Some(Resource { name: "gpu".into(), slots: self.slots })
+    }
+}
+
+struct Counting {
+    done: Arc<AtomicUsize>,
+    inner: Box<dyn Operator>,
+}
+
+impl Operator for Counting {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> anyhow::Result<Vec<Output>> {
+        let out = self.inner.run(ctx, inputs);
+        std::thread::sleep(std::time::Duration::from_millis(5));
+        self.done.fetch_add(1, Ordering::SeqCst);
+        out
+    }
+}
+
+#[test]
+fn tasks_waiting_on_a_resource_take_its_slots_not_the_cpu_threads() {
+    let text = r#"Pipeline(
+        dataset: Grid(scenes: 2, frames: 4, cameras: 3),
+        stages: {
+            "model": Echo(inputs: {"x": "dataset.camera_value"}),
+            "cpu": Echo(inputs: {"x": "dataset.camera_value"}, params: (salt: 1)),
+        },
+    )"#;
+    let p = testkit::load(text, &[]);
+    let grid = testkit::grid_of(&p);
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path(), Access::Shared).unwrap();
+    let (now, most, others_done, saw_others) = Default::default();
+    let mut ops = testkit::operators(&p);
+    for (n, node) in p.nodes.iter().enumerate() {
+        let Some(inner) = ops[n].take() else { continue };
+        ops[n] = Some(match node.name.as_str() {
+            "model" => Box::new(Waiting {
+                slots: 2,
+                now: Arc::clone(&now),
+                most: Arc::clone(&most),
+                others_done: Arc::clone(&others_done),
+                saw_others: Arc::clone(&saw_others),
+                inner,
+            }),
+            _ => Box::new(Counting { done: Arc::clone(&others_done), inner }),
+        });
+    }
+    let engine = Engine { pipeline: &p, dataset: &grid, operators: &ops, store: &store };
+    // One CPU thread: were the waiting tasks on it, the other stage could not run meanwhile.
+    let r = engine.run(&RunOptions { jobs: 1, ..Default::default() }).unwrap().record;
+    assert_eq!(r.status, RunStatus::Complete);
+    assert_eq!(executed(&r), counts(&[("model", 24), ("cpu", 24)]));
+    assert_eq!(most.load(Ordering::SeqCst), 2, "as many waiting at once as the resource has slots");
+    assert!(saw_others.load(Ordering::SeqCst) >= 20, "the CPU stage ran while the model's tasks waited: {saw_others:?}");
 }

@@ -90,6 +90,21 @@ pub trait Operator: Send + Sync {
     fn identity(&self) -> Result<Option<String>> {
         Ok(None)
     }
+    /// What this operator's tasks wait on besides the CPU (a model worker on a GPU), if
+    /// anything: they then run on threads of their own, at most `slots` at once per resource
+    /// name, instead of holding the CPU threads while they wait. Asked after [`Self::identity`].
+    fn resource(&self) -> Option<Resource> {
+        None
+    }
+}
+
+/// An external resource tasks wait on: its name (operators naming the same one share its
+/// slots) and how many tasks it serves at once (for a model worker: its processes times its
+/// batch).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Resource {
+    pub name: String,
+    pub slots: usize,
 }
 
 /// The identities of a pipeline's operators (see [`Operator::identity`]), by node.

@@ -92,6 +92,17 @@ impl ModelWorker {
         Ok(Some(format!("{} {} weights {}", h.name, h.version, h.weights_digest)))
     }
 
+    /// The resource its tasks wait on: the worker command, serving its processes times its batch
+    /// at once (so that the pool has a full batch to send); `None` without a worker.
+    pub fn resource(&self) -> Option<dist4d_runtime::Resource> {
+        let spec = self.spec.as_ref()?;
+        let batch = self.pool().ok().and_then(|p| p.hello().ok()).map_or(1, |h| h.max_batch.max(1) as usize);
+        Some(dist4d_runtime::Resource {
+            name: format!("worker `{}`", std::iter::once(&spec.program).chain(&spec.args).cloned().collect::<Vec<_>>().join(" ")),
+            slots: spec.max_workers as usize * batch,
+        })
+    }
+
     /// Runs `op` on the named input files (written by the caller into `exchange.dir`), returning
     /// the paths of the outputs the worker names.
     pub fn call(

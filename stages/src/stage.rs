@@ -56,6 +56,10 @@ pub trait Stage: Sized + Send + Sync + 'static {
     fn identity(&self) -> Result<Option<String>> {
         Ok(None)
     }
+    /// What its tasks wait on besides the CPU (see [`dist4d_runtime::Operator::resource`]).
+    fn resource(&self) -> Option<dist4d_runtime::Resource> {
+        None
+    }
     /// The params split into the shared part and the variants, in label order (see
     /// [`dist4d_graph::Variants::split`]); only called when [`Stage::VARIANTS`] is set.
     fn variants(_params: &Self::Params) -> Option<dist4d_graph::Variants> {
@@ -340,6 +344,9 @@ impl<S: Stage> Operator for StageOp<S> {
     }
     fn identity(&self) -> Result<Option<String>> {
         self.stage.identity()
+    }
+    fn resource(&self) -> Option<dist4d_runtime::Resource> {
+        self.stage.resource()
     }
 }
 

@@ -839,6 +839,9 @@ impl Stage for CompleteDepth {
     fn identity(&self) -> Result<Option<String>> {
         self.1.identity()
     }
+    fn resource(&self) -> Option<dist4d_runtime::Resource> {
+        self.1.resource()
+    }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         if self.1.is_set() {
             return worker_completion(&self.0, &self.1, &i);

@@ -354,6 +354,9 @@ impl Stage for EstimateSky {
     fn identity(&self) -> Result<Option<String>> {
         self.1.identity()
     }
+    fn resource(&self) -> Option<dist4d_runtime::Resource> {
+        self.1.resource()
+    }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let (w, h) = (i.image.width, i.image.height);
         let has_semantic = i.semantic.as_ref().is_some_and(|s| s.width > 0 && s.height > 0);

@@ -86,6 +86,9 @@ impl Stage for FillViewBaseline {
     fn identity(&self) -> Result<Option<String>> {
         self.1.identity()
     }
+    fn resource(&self) -> Option<dist4d_runtime::Resource> {
+        self.1.resource()
+    }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let (w, h) = (i.image.width as usize, i.image.height as usize);
         ensure!(
