@@ -159,3 +159,90 @@ fn the_sky_from_a_segmenter_worker() {
     assert!(depth[..10 * 320].iter().all(|&z| z == 100.0), "the ten sky rows at 100 m");
     assert!(depth[10 * 320..].iter().filter(|&&z| z == 100.0).count() < 320, "below them, structure");
 }
+
+/// `complete.worker` set to workers/faulty_completer.py with `args`, 2 tries and a 3 s deadline.
+fn faulty(python: &Path, args: &[&str]) -> String {
+    let script = repo().join("workers/faulty_completer.py").display().to_string();
+    let mut all = vec![script.as_str()];
+    all.extend(args);
+    worker_set("complete", python, &all).replace("]))", "], deadline_s: 3, tries: 2))")
+}
+
+/// The lines of a run's report that say an item failed.
+fn failures(report: &str) -> Vec<&str> {
+    report.lines().filter(|l| l.starts_with("failed: ")).collect()
+}
+
+/// A worker that crashes on some items, hangs on one and returns a malformed depth on another:
+/// each of those items fails with what happened (and the worker's stderr), every other item
+/// is made, and a worker crash mid-run is survived by a restart.
+#[test]
+fn a_misbehaving_worker_fails_its_items_only_and_a_crash_mid_run_is_survived() {
+    let Some(python) = peers_python() else { return };
+    let scene = Scene::new();
+    let set = faulty(
+        &python,
+        &["--crash-on", "CAM_BACK_LEFT", "--hang-on", "001/CAM_FRONT_RIGHT", "--malformed-on", "000/CAM_BACK_RIGHT"],
+    );
+    let o = scene.run("curation", "faulty", &[&set], &[]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert_eq!(executed(&t, "complete"), 8, "{t}");
+    assert_eq!(executed(&t, "encode"), 8, "the items the worker did are exported: {t}");
+    let failed = failures(&t);
+    assert_eq!(failed.len(), 4, "{t}");
+    let says = |item: &str, what: &[&str]| {
+        let line = failed.iter().find(|l| l.contains(item)).unwrap_or_else(|| panic!("{item}: {t}"));
+        let at = t.find(line).unwrap();
+        let chain = &t[at..t[at..].find("\nfailed: ").map_or(t.len(), |e| at + e)];
+        for w in what {
+            assert!(chain.contains(w), "{item}: `{w}` in\n{chain}");
+        }
+    };
+    says("000/CAM_BACK_LEFT", &["failed 2 times", "the worker died", "segmentation fault on synth-0000/000/CAM_BACK_LEFT"]);
+    says("001/CAM_BACK_LEFT", &["failed 2 times", "segmentation fault on synth-0000/001/CAM_BACK_LEFT"]);
+    says("001/CAM_FRONT_RIGHT", &["no reply within 3.0 s", "stuck on synth-0000/001/CAM_FRONT_RIGHT"]);
+    says("000/CAM_BACK_RIGHT", &["the worker's `depth` has shape [320, 180], not [180, 320]"]);
+
+    // The items made are cached: a rerun with a worker that crashes on its first request (the
+    // marker file says it did) gets past the crash on a restarted worker and does the rest.
+    let marker = scene.out("crashed-once");
+    let set = faulty(&python, &["--crash-once", marker.to_str().unwrap()]);
+    let t = scene.run_ok("curation", "faulty", &[&set], &[]);
+    assert!(marker.exists(), "the worker crashed once");
+    assert!(failures(&t).is_empty(), "{t}");
+}
+
+/// A worker that dies before its hello: every item of its stage fails with its stderr, and the
+/// stages that do not need it finish.
+#[test]
+fn a_worker_that_dies_at_start_fails_its_stage_items_and_the_rest_of_the_run_finishes() {
+    let Some(python) = peers_python() else { return };
+    let scene = Scene::new();
+    let o = scene.run("curation", "dead", &[&faulty(&python, &["--die-at-start"])], &[]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert_eq!((executed(&t, "complete"), executed(&t, "prompt"), executed(&t, "eval")), (0, 12, 0), "{t}");
+    assert_eq!(failures(&t).len(), 12, "{t}");
+    assert!(t.contains("its worker is unavailable") && t.contains("no CUDA-capable device"), "{t}");
+}
+
+/// A worker that takes batches: the engine sends the waiting items together, and the depths are
+/// the ones the same completion gives one item at a time.
+#[test]
+fn a_batching_worker_gets_items_together_and_gives_the_same_depths() {
+    let Some(python) = peers_python() else { return };
+    let scene = Scene::new();
+    let one = worker_set("complete", &python, &[&repo().join("workers/fill_completer.py").display().to_string()]);
+    scene.run_ok("curation", "one", &[&one], &[]);
+    let log = scene.out("batches");
+    let batch = faulty(&python, &["--max-batch", "4", "--batch-log", log.to_str().unwrap()]);
+    let t = scene.run_ok("curation", "batch", &[&batch], &[]);
+    assert_eq!(executed(&t, "complete"), 12, "{t}");
+    let sizes: Vec<usize> = std::fs::read_to_string(&log).unwrap().lines().map(|l| l.parse().unwrap()).collect();
+    assert!(sizes.iter().all(|&n| n <= 4) && sizes.iter().any(|&n| n > 1), "batch sizes {sizes:?}");
+    for cam in ["CAM_FRONT", "CAM_BACK_LEFT"] {
+        let read = |dir: &str| std::fs::read(scene.out(dir).join(format!("synth-0000/{cam}/001_depth.npy"))).unwrap();
+        assert_eq!(read("one"), read("batch"), "{cam}");
+    }
+}

@@ -48,7 +48,7 @@ def fill(maps, valid):
     return maps
 
 
-def handle(op, files, params, out_dir):
+def handle(op, files, params, out_dir, item):
     prompt = np.load(files["prompt"]).astype(np.float32)
     (depth,) = fill([prompt], prompt > 0)
     out = Path(out_dir) / "depth.npy"

@@ -16,7 +16,7 @@ from fill_completer import fill  # noqa: E402
 from protocol import serve  # noqa: E402
 
 
-def handle(op, files, params, out_dir):
+def handle(op, files, params, out_dir, item):
     image, depth, mask = np.load(files["image"]), np.load(files["depth"]).astype(np.float32), np.load(files["mask"])
     image, depth = fill([image, depth], (mask > 0) & (depth > 0))
     out = Path(out_dir)

@@ -1,7 +1,11 @@
 """The worker side of dist4d's protocol (docs/workers.md), standard library only: say hello,
-then answer requests with `handle(op, files, params, out_dir) -> {output name: path}` until
+then answer requests with `handle(op, files, params, out_dir, item) -> {output name: path}` until
 `shutdown`. An exception in `handle` fails that item (status `error`, its repr as the message,
 logged on stderr); the worker goes on.
+
+A worker whose hello says `max_batch` > 1 also gets `batch` messages (several requests at once);
+`serve` answers them one by one through `handle` unless it is given `handle_batch(requests) ->
+[outputs or exception]`, where a model runs them as one tensor batch.
 """
 import json
 import sys
@@ -12,7 +16,24 @@ def send(msg):
     sys.stdout.flush()
 
 
-def serve(hello, handle):
+def reply(msg, outputs):
+    if isinstance(outputs, Exception):  # the item fails, the worker goes on
+        print(f"request {msg.get('id')} ({msg.get('item', '')}): {outputs!r}", file=sys.stderr, flush=True)
+        send({"type": "reply", "id": msg["id"], "status": "error", "message": repr(outputs)})
+    else:
+        send({"type": "reply", "id": msg["id"], "status": "ok",
+              "outputs": [{"name": k, "path": str(v)} for k, v in outputs.items()]})
+
+
+def one(handle, msg):
+    try:
+        files = {f["name"]: f["path"] for f in msg["inputs"]}
+        return handle(msg["op"], files, msg.get("params", {}), msg["out_dir"], msg.get("item", ""))
+    except Exception as e:
+        return e
+
+
+def serve(hello, handle, handle_batch=None):
     send({"type": "hello", "protocol": 1, "weights_digest": "", "max_batch": 1, **hello})
     for line in sys.stdin:
         msg = json.loads(line)
@@ -21,14 +42,13 @@ def serve(hello, handle):
             return
         if kind == "ping":
             send({"type": "pong", "id": msg["id"]})
-            continue
-        if kind != "request":
-            continue
-        try:
-            files = {f["name"]: f["path"] for f in msg["inputs"]}
-            outputs = handle(msg["op"], files, msg.get("params", {}), msg["out_dir"])
-            send({"type": "reply", "id": msg["id"], "status": "ok",
-                  "outputs": [{"name": k, "path": str(v)} for k, v in outputs.items()]})
-        except Exception as e:  # the item fails, the worker goes on
-            print(f"request {msg.get('id')}: {e!r}", file=sys.stderr, flush=True)
-            send({"type": "reply", "id": msg["id"], "status": "error", "message": repr(e)})
+        elif kind == "request":
+            reply(msg, one(handle, msg))
+        elif kind == "batch":
+            requests = msg["requests"]
+            if handle_batch is not None:
+                results = handle_batch(requests)
+            else:
+                results = [one(handle, r) for r in requests]
+            for r, outputs in zip(requests, results):
+                reply(r, outputs)

@@ -26,7 +26,7 @@ def segment(image):
     return np.where(sky, SKY, ROAD).astype(np.uint8)
 
 
-def handle(op, files, params, out_dir):
+def handle(op, files, params, out_dir, item):
     out = Path(out_dir) / "semantic.npy"
     np.save(out, segment(np.load(files["image"])))
     return {"semantic": out}

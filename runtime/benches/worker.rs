@@ -15,6 +15,7 @@ fn main() {
     let mut w = Worker::start(&command, Duration::from_secs(30)).expect("the no-op worker starts");
     let startup = t.elapsed();
     let request = Request {
+        item: String::new(),
         op: "echo".into(),
         inputs: vec![FileRef { name: "x".into(), path: "/tmp/input.npy".into(), digest: Some("0".repeat(64)) }],
         params: serde_json::json!({"scale": 1.0}),

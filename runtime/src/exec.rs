@@ -17,7 +17,7 @@ use crate::digest::{Digest, DigestBuilder};
 use crate::export::{ExportJob, Exporter, FileStat};
 use crate::item::{ItemKey, ItemSpace};
 use crate::keys::{Decision, Input, Keys, Unknown};
-use crate::operator::{Artifact, Blob, Dataset, NotApplicable, Operator, Output, TaskContext};
+use crate::operator::{Artifact, Blob, Dataset, Identities, NotApplicable, Operator, Output, TaskContext};
 use crate::plan::{plan_outer, InputSrc, OuterPlan, View};
 use crate::progress::{Counters, ProgressMode, Reporter};
 use crate::record::{OutputRef, RecordInput, TaskRecord, INLINE_MAX};
@@ -267,7 +267,7 @@ impl<'a> Engine<'a> {
             _ => None,
         };
         let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
-        let identities = crate::operator::identities(self.operators, &names)?;
+        let Identities { ids: identities, unavailable } = Identities::of(self.operators, &names);
         let keys = match &exporter {
             Some(x) => Keys::new(p, self.dataset, self.store).with_identities(&identities).exporting_to(x.folder()),
             None => Keys::new(p, self.dataset, self.store).with_identities(&identities),
@@ -372,7 +372,13 @@ impl<'a> Engine<'a> {
                 // Start ready tasks: cache hits complete here, the rest go to the pools.
                 while stopping.is_none() && inflight < max_inflight {
                     let Some(Reverse((_, _, _, slot, task))) = c.ready.pop() else { break };
-                    match ctx.prepare(c.active[slot as usize].as_ref().unwrap(), slot, task) {
+                    let run = c.active[slot as usize].as_ref().unwrap();
+                    let node = run.plan.tasks[task as usize].node as usize;
+                    if let Some(why) = &unavailable[node] {
+                        c.finish(self, slot, task, Err(anyhow!("{why}")))?;
+                        continue;
+                    }
+                    match ctx.prepare(run, slot, task) {
                         Err(e) => c.finish(self, slot, task, Err(e))?,
                         Ok(Prepared::Cached(key, outs)) => {
                             c.finish(self, slot, task, Ok(Outcome::Cached(key, outs)))?

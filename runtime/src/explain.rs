@@ -90,7 +90,7 @@ pub fn explain(
         .unwrap_or_default();
 
     let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
-    let identities = crate::operator::identities(engine.operators, &names)?;
+    let identities = crate::operator::Identities::of(engine.operators, &names).all()?;
     let mut keys = Keys::new(p, engine.dataset, store).with_identities(&identities);
     if let Some(dir) = out_dir.filter(|_| !p.exports.is_empty()) {
         // A folder another pipeline owns holds nothing of this one's (a run would refuse it).

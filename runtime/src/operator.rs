@@ -4,7 +4,7 @@
 
 use crate::digest::Digest;
 use crate::item::{ItemKey, ItemSpace};
-use anyhow::{Context, Result};
+use anyhow::Result;
 use std::path::Path;
 use std::sync::Arc;
 
@@ -107,18 +107,40 @@ pub struct Resource {
     pub slots: usize,
 }
 
-/// The identities of a pipeline's operators (see [`Operator::identity`]), by node.
-pub fn identities(operators: &[Option<Box<dyn Operator>>], names: &[String]) -> Result<Vec<Option<String>>> {
-    operators
-        .iter()
-        .zip(names)
-        .map(|(op, name)| match op {
-            Some(op) => {
-                op.identity().with_context(|| format!("stage `{name}`: its identity (is its worker starting?)"))
+/// The identities of a pipeline's operators (see [`Operator::identity`]), by node, and why the
+/// operators whose identity could not be had (a worker that does not start) are unavailable:
+/// their tasks fail, each with that reason, and the rest of the run goes on.
+pub struct Identities {
+    pub ids: Vec<Option<String>>,
+    pub unavailable: Vec<Option<String>>,
+}
+
+impl Identities {
+    pub fn of(operators: &[Option<Box<dyn Operator>>], names: &[String]) -> Identities {
+        let mut ids = Vec::with_capacity(operators.len());
+        let mut unavailable = Vec::with_capacity(operators.len());
+        for (op, name) in operators.iter().zip(names) {
+            match op.as_ref().map(|op| op.identity()).transpose() {
+                Ok(id) => {
+                    ids.push(id.flatten());
+                    unavailable.push(None);
+                }
+                Err(e) => {
+                    ids.push(None);
+                    unavailable.push(Some(format!("stage `{name}`: its worker is unavailable: {e:#}")));
+                }
             }
-            None => Ok(None),
-        })
-        .collect()
+        }
+        Identities { ids, unavailable }
+    }
+
+    /// Every identity, or the first reason one is unavailable.
+    pub fn all(self) -> Result<Vec<Option<String>>> {
+        match self.unavailable.into_iter().flatten().next() {
+            Some(why) => Err(anyhow::anyhow!(why)),
+            None => Ok(self.ids),
+        }
+    }
 }
 
 /// A dataset seen through a pipeline with variants: its items, each of the innermost dimension

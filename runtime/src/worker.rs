@@ -6,7 +6,7 @@
 //! - worker -> engine, first line: `{"type": "hello", "protocol": 1, "name": "..", "version": "..",
 //!   "weights_digest": "..", "ops": ["complete_depth"], "max_batch": 4}`; its name, version and
 //!   weights digest are what task keys hold, so a new model version reruns exactly its stage.
-//! - engine -> worker: `{"type": "request", "id": 7, "op": "..", "inputs": [{"name": "image",
+//! - engine -> worker: `{"type": "request", "id": 7, "op": "..", "item": "s0/003/cam2", "inputs": [{"name": "image",
 //!   "path": "..", "digest": ".."}], "params": {..}, "out_dir": ".."}`; the worker writes its
 //!   outputs into `out_dir` and replies `{"type": "reply", "id": 7, "status": "ok", "outputs":
 //!   [{"name": "depth", "path": ".."}]}`, or `"status": "error"` / `"retryable"` with a `message`.
@@ -70,6 +70,9 @@ pub struct FileRef {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Request {
     pub op: String,
+    /// The item's label (`scene/frame/camera`), for the worker's logs and messages.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    pub item: String,
     pub inputs: Vec<FileRef>,
     pub params: serde_json::Value,
     pub out_dir: String,
@@ -382,6 +385,7 @@ mod tests {
 
     fn request(text: &str) -> Request {
         Request {
+            item: String::new(),
             op: "echo".into(),
             inputs: vec![FileRef { name: "x".into(), path: text.into(), digest: None }],
             params: serde_json::json!({}),

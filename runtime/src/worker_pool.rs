@@ -129,6 +129,11 @@ impl WorkerPool {
         Ok(h)
     }
 
+    /// The hello of a worker that started, without starting one.
+    pub fn known_hello(&self) -> Option<Hello> {
+        self.state.lock().ok()?.hello.clone()
+    }
+
     /// How many requests went in batches of more than one.
     pub fn batched(&self) -> u64 {
         self.state.lock().map(|s| s.batched).unwrap_or(0)
@@ -358,6 +363,7 @@ mod tests {
 
     fn request(what: &str) -> Request {
         Request {
+            item: String::new(),
             op: "echo".into(),
             inputs: vec![FileRef { name: "x".into(), path: what.into(), digest: None }],
             params: serde_json::json!({}),

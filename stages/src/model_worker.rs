@@ -7,6 +7,7 @@ use anyhow::{bail, ensure, Context, Result};
 use dist4d_graph::ParamChecks;
 use dist4d_runtime::worker::{FileRef, Request, WorkerCommand};
 use dist4d_runtime::worker_pool::{PoolOptions, WorkerPool};
+use dist4d_runtime::TaskContext;
 use dist4d_types::formats::{npy_u8, read_npy_u8};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -96,7 +97,7 @@ impl ModelWorker {
     /// at once (so that the pool has a full batch to send); `None` without a worker.
     pub fn resource(&self) -> Option<dist4d_runtime::Resource> {
         let spec = self.spec.as_ref()?;
-        let batch = self.pool().ok().and_then(|p| p.hello().ok()).map_or(1, |h| h.max_batch.max(1) as usize);
+        let batch = self.pool.get().and_then(|p| p.known_hello()).map_or(1, |h| h.max_batch.max(1) as usize);
         Some(dist4d_runtime::Resource {
             name: format!("worker `{}`", std::iter::once(&spec.program).chain(&spec.args).cloned().collect::<Vec<_>>().join(" ")),
             slots: spec.max_workers as usize * batch,
@@ -107,6 +108,7 @@ impl ModelWorker {
     /// the paths of the outputs the worker names.
     pub fn call(
         &self,
+        ctx: &TaskContext,
         exchange: &Exchange,
         op: &str,
         inputs: Vec<FileRef>,
@@ -114,8 +116,13 @@ impl ModelWorker {
     ) -> Result<Vec<FileRef>> {
         let pool = self.pool()?;
         ensure!(pool.hello()?.ops.iter().any(|o| o == op), "the worker does not serve `{op}`");
-        let reply =
-            pool.call(&Request { op: op.into(), inputs, params, out_dir: exchange.dir.display().to_string() })?;
+        let reply = pool.call(&Request {
+            op: op.into(),
+            item: ctx.label.to_string(),
+            inputs,
+            params,
+            out_dir: exchange.dir.display().to_string(),
+        })?;
         Ok(reply.outputs)
     }
 }

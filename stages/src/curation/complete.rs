@@ -842,9 +842,9 @@ impl Stage for CompleteDepth {
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         self.1.resource()
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
         if self.1.is_set() {
-            return worker_completion(&self.0, &self.1, &i);
+            return worker_completion(ctx, &self.0, &self.1, &i);
         }
         let c = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, i.sky.as_ref())?;
         Ok(Outputs { depth: c.depth, support: c.support })
@@ -854,7 +854,12 @@ impl Stage for CompleteDepth {
 /// The completion by the stage's worker (op `complete_depth`: inputs `image`, NPY uint8 H x W x 3,
 /// and `prompt`, NPY float32 H x W, 0 = none; output `depth`, NPY float32 H x W), checked (shape,
 /// finite, not negative), then the sky and the support map as the built-in completer makes them.
-fn worker_completion(p: &Params, worker: &crate::model_worker::ModelWorker, i: &Inputs) -> Result<Outputs> {
+fn worker_completion(
+    ctx: &TaskContext,
+    p: &Params,
+    worker: &crate::model_worker::ModelWorker,
+    i: &Inputs,
+) -> Result<Outputs> {
     use crate::model_worker::{npy_rgb8, Exchange};
     let (w, h) = (i.sparse.width, i.sparse.height);
     ensure!(
@@ -868,7 +873,7 @@ fn worker_completion(p: &Params, worker: &crate::model_worker::ModelWorker, i: &
         ex.put("image", "image.npy", &npy_rgb8(w, h, &i.image.rgb))?,
         ex.put("prompt", "prompt.npy", &dist4d_types::formats::npy_f32(&[h as usize, w as usize], &i.sparse.data))?,
     ];
-    let outputs = worker.call(&ex, "complete_depth", inputs, serde_json::json!({}))?;
+    let outputs = worker.call(ctx, &ex, "complete_depth", inputs, serde_json::json!({}))?;
     let mut data = crate::model_worker::worker_depth(&ex, &outputs, "depth", w, h)?;
     if let Some(sky) = &i.sky {
         ensure!(sky.data.len() == data.len(), "the sky mask is not {w}x{h}");

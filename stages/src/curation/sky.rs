@@ -357,7 +357,7 @@ impl Stage for EstimateSky {
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         self.1.resource()
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
         let (w, h) = (i.image.width, i.image.height);
         let has_semantic = i.semantic.as_ref().is_some_and(|s| s.width > 0 && s.height > 0);
         if self.1.is_set() && !has_semantic {
@@ -366,7 +366,7 @@ impl Stage for EstimateSky {
             use crate::model_worker::{npy_rgb8, read_npy_gray8, Exchange};
             let ex = Exchange::new()?;
             let inputs = vec![ex.put("image", "image.npy", &npy_rgb8(w, h, &i.image.rgb))?];
-            let outputs = self.1.call(&ex, "segment", inputs, serde_json::json!({}))?;
+            let outputs = self.1.call(ctx, &ex, "segment", inputs, serde_json::json!({}))?;
             let ids = read_npy_gray8(&ex.get(&outputs, "semantic")?, w, h)
                 .map_err(|e| e.context("the worker's `semantic` (uint8 Cityscapes ids)"))?;
             let data = ids.iter().map(|&id| (id == Segmentation::SKY) as u8).collect();
