@@ -93,14 +93,15 @@ impl ModelWorker {
         Ok(Some(format!("{} {} weights {}", h.name, h.version, h.weights_digest)))
     }
 
-    /// The resource its tasks wait on: the worker command, serving its processes times its batch
-    /// at once (so that the pool has a full batch to send); `None` without a worker.
+    /// The resource its tasks wait on: the worker command, with two batches per process waiting
+    /// at once (one in the worker, the next ready to send when it replies, so that the worker
+    /// never idles between batches); `None` without a worker.
     pub fn resource(&self) -> Option<dist4d_runtime::Resource> {
         let spec = self.spec.as_ref()?;
         let batch = self.pool.get().and_then(|p| p.known_hello()).map_or(1, |h| h.max_batch.max(1) as usize);
         Some(dist4d_runtime::Resource {
             name: format!("worker `{}`", std::iter::once(&spec.program).chain(&spec.args).cloned().collect::<Vec<_>>().join(" ")),
-            slots: spec.max_workers as usize * batch,
+            slots: spec.max_workers as usize * batch * 2,
         })
     }
 
