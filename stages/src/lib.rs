@@ -5,6 +5,7 @@
 pub mod camera;
 pub mod curation;
 pub mod eval;
+pub mod generation;
 pub mod hull;
 pub mod middlebury;
 pub mod model_worker;
@@ -31,7 +32,7 @@ pub struct Registry {
 impl Default for Registry {
     fn default() -> Self {
         Registry {
-            stages: [curation::stages(), eval::stages(), novel_view::stages(), output::stages()]
+            stages: [curation::stages(), eval::stages(), generation::stages(), novel_view::stages(), output::stages()]
                 .into_iter()
                 .flatten()
                 .collect(),

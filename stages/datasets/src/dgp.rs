@@ -360,6 +360,7 @@ pub fn read_dgp_points(path: &Path) -> Result<PointCloud> {
             .map(|r| [r[0] as f32, r[1] as f32, r[2] as f32, if cols > 3 { r[3] as f32 } else { 0.0 }])
             .collect(),
         labels: Vec::new(),
+        rgb: Vec::new(),
     })
 }
 

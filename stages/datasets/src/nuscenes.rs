@@ -1095,6 +1095,7 @@ pub fn read_pcd_bin(path: &Path) -> Result<PointCloud> {
     Ok(PointCloud {
         points: bytes.chunks_exact(20).map(|p| [f(&p[0..4]), f(&p[4..8]), f(&p[8..12]), f(&p[12..16])]).collect(),
         labels: Vec::new(),
+        rgb: Vec::new(),
     })
 }
 

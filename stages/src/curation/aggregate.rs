@@ -270,7 +270,7 @@ mod tests {
     fn moves_sweeps_into_the_target_frame_and_drops_dynamic_ego_and_close_points() {
         let calib = lidar();
         // World point (20, 0, 0) seen from ego at x = 0 and x = 10: LiDAR at z = 2 above ego.
-        let far_prev = PointCloud { points: vec![[20.0, 0.0, -2.0, 1.0]], labels: vec![] };
+        let far_prev = PointCloud { points: vec![[20.0, 0.0, -2.0, 1.0]], labels: vec![], rgb: Vec::new() };
         let prev = PointCloud {
             points: vec![
                 [20.0, 0.0, -2.0, 1.0], // static: kept, lands at x = 10 in the target frame
@@ -280,10 +280,12 @@ mod tests {
                 [2.5, 0.5, -1.5, 5.0],  // inside the ego box (ego x = 2.5, z = 0.5)
             ],
             labels: vec![],
+            rgb: Vec::new(),
         };
         let target = PointCloud {
             points: vec![[0.0, 5.0, -1.0, 6.0]], // the car, now at world x = 10 + ... but in the target: kept
             labels: vec![],
+            rgb: Vec::new(),
         };
         let moving = Boxes3D { timestamp_us: 0, boxes: vec![car(10.0, 5.0)] };
         let parked = Boxes3D { timestamp_us: 0, boxes: vec![car(20.0, 0.0)] };
@@ -308,6 +310,7 @@ mod tests {
         let pts = PointCloud {
             points: (0..10_000).map(|i| [5.0 + i as f32 * 1e-3, 3.0, 0.0, 0.0]).collect(),
             labels: vec![],
+            rgb: Vec::new(),
         };
         let p = pose(0.0, 123);
         let none = Boxes3D::default();

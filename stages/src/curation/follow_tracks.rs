@@ -92,7 +92,7 @@ pub fn follow_tracks(
             }
         })
         .collect();
-    PointCloud { points: moved, labels: points.labels.clone() }
+    PointCloud { points: moved, labels: points.labels.clone(), rgb: points.rgb.clone() }
 }
 
 crate::ports! {
@@ -177,7 +177,7 @@ mod tests {
         let at_cloud = Boxes3D { timestamp_us: 0, boxes: vec![car(100.0, 10.0, "a"), car(105.0, 0.0, "p")] };
         let at_image = Boxes3D { timestamp_us: 50_000, boxes: vec![car(100.5, 10.0, "a"), car(105.0, 0.0, "p")] };
         let world = [[100.9, 10.0, 1.0], [105.0, 10.0, 1.0], [100.0, 10.0, 0.05], [100.0, 30.0, 2.0]];
-        let points = PointCloud { points: world.iter().map(|&w| in_cloud(w)).collect(), labels: vec![1, 2, 3, 4] };
+        let points = PointCloud { points: world.iter().map(|&w| in_cloud(w)).collect(), labels: vec![1, 2, 3, 4], rgb: Vec::new() };
         let out = follow_tracks(&Params::default(), &points, &cloud, &pose, &at_cloud, &at_image);
         let back = |p: [f32; 4]| world_from_cloud.apply(DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64));
         assert!((back(out.points[0]) - DVec3::new(101.4, 10.0, 1.0)).length() < 1e-4, "{:?}", back(out.points[0]));

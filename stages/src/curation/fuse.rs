@@ -126,7 +126,7 @@ mod tests {
         let view = CameraView::looking_along_z(160, 120, 100.0);
         // A point at pixel (u, v), depth 10.
         let at = |u: f64, v: f64| [((u - 80.0) / 100.0 * 10.0) as f32, ((v - 60.0) / 100.0 * 10.0) as f32, 10.0, 0.0];
-        let lidar = PointCloud { points: vec![at(20.0, 100.0), at(24.0, 100.0)], labels: vec![7, 7] };
+        let lidar = PointCloud { points: vec![at(20.0, 100.0), at(24.0, 100.0)], labels: vec![7, 7], rgb: Vec::new() };
         let mvs = PointCloud {
             points: vec![
                 at(22.0, 101.0),       // same cell as LiDAR
@@ -136,6 +136,7 @@ mod tests {
                 [0.0, 0.0, -5.0, 0.0], // behind the camera
             ],
             labels: vec![],
+            rgb: Vec::new(),
         };
         let out = fuse(&Params::default(), &lidar, &mvs, &view).unwrap();
         assert_eq!(&out.points[..2], &lidar.points[..]);

@@ -236,7 +236,7 @@ pub fn static_points(params: &Params, m: &MvsInputs) -> Result<PointCloud> {
             kept.push([p.x as f32, p.y as f32, p.z as f32, 0.0]);
         }
     }
-    Ok(PointCloud { points: voxel_mean(&kept, params.voxel), labels: Vec::new() })
+    Ok(PointCloud { points: voxel_mean(&kept, params.voxel), labels: Vec::new(), rgb: Vec::new() })
 }
 
 crate::ports! {

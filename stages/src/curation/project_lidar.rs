@@ -156,6 +156,7 @@ mod tests {
                 [0.0, 0.0, -3.0, 0.0], // behind
             ],
             labels: vec![],
+            rgb: Vec::new(),
         };
         let (d, uvz) = project(&Params::default(), &pts, &lidar, &pose, &cam, &pose).unwrap();
         assert_eq!(uvz.rows, vec![[5.0, 5.0, 4.0], [5.0, 5.0, 2.0]]);

@@ -230,6 +230,7 @@ mod tests {
                 at(500.0, 50.0, 10.0), // outside the image
             ],
             labels: vec![],
+            rgb: Vec::new(),
         };
         let d = project_points(&Params::default(), &points, &view);
         let px = |u: usize, v: usize| d.data[v * 160 + u];

@@ -174,7 +174,7 @@ mod tests {
             }
         }
         points.push([0.5, 0.0, 1.0, 0.0]);
-        PointCloud { points, labels: vec![] }
+        PointCloud { points, labels: vec![], rgb: vec![] }
     }
 
     #[test]

@@ -4,6 +4,7 @@ crate::stage_modules! {
     clips::ClipIndex,
     encode_depth::EncodeDepth,
     encode_image::EncodeImage,
+    encode_ply::EncodePly,
     encode_points::EncodePoints,
     pair_index::PairIndex,
     pair_sheet::PairSheet,

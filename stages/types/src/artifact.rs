@@ -28,6 +28,9 @@ impl<'a> Reader<'a> {
         self.0 = b;
         Ok(a)
     }
+    fn remaining(&self) -> usize {
+        self.0.len()
+    }
     fn u32(&mut self) -> Result<u32> {
         Ok(u32::from_le_bytes(self.take(4)?.try_into()?))
     }
@@ -53,14 +56,17 @@ fn put_f32s(out: &mut Vec<u8>, xs: &[f32]) {
     }
 }
 
-/// Points with xyz and intensity, in the frame of the sensor that measured them, with optional
-/// per-point semantic labels (nuScenes-lidarseg indices) when the dataset has them.
+/// Points with xyz and intensity, in the frame of the sensor that measured them (or the frame
+/// the stage that made them says), with optional per-point semantic labels (nuScenes-lidarseg
+/// indices) when the dataset has them, and optional colours (points from RGB-D).
 #[derive(Clone, Debug, PartialEq, Default)]
 pub struct PointCloud {
     /// x, y, z, intensity per point.
     pub points: Vec<[f32; 4]>,
     /// One label per point, or empty.
     pub labels: Vec<u8>,
+    /// One RGB8 colour per point, or empty.
+    pub rgb: Vec<[u8; 3]>,
 }
 
 impl Artifact for PointCloud {
@@ -71,6 +77,12 @@ impl Artifact for PointCloud {
         put_f32s(&mut out, self.points.as_flattened());
         out.push(!self.labels.is_empty() as u8);
         out.extend_from_slice(&self.labels);
+        // Colours after the labels, only when there are any: clouds without them keep the bytes
+        // (and so the digests) they had before colours existed.
+        if !self.rgb.is_empty() {
+            out.push(1);
+            out.extend_from_slice(self.rgb.as_flattened());
+        }
         out
     }
     fn decode(bytes: &[u8]) -> Result<Self> {
@@ -78,7 +90,12 @@ impl Artifact for PointCloud {
         let n = r.u32()? as usize;
         let flat = r.f32s(n * 4)?;
         let labels = if r.take(1)?[0] != 0 { r.take(n)?.to_vec() } else { Vec::new() };
-        Ok(PointCloud { points: flat.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect(), labels })
+        let rgb = if r.remaining() > 0 && r.take(1)?[0] != 0 {
+            r.take(n.checked_mul(3).context("size overflow")?)?.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+        } else {
+            Vec::new()
+        };
+        Ok(PointCloud { points: flat.chunks_exact(4).map(|c| [c[0], c[1], c[2], c[3]]).collect(), labels, rgb })
     }
 }
 
@@ -548,9 +565,11 @@ mod tests {
 
     #[test]
     fn artifacts_round_trip_and_reject_bad_bytes() {
-        let pc = PointCloud { points: vec![[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]], labels: vec![] };
+        let pc = PointCloud { points: vec![[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]], labels: vec![], rgb: Vec::new() };
         assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
         let pc = PointCloud { labels: vec![24, 17], ..pc };
+        assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
+        let pc = PointCloud { rgb: vec![[1, 2, 3], [250, 251, 252]], ..pc };
         assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
         let img = Image { width: 2, height: 1, rgb: vec![1, 2, 3, 4, 5, 6] };
         assert_eq!(Image::decode(&img.encode()).unwrap(), img);

@@ -1,0 +1,350 @@
+//! `GenerateFuture`: DiST-T's task (paper Sec. 3.2): from a reference frame's multi-camera RGB-D
+//! and the control signals of the future (where each camera will be along the ego's future
+//! trajectory, the 3D boxes then), the RGB-D of every camera at t+1..t+k, one variant per step.
+//!
+//! The learned model runs as an external worker (op `generate_future`, docs/workers.md). The
+//! built-in baseline keeps the pipeline runnable without one, and is named a baseline: every
+//! reference camera's curated RGB-D is drawn into the camera at its future pose
+//! ([`crate::novel_view::splat`]), objects that moved drawn where their box is then (the same
+//! box-track motion as the DiST-S pairs, [`crate::novel_view::moving`]), the sky (the curation's
+//! 100 m) drawn as directions from the future camera (it does not come nearer as the ego drives
+//! on), and the holes filled background first ([`crate::novel_view::fill_baseline::fill`]). What
+//! the reference frame never saw (the road ahead past its field of view, the far side of an
+//! object) is a smear; docs/BENCHMARKS.md scores it per step against the synthetic world.
+//!
+//! The controls come in as the future item's `ImageInfo` (`Offset("dataset.image_info", frame,
+//! variant)`): its pose, calibration and boxes, never its pixels.
+
+use crate::model_worker::{npy_rgb8, read_npy_rgb8, worker_depth, Exchange, ModelWorker, WorkerSpec};
+use crate::novel_view::fill_baseline::fill;
+use crate::novel_view::frame_pair::{frame_record, info_view, view_of};
+use crate::novel_view::moving::{split, Moving};
+use crate::novel_view::splat::{reproject, PinholeView, RgbdView, SplatParams};
+use crate::stage::{variant_of, Stage};
+use anyhow::{ensure, Context, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate, VariantPlan, Variants};
+use dist4d_runtime::TaskContext;
+use dist4d_types::artifact::{DepthMap, Image, ImageInfo, Mask, Pose};
+use dist4d_types::formats::npy_f32;
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+use std::collections::BTreeMap;
+
+/// One generated step.
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Step {
+    /// Frames after the reference frame (of the dataset's clock: keyframes, or 12 Hz rounds).
+    pub offset: i32,
+}
+
+impl Default for Step {
+    fn default() -> Self {
+        Step { offset: 1 }
+    }
+}
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// The steps generated per reference frame, by label (labels name the exported files).
+    pub variants: BTreeMap<String, Step>,
+    /// Objects that move between the reference and the step: by default drawn where their box is
+    /// at the step's time (the boxes are controls).
+    pub moving: Moving,
+    /// Depths at least this are sky (the curation sets the sky to 100 m): drawn as directions from
+    /// the future camera, and given this depth there.
+    pub sky_depth: f32,
+    /// The hole filling's background tolerance ([`crate::novel_view::fill_baseline`]).
+    pub background_tolerance: f32,
+    pub splat: SplatParams,
+    /// DiST-T (or any future-frame generator) as an external worker in place of the baseline:
+    /// `Some((program: "python3", args: ["my_dist_t.py"]))`, op `generate_future`
+    /// (docs/workers.md). Its name, version and weights enter the task keys.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub worker: Option<WorkerSpec>,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        let step = |offset| Step { offset };
+        Params {
+            variants: [("t+1".to_string(), step(1)), ("t+2".to_string(), step(2)), ("t+3".to_string(), step(3))]
+                .into_iter()
+                .collect(),
+            moving: Moving::Follow,
+            sky_depth: 100.0,
+            background_tolerance: 0.1,
+            splat: SplatParams::default(),
+            worker: None,
+        }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        let labels: Vec<String> = self.variants.keys().cloned().collect();
+        c.path_names("variants", &labels);
+        c.check(!self.variants.is_empty(), "variants", || "names no step".into());
+        for (label, s) in &self.variants {
+            c.check((1..=1000).contains(&s.offset), "variants", || {
+                format!("`{label}`: `offset` is a step into the future, 1..=1000 frames, found {}", s.offset)
+            });
+        }
+        c.above("sky_depth", self.sky_depth as f64, 0.0, 1e6).within(
+            "background_tolerance",
+            self.background_tolerance as f64,
+            0.0,
+            10.0,
+        );
+        self.splat.check(&mut c);
+        if let Some(w) = &self.worker {
+            w.check(&mut c);
+        }
+        c.done()
+    }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// the reference frame's images, every camera (`Across("dataset.image", camera)`)
+        images: Many<Image>,
+        /// their curated dense depth (`Across("complete.depth", camera)`)
+        depths: Many<DepthMap>,
+        /// what each image is and where it was taken, with the boxes at its time
+        infos: Many<ImageInfo>,
+        /// the controls of this camera at the step: `Offset("dataset.image_info", frame, variant)`
+        /// (its pose on the future trajectory, calibration and the boxes then; not its pixels)
+        target_info: One<ImageInfo>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// the generated image of this camera at the step
+        image: One<Image>,
+        /// the generated metric depth (m), the sky at `sky_depth`
+        depth: One<DepthMap>,
+        /// 1 where the reference frame saw what is drawn (the baseline's warp landed), 0 where it
+        /// was filled in; all 1 from a worker
+        mask: One<Mask>,
+        /// the camera's ego pose at the step (its time included): where the view was generated
+        pose: One<Pose>,
+    }
+}
+
+pub struct GenerateFuture(Params, ModelWorker);
+
+impl Stage for GenerateFuture {
+    const KIND: &'static str = "GenerateFuture";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "DiST-T: future multi-camera RGB-D per step from a reference frame and controls (worker, or a warp baseline)";
+    const GRAINS: &'static [&'static str] = &["variant"];
+    const VARIANTS: bool = true;
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+
+    fn new(params: Params) -> Result<Self> {
+        let worker = ModelWorker::new(params.worker.clone());
+        Ok(GenerateFuture(params, worker))
+    }
+    fn identity(&self) -> Result<Option<String>> {
+        self.1.identity()
+    }
+    fn resource(&self) -> Option<dist4d_runtime::Resource> {
+        self.1.resource()
+    }
+    fn variants(params: &Params) -> Option<Variants> {
+        Variants::split_planned(
+            params,
+            |p| std::mem::take(&mut p.variants),
+            |s| VariantPlan { offset: s.offset, unused: Vec::new(), needs: Vec::new() },
+        )
+    }
+
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let (label, step) = variant_of(ctx, &self.0.variants)?;
+        let target = &i.target_info;
+        let view = info_view(target).context("the step's camera")?;
+        let references = references(&i)?;
+        let pose = Pose { ego_to_world: target.ego_to_world, timestamp_us: target.timestamp_us };
+        let (image, depth, mask) = if self.1.is_set() {
+            generate_by_worker(ctx, &self.1, &references, target, &view, label, step.offset)?
+        } else {
+            warp_baseline(&self.0, &references, target, &view)?
+        };
+        Ok(Outputs { image, depth, mask, pose })
+    }
+}
+
+/// One reference camera: its image, depth, info and camera.
+struct Reference<'a> {
+    image: &'a Image,
+    depth: &'a DepthMap,
+    info: &'a ImageInfo,
+    view: PinholeView,
+}
+
+/// The reference cameras that have an image, matched by position.
+fn references(i: &Inputs) -> Result<Vec<Reference<'_>>> {
+    ensure!(
+        i.images.len() == i.depths.len() && i.images.len() == i.infos.len(),
+        "`images`, `depths` and `infos` hold {}, {} and {} items: wire them with the same selector (Across(.., camera))",
+        i.images.len(),
+        i.depths.len(),
+        i.infos.len()
+    );
+    let mut out = Vec::new();
+    for (((pi, image), (pd, depth)), (pn, info)) in i.images.iter().zip(&i.depths).zip(&i.infos) {
+        ensure!(pi == pd && pd == pn, "`images`, `depths` and `infos` must be wired with the same selector");
+        if info.missing.is_some() {
+            continue;
+        }
+        let view = view_of(info, image, depth).with_context(|| format!("the reference {}", info.camera))?;
+        out.push(Reference { image, depth, info, view });
+    }
+    ensure!(!out.is_empty(), "the reference frame has no camera image");
+    Ok(out)
+}
+
+/// The built-in baseline of the module doc.
+fn warp_baseline(p: &Params, refs: &[Reference], target: &ImageInfo, view: &PinholeView) -> Result<(Image, DepthMap, Mask)> {
+    let (w, h) = (view.width, view.height);
+    let sky_from = p.sky_depth * 0.995;
+    // Surfaces: every reference camera's non-sky depth, split into the static rest and the
+    // objects that moved by the step's time.
+    let mut pieces = Vec::new();
+    let mut skies = Vec::new();
+    let target_centre = view.world_from_cam.translation;
+    for r in refs {
+        let (surface, sky): (Vec<f32>, Vec<f32>) =
+            r.depth.data.iter().map(|&z| if z >= sky_from { (0.0, z) } else { (z, 0.0) }).unzip();
+        let (parts, _) = split(&surface, &r.view, &r.info.boxes.boxes, &target.boxes.boxes, p.moving);
+        pieces.extend(parts.into_iter().map(|piece| (r.image, piece)));
+        // The sky as directions: seen from the future camera's centre.
+        let mut at_target = r.view;
+        at_target.world_from_cam.translation = target_centre;
+        skies.push((r.image, sky, at_target));
+    }
+    let rgbd: Vec<RgbdView> =
+        pieces.iter().map(|(image, piece)| RgbdView { rgb: &image.rgb, depth: &piece.depth, view: &piece.view }).collect();
+    let surfaces = reproject(&rgbd, view, &SplatParams { max_depth: f32::MAX, ..p.splat.clone() })?;
+    let sky_views: Vec<RgbdView> =
+        skies.iter().map(|(image, sky, v)| RgbdView { rgb: &image.rgb, depth: sky, view: v }).collect();
+    let sky = reproject(&sky_views, view, &SplatParams { max_depth: f32::MAX, ..p.splat.clone() })?;
+    let n = (w * h) as usize;
+    let mut rgb = surfaces.rgb;
+    let mut depth = surfaces.depth;
+    let mut valid: Vec<bool> = surfaces.valid.iter().map(|&v| v != 0).collect();
+    for px in 0..n {
+        if !valid[px] && sky.valid[px] != 0 {
+            rgb[3 * px..3 * px + 3].copy_from_slice(&sky.rgb[3 * px..3 * px + 3]);
+            depth[px] = p.sky_depth;
+            valid[px] = true;
+        }
+    }
+    let mask = Mask { width: w, height: h, data: valid.iter().map(|&v| v as u8).collect() };
+    let (rgb, depth) = fill(&rgb, &depth, &valid, w as usize, h as usize, p.background_tolerance);
+    Ok((Image { width: w, height: h, rgb }, DepthMap { width: w, height: h, data: depth }, mask))
+}
+
+/// The step generated by the stage's worker (op `generate_future`): inputs `image_<i>` (NPY uint8
+/// H x W x 3) and `depth_<i>` (NPY float32 H x W) per reference camera, in the order of
+/// `controls.json`'s `reference` list, and `controls` (JSON: the step, every reference camera's
+/// record and boxes, and the target's); outputs `image` and `depth` at the target's size,
+/// checked (shape, finite, not negative).
+fn generate_by_worker(
+    ctx: &TaskContext,
+    worker: &ModelWorker,
+    refs: &[Reference],
+    target: &ImageInfo,
+    view: &PinholeView,
+    label: &str,
+    offset: i32,
+) -> Result<(Image, DepthMap, Mask)> {
+    let (w, h) = (view.width, view.height);
+    let ex = Exchange::new()?;
+    let mut inputs = Vec::new();
+    let mut reference = Vec::new();
+    for (k, r) in refs.iter().enumerate() {
+        let (rw, rh) = (r.image.width, r.image.height);
+        inputs.push(ex.put(&format!("image_{k}"), &format!("image_{k}.npy"), &npy_rgb8(rw, rh, &r.image.rgb))?);
+        inputs.push(ex.put(
+            &format!("depth_{k}"),
+            &format!("depth_{k}.npy"),
+            &npy_f32(&[rh as usize, rw as usize], &r.depth.data),
+        )?);
+        let mut record = frame_record(r.info, &r.view);
+        record["boxes"] = serde_json::to_value(&r.info.boxes.boxes)?;
+        reference.push(record);
+    }
+    let mut target_record = frame_record(target, view);
+    target_record["boxes"] = serde_json::to_value(&target.boxes.boxes)?;
+    let controls = json!({ "step": label, "offset": offset, "reference": reference, "target": target_record });
+    inputs.push(ex.put("controls", "controls.json", &serde_json::to_vec_pretty(&controls)?)?);
+    let params = json!({ "step": label, "offset": offset, "camera": target.camera });
+    let outputs = worker.call(ctx, &ex, "generate_future", inputs, params)?;
+    let rgb = read_npy_rgb8(&ex.get(&outputs, "image")?, w, h).context("the worker's `image`")?;
+    let data = worker_depth(&ex, &outputs, "depth", w, h)?;
+    Ok((
+        Image { width: w, height: h, rgb },
+        DepthMap { width: w, height: h, data },
+        Mask { width: w, height: h, data: vec![1; (w * h) as usize] },
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::novel_view::splat::PinholeView;
+    use dist4d_types::artifact::Boxes3D;
+    use dist4d_types::geometry::Se3;
+    use glam::DVec3;
+
+    /// A camera looking along the ego's +x (nuScenes camera axes: z forward, x right, y down).
+    fn info(camera: &str, x: f64, w: u32, h: u32) -> ImageInfo {
+        let cam_to_ego = Se3::from_wxyz_t([0.5, -0.5, 0.5, -0.5], [0.0, 0.0, 1.5]);
+        ImageInfo {
+            scene: "s".into(),
+            frame: "000".into(),
+            camera: camera.into(),
+            width: w,
+            height: h,
+            intrinsics: Some([[w as f64 / 2.0, 0.0, w as f64 / 2.0], [0.0, w as f64 / 2.0, h as f64 / 2.0], [0.0, 0.0, 1.0]]),
+            camera_to_ego: cam_to_ego,
+            ego_to_world: Se3::from_yaw(0.0, DVec3::new(x, 0.0, 0.0)),
+            boxes: Boxes3D::default(),
+            ..ImageInfo::default()
+        }
+    }
+
+    #[test]
+    fn a_wall_ahead_comes_nearer_by_the_distance_driven_and_the_sky_stays_at_its_depth() {
+        let (w, h) = (64u32, 48u32);
+        let reference = info("CAM_FRONT", 0.0, w, h);
+        let target = info("CAM_FRONT", 2.0, w, h);
+        // The lower half a wall 20 m ahead, the upper half sky.
+        let image = Image { width: w, height: h, rgb: (0..w * h * 3).map(|i| (i % 251) as u8).collect() };
+        let depth = DepthMap {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|i| if i / w < h / 2 { 100.0 } else { 20.0 }).collect(),
+        };
+        let refs = vec![Reference {
+            image: &image,
+            depth: &depth,
+            info: &reference,
+            view: info_view(&reference).unwrap(),
+        }];
+        let view: PinholeView = info_view(&target).unwrap();
+        let (_, out, mask) = warp_baseline(&Params::default(), &refs, &target, &view).unwrap();
+        let at = |x: u32, y: u32| out.data[(y * w + x) as usize];
+        assert!((at(32, 40) - 18.0).abs() < 0.05, "the wall is 18 m ahead now: {}", at(32, 40));
+        assert_eq!(at(32, 5), 100.0, "the sky keeps its depth");
+        let seen = mask.data.iter().filter(|&&m| m != 0).count() as f64 / (w * h) as f64;
+        assert!(seen > 0.9, "driving towards a wall, the reference saw nearly all of the view: {seen}");
+    }
+}

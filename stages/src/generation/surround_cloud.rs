@@ -1,0 +1,266 @@
+//! `SurroundCloud`: "bullet time" (DiST-4D Sec. 4): every camera's RGB-D of one time step fused
+//! into one coloured point cloud around the ego vehicle, frozen at that instant, to look at from
+//! anywhere (PLY through `EncodePly`) and to draw novel views from. With it, a preview of the
+//! step: the cameras' images in rig order beside a top-down view of the cloud.
+//!
+//! The cloud is in the ego frame of the rig's first camera at the step (x forward, y left, z up,
+//! metres), thinned to one point per voxel (the first in camera, then row order, so the bytes do
+//! not depend on threads). The sky (the curation's 100 m) is left out: it is a convention, not a
+//! surface.
+//!
+//! It runs per variant (a step) under a camera, as the generated views do, and reads every camera
+//! of its step through `Across(.., camera)`; the cloud is made once, by the task of the rig's
+//! first camera, and the other cameras' tasks have nothing to make (`n/a` in the run's table).
+
+use crate::novel_view::frame_pair::{resize_image, VoxelHasher};
+use crate::novel_view::splat::PinholeView;
+use crate::stage::Stage;
+use anyhow::{ensure, Context, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_types::artifact::{Calibration, DepthMap, Image, Mask, PointCloud, Pose};
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
+use std::hash::BuildHasherDefault;
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// One point per voxel of this size (m); 0 = every pixel.
+    pub voxel: f32,
+    /// Depths beyond this (m) are left out (the curated sky sits at 100 m).
+    pub max_depth: f32,
+    /// The preview's top-down view covers +-this many metres around the ego.
+    pub bev_range: f32,
+    /// The preview's height (px): the camera images are scaled to fit two rows of it.
+    pub preview_height: u32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { voxel: 0.1, max_depth: 99.0, bev_range: 50.0, preview_height: 480 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        c.within("voxel", self.voxel as f64, 0.0, 100.0)
+            .above("max_depth", self.max_depth as f64, 0.0, 1e6)
+            .above("bev_range", self.bev_range as f64, 0.0, 1e4)
+            .count("preview_height", self.preview_height as u64, 64, 4096);
+        c.done()
+    }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// every camera's image at the step (`Across("future.image", camera)`)
+        images: Many<Image>,
+        /// their metric depth (m, 0 = none)
+        depths: Many<DepthMap>,
+        /// their calibrations (`Across("dataset.camera_calib", camera)`)
+        calibs: Many<Calibration>,
+        /// their ego poses at the step (`Across("future.pose", camera)`)
+        poses: Many<Pose>,
+        /// where each view shows what was seen (`Across("future.mask", camera)`): when wired, the
+        /// pixels a generator filled in (a baseline's smears) are left out of the cloud
+        masks: OptionalMany<Mask>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// the coloured surround cloud, in the first camera's ego frame at the step
+        points: One<PointCloud>,
+        /// the cameras' images beside the cloud seen from above
+        preview: One<Image>,
+    }
+}
+
+pub struct SurroundCloud(Params);
+
+impl Stage for SurroundCloud {
+    const KIND: &'static str = "SurroundCloud";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "bullet time: every camera's RGB-D of a step as one coloured point cloud, and a preview of the step";
+    const GRAINS: &'static [&'static str] = &["variant"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+
+    fn new(params: Params) -> Result<Self> {
+        Ok(SurroundCloud(params))
+    }
+
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let n = i.images.len();
+        ensure!(
+            n > 0 && i.depths.len() == n && i.calibs.len() == n && i.poses.len() == n,
+            "`images`, `depths`, `calibs` and `poses` hold {n}, {}, {} and {} items: wire them all with Across(.., camera)",
+            i.depths.len(),
+            i.calibs.len(),
+            i.poses.len()
+        );
+        // The task's own camera: the coordinate above the variant's.
+        let coords = ctx.item.coords();
+        let own = coords.len().checked_sub(2).map(|k| coords[k] as i64);
+        let first = i.images[0].0;
+        if own != Some(first) {
+            return Err(NotApplicable(format!("the step's surround cloud is made by its first camera's task (camera {first})")).into());
+        }
+        ensure!(
+            i.masks.is_empty() || i.masks.len() == n,
+            "`masks` holds {} items and `images` {n}: wire them with the same selector",
+            i.masks.len()
+        );
+        let mut cams = Vec::with_capacity(n);
+        for k in 0..n {
+            let (pos, image) = (&i.images[k].0, &i.images[k].1);
+            ensure!(
+                i.depths[k].0 == *pos
+                    && i.calibs[k].0 == *pos
+                    && i.poses[k].0 == *pos
+                    && i.masks.get(k).is_none_or(|m| m.0 == *pos),
+                "the inputs must be wired with the same selector (Across(.., camera))"
+            );
+            cams.push((image, &i.depths[k].1, &i.calibs[k].1, &i.poses[k].1, i.masks.get(k).map(|m| &m.1)));
+        }
+        let ego_from_world = cams[0].3.ego_to_world.inverse();
+        let points = fuse(&self.0, &cams, |p| ego_from_world.apply(p))?;
+        let images: Vec<&Image> = cams.iter().map(|c| c.0).collect();
+        let preview = preview(&self.0, &images, &points)?;
+        Ok(Outputs { points, preview })
+    }
+}
+
+type Camera<'a> = (&'a Image, &'a DepthMap, &'a Calibration, &'a Pose, Option<&'a Mask>);
+
+/// Every camera's pixels with a depth in (0, max_depth) (and inside its mask, if any),
+/// back-projected, moved by `to_frame` from the world, thinned to voxels.
+fn fuse(p: &Params, cams: &[Camera], to_frame: impl Fn(DVec3) -> DVec3) -> Result<PointCloud> {
+    let mut seen: HashSet<(i64, i64, i64), BuildHasherDefault<VoxelHasher>> = HashSet::default();
+    let mut cloud = PointCloud::default();
+    for (k, (image, depth, calib, pose, mask)) in cams.iter().enumerate() {
+        ensure!(
+            (image.width, image.height) == (depth.width, depth.height)
+                && mask.is_none_or(|m| (m.width, m.height) == (depth.width, depth.height)),
+            "camera {k}: image {}x{}, depth {}x{} and mask differ in size",
+            image.width,
+            image.height,
+            depth.width,
+            depth.height
+        );
+        let view = PinholeView::new(calib, pose).with_context(|| format!("camera {k}"))?;
+        let view = view.resized(image.width, image.height);
+        let kk = view.k;
+        let (w, h) = (image.width as usize, image.height as usize);
+        for y in 0..h {
+            for x in 0..w {
+                let z = depth.data[y * w + x];
+                if !(z > 0.0 && z < p.max_depth) || mask.is_some_and(|m| m.data[y * w + x] == 0) {
+                    continue;
+                }
+                let z = z as f64;
+                let yc = (y as f64 + 0.5 - kk[1][2]) / kk[1][1];
+                let xc = (x as f64 + 0.5 - kk[0][2] - kk[0][1] * yc) / kk[0][0];
+                let at = to_frame(view.world_from_cam.apply(DVec3::new(xc * z, yc * z, z)));
+                if p.voxel > 0.0 {
+                    let v = p.voxel as f64;
+                    let key = ((at.x / v).floor() as i64, (at.y / v).floor() as i64, (at.z / v).floor() as i64);
+                    if !seen.insert(key) {
+                        continue;
+                    }
+                }
+                cloud.points.push([at.x as f32, at.y as f32, at.z as f32, 0.0]);
+                let c = 3 * (y * w + x);
+                cloud.rgb.push([image.rgb[c], image.rgb[c + 1], image.rgb[c + 2]]);
+            }
+        }
+    }
+    Ok(cloud)
+}
+
+/// The cameras' images in two rows, rig order, beside a top-down view of the cloud (ego at the
+/// centre facing up, higher points drawn over lower ones, a white mark at the ego).
+fn preview(p: &Params, images: &[&Image], cloud: &PointCloud) -> Result<Image> {
+    let side = p.preview_height;
+    let tile_h = side / 2;
+    let cols = images.len().div_ceil(2).max(1) as u32;
+    let aspect = images[0].width as f64 / images[0].height.max(1) as f64;
+    let tile_w = ((tile_h as f64 * aspect).round() as u32).max(1);
+    let width = cols * tile_w + side;
+    let mut out = Image { width, height: side, rgb: vec![0; (width * side * 3) as usize] };
+    let mut put = |x: u32, y: u32, c: [u8; 3]| {
+        if x < out.width && y < out.height {
+            let i = 3 * (y * out.width + x) as usize;
+            out.rgb[i..i + 3].copy_from_slice(&c);
+        }
+    };
+    for (k, image) in images.iter().enumerate() {
+        let tile = resize_image(image, tile_w, tile_h)?;
+        let (x0, y0) = ((k as u32 / 2) * tile_w, (k as u32 % 2) * tile_h);
+        for y in 0..tile_h {
+            for x in 0..tile_w {
+                let i = 3 * (y * tile_w + x) as usize;
+                put(x0 + x, y0 + y, [tile.rgb[i], tile.rgb[i + 1], tile.rgb[i + 2]]);
+            }
+        }
+    }
+    // Top-down: forward (x) up, left (y) to the left; lowest points first.
+    let x0 = cols * tile_w;
+    let scale = side as f32 / (2.0 * p.bev_range);
+    let mut order: Vec<usize> = (0..cloud.points.len()).collect();
+    order.sort_by(|&a, &b| cloud.points[a][2].total_cmp(&cloud.points[b][2]));
+    for k in order {
+        let [x, y, _, _] = cloud.points[k];
+        let (u, v) = (side as f32 / 2.0 - y * scale, side as f32 / 2.0 - x * scale);
+        if u >= 0.0 && v >= 0.0 && u < side as f32 && v < side as f32 {
+            put(x0 + u as u32, v as u32, cloud.rgb.get(k).copied().unwrap_or([255, 255, 255]));
+        }
+    }
+    let c = side / 2;
+    for d in 0..=4u32 {
+        for e in 0..=d / 2 {
+            put(x0 + c - e, c - 2 + d, [255, 255, 255]);
+            put(x0 + c + e, c - 2 + d, [255, 255, 255]);
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dist4d_types::geometry::Se3;
+
+    #[test]
+    fn a_forward_camera_puts_a_wall_ahead_of_the_ego_in_its_own_colours_thinned_to_voxels() {
+        let (w, h) = (40u32, 30u32);
+        let calib = Calibration {
+            sensor_to_ego: Se3::from_wxyz_t([0.5, -0.5, 0.5, -0.5], [1.0, 0.0, 1.5]),
+            intrinsics: Some([[20.0, 0.0, 20.0], [0.0, 20.0, 15.0], [0.0, 0.0, 1.0]]),
+            width: w,
+            height: h,
+        };
+        let pose = Pose { ego_to_world: Se3::from_yaw(0.3, DVec3::new(100.0, 50.0, 0.0)), timestamp_us: 0 };
+        let image = Image { width: w, height: h, rgb: vec![200, 10, 10].repeat((w * h) as usize) };
+        let mut depth = DepthMap { width: w, height: h, data: vec![10.0; (w * h) as usize] };
+        depth.data[0] = 100.0; // sky: left out
+        let mut mask = Mask { width: w, height: h, data: vec![1; (w * h) as usize] };
+        mask.data[1] = 0; // filled in: left out
+        let cams = vec![(&image, &depth, &calib, &pose, Some(&mask))];
+        let inverse = pose.ego_to_world.inverse();
+        let all = fuse(&Params { voxel: 0.0, ..Params::default() }, &cams, |p| inverse.apply(p)).unwrap();
+        assert_eq!(all.points.len(), (w * h - 2) as usize);
+        for q in &all.points {
+            assert!((q[0] - 11.0).abs() < 1e-3, "10 m ahead of a camera 1 m ahead of the ego: {q:?}");
+        }
+        assert!(all.rgb.iter().all(|c| *c == [200, 10, 10]));
+        let thin = fuse(&Params { voxel: 2.0, ..Params::default() }, &cams, |p| inverse.apply(p)).unwrap();
+        // 0.5 m between pixels at 10 m: 16 pixels per 2 m voxel, give or take the edges.
+        assert!(thin.points.len() < all.points.len() / 10 && thin.points.len() == thin.rgb.len(), "{}", thin.points.len());
+    }
+}

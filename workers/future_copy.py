@@ -1,0 +1,44 @@
+"""A reference future-frame generator worker (numpy only), op `generate_future`: the persistence
+baseline of video prediction, each camera's future is its reference image and depth as they were
+(nothing moves). A stand-in for DiST-T (which takes the same reference RGB-D and controls), used by
+the tests and as a template: see docs/workers.md.
+
+    python3 workers/future_copy.py
+
+Inputs: `image_<i>` (uint8 H x W x 3) and `depth_<i>` (float32 H x W) per reference camera, and
+`controls` (JSON): `step`, `offset`, `reference` (per camera i: its record, with `camera`,
+`intrinsics`, `camera_to_ego`, `ego_to_world`, `timestamp_us`, `size` and `boxes`) and `target`
+(the same for the camera to generate, at the step's time and pose). Outputs `image` and `depth` at
+the target's size.
+"""
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from protocol import serve  # noqa: E402
+
+
+def handle(op, files, params, out_dir, item):
+    controls = json.loads(Path(files["controls"]).read_text())
+    target = controls["target"]
+    cameras = [r["camera"] for r in controls["reference"]]
+    if target["camera"] not in cameras:
+        raise ValueError(f"the reference frame has no {target['camera']} image to persist")
+    i = cameras.index(target["camera"])
+    image, depth = np.load(files[f"image_{i}"]), np.load(files[f"depth_{i}"]).astype(np.float32)
+    h, w = target["size"]
+    if image.shape[:2] != (h, w):
+        raise ValueError(f"the reference {target['camera']} is {image.shape[:2]}, the target {(h, w)}")
+    out = Path(out_dir)
+    np.save(out / "future_image.npy", image.astype(np.uint8))
+    np.save(out / "future_depth.npy", depth)
+    return {"image": out / "future_image.npy", "depth": out / "future_depth.npy"}
+
+
+if __name__ == "__main__":
+    serve({"name": "future-copy", "version": "1", "weights_digest": "none", "ops": ["generate_future"],
+           "max_batch": 6}, handle)
