@@ -5,7 +5,8 @@ logged on stderr); the worker goes on.
 
 A worker whose hello says `max_batch` > 1 also gets `batch` messages (several requests at once);
 `serve` answers them one by one through `handle` unless it is given `handle_batch(requests) ->
-[outputs or exception]`, where a model runs them as one tensor batch.
+[outputs or exception]`, where a model runs them as one tensor batch (with `handle=None`, single
+requests go to `handle_batch` too).
 """
 import json
 import sys
@@ -33,6 +34,13 @@ def one(handle, msg):
         return e
 
 
+def batch(handle_batch, requests):
+    try:
+        return handle_batch(requests)
+    except Exception as e:  # the whole batch fails, the worker goes on
+        return [e] * len(requests)
+
+
 def serve(hello, handle, handle_batch=None):
     send({"type": "hello", "protocol": 1, "weights_digest": "", "max_batch": 1, **hello})
     for line in sys.stdin:
@@ -43,11 +51,11 @@ def serve(hello, handle, handle_batch=None):
         if kind == "ping":
             send({"type": "pong", "id": msg["id"]})
         elif kind == "request":
-            reply(msg, one(handle, msg))
+            reply(msg, one(handle, msg) if handle is not None else batch(handle_batch, [msg])[0])
         elif kind == "batch":
             requests = msg["requests"]
             if handle_batch is not None:
-                results = handle_batch(requests)
+                results = batch(handle_batch, requests)
             else:
                 results = [one(handle, r) for r in requests]
             for r, outputs in zip(requests, results):
