@@ -55,6 +55,12 @@ fn the_temporal_flow_makes_each_step_its_bullet_time_cloud_and_scores_with_the_b
         assert!(out.join(format!("bullet_time/{step}_CAM_FRONT.ply")).is_file());
     }
     assert!(!out.join("bullet_time/003_t+1_CAM_FRONT.ply").exists(), "no frame after the last");
+    // The layout control: the synthetic map's road (grey 80) and the ego (white) at the centre.
+    let layout = image::open(out.join("CAM_FRONT/000_t+1_layout.png")).unwrap().to_rgb8();
+    assert_eq!(layout.dimensions(), (256, 256));
+    assert_eq!(layout.get_pixel(128, 128).0, [255, 255, 255]);
+    let road = layout.pixels().filter(|p| p.0 == [80, 80, 80]).count();
+    assert!(road > 2000, "the road from the dataset's map: {road} px");
 
     // The PLY as Open3D reads it: coloured points around the ego (x forward, y left, z up).
     if let Some(python) = peers_python() {
@@ -86,7 +92,7 @@ print(len(x), int(p.has_colors()), float(np.median(np.abs(x[:, 0]))), float(np.m
     // workers/future_copy.py): its views are the reference frame's, and a rerun asks it nothing.
     let Some(python) = peers_python() else { return };
     let worker = format!(
-        "future.worker=Some((program: {:?}, args: [{:?}]))",
+        "future.worker=Some((program: {:?}, args: [{:?}, \"--require-layout\"]))",
         python.display().to_string(),
         repo().join("workers/future_copy.py").display().to_string()
     );

@@ -3,13 +3,14 @@ baseline of video prediction, each camera's future is its reference image and de
 (nothing moves). A stand-in for DiST-T (which takes the same reference RGB-D and controls), used by
 the tests and as a template: see docs/workers.md.
 
-    python3 workers/future_copy.py
+    python3 workers/future_copy.py [--require-layout]
 
 Inputs: `image_<i>` (uint8 H x W x 3) and `depth_<i>` (float32 H x W) per reference camera, and
 `controls` (JSON): `step`, `offset`, `reference` (per camera i: its record, with `camera`,
 `intrinsics`, `camera_to_ego`, `ego_to_world`, `timestamp_us`, `size` and `boxes`) and `target`
 (the same for the camera to generate, at the step's time and pose). Outputs `image` and `depth` at
-the target's size.
+the target's size. With `--require-layout` it fails an item whose request has no `layout` (NPY uint8
+S x S x 3: the bird's-eye view of road and boxes at the step), so tests see that it arrives.
 """
 import json
 import os
@@ -23,6 +24,12 @@ from protocol import serve  # noqa: E402
 
 
 def handle(op, files, params, out_dir, item):
+    if "--require-layout" in sys.argv:
+        if "layout" not in files:
+            raise ValueError("the request has no layout")
+        layout = np.load(files["layout"])
+        if layout.dtype != np.uint8 or layout.ndim != 3 or layout.shape[2] != 3 or not (layout == 80).any():
+            raise ValueError(f"the layout is not an RGB8 image with road: {layout.dtype} {layout.shape}")
     controls = json.loads(Path(files["controls"]).read_text())
     target = controls["target"]
     cameras = [r["camera"] for r in controls["reference"]]

@@ -86,6 +86,17 @@ struct SceneRow {
     token: String,
     name: String,
     first_sample_token: String,
+    #[serde(default)]
+    log_token: String,
+}
+
+/// A row of map.json: the map mask (semantic prior, 0.1 m per pixel) of the logs it lists.
+#[derive(Deserialize)]
+struct MapRow {
+    token: String,
+    filename: String,
+    #[serde(default)]
+    log_tokens: Vec<String>,
 }
 
 #[derive(Deserialize)]
@@ -232,6 +243,8 @@ pub struct NuScenes {
     tree: Tree<Keyframes, Sweep>,
     /// The `scene` token of each scene of the tree.
     scene_tokens: Vec<String>,
+    /// Each scene's map mask (map.json's file for the scene's log), if it has one.
+    maps: Vec<Option<PathBuf>>,
     annotations: Vec<Annotation>,
     annotation_by_token: HashMap<String, usize>,
     sample_time: HashMap<String, i64>,
@@ -247,7 +260,7 @@ trait TableRow: for<'de> Deserialize<'de> {
 macro_rules! rows_without_index {
     ($($t:ty),*) => { $(impl TableRow for $t {})* };
 }
-rows_without_index!(SceneRow, SampleRow, SensorRow, AnnotationRow, InstanceRow, NamedRow);
+rows_without_index!(SceneRow, SampleRow, SensorRow, AnnotationRow, InstanceRow, NamedRow, MapRow);
 
 macro_rules! rows_with_index {
     ($($t:ty),*) => { $(impl TableRow for $t { fn set_row(&mut self, row: usize) { self.row = row; } })* };
@@ -423,9 +436,24 @@ impl NuScenes {
         let instances: Vec<InstanceRow> = read_optional(&tables, "instance", w, no_boxes)?;
         let categories: Vec<NamedRow> = read_optional(&tables, "category", w, "boxes have no category")?;
         let attributes: Vec<NamedRow> = read_optional(&tables, "attribute", w, "boxes have no attributes")?;
-        for t in ["log", "map", "visibility"] {
+        for t in ["log", "visibility"] {
             if !tables.join(format!("{t}.json")).exists() {
                 w.push(format!("{}/{t}.json is missing (not needed by dist4d)", tables.display()));
+            }
+        }
+        let map_rows: Vec<MapRow> = read_optional(&tables, "map", w, "the `map` port is empty")?;
+        let map_file = tables.join("map.json");
+        let mut map_of_log: HashMap<&str, PathBuf> = HashMap::new();
+        for (row, m) in map_rows.iter().enumerate() {
+            // A bad filename only costs the map (a control for generators), never the dataset.
+            match join_inside(&root, &Place::row(&map_file, row, &m.token), "filename", &m.filename) {
+                Ok(path) if path.is_file() => {
+                    for log in &m.log_tokens {
+                        map_of_log.insert(log.as_str(), path.clone());
+                    }
+                }
+                Ok(path) => w.push(format!("{}: row {row}: the map {} does not exist", map_file.display(), path.display())),
+                Err(e) => w.push(e),
             }
         }
         // lidarseg is an add-on: absent means no labels, without a warning.
@@ -610,6 +638,7 @@ impl NuScenes {
         let mut keyframes_only: Vec<(&str, usize)> = Vec::new();
         let scenes_sampled: std::collections::HashSet<&str> = samples.iter().map(|s| s.scene_token.as_str()).collect();
         let mut scene_tokens = Vec::new();
+        let mut maps = Vec::new();
         for scene in &scenes {
             let mut keys: Vec<&SampleRow> = Vec::new();
             let mut token = scene.first_sample_token.as_str();
@@ -762,6 +791,7 @@ impl NuScenes {
             };
             out.push(Scene { name: scene.name.clone(), frames, extra: samples_of_scene });
             scene_tokens.push(scene.token.clone());
+            maps.push(map_of_log.get(scene.log_token.as_str()).cloned());
         }
         if let Some((first, rounds)) = keyframes_only.first() {
             warnings.push(format!(
@@ -783,7 +813,7 @@ impl NuScenes {
         let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
         let tree = Tree { root, cameras, scenes: out, sidecars };
-        Ok(NuScenes { config, tree, scene_tokens, annotations, annotation_by_token, sample_time, warnings })
+        Ok(NuScenes { config, tree, scene_tokens, maps, annotations, annotation_by_token, sample_time, warnings })
     }
 
     /// The devkit's `box_velocity`: centre difference of the neighbouring annotations, NaN when
@@ -958,6 +988,10 @@ impl SurroundReader for NuScenes {
 
     fn tree(&self) -> &Tree<Keyframes, Sweep> {
         &self.tree
+    }
+
+    fn map_file(&self, scene: usize) -> Option<&Path> {
+        self.maps.get(scene)?.as_deref()
     }
 
     /// The points' digest, and the labels' when the frame has them.

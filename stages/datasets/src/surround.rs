@@ -20,7 +20,7 @@ pub(crate) const DIMS: [DimSpec; 3] = [
     DimSpec { name: "frame", ordered: true },
     DimSpec { name: "camera", ordered: false },
 ];
-pub(crate) const PORTS: [SourcePortSpec; 12] = [
+pub(crate) const PORTS: [SourcePortSpec; 13] = [
     SourcePortSpec {
         name: "lidar",
         ty: "PointCloud",
@@ -66,6 +66,12 @@ pub(crate) const PORTS: [SourcePortSpec; 12] = [
         ty: "File",
         grain: "scene",
         doc: "a synthetic dataset's world, to render any view exactly: JSON {\"scene\": label, \"synth\": groundtruth/synth.json}; empty for other datasets",
+    },
+    SourcePortSpec {
+        name: "map",
+        ty: "File",
+        grain: "scene",
+        doc: "the scene's map mask as the dataset has it (nuScenes `map.json`: an 8-bit PNG, drivable > 0, 0.1 m per pixel, the devkit's MapMask frame); empty when it has none",
     },
     SourcePortSpec {
         name: "semantic",
@@ -168,6 +174,10 @@ pub trait SurroundReader: Send + Sync {
     fn lidar_digest(&self, lidar: &Reading, frame: &Self::Frame, files: &dyn FileDigests) -> Result<Option<Digest>>;
     /// The `lidar` port: the point cloud of a frame whose LiDAR reading is `lidar`.
     fn read_lidar(&self, lidar: &Reading, frame: &Self::Frame) -> Result<PointCloud>;
+    /// The map mask of scene `scene` (index in the tree), when the format has one.
+    fn map_file(&self, _scene: usize) -> Option<&Path> {
+        None
+    }
     /// The `boxes` port of a frame (`item` is a frame of the tree or fails as one).
     fn boxes(&self, item: &ItemKey) -> Result<Boxes3D>;
     /// The `camera_boxes` port: the boxes at the camera image's own time. By default the frame's
@@ -221,6 +231,10 @@ impl<R: SurroundReader> Dataset for Surround<R> {
                 let r = tree.reading("image", item)?;
                 sidecar_digest(&tree.sidecars, port, tree.camera(item), &r.file, files)?
             }
+            "map" => match self.0.map_file(item.idx[0] as usize) {
+                Some(path) => files.file_digest(path).with_context(|| format!("reading {}", path.display()))?,
+                None => Some(Digest::of(&[])),
+            },
             "synth_world" => {
                 let mut b = DigestBuilder::new(port);
                 b.str(&self.label(&item.prefix(1)));
@@ -243,6 +257,12 @@ impl<R: SurroundReader> Dataset for Surround<R> {
         match port {
             "boxes" => return Ok(self.0.boxes(item)?.encode()),
             "camera_boxes" => return Ok(self.0.camera_boxes(item)?.encode()),
+            "map" => {
+                return match self.0.map_file(item.idx[0] as usize) {
+                    Some(path) => std::fs::read(path).with_context(|| format!("reading the map {}", path.display())),
+                    None => Ok(Vec::new()),
+                }
+            }
             "synth_world" => {
                 let path = tree.root.join(SYNTH_WORLD);
                 if !path.is_file() {

@@ -3,6 +3,7 @@
 //! the "bullet time" surround point cloud of each generated time step.
 
 crate::stage_modules! {
+    bev_layout::BevLayout,
     future::GenerateFuture,
     surround_cloud::SurroundCloud,
 }
