@@ -12,7 +12,8 @@ use dist4d_types::formats::{npy_u8, read_npy_u8};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::OnceLock;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
 
 /// A worker as a pipeline names it: `worker: Some((program: "python3", args: ["completer.py"]))`.
@@ -58,11 +59,47 @@ impl WorkerSpec {
 pub struct ModelWorker {
     spec: Option<WorkerSpec>,
     pool: OnceLock<WorkerPool>,
+    shared: Mutex<HashMap<String, Weak<SharedInput>>>,
+}
+
+/// An input file that several requests name at once (every camera of a step reads the same
+/// reference frame): written once, under its digest, and removed when the last request that
+/// holds it is done.
+pub struct SharedInput {
+    path: PathBuf,
+}
+
+impl Drop for SharedInput {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
 }
 
 impl ModelWorker {
     pub fn new(spec: Option<WorkerSpec>) -> ModelWorker {
-        ModelWorker { spec, pool: OnceLock::new() }
+        ModelWorker { spec, pool: OnceLock::new(), shared: Mutex::new(HashMap::new()) }
+    }
+
+    /// `bytes` as a file the worker reads as input `name`, shared with the requests in flight
+    /// that put the same bytes (one write instead of one per request); keep the returned handle
+    /// until the reply.
+    pub fn put_shared(&self, name: &str, ext: &str, bytes: &[u8]) -> Result<(FileRef, Arc<SharedInput>)> {
+        let digest = blake3::hash(bytes).to_hex().to_string();
+        let mut shared = self.shared.lock().map_err(|_| anyhow::anyhow!("shared inputs poisoned"))?;
+        shared.retain(|_, w| w.strong_count() > 0);
+        let file = match shared.get(&digest).and_then(Weak::upgrade) {
+            Some(f) => f,
+            None => {
+                let dir = std::env::temp_dir().join(format!("dist4d-worker-{}-shared", std::process::id()));
+                std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+                let path = dir.join(format!("{digest}.{ext}"));
+                std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+                let f = Arc::new(SharedInput { path });
+                shared.insert(digest.clone(), Arc::downgrade(&f));
+                f
+            }
+        };
+        Ok((FileRef { name: name.into(), path: file.path.display().to_string(), digest: Some(digest) }, file))
     }
 
     pub fn is_set(&self) -> bool {

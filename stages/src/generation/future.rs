@@ -275,14 +275,16 @@ fn generate_by_worker(
     let ex = Exchange::new()?;
     let mut inputs = Vec::new();
     let mut reference = Vec::new();
+    // The reference frame is the same for every camera and step of it: written once for the
+    // requests in flight, named by digest (a worker may cache what it decoded by path too).
+    let mut held = Vec::new();
     for (k, r) in refs.iter().enumerate() {
         let (rw, rh) = (r.image.width, r.image.height);
-        inputs.push(ex.put(&format!("image_{k}"), &format!("image_{k}.npy"), &npy_rgb8(rw, rh, &r.image.rgb))?);
-        inputs.push(ex.put(
-            &format!("depth_{k}"),
-            &format!("depth_{k}.npy"),
-            &npy_f32(&[rh as usize, rw as usize], &r.depth.data),
-        )?);
+        let (image, a) = worker.put_shared(&format!("image_{k}"), "npy", &npy_rgb8(rw, rh, &r.image.rgb))?;
+        let (depth, b) =
+            worker.put_shared(&format!("depth_{k}"), "npy", &npy_f32(&[rh as usize, rw as usize], &r.depth.data))?;
+        inputs.extend([image, depth]);
+        held.extend([a, b]);
         let mut record = frame_record(r.info, &r.view);
         record["boxes"] = serde_json::to_value(&r.info.boxes.boxes)?;
         reference.push(record);
@@ -296,6 +298,7 @@ fn generate_by_worker(
     }
     let params = json!({ "step": label, "offset": offset, "camera": target.camera });
     let outputs = worker.call(ctx, &ex, "generate_future", inputs, params)?;
+    drop(held);
     let rgb = read_npy_rgb8(&ex.get(&outputs, "image")?, w, h).context("the worker's `image`")?;
     let data = worker_depth(&ex, &outputs, "depth", w, h)?;
     Ok((
