@@ -10,8 +10,9 @@
 //!   "path": "..", "digest": ".."}], "params": {..}, "out_dir": ".."}`; the worker writes its
 //!   outputs into `out_dir` and replies `{"type": "reply", "id": 7, "status": "ok", "outputs":
 //!   [{"name": "depth", "path": ".."}]}`, or `"status": "error"` / `"retryable"` with a `message`.
-//! - `{"type": "ping", "id": 8}` -> `{"type": "pong", "id": 8}`; `{"type": "cancel", "id": 7}`;
-//!   `{"type": "shutdown"}`, after which the worker exits.
+//! - `{"type": "ping", "id": 8}` -> `{"type": "pong", "id": 8}`; `{"type": "cancel", "id": 7}`
+//!   when request 7 missed its deadline (a worker that replies to it within a grace is kept, one
+//!   that does not is killed); `{"type": "shutdown"}`, after which the worker exits.
 //!
 //! This module is one worker process: starting it (in its own process group, so a deadline kills
 //! the model and everything it spawned), the handshake, calls with deadlines, and the tail of its
@@ -32,6 +33,10 @@ pub const PROTOCOL: u32 = 1;
 
 /// Lines of a worker's stderr kept for error messages.
 const STDERR_TAIL: usize = 20;
+
+/// After a missed deadline, how long a worker has to answer the `cancel` of its pending requests
+/// (at most the deadline itself) before it is killed.
+const CANCEL_GRACE: Duration = Duration::from_secs(5);
 
 /// How to start a worker.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -101,8 +106,12 @@ pub struct Reply {
 /// Why a call did not give a reply.
 #[derive(Debug)]
 pub enum CallError {
-    /// No reply within the deadline: the worker's process group was killed.
+    /// No reply within the deadline, nor to the `cancel` after it: the worker's process group was
+    /// killed.
     Timeout(Duration),
+    /// No reply within the deadline; the worker answered the `cancel` after it, so it is alive
+    /// and keeps its loaded model.
+    Cancelled(Duration),
     /// The worker exited (or closed stdout) before replying.
     Died(String),
     /// It wrote something that is not the protocol.
@@ -113,6 +122,9 @@ impl std::fmt::Display for CallError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             CallError::Timeout(d) => write!(f, "no reply within {:.1} s: the worker was killed", d.as_secs_f64()),
+            CallError::Cancelled(d) => {
+                write!(f, "no reply within {:.1} s: cancelled (the worker stopped the request)", d.as_secs_f64())
+            }
             CallError::Died(why) => write!(f, "the worker died: {why}"),
             CallError::Malformed(why) => write!(f, "the worker broke the protocol: {why}"),
         }
@@ -273,15 +285,28 @@ impl Worker {
             1 => self.send(&msgs[0])?,
             _ => self.send(&serde_json::json!({"type": "batch", "requests": msgs}))?,
         }
-        let until = Instant::now() + deadline;
+        let mut until = Instant::now() + deadline;
         let mut replies: Vec<Option<Reply>> = vec![None; requests.len()];
         let mut left = requests.len();
+        let mut cancelled = false;
         while left > 0 {
             let v = match self.next_line(until) {
                 Ok(v) => v,
-                Err(e @ CallError::Timeout(_)) => {
+                Err(CallError::Timeout(_)) if !cancelled => {
+                    // Ask the worker to stop what is pending: one that answers keeps its process
+                    // (a GPU model takes minutes to load); one that does not is killed.
+                    for (i, r) in replies.iter().enumerate() {
+                        if r.is_none() {
+                            self.send(&serde_json::json!({"type": "cancel", "id": first + i as u64}))?;
+                        }
+                    }
+                    cancelled = true;
+                    until = Instant::now() + CANCEL_GRACE.min(deadline);
+                    continue;
+                }
+                Err(CallError::Timeout(_)) => {
                     self.kill();
-                    return Err(e);
+                    return Err(CallError::Timeout(deadline));
                 }
                 Err(e) => return Err(e),
             };
@@ -304,7 +329,12 @@ impl Worker {
                 _ => return Err(CallError::Malformed(format!("expected a reply, found {v}"))),
             }
         }
-        Ok(replies.into_iter().map(|r| r.expect("every reply arrived")).collect())
+        let replies: Vec<Reply> = replies.into_iter().map(|r| r.expect("every reply arrived")).collect();
+        // Replies that made it within the grace are as good as any; a cancelled one is not.
+        if cancelled && replies.iter().any(|r| r.status != Status::Ok) {
+            return Err(CallError::Cancelled(deadline));
+        }
+        Ok(replies)
     }
 
     /// Whether the worker answers a ping within `timeout`.
@@ -432,6 +462,16 @@ mod tests {
             .call(&request("bad item"), Duration::from_secs(5))
             .unwrap();
         assert_eq!((reply.status, reply.message.as_str()), (Status::Error, "cannot do `bad item`"));
+    }
+
+    #[test]
+    fn a_worker_that_answers_the_cancel_after_a_missed_deadline_is_kept_alive() {
+        let mut w = Worker::start(&reference("protocol_test_worker.py", &[]), Duration::from_secs(10)).unwrap();
+        let err = w.call(&request("slow:30"), Duration::from_millis(300)).unwrap_err();
+        assert!(matches!(err, CallError::Cancelled(_)), "{err}");
+        assert!(w.ping(Duration::from_secs(2)), "the worker stopped the request and goes on");
+        let reply = w.call(&request("after"), Duration::from_secs(5)).unwrap();
+        assert_eq!(reply.outputs[0].path, "after");
     }
 
     #[test]

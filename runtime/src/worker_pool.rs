@@ -308,8 +308,13 @@ impl WorkerPool {
             }
             Err(e) => {
                 let tail = w.stderr_tail();
-                drop(w);
-                s.live -= 1;
+                if matches!(e, CallError::Cancelled(_)) {
+                    // Alive and answering: it keeps its model for the next request.
+                    s.idle.push((w, Instant::now()));
+                } else {
+                    drop(w);
+                    s.live -= 1;
+                }
                 s.failures += 1;
                 let malformed = matches!(e, CallError::Malformed(_));
                 for t in batch.iter().rev() {
@@ -485,5 +490,15 @@ mod tests {
             let s = pool.state.lock().unwrap();
             assert_eq!((s.live, s.starts), (1, starts), "{args:?}");
         }
+    }
+
+    #[test]
+    fn a_request_cancelled_at_its_deadline_is_retried_on_the_same_worker_which_keeps_its_model() {
+        let pool = WorkerPool::new(command(&[]), PoolOptions { tries: 2, ..quick() });
+        let err = format!("{:#}", pool.call(&request("slow:30")).unwrap_err());
+        assert!(err.contains("failed 2 times") && err.contains("cancelled"), "{err}");
+        assert_eq!(pool.call(&request("a")).unwrap().outputs[0].path, "a");
+        let s = pool.state.lock().unwrap();
+        assert_eq!((s.live, s.starts), (1, 1), "one worker, never restarted");
     }
 }
