@@ -96,6 +96,29 @@ fn busy(workers: usize, batch: usize) {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Each of `n` runs of `f`, in milliseconds, sorted.
+fn timed(n: usize, mut f: impl FnMut()) -> Vec<f64> {
+    let mut times: Vec<f64> = (0..n)
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    times.sort_by(|a, b| a.total_cmp(b));
+    times
+}
+
+fn row(what: &str, n: usize, startup: Duration, times: &[f64]) {
+    let mean = times.iter().sum::<f64>() / n as f64;
+    println!(
+        "| {what} | {n} | {:.0} ms | {mean:.3} ms | {:.3} ms | {:.3} ms |",
+        startup.as_secs_f64() * 1e3,
+        times[n / 2],
+        times[n * 99 / 100]
+    );
+}
+
 fn round_trip() {
     let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../workers/protocol_test_worker.py");
     let command = WorkerCommand { program: "python3".into(), args: vec![script.display().to_string()] };
@@ -112,23 +135,34 @@ fn round_trip() {
     for _ in 0..100 {
         w.call(&request, Duration::from_secs(10)).expect("warm-up");
     }
+    println!("## Worker round trip, no-op Python worker, batch 1");
+    println!("| what | calls | startup (hello) | mean | median | p99 |");
+    println!("| --- | ---: | ---: | ---: | ---: | ---: |");
     let n = 5000;
-    let mut times = Vec::with_capacity(n);
-    for _ in 0..n {
-        let t = Instant::now();
+    let times = timed(n, || {
         w.call(&request, Duration::from_secs(10)).expect("a reply");
-        times.push(t.elapsed().as_secs_f64() * 1e3);
-    }
-    times.sort_by(|a, b| a.total_cmp(b));
-    let mean = times.iter().sum::<f64>() / n as f64;
-    println!("## Worker round trip, no-op Python worker, batch 1, {n} calls");
-    println!("| startup (hello) | mean | median | p99 |");
-    println!("| ---: | ---: | ---: | ---: |");
-    println!(
-        "| {:.0} ms | {mean:.3} ms | {:.3} ms | {:.3} ms |",
-        startup.as_secs_f64() * 1e3,
-        times[n / 2],
-        times[n * 99 / 100]
-    );
+    });
+    row("the protocol alone", n, startup, &times);
+    // With files on local disk, as a stage exchanges them: a 320 x 180 float32 depth map (225 KiB)
+    // written and digested per request, and the file the reply names read back.
+    let dir = std::env::temp_dir().join(format!("dist4d-bench-exchange-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("a folder");
+    let bytes = vec![7u8; 320 * 180 * 4];
+    let n = 2000;
+    let times = timed(n, || {
+        let path = dir.join("depth.npy");
+        std::fs::write(&path, &bytes).expect("written");
+        let digest = blake3::hash(&bytes).to_hex().to_string();
+        let r = Request {
+            inputs: vec![FileRef { name: "x".into(), path: path.display().to_string(), digest: Some(digest) }],
+            out_dir: dir.display().to_string(),
+            ..request.clone()
+        };
+        let reply = w.call(&r, Duration::from_secs(10)).expect("a reply");
+        let back = std::fs::read(&reply.outputs[0].path).expect("the output");
+        assert_eq!(back.len(), bytes.len());
+    });
+    row("with a 225 KiB file each way", n, startup, &times);
+    let _ = std::fs::remove_dir_all(&dir);
     w.shutdown(Duration::from_secs(5));
 }
