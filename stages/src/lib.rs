@@ -10,6 +10,7 @@ pub mod hull;
 pub mod middlebury;
 pub mod model_worker;
 pub mod novel_view;
+pub mod occupancy;
 pub mod output;
 pub mod reference;
 pub mod stage;
@@ -32,7 +33,7 @@ pub struct Registry {
 impl Default for Registry {
     fn default() -> Self {
         Registry {
-            stages: [curation::stages(), eval::stages(), generation::stages(), novel_view::stages(), output::stages()]
+            stages: [curation::stages(), eval::stages(), generation::stages(), novel_view::stages(), occupancy::stages(), output::stages()]
                 .into_iter()
                 .flatten()
                 .collect(),

@@ -419,6 +419,92 @@ impl Artifact for Segmentation {
     }
 }
 
+/// One frame's semantic occupancy, as Occ3D stores it: three volumes of one byte a voxel, axes
+/// x, y, z in C order (`dims` = [X, Y, Z]): the class of every voxel, and whether the LiDAR and
+/// the cameras observed it (0/1).
+#[derive(Clone, Debug, PartialEq)]
+pub struct OccupancyGrid {
+    pub dims: [u32; 3],
+    pub semantics: Vec<u8>,
+    pub mask_lidar: Vec<u8>,
+    pub mask_camera: Vec<u8>,
+}
+
+impl OccupancyGrid {
+    pub fn voxels(&self) -> usize {
+        self.dims.iter().map(|&d| d as usize).product()
+    }
+}
+
+impl Artifact for OccupancyGrid {
+    const TYPE: &'static str = "OccupancyGrid";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"OCC1".to_vec();
+        for d in self.dims {
+            out.extend_from_slice(&d.to_le_bytes());
+        }
+        out.extend_from_slice(&self.semantics);
+        out.extend_from_slice(&self.mask_lidar);
+        out.extend_from_slice(&self.mask_camera);
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"OCC1", Self::TYPE)?;
+        let dims = [r.u32()?, r.u32()?, r.u32()?];
+        let n = dims.iter().try_fold(1usize, |n, &d| n.checked_mul(d as usize)).context("size overflow")?;
+        let semantics = r.take(n)?.to_vec();
+        let mask_lidar = r.take(n)?.to_vec();
+        let mask_camera = r.take(n)?.to_vec();
+        Ok(OccupancyGrid { dims, semantics, mask_lidar, mask_camera })
+    }
+}
+
+/// The points of each tracked object gathered over a scene, in the object's own box frame (x
+/// along its length, z up, origin at its centre), with the object's class: placed at a frame's
+/// box pose, they draw the object densely wherever it is then.
+#[derive(Clone, Debug, PartialEq, Default)]
+pub struct TrackClouds {
+    pub tracks: Vec<TrackCloud>,
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrackCloud {
+    /// The track's id (nuScenes instance token, DGP instance id).
+    pub instance: String,
+    pub class: u8,
+    pub points: Vec<[f32; 3]>,
+}
+
+impl Artifact for TrackClouds {
+    const TYPE: &'static str = "TrackClouds";
+    fn encode(&self) -> Vec<u8> {
+        let mut out = b"TRK1".to_vec();
+        out.extend_from_slice(&(self.tracks.len() as u32).to_le_bytes());
+        for t in &self.tracks {
+            out.extend_from_slice(&(t.instance.len() as u32).to_le_bytes());
+            out.extend_from_slice(t.instance.as_bytes());
+            out.push(t.class);
+            out.extend_from_slice(&(t.points.len() as u32).to_le_bytes());
+            put_f32s(&mut out, t.points.as_flattened());
+        }
+        out
+    }
+    fn decode(bytes: &[u8]) -> Result<Self> {
+        let mut r = Reader::new(bytes, b"TRK1", Self::TYPE)?;
+        let n = r.u32()? as usize;
+        let mut tracks = Vec::with_capacity(n.min(1 << 16));
+        for _ in 0..n {
+            let len = r.u32()? as usize;
+            let instance = String::from_utf8(r.take(len)?.to_vec()).context("TrackClouds: an instance is not UTF-8")?;
+            let class = r.take(1)?[0];
+            let count = r.u32()? as usize;
+            let flat = r.f32s(count.checked_mul(3).context("size overflow")?)?;
+            tracks.push(TrackCloud { instance, class, points: flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect() });
+        }
+        Ok(TrackClouds { tracks })
+    }
+}
+
 /// A map of one byte a pixel: magic, width and height (u32 LE), then the bytes row-major.
 fn encode_byte_map(magic: &[u8; 4], width: u32, height: u32, bytes: &[u8]) -> Vec<u8> {
     let mut out = magic.to_vec();
@@ -569,6 +655,11 @@ mod tests {
         assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
         let pc = PointCloud { labels: vec![24, 17], ..pc };
         assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
+        let grid = OccupancyGrid { dims: [2, 1, 2], semantics: vec![17, 11, 4, 17], mask_lidar: vec![1, 1, 0, 0], mask_camera: vec![0, 1, 0, 0] };
+        assert_eq!(OccupancyGrid::decode(&grid.encode()).unwrap(), grid);
+        let tracks = TrackClouds { tracks: vec![TrackCloud { instance: "a".into(), class: 4, points: vec![[1.0, 2.0, 3.0]] }] };
+        assert_eq!(TrackClouds::decode(&tracks.encode()).unwrap(), tracks);
+        assert!(TrackClouds::decode(&tracks.encode()[..12]).is_err());
         let pc = PointCloud { rgb: vec![[1, 2, 3], [250, 251, 252]], ..pc };
         assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
         let img = Image { width: 2, height: 1, rgb: vec![1, 2, 3, 4, 5, 6] };

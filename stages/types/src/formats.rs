@@ -405,3 +405,53 @@ mod tests {
         time("npy", &|| npy_f32(&[h, w], &d.data).len());
     }
 }
+
+/// A NumPy `.npz` archive as `np.savez_compressed` writes it: a ZIP of `<name>.npy` members,
+/// each deflated; deterministic (no timestamps: 1980-01-01).
+pub fn npz(members: &[(&str, Vec<u8>)]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let mut central = Vec::new();
+    let (time, date) = (0u16, (1 << 5) | 1); // 1980-01-01 00:00
+    for (name, data) in members {
+        let file = format!("{name}.npy");
+        let packed = miniz_oxide::deflate::compress_to_vec(data, 6);
+        let crc = crc32fast::hash(data);
+        let offset = out.len() as u32;
+        // Local file header.
+        out.extend_from_slice(&0x0403_4b50u32.to_le_bytes());
+        for v in [20u16, 0, 8, time, date] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [crc, packed.len() as u32, data.len() as u32] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.extend_from_slice(&(file.len() as u16).to_le_bytes());
+        out.extend_from_slice(&0u16.to_le_bytes());
+        out.extend_from_slice(file.as_bytes());
+        out.extend_from_slice(&packed);
+        // Its central directory entry.
+        central.extend_from_slice(&0x0201_4b50u32.to_le_bytes());
+        for v in [20u16, 20, 0, 8, time, date] {
+            central.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [crc, packed.len() as u32, data.len() as u32] {
+            central.extend_from_slice(&v.to_le_bytes());
+        }
+        for v in [file.len() as u16, 0, 0, 0, 0] {
+            central.extend_from_slice(&v.to_le_bytes());
+        }
+        central.extend_from_slice(&0u32.to_le_bytes()); // external attributes
+        central.extend_from_slice(&offset.to_le_bytes());
+        central.extend_from_slice(file.as_bytes());
+    }
+    let (cd_offset, cd_size) = (out.len() as u32, central.len() as u32);
+    out.extend_from_slice(&central);
+    out.extend_from_slice(&0x0605_4b50u32.to_le_bytes());
+    for v in [0u16, 0, members.len() as u16, members.len() as u16] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out.extend_from_slice(&cd_size.to_le_bytes());
+    out.extend_from_slice(&cd_offset.to_le_bytes());
+    out.extend_from_slice(&0u16.to_le_bytes());
+    out
+}

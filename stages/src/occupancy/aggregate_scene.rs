@@ -1,0 +1,238 @@
+//! `AggregateScene`: every LiDAR sweep of a scene gathered once, as Occ3D and SurroundOcc build
+//! occupancy (a scene-grain task, not one per frame): the static points in world coordinates,
+//! and each tracked object's points in its own box frame along its track, so that an object
+//! placed at any frame's box pose is dense and a moving one leaves no smear.
+//!
+//! Per sweep: points go sensor -> ego -> world through its calibration and ego pose; points
+//! inside the ego vehicle's box or nearer than `min_distance` to the LiDAR are dropped. A point
+//! inside a box of its frame (grown by `box_margin`, bottom raised by `ground_clearance` so the
+//! road under a car stays road) goes to that box's track, with the box's class; the others are
+//! static. Classes ([`super::classes`]): nuScenes-lidarseg labels where the sweep has them; a
+//! sweep without labels falls back to height: within `fallback_ground` metres of the ego frame's
+//! ground plane driveable surface, above it manmade (named in the `summary`). Both clouds are
+//! thinned to one point per voxel (`voxel`, `track_voxel`), the first in sweep, then point order.
+
+use super::classes::{self, DRIVEABLE_SURFACE, DROP, MANMADE};
+use crate::stage::Stage;
+use anyhow::{ensure, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::TaskContext;
+use dist4d_types::artifact::{Boxes3D, Calibration, File, PointCloud, Pose, TrackCloud, TrackClouds};
+use dist4d_types::geometry::{BoxTest, Se3};
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+use std::collections::{BTreeMap, HashSet};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Static points: one per voxel of this size (m).
+    pub voxel: f64,
+    /// Object points: one per voxel of this size (m) of the box frame.
+    pub track_voxel: f64,
+    /// Boxes grow by this much (m) sideways and on top.
+    pub box_margin: f64,
+    /// Points less than this (m) above a box's bottom are the ground under it.
+    pub ground_clearance: f64,
+    /// Points nearer than this (m) to their LiDAR are dropped.
+    pub min_distance: f64,
+    /// The ego vehicle's box in the ego frame, min and max corners (m).
+    pub ego_box_min: [f64; 3],
+    pub ego_box_max: [f64; 3],
+    /// Without point labels: points below this height (m, ego frame) are driveable surface.
+    pub fallback_ground: f64,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            voxel: 0.1,
+            track_voxel: 0.05,
+            box_margin: 0.1,
+            ground_clearance: 0.15,
+            min_distance: 1.0,
+            ego_box_min: [-1.0, -1.0, -1.0],
+            ego_box_max: [3.4, 1.0, 2.0],
+            fallback_ground: 0.3,
+        }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        c.above("voxel", self.voxel, 0.001, 100.0)
+            .above("track_voxel", self.track_voxel, 0.001, 100.0)
+            .within("box_margin", self.box_margin, 0.0, 100.0)
+            .within("ground_clearance", self.ground_clearance, 0.0, 100.0)
+            .within("min_distance", self.min_distance, 0.0, 1000.0)
+            .within("fallback_ground", self.fallback_ground, -100.0, 100.0);
+        for a in 0..3 {
+            c.check(
+                self.ego_box_min[a].is_finite() && self.ego_box_max[a].is_finite() && self.ego_box_min[a] <= self.ego_box_max[a],
+                "ego_box_min",
+                || format!("must not exceed `ego_box_max` on axis {a}"),
+            );
+        }
+        c.done()
+    }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// every sweep of the scene (`All("dataset.lidar")`), matched to the rest by position
+        sweeps: Many<PointCloud>,
+        /// their LiDAR calibrations
+        calibs: Many<Calibration>,
+        /// their ego poses
+        poses: Many<Pose>,
+        /// the boxes at each sweep's time
+        boxes: Many<Boxes3D>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// the static points in world coordinates, labels = Occ3D classes
+        static_points: One<PointCloud>,
+        /// each tracked object's points in its box frame, with its class
+        tracks: One<TrackClouds>,
+        /// JSON: sweeps, points kept, where the labels came from
+        summary: One<File>,
+    }
+}
+
+pub struct AggregateScene(Params);
+
+impl Stage for AggregateScene {
+    const KIND: &'static str = "AggregateScene";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "a scene's LiDAR gathered once: static points in the world, each object's in its box frame, Occ3D classes";
+    const GRAINS: &'static [&'static str] = &["scene"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+
+    fn new(params: Params) -> Result<Self> {
+        Ok(AggregateScene(params))
+    }
+
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let n = i.sweeps.len();
+        ensure!(
+            i.calibs.len() == n && i.poses.len() == n && i.boxes.len() == n,
+            "`sweeps`, `calibs`, `poses` and `boxes` hold {n}, {}, {} and {} items: wire them all with All(..)",
+            i.calibs.len(),
+            i.poses.len(),
+            i.boxes.len()
+        );
+        let mut sweeps = Vec::with_capacity(n);
+        for k in 0..n {
+            let pos = i.sweeps[k].0;
+            ensure!(
+                i.calibs[k].0 == pos && i.poses[k].0 == pos && i.boxes[k].0 == pos,
+                "the inputs must be wired with the same selector (All(..))"
+            );
+            sweeps.push(Sweep { points: &i.sweeps[k].1, calib: &i.calibs[k].1, pose: &i.poses[k].1, boxes: &i.boxes[k].1 });
+        }
+        let (static_points, tracks, summary) = aggregate(&self.0, &sweeps);
+        Ok(Outputs { static_points, tracks, summary: File(serde_json::to_vec_pretty(&summary)?) })
+    }
+}
+
+pub struct Sweep<'a> {
+    pub points: &'a PointCloud,
+    pub calib: &'a Calibration,
+    pub pose: &'a Pose,
+    pub boxes: &'a Boxes3D,
+}
+
+type Voxel = (i64, i64, i64);
+
+fn voxel_of(p: DVec3, size: f64) -> Voxel {
+    ((p.x / size).floor() as i64, (p.y / size).floor() as i64, (p.z / size).floor() as i64)
+}
+
+/// The aggregation of the module doc: static points, tracks and a summary.
+pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serde_json::Value) {
+    let mut static_points = PointCloud::default();
+    let mut static_seen: HashSet<Voxel> = HashSet::new();
+    // instance -> (class, voxels seen, points)
+    let mut tracks: BTreeMap<String, (u8, HashSet<Voxel>, Vec<[f32; 3]>)> = BTreeMap::new();
+    let (emin, emax) = (DVec3::from_array(p.ego_box_min), DVec3::from_array(p.ego_box_max));
+    let (mut labelled, mut points_in, mut dropped) = (0usize, 0usize, 0usize);
+    for s in sweeps {
+        let has_labels = s.points.labels.len() == s.points.points.len() && !s.points.points.is_empty();
+        labelled += has_labels as usize;
+        let boxes: Vec<(BoxTest, &dist4d_types::artifact::Box3D)> = s
+            .boxes
+            .boxes
+            .iter()
+            .map(|b| {
+                let pose = Se3::from_wxyz_t(b.rotation, b.center);
+                (BoxTest::new(b.size, &pose, &Se3::default(), p.box_margin, p.ground_clearance), b)
+            })
+            .collect();
+        for (k, q) in s.points.points.iter().enumerate() {
+            points_in += 1;
+            let sensor = DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64);
+            if sensor.length() < p.min_distance {
+                dropped += 1;
+                continue;
+            }
+            let ego = s.calib.sensor_to_ego.apply(sensor);
+            if ego.cmpge(emin).all() && ego.cmple(emax).all() {
+                dropped += 1;
+                continue;
+            }
+            let world = s.pose.ego_to_world.apply(ego);
+            if let Some((test, b)) = boxes.iter().find(|(t, _)| t.contains(world)) {
+                let local = test.local(world);
+                let entry = tracks.entry(b.instance.clone()).or_insert_with(|| (classes::of_category(&b.category), HashSet::new(), Vec::new()));
+                if entry.1.insert(voxel_of(local, p.track_voxel)) {
+                    entry.2.push([local.x as f32, local.y as f32, local.z as f32]);
+                }
+                continue;
+            }
+            let class = if has_labels {
+                classes::of_lidarseg(s.points.labels[k])
+            } else if ego.z < p.fallback_ground {
+                DRIVEABLE_SURFACE
+            } else {
+                MANMADE
+            };
+            if class == DROP {
+                dropped += 1;
+                continue;
+            }
+            if static_seen.insert(voxel_of(world, p.voxel)) {
+                static_points.points.push([world.x as f32, world.y as f32, world.z as f32, q[3]]);
+                static_points.labels.push(class);
+            }
+        }
+    }
+    let tracks = TrackClouds {
+        tracks: tracks
+            .into_iter()
+            .map(|(instance, (class, _, points))| TrackCloud { instance, class, points })
+            .collect(),
+    };
+    let source = match labelled {
+        0 => "fallback: no sweep has point labels; boxes give their class, the rest is driveable surface below `fallback_ground` (ego frame) and manmade above",
+        l if l == sweeps.len() => "nuScenes-lidarseg (every sweep), boxes give their class",
+        _ => "nuScenes-lidarseg where a sweep has it, the height fallback elsewhere; boxes give their class",
+    };
+    let summary = json!({
+        "sweeps": sweeps.len(),
+        "sweeps_with_labels": labelled,
+        "labels": source,
+        "points_read": points_in,
+        "points_dropped": dropped,
+        "static_points": static_points.points.len(),
+        "tracks": tracks.tracks.len(),
+        "track_points": tracks.tracks.iter().map(|t| t.points.len()).sum::<usize>(),
+    });
+    (static_points, tracks, summary)
+}

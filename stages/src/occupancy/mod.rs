@@ -1,0 +1,12 @@
+//! Semantic occupancy (Occ3D; DynamicCity's data): LiDAR aggregated over a scene, static points
+//! in the world and each tracked object in its own box frame, voxelized per frame with the
+//! visibility masks of LiDAR rays and camera rays, and written in the formats their loaders read.
+
+pub mod classes;
+pub mod grid;
+
+crate::stage_modules! {
+    aggregate_scene::AggregateScene,
+    encode_occ3d::EncodeOcc3d,
+    occupancy_frame::Occupancy,
+}

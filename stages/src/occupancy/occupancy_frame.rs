@@ -1,0 +1,389 @@
+//! `Occupancy`: one frame's semantic occupancy in the Occ3D layout, from its scene's aggregate
+//! ([`super::aggregate_scene`]):
+//!
+//! 1. **Semantics.** The static points, moved into the frame's ego frame, vote for the class of
+//!    their voxel (the most points win; ties go to the lower class); then every box of the frame
+//!    whose track has points draws them at its pose at this time, with the track's class, over
+//!    what the static points said. Every other voxel is free (17). Then the ground is densified
+//!    (`ground_fill` > 0): a LiDAR sees the road as rings metres apart, so on the bird's-eye view
+//!    of the ground classes (driveable surface, other flat, sidewalk, terrain, in the two lowest
+//!    layers) a morphological closing with a square of `2 * ground_fill + 1` voxels fills the
+//!    gaps between rings (no wider than twice `ground_fill`) without growing the ground past its
+//!    outer edge; a filled column takes the most common class and layer of the ground around it.
+//! 2. **`mask_lidar`.** The frame's own sweep, ray by ray from the LiDAR to each return
+//!    (Amanatides-Woo traversal): the voxels a ray passes through and the one it ends in were
+//!    observed (Occ3D: "if a LiDAR beam passes through a voxel in the air, the voxel is free").
+//! 3. **`mask_camera`.** From each camera of the frame, a ray every `camera_ray_step` pixels,
+//!    through the voxels until the first occupied one (included) or `camera_max_distance`; a voxel
+//!    is camera-visible when such a ray reaches it and the LiDAR observed it (in Occ3D's files
+//!    `mask_camera` is a subset of `mask_lidar`).
+//!
+//! Grid and frame: [`super::grid`].
+
+use super::classes::FREE;
+use super::grid::GridParams;
+use crate::stage::Stage;
+use anyhow::{ensure, Context, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::TaskContext;
+use dist4d_types::artifact::{Boxes3D, Calibration, OccupancyGrid, PointCloud, Pose, TrackClouds};
+use dist4d_types::geometry::Se3;
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    pub grid: GridParams,
+    /// One camera ray per this many pixels in each direction.
+    pub camera_ray_step: u32,
+    /// Camera rays stop after this distance (m).
+    pub camera_max_distance: f64,
+    /// The ground's closing radius (voxels); 0 = no densification (see the module doc).
+    pub ground_fill: u32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { grid: GridParams::default(), camera_ray_step: 4, camera_max_distance: 100.0, ground_fill: 3 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        self.grid.check(&mut c);
+        c.count("ground_fill", self.ground_fill as u64, 0, 64);
+        c.count("camera_ray_step", self.camera_ray_step as u64, 1, 256).above(
+            "camera_max_distance",
+            self.camera_max_distance,
+            0.0,
+            10_000.0,
+        );
+        c.done()
+    }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// the scene's static points (world frame, Occ3D classes)
+        static_points: One<PointCloud>,
+        /// the scene's tracked objects in their box frames
+        tracks: One<TrackClouds>,
+        /// the boxes at the frame's time (`dataset.boxes`)
+        boxes: One<Boxes3D>,
+        /// the frame's own sweep, for the LiDAR rays
+        sweep: One<PointCloud>,
+        /// its LiDAR calibration
+        lidar_calib: One<Calibration>,
+        /// the ego pose at the sweep: the grid's frame
+        lidar_pose: One<Pose>,
+        /// every camera of the frame (`Gather("dataset.camera_calib", camera)`)
+        camera_calibs: Many<Calibration>,
+        /// their ego poses (`Gather("dataset.camera_pose", camera)`)
+        camera_poses: Many<Pose>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// semantics, mask_lidar and mask_camera
+        grid: One<OccupancyGrid>,
+    }
+}
+
+pub struct Occupancy(Params);
+
+impl Stage for Occupancy {
+    const KIND: &'static str = "Occupancy";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str =
+        "a frame's semantic occupancy (Occ3D): the scene's static points and tracks voxelized, LiDAR and camera visibility";
+    const GRAINS: &'static [&'static str] = &["frame"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+
+    fn new(params: Params) -> Result<Self> {
+        Ok(Occupancy(params))
+    }
+
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        ensure!(
+            i.camera_calibs.len() == i.camera_poses.len(),
+            "`camera_calibs` and `camera_poses` hold {} and {} items: wire both with Gather(.., camera)",
+            i.camera_calibs.len(),
+            i.camera_poses.len()
+        );
+        let ego_from_world = i.lidar_pose.ego_to_world.inverse();
+        let cameras: Vec<(&Calibration, &Pose)> =
+            i.camera_calibs.iter().zip(&i.camera_poses).map(|((_, c), (_, p))| (c, p)).collect();
+        let grid = occupancy(&self.0, &i.static_points, &i.tracks, &i.boxes, &ego_from_world)?;
+        let grid = with_masks(&self.0, grid, &i.sweep, &i.lidar_calib, &ego_from_world, &cameras)?;
+        Ok(Outputs { grid })
+    }
+}
+
+/// Step 1 of the module doc: the semantics (masks all 0).
+pub fn occupancy(
+    p: &Params,
+    static_points: &PointCloud,
+    tracks: &TrackClouds,
+    boxes: &Boxes3D,
+    ego_from_world: &Se3,
+) -> Result<OccupancyGrid> {
+    let g = p.grid.grid();
+    ensure!(
+        static_points.labels.len() == static_points.points.len(),
+        "the static points have {} labels for {} points",
+        static_points.labels.len(),
+        static_points.points.len()
+    );
+    let mut votes: HashMap<usize, [u32; 17]> = HashMap::new();
+    for (q, &class) in static_points.points.iter().zip(&static_points.labels) {
+        if class >= FREE {
+            continue;
+        }
+        let ego = ego_from_world.apply(DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64));
+        if let Some(v) = g.index(ego) {
+            votes.entry(v).or_insert([0; 17])[class as usize] += 1;
+        }
+    }
+    let mut semantics = vec![FREE; g.len()];
+    for (v, counts) in &votes {
+        let (best, _) = counts.iter().enumerate().fold((0, 0), |(bc, bn), (c, &n)| if n > bn { (c, n) } else { (bc, bn) });
+        semantics[*v] = best as u8;
+    }
+    let by_instance: HashMap<&str, usize> = tracks.tracks.iter().enumerate().map(|(k, t)| (t.instance.as_str(), k)).collect();
+    for b in &boxes.boxes {
+        let Some(&k) = by_instance.get(b.instance.as_str()) else { continue };
+        let track = &tracks.tracks[k];
+        let ego_from_box = ego_from_world.then_from(&Se3::from_wxyz_t(b.rotation, b.center));
+        for q in &track.points {
+            if let Some(v) = g.index(ego_from_box.apply(DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64))) {
+                semantics[v] = track.class;
+            }
+        }
+    }
+    if p.ground_fill > 0 {
+        fill_ground(&mut semantics, g.dims, p.ground_fill as usize);
+    }
+    let n = g.len();
+    Ok(OccupancyGrid {
+        dims: g.dims.map(|d| d as u32),
+        semantics,
+        mask_lidar: vec![0; n],
+        mask_camera: vec![0; n],
+    })
+}
+
+/// The ground classes: driveable surface, other flat, sidewalk, terrain.
+fn is_ground(class: u8) -> bool {
+    (11..=14).contains(&class)
+}
+
+/// The ground densification of the module doc, on `semantics` (C order over `dims`).
+fn fill_ground(semantics: &mut [u8], dims: [usize; 3], r: usize) {
+    let [nx, ny, nz] = dims;
+    let low = nz.min(2);
+    // Per column: its ground (layer, class) in the lowest layers, and whether anything occupies
+    // them (a column with an object or a wall at the bottom is not filled).
+    let mut ground: Vec<Option<(usize, u8)>> = vec![None; nx * ny];
+    let mut taken = vec![false; nx * ny];
+    for c in 0..nx * ny {
+        for k in 0..low {
+            let s = semantics[c * nz + k];
+            if s != FREE {
+                taken[c] = true;
+                if is_ground(s) && ground[c].is_none() {
+                    ground[c] = Some((k, s));
+                }
+            }
+        }
+    }
+    // Closing = dilation then erosion, with a (2r+1)^2 square (separable: rows, then columns).
+    let box_any = |mask: &[bool]| -> Vec<bool> {
+        let mut rows = vec![false; nx * ny];
+        for i in 0..nx {
+            for j in 0..ny {
+                let (a, b) = (j.saturating_sub(r), (j + r).min(ny - 1));
+                rows[i * ny + j] = (a..=b).any(|jj| mask[i * ny + jj]);
+            }
+        }
+        let mut out = vec![false; nx * ny];
+        for i in 0..nx {
+            for j in 0..ny {
+                let (a, b) = (i.saturating_sub(r), (i + r).min(nx - 1));
+                out[i * ny + j] = (a..=b).any(|ii| rows[ii * ny + j]);
+            }
+        }
+        out
+    };
+    let is: Vec<bool> = ground.iter().map(Option::is_some).collect();
+    let dilated = box_any(&is);
+    let not_dilated: Vec<bool> = dilated.iter().map(|d| !d).collect();
+    let closed: Vec<bool> = box_any(&not_dilated).iter().map(|d| !d).collect();
+    for i in 0..nx {
+        for j in 0..ny {
+            let c = i * ny + j;
+            if !closed[c] || taken[c] {
+                continue;
+            }
+            // The most common (layer, class) of the ground around it.
+            let mut counts: HashMap<(usize, u8), u32> = HashMap::new();
+            for ii in i.saturating_sub(r)..=(i + r).min(nx - 1) {
+                for jj in j.saturating_sub(r)..=(j + r).min(ny - 1) {
+                    if let Some(g) = ground[ii * ny + jj] {
+                        *counts.entry(g).or_default() += 1;
+                    }
+                }
+            }
+            if let Some(((k, class), _)) = counts.into_iter().max_by_key(|&((k, class), n)| (n, std::cmp::Reverse((k, class)))) {
+                semantics[c * nz + k] = class;
+            }
+        }
+    }
+}
+
+/// Steps 2 and 3 of the module doc.
+pub fn with_masks(
+    p: &Params,
+    mut grid: OccupancyGrid,
+    sweep: &PointCloud,
+    lidar_calib: &Calibration,
+    ego_from_world: &Se3,
+    cameras: &[(&Calibration, &Pose)],
+) -> Result<OccupancyGrid> {
+    let g = p.grid.grid();
+    ensure!(grid.voxels() == g.len(), "the grid has {} voxels, its params {}", grid.voxels(), g.len());
+    let origin = lidar_calib.sensor_to_ego.translation;
+    for q in &sweep.points {
+        let end = lidar_calib.sensor_to_ego.apply(DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64));
+        if (end - origin).length() < 0.5 {
+            continue; // no return
+        }
+        g.trace(origin, end, |v| {
+            grid.mask_lidar[v] = 1;
+            true
+        });
+    }
+    let step = p.camera_ray_step as usize;
+    for (k, (calib, pose)) in cameras.iter().enumerate() {
+        let kk = calib.intrinsics.with_context(|| format!("camera {k}: its calibration has no intrinsics"))?;
+        let ego_from_camera = ego_from_world.then_from(&pose.ego_to_world.then_from(&calib.sensor_to_ego));
+        let centre = ego_from_camera.translation;
+        let (w, h) = (calib.width as usize, calib.height as usize);
+        for y in (step / 2..h).step_by(step) {
+            for x in (step / 2..w).step_by(step) {
+                let yc = (y as f64 + 0.5 - kk[1][2]) / kk[1][1];
+                let xc = (x as f64 + 0.5 - kk[0][2] - kk[0][1] * yc) / kk[0][0];
+                let dir = ego_from_camera.rotation * DVec3::new(xc, yc, 1.0).normalize();
+                g.trace(centre, centre + dir * p.camera_max_distance, |v| {
+                    if grid.mask_lidar[v] != 0 {
+                        grid.mask_camera[v] = 1;
+                    }
+                    grid.semantics[v] == FREE
+                });
+            }
+        }
+    }
+    Ok(grid)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dist4d_types::artifact::{Box3D, TrackCloud};
+
+    fn flat_road_and_a_car() -> (PointCloud, TrackClouds, Boxes3D) {
+        // Road points every 0.1 m around the origin, at world z = 0.
+        let mut road = PointCloud::default();
+        for i in -100..100 {
+            for j in -100..100 {
+                road.points.push([i as f32 * 0.1, j as f32 * 0.1, 0.0, 0.0]);
+                road.labels.push(11);
+            }
+        }
+        let car = TrackCloud {
+            instance: "car".into(),
+            class: 4,
+            points: (0..20).flat_map(|a| (0..8).map(move |c| [a as f32 * 0.2 - 2.0, 0.0, c as f32 * 0.2 - 0.7])).collect(),
+        };
+        let boxes = Boxes3D {
+            timestamp_us: 0,
+            boxes: vec![Box3D {
+                center: [8.0, 0.0, 0.8],
+                size: [1.8, 4.0, 1.6],
+                rotation: [1.0, 0.0, 0.0, 0.0],
+                velocity: [0.0; 3],
+                instance: "car".into(),
+                category: "vehicle.car".into(),
+                attributes: Vec::new(),
+                num_lidar_pts: 0,
+                interpolated: false,
+                extrapolated: false,
+            }],
+        };
+        (road, TrackClouds { tracks: vec![car] }, boxes)
+    }
+
+    #[test]
+    fn the_ground_closing_fills_the_gaps_between_rings_and_not_past_the_edge() {
+        // Rings of road 1.6 m apart (every 4th row of voxels) over x in [-8, 8], y in [-4, 4].
+        let mut rings = PointCloud::default();
+        for i in -20..20 {
+            for j in -10..10 {
+                if i % 4 == 0 {
+                    rings.points.push([i as f32 * 0.4 + 0.2, j as f32 * 0.4 + 0.2, 0.0, 0.0]);
+                    rings.labels.push(11);
+                }
+            }
+        }
+        let p = Params { ground_fill: 2, ..Params::default() };
+        let g = p.grid.grid();
+        let grid = occupancy(&p, &rings, &TrackClouds::default(), &Boxes3D::default(), &Se3::default()).unwrap();
+        let at = |x: f64, y: f64| grid.semantics[g.index(DVec3::new(x, y, 0.0)).unwrap()];
+        assert_eq!(at(0.6, 0.2), 11, "between two rings");
+        assert_eq!(at(0.6, 3.8), 11);
+        assert_eq!(at(0.6, 5.0), FREE, "past the road's edge");
+        let none = occupancy(&Params { ground_fill: 0, ..p }, &rings, &TrackClouds::default(), &Boxes3D::default(), &Se3::default()).unwrap();
+        assert_eq!(none.semantics[g.index(DVec3::new(0.6, 0.2, 0.0)).unwrap()], FREE);
+    }
+
+    #[test]
+    fn the_road_fills_layer_zero_a_car_stands_at_its_box_and_rays_mark_what_they_saw() {
+        let (road, tracks, boxes) = flat_road_and_a_car();
+        let p = Params::default();
+        let g = p.grid.grid();
+        let grid = occupancy(&p, &road, &tracks, &boxes, &Se3::default()).unwrap();
+        let at = |x: f64, y: f64, z: f64| grid.semantics[g.index(DVec3::new(x, y, z)).unwrap()];
+        assert_eq!(at(0.1, 0.1, 0.0), 11);
+        assert_eq!(g.index(DVec3::new(0.1, 0.1, 0.0)).unwrap() % 16, 0);
+        assert_eq!(at(0.1, 0.1, 0.5), FREE);
+        assert_eq!(at(8.1, 0.1, 0.7), 4, "the car at its box");
+        assert_eq!(at(20.0, 0.1, 0.7), FREE);
+        // A LiDAR 1.8 m up seeing the road 5 m ahead, and a camera looking ahead at the car.
+        let lidar = Calibration {
+            sensor_to_ego: Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.8]),
+            intrinsics: None,
+            width: 0,
+            height: 0,
+        };
+        let sweep = PointCloud { points: vec![[5.0, 0.1, -1.8, 0.0]], ..PointCloud::default() };
+        let camera = Calibration {
+            sensor_to_ego: Se3::from_wxyz_t([0.5, -0.5, 0.5, -0.5], [1.0, 0.0, 1.0]),
+            intrinsics: Some([[20.0, 0.0, 20.0], [0.0, 20.0, 15.0], [0.0, 0.0, 1.0]]),
+            width: 40,
+            height: 30,
+        };
+        let pose = Pose { ego_to_world: Se3::default(), timestamp_us: 0 };
+        let grid = with_masks(&p, grid, &sweep, &lidar, &Se3::default(), &[(&camera, &pose)]).unwrap();
+        let lidar_seen: Vec<usize> = (0..grid.voxels()).filter(|&v| grid.mask_lidar[v] != 0).collect();
+        assert!(lidar_seen.contains(&g.index(DVec3::new(5.0, 0.1, 0.0)).unwrap()), "the return's voxel");
+        assert!(lidar_seen.contains(&g.index(DVec3::new(2.5, 0.05, 0.9)).unwrap()), "the air the ray crossed");
+        assert!(!lidar_seen.contains(&g.index(DVec3::new(-5.0, 0.0, 0.0)).unwrap()), "behind: not seen");
+        assert!(grid.mask_camera.iter().zip(&grid.mask_lidar).all(|(&c, &l)| c <= l), "camera within lidar");
+        assert!(grid.mask_camera.iter().any(|&c| c != 0), "the camera saw what the LiDAR saw ahead");
+    }
+}

@@ -1,0 +1,79 @@
+//! End-to-end: semantic occupancy (pipelines/occupancy.ron) from the CLI on synthetic data, its
+//! labels.npz loaded with numpy exactly as Occ3D's loader does, side by side with the real
+//! Occ3D-nuScenes frame of ../shared/data.
+
+mod common;
+use common::*;
+
+/// A run table's column for `stage`: 3 = executed, 4 = cached.
+fn column(report: &str, stage: &str, col: usize) -> u64 {
+    let line = report
+        .lines()
+        .find(|l| l.split_whitespace().next() == Some(stage))
+        .unwrap_or_else(|| panic!("no {stage} in\n{report}"));
+    line.split_whitespace().nth(col).unwrap().parse().unwrap()
+}
+
+#[test]
+fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_only_its_stage() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let o = dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "4", "--width", "320", "--height", "180"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let root = format!("dataset.root={}", data.display());
+    let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
+    let run = |extra: &[&str]| {
+        let mut args =
+            vec!["run", "pipelines/occupancy.ron", "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
+        args.extend(["--out", out.to_str().unwrap()]);
+        args.extend(extra);
+        let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
+        let t = text(&o);
+        assert!(o.status.success(), "{t}");
+        t
+    };
+    let first = run(&[]);
+    assert_eq!((column(&first, "scene", 3), column(&first, "occupancy", 3), column(&first, "occ3d", 3)), (1, 4, 4), "{first}");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("synth-0000/aggregate.json")).unwrap()).unwrap();
+    assert_eq!(summary["sweeps_with_labels"], 4, "the synthetic lidarseg files are read: {summary}");
+    assert!(summary["tracks"].as_u64().unwrap() > 0, "{summary}");
+    // A per-frame param: the scene's aggregate is reused.
+    let again = run(&["--set", "occupancy.ground_fill=1"]);
+    assert_eq!((column(&again, "scene", 3), column(&again, "occupancy", 3)), (0, 4), "{again}");
+
+    let Some(python) = peers_python() else { return };
+    let real = repo().join("../shared/data/occ3d-nuscenes-sample/29796060110c4163b07f06eff4af0753/labels.npz");
+    if !real.is_file() {
+        eprintln!("SKIPPED: the real Occ3D frame is not at {} (CI always has it)", real.display());
+        return;
+    }
+    let ours = out.join("gts/synth-0000/001/labels.npz");
+    // What Occ3D's loader does (projects/mmdet3d_plugin/datasets/pipelines/loading.py): np.load,
+    // then the three keys; then what its metric does with the masks (astype(bool)).
+    let script = r#"
+import sys, numpy as np
+files = [np.load(p) for p in sys.argv[1:3]]
+real, ours = files
+assert sorted(real.files) == sorted(ours.files) == ['mask_camera', 'mask_lidar', 'semantics'], (real.files, ours.files)
+for k in real.files:
+    a, b = real[k], ours[k]
+    assert a.dtype == b.dtype == np.uint8 and a.shape == b.shape == (200, 200, 16), (k, a.dtype, b.dtype, a.shape, b.shape)
+for f in files:
+    s, ml, mc = f['semantics'], f['mask_lidar'].astype(bool), f['mask_camera'].astype(bool)
+    assert s.max() <= 17 and set(np.unique(f['mask_lidar'])) <= {0, 1} and set(np.unique(f['mask_camera'])) <= {0, 1}
+    assert not (mc & ~ml).any(), 'mask_camera within mask_lidar'
+    road = np.nonzero(s == 11)
+    assert len(road[2]) > 1000 and (road[2] == 0).all(), ('the road is in z layer 0', np.bincount(road[2]))
+    assert (s == 17).mean() > 0.8, (s == 17).mean()
+    assert 0.02 < ml.mean() < 0.5 and mc.sum() > 1000, (ml.mean(), mc.sum())
+    # The road runs along x through the ego: the centre column is road at the bottom.
+    assert s[100, 100, 0] == 11 and (s[100, 100, 1:] == 17).all(), s[100, 100]
+print('ok')
+"#;
+    let o = std::process::Command::new(&python)
+        .args(["-c", script, real.to_str().unwrap(), ours.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
+}
