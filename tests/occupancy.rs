@@ -48,7 +48,12 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
         eprintln!("SKIPPED: the real Occ3D frame is not at {} (CI always has it)", real.display());
         return;
     }
-    let ours = out.join("gts/synth-0000/001/labels.npz");
+    // Occ3D's layout: gts/<scene>/<sample token>/labels.npz (the export path's `{frame.token}`).
+    let samples: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(data.join("v1.0-mini/sample.json")).unwrap()).unwrap();
+    let second = samples.as_array().unwrap().iter().find(|s| s["prev"] != "" && s["next"] != "").unwrap();
+    let ours = out.join(format!("gts/synth-0000/{}/labels.npz", second["token"].as_str().unwrap()));
+    assert!(ours.is_file(), "{} (by sample token)", ours.display());
     // What Occ3D's loader does (projects/mmdet3d_plugin/datasets/pipelines/loading.py): np.load,
     // then the three keys; then what its metric does with the masks (astype(bool)).
     let script = r#"

@@ -1313,8 +1313,16 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
         let Some(close) = rest[open..].find('}') else {
             return Err("a `{` is not closed".into());
         };
-        let name = &rest[open + 1..open + close];
+        let placeholder = &rest[open + 1..open + close];
+        let (name, token) = match placeholder.split_once('.') {
+            Some((dim, "token")) => (dim, true),
+            Some((_, field)) => {
+                return Err(format!("unknown field `.{field}` in `{{{placeholder}}}`; a dimension has `.token` (the dataset's id of the item)"))
+            }
+            None => (placeholder, false),
+        };
         match dims.iter().position(|d| d.name == name) {
+            Some(k) if k < grain && token => parts.push(TemplatePart::Token(k)),
             Some(k) if k < grain => parts.push(TemplatePart::Dim(k)),
             Some(_) => {
                 let per = grain.checked_sub(1).and_then(|g| dims.get(g)).map_or("?", |d| d.name.as_str());
@@ -1333,8 +1341,11 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
         parts.push(TemplatePart::Text(rest.to_string()));
     }
     for (k, d) in dims[..grain].iter().enumerate() {
-        if !parts.contains(&TemplatePart::Dim(k)) {
-            return Err(format!("it must name `{{{}}}` so that items do not overwrite each other", d.name));
+        if !parts.contains(&TemplatePart::Dim(k)) && !parts.contains(&TemplatePart::Token(k)) {
+            return Err(format!(
+                "it must name `{{{}}}` (or `{{{}.token}}`) so that items do not overwrite each other",
+                d.name, d.name
+            ));
         }
     }
     Ok(parts)

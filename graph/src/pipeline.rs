@@ -125,6 +125,9 @@ impl Node {
 pub enum TemplatePart {
     Text(String),
     Dim(usize),
+    /// `{frame.token}`: the dataset's own id of the item at that dimension (a nuScenes sample
+    /// token), which loaders that find files by token need.
+    Token(usize),
 }
 
 /// An output port written into the user-facing dataset layout.

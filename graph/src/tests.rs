@@ -389,6 +389,19 @@ fn exports_need_files_and_every_dimension_of_the_grain() {
 }
 
 #[test]
+fn a_dimension_may_be_named_by_its_token_and_nothing_else_of_it() {
+    let text = GOOD.replace(
+        r#"export: {"encode.png": "{scene}/{camera}/{frame}.png"}"#,
+        r#"export: {"encode.png": "{scene}/{frame.token}/{camera}.png"}"#,
+    );
+    let p = load(&text, &[]).unwrap();
+    assert!(p.exports[0].parts.contains(&TemplatePart::Token(1)), "{:?}", p.exports[0].parts);
+    let bad = text.replace("{frame.token}", "{frame.name}");
+    let out = errors(&bad, &[]);
+    assert!(out.contains("unknown field `.name` in `{frame.name}`"), "{out}");
+}
+
+#[test]
 fn missing_dataset_and_unknown_top_level_fields() {
     let out = errors("Pipeline(stages: {}, stagse: 1)", &[]);
     assert!(out.contains("the pipeline has no `dataset`"), "{out}");

@@ -628,6 +628,21 @@ pub fn render(export: &Export, item: &ItemKey, dataset: &dyn Dataset, dims: &[St
     for part in &export.parts {
         match part {
             TemplatePart::Text(t) => out.push_str(t),
+            TemplatePart::Token(d) => {
+                let at = item.prefix(d + 1);
+                let dim = dims.get(*d).map(String::as_str).unwrap_or("item");
+                let Some(token) = dataset.token(&at) else {
+                    bail!(
+                        "cannot export `{}`: the dataset has no token for the {dim} {:?}",
+                        export.template,
+                        dataset.label(&at)
+                    );
+                };
+                if let Some(why) = unsafe_component(&token) {
+                    bail!("cannot export `{}`: the {dim} token {token:?} {why}", export.template);
+                }
+                out.push_str(&token);
+            }
             TemplatePart::Dim(d) => {
                 let label = dataset.label(&item.prefix(d + 1));
                 if let Some(why) = unsafe_component(&label) {

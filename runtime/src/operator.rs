@@ -41,6 +41,11 @@ pub trait Dataset: ItemSpace {
     fn source_record(&self, _item: &ItemKey) -> Option<serde_json::Value> {
         None
     }
+    /// The dataset's own id of an item, for `{dim.token}` in export paths (for nuScenes: a
+    /// keyframe's sample token, an image's `sample_data` token). None when it has none.
+    fn token(&self, _item: &ItemKey) -> Option<String> {
+        None
+    }
 }
 
 /// What a task knows about itself.
@@ -180,5 +185,11 @@ impl Dataset for WithVariants {
     fn source_record(&self, item: &ItemKey) -> Option<serde_json::Value> {
         // A variant item's sources are its dataset item's.
         self.inner.source_record(&item.prefix(item.depth.min(self.depth as u8) as usize))
+    }
+    fn token(&self, item: &ItemKey) -> Option<String> {
+        if item.depth as usize > self.depth {
+            return None; // a variant has no token of its own
+        }
+        self.inner.token(item)
     }
 }

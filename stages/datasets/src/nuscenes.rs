@@ -245,6 +245,8 @@ pub struct NuScenes {
     scene_tokens: Vec<String>,
     /// Each scene's map mask (map.json's file for the scene's log), if it has one.
     maps: Vec<Option<PathBuf>>,
+    /// Each scene's sample tokens, in the order of its keyframes (the tree's scene extra).
+    sample_tokens: Vec<Vec<String>>,
     annotations: Vec<Annotation>,
     annotation_by_token: HashMap<String, usize>,
     sample_time: HashMap<String, i64>,
@@ -639,6 +641,7 @@ impl NuScenes {
         let scenes_sampled: std::collections::HashSet<&str> = samples.iter().map(|s| s.scene_token.as_str()).collect();
         let mut scene_tokens = Vec::new();
         let mut maps = Vec::new();
+        let mut sample_tokens = Vec::new();
         for scene in &scenes {
             let mut keys: Vec<&SampleRow> = Vec::new();
             let mut token = scene.first_sample_token.as_str();
@@ -792,6 +795,7 @@ impl NuScenes {
             out.push(Scene { name: scene.name.clone(), frames, extra: samples_of_scene });
             scene_tokens.push(scene.token.clone());
             maps.push(map_of_log.get(scene.log_token.as_str()).cloned());
+            sample_tokens.push(keys.iter().map(|k| k.token.clone()).collect());
         }
         if let Some((first, rounds)) = keyframes_only.first() {
             warnings.push(format!(
@@ -813,7 +817,7 @@ impl NuScenes {
         let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
         let tree = Tree { root, cameras, scenes: out, sidecars };
-        Ok(NuScenes { config, tree, scene_tokens, maps, annotations, annotation_by_token, sample_time, warnings })
+        Ok(NuScenes { config, tree, scene_tokens, maps, sample_tokens, annotations, annotation_by_token, sample_time, warnings })
     }
 
     /// The devkit's `box_velocity`: centre difference of the neighbouring annotations, NaN when
@@ -988,6 +992,16 @@ impl SurroundReader for NuScenes {
 
     fn tree(&self) -> &Tree<Keyframes, Sweep> {
         &self.tree
+    }
+
+    /// A keyframe's sample token (what Occ3D names its folders by); another frame's LiDAR
+    /// `sample_data` token.
+    fn frame_token(&self, scene: usize, frame: usize) -> Option<String> {
+        let f = self.tree.scenes.get(scene)?.frames.get(frame)?;
+        match f.extra.sample.filter(|_| f.extra.key) {
+            Some(k) => self.sample_tokens.get(scene)?.get(k).cloned(),
+            None => f.lidar.as_ref().ok().map(|r| r.token.clone()),
+        }
     }
 
     fn map_file(&self, scene: usize) -> Option<&Path> {

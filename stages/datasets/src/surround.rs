@@ -174,6 +174,11 @@ pub trait SurroundReader: Send + Sync {
     fn lidar_digest(&self, lidar: &Reading, frame: &Self::Frame, files: &dyn FileDigests) -> Result<Option<Digest>>;
     /// The `lidar` port: the point cloud of a frame whose LiDAR reading is `lidar`.
     fn read_lidar(&self, lidar: &Reading, frame: &Self::Frame) -> Result<PointCloud>;
+    /// The format's id of frame `frame` of scene `scene` (tree indices): by default its LiDAR
+    /// reading's token.
+    fn frame_token(&self, scene: usize, frame: usize) -> Option<String> {
+        self.tree().scenes.get(scene)?.frames.get(frame)?.lidar.as_ref().ok().map(|r| r.token.clone())
+    }
     /// The map mask of scene `scene` (index in the tree), when the format has one.
     fn map_file(&self, _scene: usize) -> Option<&Path> {
         None
@@ -313,6 +318,16 @@ impl<R: SurroundReader> Dataset for Surround<R> {
             "lidar_pose" | "camera_pose" => r.pose.encode(),
             other => bail!("{} has no source port `{other}`", R::FORMAT),
         })
+    }
+
+    /// A frame: the format's frame token ([`SurroundReader::frame_token`]); a camera item: its
+    /// image's token.
+    fn token(&self, item: &ItemKey) -> Option<String> {
+        match item.depth {
+            2 => self.0.frame_token(item.idx[0] as usize, item.idx[1] as usize),
+            3 => self.0.tree().reading("image", item).ok().map(|r| r.token.clone()),
+            _ => None,
+        }
     }
 
     /// A camera item: its image. A frame: its LiDAR sweep and its images, by camera. Readings
