@@ -56,7 +56,7 @@ crate::ports! {
 pub struct RenderSynthetic(Params);
 
 /// Renderers by world, built once per process (generating a world takes longer than a view).
-fn renderer(world: &[u8]) -> Result<Arc<Renderer>> {
+pub fn renderer(world: &[u8]) -> Result<Arc<Renderer>> {
     static CACHE: OnceLock<Mutex<HashMap<[u8; 32], Arc<Renderer>>>> = OnceLock::new();
     let key = *blake3::hash(world).as_bytes();
     let cache = CACHE.get_or_init(Default::default);

@@ -8,5 +8,6 @@ pub mod grid;
 crate::stage_modules! {
     aggregate_scene::AggregateScene,
     encode_occ3d::EncodeOcc3d,
+    exact::ExactOccupancy,
     occupancy_frame::Occupancy,
 }

@@ -12,7 +12,7 @@ mod writer;
 
 pub use render::{CameraImage, LidarModel, LidarSweep, PinholeCamera, Snapshot};
 pub use world::{World, WorldParams};
-pub use writer::write_dataset;
+pub use writer::{lidarseg_index, write_dataset};
 
 use anyhow::{Context, Result};
 use dist4d_types::geometry::Se3;
@@ -207,6 +207,24 @@ impl Renderer {
     pub fn render(&self, scene: u32, t: f64, camera: &PinholeCamera) -> Result<CameraImage> {
         let w = self.worlds.get(scene as usize).with_context(|| format!("no scene {scene}"))?;
         Ok(Snapshot::new(w, t).render(camera))
+    }
+
+    /// The exact semantic occupancy of a grid around an ego pose at a nuScenes timestamp
+    /// ([`Snapshot::occupancy`]): Cityscapes ids, 0 = free.
+    #[allow(clippy::too_many_arguments)]
+    pub fn occupancy_at_timestamp(
+        &self,
+        scene: u32,
+        timestamp_us: i64,
+        ego_to_world: &dist4d_types::geometry::Se3,
+        min: glam::DVec3,
+        voxel: f64,
+        dims: [usize; 3],
+        samples: usize,
+    ) -> Result<Vec<u8>> {
+        let w = self.worlds.get(scene as usize).with_context(|| format!("no scene {scene}"))?;
+        let t = (timestamp_us - writer::scene_start_us(scene)) as f64 * 1e-6;
+        Ok(Snapshot::new(w, t).occupancy(ego_to_world, min, voxel, dims, samples))
     }
 
     /// Like [`Renderer::render`] with a nuScenes timestamp (microseconds).

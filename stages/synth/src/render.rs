@@ -96,6 +96,61 @@ impl<'w> Snapshot<'w> {
         None
     }
 
+    /// The exact semantic occupancy of a voxel grid around an ego pose: voxel (i, j, k) of
+    /// `dims` (C order) spans `min + (i, j, k) * voxel` in the ego frame (`ego_to_world` places
+    /// it in the world). It is sampled at `samples`^3 points; a voxel is occupied when a sample is
+    /// inside a primitive or below the ground plane (z = 0), and its class (Cityscapes id) is the
+    /// most common class of the samples inside primitives, else the ground's there (road within
+    /// the road's half width of the path, terrain beyond). 0 = free. The ego vehicle's body is not
+    /// in it (Occ3D leaves the ego out).
+    pub fn occupancy(&self, ego_to_world: &Se3, min: DVec3, voxel: f64, dims: [usize; 3], samples: usize) -> Vec<u8> {
+        let s = samples.max(1);
+        let [nx, ny, nz] = dims;
+        let offset = |a: usize| (a as f64 + 0.5) / s as f64 * voxel;
+        let columns: Vec<Vec<u8>> = (0..nx * ny)
+            .into_par_iter()
+            .map(|c| {
+                let (i, j) = (c / ny, c % ny);
+                let corner = min + DVec3::new(i as f64 * voxel, j as f64 * voxel, 0.0);
+                // The primitives that may reach the column: those binned where its corners are.
+                let mut near: Vec<&Prim> = Vec::new();
+                for (dx, dy) in [(0.0, 0.0), (voxel, 0.0), (0.0, voxel), (voxel, voxel)] {
+                    let w = ego_to_world.apply(corner + DVec3::new(dx, dy, 0.0));
+                    for p in self.grid.prims_at(w.x, w.y) {
+                        if !near.iter().any(|q| std::ptr::eq(*q, p)) {
+                            near.push(p);
+                        }
+                    }
+                }
+                let mut column = vec![0u8; nz];
+                for (k, out) in column.iter_mut().enumerate() {
+                    let mut counts = [0u16; 256];
+                    let mut ground: Option<u8> = None;
+                    for a in 0..s {
+                        for b in 0..s {
+                            for d in 0..s {
+                                let e = corner + DVec3::new(offset(a), offset(b), k as f64 * voxel + offset(d));
+                                let w = ego_to_world.apply(e);
+                                if let Some(p) = near.iter().find(|p| p.shape.contains(w)) {
+                                    counts[p.class as usize] += 1;
+                                } else if w.z < 0.0 && ground.is_none() {
+                                    ground = Some(match self.world.path.station(w.x, w.y) {
+                                        Some((_, dd)) if dd.abs() <= ROAD_HALF_WIDTH => class::ROAD,
+                                        _ => class::TERRAIN,
+                                    });
+                                }
+                            }
+                        }
+                    }
+                    let best = (1..256).max_by_key(|&c| (counts[c], std::cmp::Reverse(c))).filter(|&c| counts[c] > 0);
+                    *out = best.map(|c| c as u8).or(ground).unwrap_or(0);
+                }
+                column
+            })
+            .collect();
+        columns.concat()
+    }
+
     /// Renders one camera. Pixel (col, row) is the ray through image point (col + 0.5, row + 0.5),
     /// matching the floor() binning of projected points.
     pub fn render(&self, cam: &PinholeCamera) -> CameraImage {

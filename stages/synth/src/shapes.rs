@@ -35,6 +35,19 @@ impl Shape {
         Shape::Box { c, half, cos: yaw.cos(), sin: yaw.sin() }
     }
 
+    /// Whether the point is inside the solid (boundary included).
+    pub fn contains(&self, p: DVec3) -> bool {
+        match *self {
+            Shape::Box { c, half, cos, sin } => {
+                let d = p - c;
+                let (lx, ly) = (d.x * cos + d.y * sin, -d.x * sin + d.y * cos);
+                lx.abs() <= half[0] && ly.abs() <= half[1] && d.z.abs() <= half[2]
+            }
+            Shape::Cylinder { x, y, r, z0, z1 } => (p.x - x).powi(2) + (p.y - y).powi(2) <= r * r && p.z >= z0 && p.z <= z1,
+            Shape::Sphere { c, r } => (p - c).length_squared() <= r * r,
+        }
+    }
+
     /// Corners of the footprint (boxes), or of the bounding square.
     pub fn footprint_corners(&self) -> Vec<(f64, f64)> {
         match *self {
@@ -211,6 +224,18 @@ pub struct Grid {
 }
 
 impl Grid {
+    /// The primitives whose footprint may cover the point (x, y) (those binned in its cell).
+    pub fn prims_at(&self, x: f64, y: f64) -> impl Iterator<Item = &Prim> {
+        let (i, j) = (((x - self.origin[0]) / self.cell).floor(), ((y - self.origin[1]) / self.cell).floor());
+        let range = if self.prims.is_empty() || i < 0.0 || j < 0.0 || i >= self.nx as f64 || j >= self.ny as f64 {
+            0..0
+        } else {
+            let c = j as usize * self.nx + i as usize;
+            self.start[c] as usize..self.start[c + 1] as usize
+        };
+        self.items[range].iter().map(|&k| &self.prims[k as usize])
+    }
+
     pub fn build(prims: Vec<Prim>, cell: f64) -> Grid {
         let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
         let bounds: Vec<(DVec3, DVec3)> = prims.iter().map(|p| p.shape.bounds()).collect();

@@ -1,0 +1,130 @@
+//! `ExactOccupancy`: a synthetic dataset's exact semantic occupancy of a frame, the reference
+//! the LiDAR-built occupancy is scored against: the world's primitives sampled in every voxel of
+//! the same grid ([`dist4d_synth::Snapshot::occupancy`], 3 x 3 x 3 samples by default), their
+//! classes mapped to Occ3D's as the synthetic lidarseg files are, and the visibility masks cast
+//! exactly as [`super::occupancy_frame`] casts them (the frame's sweep for `mask_lidar`, camera
+//! rays stopping at the first occupied voxel for `mask_camera`). On a dataset that is not
+//! synthetic it has nothing to make.
+
+use super::classes::{of_lidarseg, DROP, FREE};
+use super::grid::GridParams;
+use super::occupancy_frame::{with_masks, Params as FrameParams};
+use crate::stage::Stage;
+use anyhow::{Context, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_types::artifact::{Calibration, File, OccupancyGrid, PointCloud, Pose};
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// The grid and the masks' rays: set them as `Occupancy`'s.
+    pub grid: GridParams,
+    pub camera_ray_step: u32,
+    pub camera_max_distance: f64,
+    /// Samples per voxel along each axis.
+    pub samples: u32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        let f = FrameParams::default();
+        Params { grid: f.grid, camera_ray_step: f.camera_ray_step, camera_max_distance: f.camera_max_distance, samples: 3 }
+    }
+}
+
+impl Params {
+    fn frame(&self) -> FrameParams {
+        FrameParams {
+            grid: self.grid.clone(),
+            camera_ray_step: self.camera_ray_step,
+            camera_max_distance: self.camera_max_distance,
+            ..FrameParams::default()
+        }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut problems = self.frame().validate();
+        problems.extend(ParamChecks::new().count("samples", self.samples as u64, 1, 16).done());
+        problems
+    }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// the synthetic world (`dataset.synth_world`; empty for other datasets)
+        world: One<File>,
+        /// the frame's sweep, for the LiDAR rays
+        sweep: One<PointCloud>,
+        /// its LiDAR calibration
+        lidar_calib: One<Calibration>,
+        /// the ego pose at the sweep: the grid's frame
+        lidar_pose: One<Pose>,
+        /// every camera of the frame (`Gather("dataset.camera_calib", camera)`)
+        camera_calibs: Many<Calibration>,
+        /// their ego poses
+        camera_poses: Many<Pose>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// the exact semantics with the masks
+        grid: One<OccupancyGrid>,
+    }
+}
+
+pub struct ExactOccupancy(Params);
+
+impl Stage for ExactOccupancy {
+    const KIND: &'static str = "ExactOccupancy";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str = "a synthetic world's exact semantic occupancy of a frame (the occupancy reference)";
+    const GRAINS: &'static [&'static str] = &["frame"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+
+    fn new(params: Params) -> Result<Self> {
+        Ok(ExactOccupancy(params))
+    }
+
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+        if i.world.0.is_empty() {
+            return Err(NotApplicable("not a synthetic dataset: no exact occupancy".into()).into());
+        }
+        let r = crate::eval::render_synthetic::renderer(&i.world.0)?;
+        let head: serde_json::Value = serde_json::from_slice(&i.world.0)?;
+        let name = head["scene"].as_str().unwrap_or_default();
+        let scene = r.scene_index(name).with_context(|| format!("the synthetic world has no scene `{name}`"))?;
+        let g = self.0.grid.grid();
+        let ids = r.occupancy_at_timestamp(
+            scene,
+            i.lidar_pose.timestamp_us,
+            &i.lidar_pose.ego_to_world,
+            g.min,
+            g.voxel,
+            g.dims,
+            self.0.samples as usize,
+        )?;
+        let semantics = ids
+            .iter()
+            .map(|&id| match id {
+                0 => FREE,
+                c => match of_lidarseg(dist4d_synth::lidarseg_index(c)) {
+                    DROP => FREE,
+                    class => class,
+                },
+            })
+            .collect();
+        let n = g.len();
+        let grid = OccupancyGrid { dims: g.dims.map(|d| d as u32), semantics, mask_lidar: vec![0; n], mask_camera: vec![0; n] };
+        let ego_from_world = i.lidar_pose.ego_to_world.inverse();
+        let cameras: Vec<(&Calibration, &Pose)> =
+            i.camera_calibs.iter().zip(&i.camera_poses).map(|((_, c), (_, p))| (c, p)).collect();
+        Ok(Outputs { grid: with_masks(&self.0.frame(), grid, &i.sweep, &i.lidar_calib, &ego_from_world, &cameras)? })
+    }
+}
