@@ -55,6 +55,22 @@ fn the_temporal_flow_makes_each_step_its_bullet_time_cloud_and_scores_with_the_b
         assert!(out.join(format!("bullet_time/{step}_CAM_FRONT.ply")).is_file());
     }
     assert!(!out.join("bullet_time/003_t+1_CAM_FRONT.ply").exists(), "no frame after the last");
+    // The six camera tasks of a step read the same views: a rerun must still find that exactly
+    // the first camera's makes the cloud (its key says which task it is), into any folder.
+    let again = temporal("run", &data, tmp.path(), "again", &[]);
+    assert_eq!((column(&again, "future", 3), column(&again, "cloud", 3)), (0, 0), "{again}");
+    let plys = |dir: &str| -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(tmp.path().join(dir).join("synth-0000/bullet_time"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| n.ends_with(".ply"))
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(plys("again"), plys("baseline"));
+    assert_eq!(plys("again").len(), 6);
+    assert!(plys("again").iter().all(|n| n.ends_with("_CAM_FRONT.ply")), "{:?}", plys("again"));
     // The layout control: the synthetic map's road (grey 80) and the ego (white) at the centre.
     let layout = image::open(out.join("CAM_FRONT/000_t+1_layout.png")).unwrap().to_rgb8();
     assert_eq!(layout.dimensions(), (256, 256));

@@ -32,6 +32,10 @@ def handle(op, files, params, out_dir, item):
             raise ValueError(f"the layout is not an RGB8 image with road: {layout.dtype} {layout.shape}")
     controls = json.loads(Path(files["controls"]).read_text())
     target = controls["target"]
+    # The controls say where the camera will be, never which image is there.
+    leaked = [k for k in ("token", "image") if k in target]
+    if leaked:
+        raise ValueError(f"the controls name the future image itself ({leaked})")
     cameras = [r["camera"] for r in controls["reference"]]
     if target["camera"] not in cameras:
         raise ValueError(f"the reference frame has no {target['camera']} image to persist")

@@ -866,7 +866,8 @@ impl Coord {
         let mut awaiting = record.map(|record| Awaiting { record: Some(record), files_left: 0 });
         if let Some(exporter) = self.exporter.as_mut() {
             for x in p.exports.iter().filter(|x| x.node == node) {
-                let out = &produced[x.port];
+                // A task with nothing to make (no outputs) has nothing to export.
+                let Some(out) = produced.get(x.port) else { continue };
                 let names = (p.nodes[node].name.as_str(), p.nodes[node].outputs[x.port].name.as_str());
                 let waiting = awaiting.as_mut().filter(|_| out.only_in_folder);
                 match exporter.plan(x, names, &item, e.dataset, &out.r, out.mem.clone(), e.store) {

@@ -45,6 +45,17 @@ pub struct WorkerCommand {
     pub args: Vec<String>,
 }
 
+impl std::fmt::Display for WorkerCommand {
+    /// The program and its first argument (`python3 workers/fill_completer.py`): an interpreter
+    /// alone does not say which worker it runs.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.args.first() {
+            Some(a) => write!(f, "{} {a}", self.program),
+            None => write!(f, "{}", self.program),
+        }
+    }
+}
+
 /// What a worker says of itself when it starts.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Hello {
@@ -126,7 +137,10 @@ impl std::fmt::Display for CallError {
                 write!(f, "no reply within {:.1} s: cancelled (the worker stopped the request)", d.as_secs_f64())
             }
             CallError::Died(why) => write!(f, "the worker died: {why}"),
-            CallError::Malformed(why) => write!(f, "the worker broke the protocol: {why}"),
+            CallError::Malformed(why) => write!(
+                f,
+                "the worker broke the protocol: {why} (a worker writes only protocol lines to stdout; its logs go to stderr)"
+            ),
         }
     }
 }
@@ -154,7 +168,7 @@ pub struct Worker {
 impl Worker {
     /// Starts `command` and waits up to `startup` for its hello.
     pub fn start(command: &WorkerCommand, startup: Duration) -> Result<Worker> {
-        let what = || format!("worker `{}`", command.program);
+        let what = || format!("worker `{command}`");
         let mut child = Command::new(&command.program)
             .args(&command.args)
             .stdin(Stdio::piped())

@@ -47,6 +47,15 @@ impl Default for PoolOptions {
     }
 }
 
+/// "once", "2 times".
+fn times(n: u32) -> String {
+    if n == 1 {
+        "once".into()
+    } else {
+        format!("{n} times")
+    }
+}
+
 /// One call waiting for, or in, a batch.
 struct Ticket {
     request: Request,
@@ -73,6 +82,9 @@ struct State {
     queue: VecDeque<u64>,
     tickets: HashMap<u64, Ticket>,
     next_ticket: u64,
+    /// Set when a worker broke the protocol: the model's code writes to stdout, and every worker
+    /// started will, so the calls after it fail at once with why instead of restarting it.
+    broken: Option<String>,
     /// Requests sent in batches of more than one, and workers started (for tests and
     /// benchmarks).
     batched: u64,
@@ -99,6 +111,7 @@ impl WorkerPool {
                 queue: VecDeque::new(),
                 tickets: HashMap::new(),
                 next_ticket: 0,
+                broken: None,
                 batched: 0,
                 starts: 0,
             }),
@@ -187,7 +200,7 @@ impl WorkerPool {
             self.changed.notify_all();
             bail!(
                 "worker `{}` restarted as {} {} (weights {}), not {} {} (weights {}): its results would not match their task keys",
-                self.command.program,
+                self.command,
                 w.hello.name,
                 w.hello.version,
                 w.hello.weights_digest,
@@ -212,6 +225,9 @@ impl WorkerPool {
     /// worker's stderr tail.
     pub fn call(&self, request: &Request) -> Result<Reply> {
         let mut s = self.lock()?;
+        if let Some(why) = &s.broken {
+            bail!("worker `{}` broke the protocol earlier in this run, so it is not started again: {why}", self.command);
+        }
         let id = s.next_ticket;
         s.next_ticket += 1;
         s.tickets.insert(
@@ -273,7 +289,7 @@ impl WorkerPool {
         let refs: Vec<&Request> = requests.iter().collect();
         let answer = w.call_batch(&refs, self.options.deadline);
         let mut s = self.lock()?;
-        let program = &self.command.program;
+        let program = &self.command;
         let tries = self.options.tries.max(1);
         match answer {
             Ok(replies) => {
@@ -293,7 +309,7 @@ impl WorkerPool {
                         Status::Retryable => {
                             ticket.last = format!("try {}: retryable: {}", ticket.tries, reply.message);
                             if ticket.tries >= tries {
-                                ticket.result = Some(Err(anyhow!("worker `{program}` failed {tries} times: {}", ticket.last)));
+                                ticket.result = Some(Err(anyhow!("worker `{program}` failed {}: {}", times(tries), ticket.last)));
                             } else {
                                 s.queue.push_front(*t);
                             }
@@ -317,6 +333,9 @@ impl WorkerPool {
                 }
                 s.failures += 1;
                 let malformed = matches!(e, CallError::Malformed(_));
+                if malformed {
+                    s.broken = Some(format!("{e}{tail}"));
+                }
                 for t in batch.iter().rev() {
                     let ticket = s.tickets.get_mut(t).expect("a batched ticket");
                     ticket.tries += 1;
@@ -325,7 +344,7 @@ impl WorkerPool {
                     if malformed {
                         ticket.result = Some(Err(anyhow!("worker `{program}`: {e}{tail}")));
                     } else if ticket.tries >= tries {
-                        ticket.result = Some(Err(anyhow!("worker `{program}` failed {tries} times: {}", ticket.last)));
+                        ticket.result = Some(Err(anyhow!("worker `{program}` failed {}: {}", times(tries), ticket.last)));
                     } else {
                         s.queue.push_front(*t);
                     }
@@ -399,8 +418,12 @@ mod tests {
         let err = format!("{:#}", pool.call(&request("bad item")).unwrap_err());
         assert!(err.contains("could not do it: cannot do `bad item`"), "{err}");
         let err = format!("{:#}", pool.call(&request("garbage")).unwrap_err());
-        assert!(err.contains("broke the protocol"), "{err}");
-        assert_eq!(pool.call(&request("c")).unwrap().outputs[0].path, "c");
+        assert!(err.contains("broke the protocol") && err.contains("logs go to stderr"), "{err}");
+        // A worker that writes junk to stdout will again: the pool stops starting it.
+        let t = Instant::now();
+        let err = format!("{:#}", pool.call(&request("c")).unwrap_err());
+        assert!(err.contains("broke the protocol earlier in this run"), "{err}");
+        assert!(t.elapsed() < Duration::from_millis(100), "at once, no restart");
     }
 
     #[test]

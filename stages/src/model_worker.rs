@@ -69,6 +69,13 @@ pub struct SharedInput {
     path: PathBuf,
 }
 
+impl Drop for ModelWorker {
+    fn drop(&mut self) {
+        // The shared inputs' folder, once its last file is gone (fails harmlessly otherwise).
+        let _ = std::fs::remove_dir(std::env::temp_dir().join(format!("dist4d-worker-{}-shared", std::process::id())));
+    }
+}
+
 impl Drop for SharedInput {
     fn drop(&mut self) {
         let _ = std::fs::remove_file(&self.path);

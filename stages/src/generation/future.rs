@@ -24,7 +24,7 @@ use crate::stage::{variant_of, Stage};
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate, VariantPlan, Variants};
 use dist4d_runtime::TaskContext;
-use dist4d_types::artifact::{DepthMap, Image, ImageInfo, Mask, Pose};
+use dist4d_types::artifact::{DepthMap, File, Image, ImageInfo, Mask, Pose};
 use dist4d_types::formats::npy_f32;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
@@ -134,6 +134,8 @@ crate::ports! {
         mask: One<Mask>,
         /// the camera's ego pose at the step (its time included): where the view was generated
         pose: One<Pose>,
+        /// JSON: the reference frame, the step, and the view's camera, time and pose
+        record: One<File>,
     }
 }
 
@@ -141,7 +143,8 @@ pub struct GenerateFuture(Params, ModelWorker);
 
 impl Stage for GenerateFuture {
     const KIND: &'static str = "GenerateFuture";
-    const VERSION: u32 = 1;
+    // 2: a record of each view; the sky's depth exactly `sky_depth` after the fill.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str =
         "DiST-T: future multi-camera RGB-D per step from a reference frame and controls (worker, or a warp baseline)";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -179,8 +182,33 @@ impl Stage for GenerateFuture {
         } else {
             warp_baseline(&self.0, &references, target, &view)?
         };
-        Ok(Outputs { image, depth, mask, pose })
+        let seen = mask.data.iter().filter(|&&m| m != 0).count() as f64 / mask.data.len().max(1) as f64;
+        let reference = references.iter().find(|r| r.info.camera == target.camera).unwrap_or(&references[0]).info;
+        let record = json!({
+            "kind": "dist_t",
+            "scene": target.scene,
+            "camera": target.camera,
+            "reference_frame": reference.frame,
+            "reference_timestamp_us": reference.timestamp_us,
+            "step": label,
+            "offset": step.offset,
+            "generator": if self.1.is_set() { "worker" } else { "warp baseline" },
+            "seen": seen,
+            "view": step_record(target, &view),
+        });
+        Ok(Outputs { image, depth, mask, pose, record: File(serde_json::to_vec_pretty(&record)?) })
     }
+}
+
+/// What a generated view is: the camera, the frame and time of the step, intrinsics, size and
+/// poses. Not the future image's token or file: a generator must not find the answer by it.
+fn step_record(target: &ImageInfo, view: &PinholeView) -> serde_json::Value {
+    let mut r = frame_record(target, view);
+    if let Some(o) = r.as_object_mut() {
+        o.remove("token");
+        o.remove("image");
+    }
+    r
 }
 
 /// One reference camera: its image, depth, info and camera.
@@ -250,7 +278,11 @@ fn warp_baseline(p: &Params, refs: &[Reference], target: &ImageInfo, view: &Pinh
         }
     }
     let mask = Mask { width: w, height: h, data: valid.iter().map(|&v| v as u8).collect() };
-    let (rgb, depth) = fill(&rgb, &depth, &valid, w as usize, h as usize, p.background_tolerance);
+    let (rgb, mut depth) = fill(&rgb, &depth, &valid, w as usize, h as usize, p.background_tolerance);
+    // The fill averages neighbours: a hole in the sky comes out at 100.000015, not 100.
+    for z in depth.iter_mut().filter(|z| **z >= sky_from) {
+        *z = p.sky_depth;
+    }
     Ok((Image { width: w, height: h, rgb }, DepthMap { width: w, height: h, data: depth }, mask))
 }
 
@@ -289,7 +321,7 @@ fn generate_by_worker(
         record["boxes"] = serde_json::to_value(&r.info.boxes.boxes)?;
         reference.push(record);
     }
-    let mut target_record = frame_record(target, view);
+    let mut target_record = step_record(target, view);
     target_record["boxes"] = serde_json::to_value(&target.boxes.boxes)?;
     let controls = json!({ "step": label, "offset": offset, "reference": reference, "target": target_record });
     inputs.push(ex.put("controls", "controls.json", &serde_json::to_vec_pretty(&controls)?)?);

@@ -11,6 +11,9 @@
 //! It runs per variant (a step) under a camera, as the generated views do, and reads every camera
 //! of its step through `Across(.., camera)`; the cloud is made once, by the task of the rig's
 //! first camera, and the other cameras' tasks have nothing to make (`n/a` in the run's table).
+//! Which task it is comes from an input (`camera_calib`, this item's camera), never from the
+//! item alone: a task's outputs must follow from its key, and the six tasks of a step read the
+//! same views.
 
 use crate::novel_view::frame_pair::{resize_image, VoxelHasher};
 use crate::novel_view::splat::PinholeView;
@@ -18,7 +21,7 @@ use crate::stage::Stage;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::{NotApplicable, TaskContext};
-use dist4d_types::artifact::{Calibration, DepthMap, Image, Mask, PointCloud, Pose};
+use dist4d_types::artifact::{Calibration, DepthMap, File, Image, Mask, PointCloud, Pose};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
@@ -64,6 +67,9 @@ crate::ports! {
         calibs: Many<Calibration>,
         /// their ego poses at the step (`Across("future.pose", camera)`)
         poses: Many<Pose>,
+        /// this task's own camera (`dataset.camera_calib`): the cloud is made by the task whose
+        /// camera is the first of `calibs`
+        camera_calib: One<Calibration>,
         /// where each view shows what was seen (`Across("future.mask", camera)`): when wired, the
         /// pixels a generator filled in (a baseline's smears) are left out of the cloud
         masks: OptionalMany<Mask>,
@@ -76,6 +82,9 @@ crate::ports! {
         points: One<PointCloud>,
         /// the cameras' images beside the cloud seen from above
         preview: One<Image>,
+        /// JSON: the cloud's frame (the first camera's ego pose at the step, its time) and size,
+        /// to place it in the world
+        record: One<File>,
     }
 }
 
@@ -83,7 +92,8 @@ pub struct SurroundCloud(Params);
 
 impl Stage for SurroundCloud {
     const KIND: &'static str = "SurroundCloud";
-    const VERSION: u32 = 1;
+    // 2: the first camera's task is found from its own calibration (an input), not its item.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str =
         "bullet time: every camera's RGB-D of a step as one coloured point cloud, and a preview of the step";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -95,7 +105,7 @@ impl Stage for SurroundCloud {
         Ok(SurroundCloud(params))
     }
 
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let n = i.images.len();
         ensure!(
             n > 0 && i.depths.len() == n && i.calibs.len() == n && i.poses.len() == n,
@@ -104,12 +114,8 @@ impl Stage for SurroundCloud {
             i.calibs.len(),
             i.poses.len()
         );
-        // The task's own camera: the coordinate above the variant's.
-        let coords = ctx.item.coords();
-        let own = coords.len().checked_sub(2).map(|k| coords[k] as i64);
-        let first = i.images[0].0;
-        if own != Some(first) {
-            return Err(NotApplicable(format!("the step's surround cloud is made by its first camera's task (camera {first})")).into());
+        if i.calibs[0].1 != i.camera_calib {
+            return Err(NotApplicable("the step's surround cloud is made by its first camera's task".into()).into());
         }
         ensure!(
             i.masks.is_empty() || i.masks.len() == n,
@@ -130,9 +136,17 @@ impl Stage for SurroundCloud {
         }
         let ego_from_world = cams[0].3.ego_to_world.inverse();
         let points = fuse(&self.0, &cams, |p| ego_from_world.apply(p))?;
-        let images: Vec<&Image> = cams.iter().map(|c| c.0).collect();
-        let preview = preview(&self.0, &images, &points)?;
-        Ok(Outputs { points, preview })
+        let preview = preview(&self.0, &cams, &points)?;
+        let pose = cams[0].3;
+        let t = |s: &dist4d_types::geometry::Se3| serde_json::json!({ "translation": s.translation.to_array(), "rotation": s.wxyz() });
+        let record = serde_json::json!({
+            "frame": "the ego frame of the rig's first camera at the step (x forward, y left, z up, m)",
+            "timestamp_us": pose.timestamp_us,
+            "ego_to_world": t(&pose.ego_to_world),
+            "points": points.points.len(),
+            "voxel": self.0.voxel,
+        });
+        Ok(Outputs { points, preview, record: File(serde_json::to_vec_pretty(&record)?) })
     }
 }
 
@@ -183,13 +197,45 @@ fn fuse(p: &Params, cams: &[Camera], to_frame: impl Fn(DVec3) -> DVec3) -> Resul
     Ok(cloud)
 }
 
-/// The cameras' images in two rows, rig order, beside a top-down view of the cloud (ego at the
-/// centre facing up, higher points drawn over lower ones, a white mark at the ego).
-fn preview(p: &Params, images: &[&Image], cloud: &PointCloud) -> Result<Image> {
+/// The cameras' images in two rows as a driver would place them (the forward-looking ones on
+/// top, the others below, each row from left to right), beside a top-down view of the cloud (ego
+/// at the centre facing up, higher points drawn over lower ones, a white mark at the ego).
+fn preview(p: &Params, cams: &[Camera], cloud: &PointCloud) -> Result<Image> {
+    // Each camera's heading in the ego frame: its optical axis (camera z).
+    let heading = |c: &Camera| {
+        let axis = c.2.sensor_to_ego.rotation * DVec3::Z;
+        axis.y.atan2(axis.x)
+    };
+    let (mut front, mut back): (Vec<(f64, &Image)>, Vec<(f64, &Image)>) = (Vec::new(), Vec::new());
+    for c in cams {
+        let a = heading(c);
+        if a.abs() <= std::f64::consts::FRAC_PI_2 {
+            front.push((-a, c.0)); // left (positive heading) first
+        } else {
+            back.push((a.rem_euclid(std::f64::consts::TAU), c.0)); // back left, back, back right
+        }
+    }
+    front.sort_by(|a, b| a.0.total_cmp(&b.0));
+    back.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let cols = front.len().max(back.len()).max(1);
+    let mut slots: Vec<Option<&Image>> = vec![None; 2 * cols];
+    for (k, (_, im)) in front.iter().enumerate() {
+        slots[2 * k] = Some(im);
+    }
+    for (k, (_, im)) in back.iter().enumerate() {
+        slots[2 * k + 1] = Some(im);
+    }
+    let first = cams[0].0;
+    preview_of(p, first, &slots, cloud)
+}
+
+/// The preview of [`preview`]: `slots[2 * column + row]`.
+fn preview_of(p: &Params, first: &Image, slots: &[Option<&Image>], cloud: &PointCloud) -> Result<Image> {
+    let images = slots;
     let side = p.preview_height;
     let tile_h = side / 2;
     let cols = images.len().div_ceil(2).max(1) as u32;
-    let aspect = images[0].width as f64 / images[0].height.max(1) as f64;
+    let aspect = first.width as f64 / first.height.max(1) as f64;
     let tile_w = ((tile_h as f64 * aspect).round() as u32).max(1);
     let width = cols * tile_w + side;
     let mut out = Image { width, height: side, rgb: vec![0; (width * side * 3) as usize] };
@@ -200,6 +246,7 @@ fn preview(p: &Params, images: &[&Image], cloud: &PointCloud) -> Result<Image> {
         }
     };
     for (k, image) in images.iter().enumerate() {
+        let Some(image) = image else { continue };
         let tile = resize_image(image, tile_w, tile_h)?;
         let (x0, y0) = ((k as u32 / 2) * tile_w, (k as u32 % 2) * tile_h);
         for y in 0..tile_h {
