@@ -42,6 +42,28 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     let again = run(&["--set", "occupancy.ground_fill=1"]);
     assert_eq!((column(&again, "scene", 3), column(&again, "occupancy", 3)), (0, 4), "{again}");
 
+    // Scored against the synthetic world's exact occupancy (Occ3D's metric), and the ablation:
+    // objects gathered in the world instead of their box frames smear the moving ones.
+    let eval = |extra: &[&str]| {
+        let mut args = vec!["eval", "pipelines/occupancy.ron", "--set", &root, "--progress", "off"];
+        args.extend(["--cache", cache.to_str().unwrap()]);
+        args.extend(extra);
+        let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
+        let t = text(&o);
+        assert!(o.status.success(), "{t}");
+        let value = |row: &str| -> f64 {
+            let line = t.lines().find(|l| l.starts_with(&format!("| {row} |"))).unwrap_or_else(|| panic!("{row}: {t}"));
+            line.split('|').nth(2).unwrap().trim().parse().unwrap()
+        };
+        (value("mIoU"), value("geometry IoU"), value("car"), value("pedestrian"), t)
+    };
+    let ab_out = tmp.path().join("ablation");
+    let (miou, geometry, car, pedestrian, t) = eval(&["--out", out.to_str().unwrap()]);
+    assert!(miou > 0.6 && geometry > 0.7, "mIoU {miou}, geometry IoU {geometry}\n{t}");
+    let (_, _, car_ab, pedestrian_ab, t_ab) =
+        eval(&["--out", ab_out.to_str().unwrap(), "--set", "scene.objects=World"]);
+    assert!(car > car_ab && pedestrian > pedestrian_ab, "box frames {car}/{pedestrian}, world {car_ab}/{pedestrian_ab}\n{t}\n{t_ab}");
+
     let Some(python) = peers_python() else { return };
     let real = repo().join("../shared/data/occ3d-nuscenes-sample/29796060110c4163b07f06eff4af0753/labels.npz");
     if !real.is_file() {

@@ -24,7 +24,8 @@ const KIND: &str = "EvalDepth";
 /// each exports its scores (the tables are read from the exported files), so that a run that
 /// could not be reported on is refused before it starts.
 pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<(&str, Params)>> {
-    let views = view_stages(pipeline)?;
+    let mut views = view_stages(pipeline)?;
+    views.extend(occupancy_stages(pipeline)?);
     let stages: Vec<(usize, &str, Params)> = pipeline
         .nodes
         .iter()
@@ -36,7 +37,7 @@ pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<(&str, Params)>> {
         .collect();
     ensure!(
         !stages.is_empty() || !views.is_empty(),
-        "{}: the pipeline has no {KIND} or {VIEW_KIND} stage to report",
+        "{}: the pipeline has no {KIND}, {VIEW_KIND} or {OCC_KIND} stage to report",
         pipeline.path.display()
     );
     for (id, name, _) in &stages {
@@ -55,6 +56,7 @@ pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<(&str, Params)>> {
 pub fn tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
     let index = dist4d_runtime::export::read_index(out_dir)?;
     let mut text = view_tables(pipeline, &index, out_dir)?;
+    text.push_str(&occupancy_tables(pipeline, &index, out_dir)?);
     for (stage, p) in scored_stages(pipeline)? {
         let mut images = Vec::new();
         for entry in index.iter().filter(|e| e.stage == stage) {
@@ -290,16 +292,19 @@ mod tests {
 
 /// The stage kind whose exported novel-view scores are tabulated.
 const VIEW_KIND: &str = "EvalNovelView";
+/// ... and occupancy scores.
+const OCC_KIND: &str = "EvalOccupancy";
 
-/// The `EvalNovelView` stages of `pipeline`; an error when one does not export its scores.
-fn view_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
+/// The stages of `kind` in `pipeline`; an error when one does not export its scores (`template`:
+/// the export to suggest).
+fn stages_of<'p>(pipeline: &'p Pipeline, kind: &str, template: &str) -> Result<Vec<&'p str>> {
     let mut out = Vec::new();
     for (id, n) in pipeline.nodes.iter().enumerate() {
-        if n.stage().is_some_and(|s| s.kind == VIEW_KIND) {
+        if n.stage().is_some_and(|s| s.kind == kind) {
             ensure!(
                 pipeline.exports.iter().any(|e| e.node == id),
-                "{}: stage `{}` ({VIEW_KIND}) is not exported, and `dist4d eval` reads the scores from the \
-                 exported files: add `\"{}.json\": \"{{scene}}/{{camera}}/{{frame}}_{{variant}}_view.json\"` to `export`",
+                "{}: stage `{}` ({kind}) is not exported, and `dist4d eval` reads the scores from the \
+                 exported files: add `\"{}.json\": \"{template}\"` to `export`",
                 pipeline.path.display(),
                 n.name,
                 n.name
@@ -308,6 +313,62 @@ fn view_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
         }
     }
     Ok(out)
+}
+
+/// The `EvalNovelView` stages of `pipeline`; an error when one does not export its scores.
+fn view_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
+    stages_of(pipeline, VIEW_KIND, "{scene}/{camera}/{frame}_{variant}_view.json")
+}
+
+fn occupancy_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
+    stages_of(pipeline, OCC_KIND, "{scene}/occupancy/{frame}_scores.json")
+}
+
+/// Per `EvalOccupancy` stage: the confusion matrices of its frames summed, each class's IoU, the
+/// mIoU and the geometry IoU (Occ3D's metric, see `crate::occupancy::eval`).
+fn occupancy_tables(pipeline: &Pipeline, index: &[dist4d_runtime::export::IndexEntry], out_dir: &Path) -> Result<String> {
+    use crate::occupancy::eval::{scores, FrameConfusion};
+    let mut text = String::new();
+    for stage in occupancy_stages(pipeline)? {
+        let mut sum: Option<Vec<Vec<u64>>> = None;
+        let mut classes = Vec::new();
+        let mut frames = 0;
+        for entry in index.iter().filter(|e| e.stage == stage) {
+            let path = out_dir.join(&entry.path);
+            let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+            let f: FrameConfusion = serde_json::from_slice(&bytes)
+                .with_context(|| format!("{} is not an {OCC_KIND} score file", path.display()))?;
+            let s = sum.get_or_insert_with(|| vec![vec![0; f.confusion.len()]; f.confusion.len()]);
+            ensure!(s.len() == f.confusion.len(), "{}: a confusion matrix of another size", path.display());
+            for (row, add) in s.iter_mut().zip(&f.confusion) {
+                for (a, b) in row.iter_mut().zip(add) {
+                    *a += b;
+                }
+            }
+            classes = f.classes;
+            frames += 1;
+        }
+        let Some(m) = sum else {
+            text.push_str(&format!("\n# {stage}: no frame has a reference (not a synthetic dataset)\n"));
+            continue;
+        };
+        let (iou, miou, geometry) = scores(&m);
+        let voxels: u64 = m.iter().flatten().sum();
+        text.push_str(&format!(
+            "\n# {stage}: {frames} frames, {voxels} camera-visible reference voxels; IoU per class (Occ3D's \
+             Metric_mIoU: a confusion matrix over the frames), mIoU over classes 0-16, geometry IoU (occupied vs free)\n\n{stage}\n"
+        ));
+        text.push_str("| class | IoU | reference voxels |\n|---|---:|---:|\n");
+        for (c, name) in classes.iter().enumerate() {
+            let reference: u64 = m[c].iter().sum();
+            if let Some(v) = iou[c] {
+                text.push_str(&format!("| {name} | {v:.4} | {reference} |\n"));
+            }
+        }
+        let f = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.4}"));
+        text.push_str(&format!("| mIoU | {} | |\n| geometry IoU | {} | |\n", f(miou), f(geometry)));
+    }
+    Ok(text)
 }
 
 /// Per `EvalNovelView` stage, one table: a row per variant (the item's last label: the shift),

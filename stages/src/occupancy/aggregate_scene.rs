@@ -24,9 +24,21 @@ use serde::{Deserialize, Serialize};
 use serde_json::json;
 use std::collections::{BTreeMap, HashSet};
 
+/// Where the points of annotated objects are gathered.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Objects {
+    /// In each object's own box frame along its track (placed at each frame's box pose).
+    #[default]
+    BoxFrames,
+    /// In the world, like the static points, with the box's class: what the box frames are
+    /// for (a moving object smears along its path), kept as the ablation.
+    World,
+}
+
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct Params {
+    pub objects: Objects,
     /// Static points: one per voxel of this size (m).
     pub voxel: f64,
     /// Object points: one per voxel of this size (m) of the box frame.
@@ -47,6 +59,7 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params {
+            objects: Objects::BoxFrames,
             voxel: 0.1,
             track_voxel: 0.05,
             box_margin: 0.1,
@@ -188,7 +201,15 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
                 continue;
             }
             let world = s.pose.ego_to_world.apply(ego);
-            if let Some((test, b)) = boxes.iter().find(|(t, _)| t.contains(world)) {
+            let in_box = boxes.iter().find(|(t, _)| t.contains(world));
+            if let (Some((_, b)), Objects::World) = (in_box, p.objects) {
+                if static_seen.insert(voxel_of(world, p.voxel)) {
+                    static_points.points.push([world.x as f32, world.y as f32, world.z as f32, q[3]]);
+                    static_points.labels.push(classes::of_category(&b.category));
+                }
+                continue;
+            }
+            if let Some((test, b)) = in_box {
                 let local = test.local(world);
                 let entry = tracks.entry(b.instance.clone()).or_insert_with(|| (classes::of_category(&b.category), HashSet::new(), Vec::new()));
                 if entry.1.insert(voxel_of(local, p.track_voxel)) {

@@ -8,6 +8,7 @@ pub mod grid;
 crate::stage_modules! {
     aggregate_scene::AggregateScene,
     encode_occ3d::EncodeOcc3d,
+    eval::EvalOccupancy,
     exact::ExactOccupancy,
     occupancy_frame::Occupancy,
 }
