@@ -104,3 +104,33 @@ print('ok')
         .unwrap();
     assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
 }
+
+/// The shared real recordings: the nuScenes keyframe (folder named by its sample token) and the
+/// DGP scene (by LiDAR datum key); neither has point labels, so the summary names the fallback.
+#[test]
+fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
+    let (Some(nuscenes), Some(dgp)) = (shared_nuscenes(), shared_dgp()) else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let pipelines = [
+        ("nuscenes", with_dataset("occupancy", &format!("NuScenes(root: {:?}, version: \"v1.0-mini\")", nuscenes.display().to_string()))),
+        ("dgp", with_dataset("occupancy", &format!("Dgp(root: {:?})", dgp.display().to_string()))),
+    ];
+    for (name, pipeline) in pipelines {
+        let file = tmp.path().join(format!("{name}.ron"));
+        std::fs::write(&file, pipeline).unwrap();
+        let out = tmp.path().join(format!("out-{name}"));
+        let o = dist4d(&["run", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
+        let t = text(&o);
+        assert!(o.status.success(), "{name}: {t}");
+        assert_eq!(column(&t, "exact", 7), column(&t, "exact", 2), "{name}: no exact occupancy off synthetic data\n{t}");
+        let scene = std::fs::read_dir(out.join("gts")).unwrap().next().unwrap().unwrap().path();
+        let frames: Vec<_> = std::fs::read_dir(&scene).unwrap().map(|e| e.unwrap().path()).collect();
+        assert_eq!(frames.len() as u64, column(&t, "occupancy", 3), "{name}");
+        for f in &frames {
+            assert!(f.join("labels.npz").is_file(), "{}", f.display());
+        }
+        let summary = std::fs::read_to_string(out.join(scene.file_name().unwrap()).join("aggregate.json")).unwrap();
+        assert!(summary.contains("fallback"), "{name}: {summary}");
+    }
+    assert!(tmp.path().join("out-nuscenes/gts/scene-0061/ca9a282c9e77460f8360f564131a8af5/labels.npz").is_file());
+}
