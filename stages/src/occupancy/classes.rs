@@ -30,6 +30,30 @@ pub const NAMES: [&str; 18] = [
     "free",
 ];
 
+/// A colour per class, as SurroundOcc's visualisation draws Occ3D-nuScenes (weiyithu/SurroundOcc,
+/// `tools/visual.py`, the `colors` table), which the occupancy papers' figures use; free is
+/// not drawn (here: dark grey).
+pub const PALETTE: [[u8; 3]; 18] = [
+    [0, 0, 0],
+    [255, 120, 50],
+    [255, 192, 203],
+    [255, 255, 0],
+    [0, 150, 245],
+    [0, 255, 255],
+    [200, 180, 0],
+    [255, 0, 0],
+    [255, 240, 150],
+    [135, 60, 0],
+    [160, 32, 240],
+    [255, 0, 255],
+    [139, 137, 137],
+    [75, 0, 75],
+    [150, 240, 80],
+    [230, 230, 250],
+    [0, 175, 0],
+    [40, 40, 40],
+];
+
 pub const FREE: u8 = 17;
 pub const DRIVEABLE_SURFACE: u8 = 11;
 pub const MANMADE: u8 = 15;

@@ -11,4 +11,5 @@ crate::stage_modules! {
     eval::EvalOccupancy,
     exact::ExactOccupancy,
     occupancy_frame::Occupancy,
+    preview::OccupancyPreview,
 }
