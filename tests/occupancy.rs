@@ -22,9 +22,16 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     assert!(o.status.success(), "{}", text(&o));
     let root = format!("dataset.root={}", data.display());
     let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
+    // The shipped pipeline with DynamicCity's windows of 4 frames (the scene has 4), one per frame.
+    let shipped = std::fs::read_to_string(repo().join("pipelines/occupancy.ron")).unwrap();
+    let windowed = shipped.replace("frame, 0, 15)", "frame, 0, 3)");
+    assert_eq!(windowed.matches("frame, 0, 3)").count(), 2);
+    let pipeline = tmp.path().join("occupancy.ron");
+    std::fs::write(&pipeline, windowed).unwrap();
+    let pipeline = pipeline.to_str().unwrap().to_string();
     let run = |extra: &[&str]| {
-        let mut args =
-            vec!["run", "pipelines/occupancy.ron", "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
+        let mut args = vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
+        args.extend(["--set", "conditions.frames=4", "--set", "conditions.stride=1"]);
         args.extend(["--out", out.to_str().unwrap()]);
         args.extend(extra);
         let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
@@ -45,7 +52,8 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     // Scored against the synthetic world's exact occupancy (Occ3D's metric), and the ablation:
     // objects gathered in the world instead of their box frames smear the moving ones.
     let eval = |extra: &[&str]| {
-        let mut args = vec!["eval", "pipelines/occupancy.ron", "--set", &root, "--progress", "off"];
+        let mut args = vec!["eval", pipeline.as_str(), "--set", &root, "--progress", "off"];
+        args.extend(["--set", "conditions.frames=4", "--set", "conditions.stride=1"]);
         args.extend(["--cache", cache.to_str().unwrap()]);
         args.extend(extra);
         let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
@@ -100,6 +108,56 @@ print('ok')
 "#;
     let o = std::process::Command::new(&python)
         .args(["-c", script, real.to_str().unwrap(), ours.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
+
+    // DynamicCity's released loader (dynamic_city/dataset/carlasc.py), its path logic and reads
+    // reimplemented on the output: sliding windows of `sequence_length` with `skip`, `.label` ->
+    // `.bin` by name, and the trajectory and command of data_utils.py from poses.txt, which must be
+    // the conditions dist4d wrote for the window.
+    let loader = r#"
+import sys, json, numpy as np
+from pathlib import Path
+data_path, T, skip, spatial = Path(sys.argv[1]), 4, 0, (200, 200, 16)
+data_root = data_path / 'Train'
+scene_roots = [p / 'cartesian/evaluation' for p in data_root.iterdir()]
+span = T * (skip + 1) - skip
+sequences = []
+for scene_root in scene_roots:
+    files = sorted(map(str, scene_root.glob('*.label')))
+    assert len(files) == 4, files
+    sequences += [files[s: s + span: skip + 1] for s in range(len(files) - (span - 1))]
+assert len(sequences) == 1
+for path in sequences[0]:
+    voxel = np.fromfile(path, dtype=np.uint32).reshape(spatial)
+    valid = np.fromfile(path.replace('label', 'bin'), dtype=np.float32).reshape(spatial)
+    invalid = (valid == 0).astype(np.uint8)
+    assert voxel.max() <= 17 and (voxel == 0).mean() > 0.8 and voxel[100, 100, 0] == 12, (voxel.max(), voxel[100, 100])
+    assert 0.5 < invalid.mean() < 1.0
+poses = np.loadtxt(data_root / 'synth-0000/cartesian/poses.txt')
+assert poses.shape == (4, 12), poses.shape
+traj = np.column_stack((poses[:, [3, 7]] - poses[0, [3, 7]], np.arctan2(poses[:, 4], poses[:, 0])))
+rot = traj[:, 2] - traj[0, 2]
+rot = (rot + np.pi) % (2 * np.pi) - np.pi
+disp = np.sqrt((traj[:, 0] - traj[0, 0]) ** 2 + (traj[:, 1] - traj[0, 1]) ** 2)
+command = 2 if np.any(rot > 0.0025) else 3 if np.any(rot < -0.0025) else 1 if np.any(disp > 0.03) else 0
+ours = json.load(open(sys.argv[2]))
+assert np.allclose(np.array(ours['trajectory']), traj, atol=1e-6), (ours['trajectory'], traj)
+assert ours['command'] == command, (ours['command'], command)
+layout = np.load(sys.argv[3])['layout']
+assert layout.dtype == np.uint8 and layout.shape == (4, 100, 100) and layout.max() == 1, (layout.dtype, layout.shape)
+print('ok')
+"#;
+    let dc = out.join("dynamiccity");
+    let o = std::process::Command::new(&python)
+        .args([
+            "-c",
+            loader,
+            dc.join("Cartesian").to_str().unwrap(),
+            dc.join("conditions/16/Train/synth-0000/000000.json").to_str().unwrap(),
+            dc.join("layout/16/Train/synth-0000/000000.npz").to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));

@@ -1314,6 +1314,17 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
             return Err("a `{` is not closed".into());
         };
         let placeholder = &rest[open + 1..open + close];
+        let (placeholder, width) = match placeholder.split_once(':') {
+            Some((p, w)) => match w.strip_prefix('0').and_then(|w| w.parse::<usize>().ok()).filter(|w| (1..=20).contains(w)) {
+                Some(w) => (p, Some(w)),
+                None => {
+                    return Err(format!(
+                        "`{{{p}:{w}}}`: the format is `:0N`, the label zero-padded to N digits (1-20), e.g. `{{{p}:06}}`"
+                    ))
+                }
+            },
+            None => (placeholder, None),
+        };
         let (name, token) = match placeholder.split_once('.') {
             Some((dim, "token")) => (dim, true),
             Some((_, field)) => {
@@ -1322,7 +1333,11 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
             None => (placeholder, false),
         };
         match dims.iter().position(|d| d.name == name) {
+            Some(_) if token && width.is_some() => {
+                return Err(format!("`{{{placeholder}:..}}`: a token is not a number to pad"))
+            }
             Some(k) if k < grain && token => parts.push(TemplatePart::Token(k)),
+            Some(k) if k < grain && width.is_some() => parts.push(TemplatePart::Padded(k, width.unwrap_or(0))),
             Some(k) if k < grain => parts.push(TemplatePart::Dim(k)),
             Some(_) => {
                 let per = grain.checked_sub(1).and_then(|g| dims.get(g)).map_or("?", |d| d.name.as_str());
@@ -1341,7 +1356,7 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
         parts.push(TemplatePart::Text(rest.to_string()));
     }
     for (k, d) in dims[..grain].iter().enumerate() {
-        if !parts.contains(&TemplatePart::Dim(k)) && !parts.contains(&TemplatePart::Token(k)) {
+        if !parts.iter().any(|p| p.dim() == Some(k)) {
             return Err(format!(
                 "it must name `{{{}}}` (or `{{{}.token}}`) so that items do not overwrite each other",
                 d.name, d.name

@@ -128,6 +128,18 @@ pub enum TemplatePart {
     /// `{frame.token}`: the dataset's own id of the item at that dimension (a nuScenes sample
     /// token), which loaders that find files by token need.
     Token(usize),
+    /// `{frame:06}`: the item's label, a number, zero-padded to that many digits.
+    Padded(usize, usize),
+}
+
+impl TemplatePart {
+    /// The dimension this part names, if any.
+    pub fn dim(&self) -> Option<usize> {
+        match self {
+            TemplatePart::Text(_) => None,
+            TemplatePart::Dim(d) | TemplatePart::Token(d) | TemplatePart::Padded(d, _) => Some(*d),
+        }
+    }
 }
 
 /// An output port written into the user-facing dataset layout.

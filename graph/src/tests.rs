@@ -389,7 +389,7 @@ fn exports_need_files_and_every_dimension_of_the_grain() {
 }
 
 #[test]
-fn a_dimension_may_be_named_by_its_token_and_nothing_else_of_it() {
+fn a_dimension_may_be_named_by_its_token_or_zero_padded_and_nothing_else() {
     let text = GOOD.replace(
         r#"export: {"encode.png": "{scene}/{camera}/{frame}.png"}"#,
         r#"export: {"encode.png": "{scene}/{frame.token}/{camera}.png"}"#,
@@ -399,6 +399,10 @@ fn a_dimension_may_be_named_by_its_token_and_nothing_else_of_it() {
     let bad = text.replace("{frame.token}", "{frame.name}");
     let out = errors(&bad, &[]);
     assert!(out.contains("unknown field `.name` in `{frame.name}`"), "{out}");
+    let padded = load(&text.replace("{frame.token}", "{frame:06}"), &[]).unwrap();
+    assert!(padded.exports[0].parts.contains(&TemplatePart::Padded(1, 6)), "{:?}", padded.exports[0].parts);
+    let out = errors(&text.replace("{frame.token}", "{frame:6}"), &[]);
+    assert!(out.contains("the format is `:0N`"), "{out}");
 }
 
 #[test]

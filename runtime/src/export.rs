@@ -643,6 +643,17 @@ pub fn render(export: &Export, item: &ItemKey, dataset: &dyn Dataset, dims: &[St
                 }
                 out.push_str(&token);
             }
+            TemplatePart::Padded(d, width) => {
+                let label = dataset.label(&item.prefix(d + 1));
+                let Ok(n) = label.parse::<u64>() else {
+                    bail!(
+                        "cannot export `{}`: the {} name {label:?} is not a number to zero-pad",
+                        export.template,
+                        dims.get(*d).map(String::as_str).unwrap_or("item")
+                    );
+                };
+                out.push_str(&format!("{n:0width$}"));
+            }
             TemplatePart::Dim(d) => {
                 let label = dataset.label(&item.prefix(d + 1));
                 if let Some(why) = unsafe_component(&label) {

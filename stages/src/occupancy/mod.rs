@@ -6,7 +6,10 @@ pub mod classes;
 pub mod grid;
 
 crate::stage_modules! {
+    dynamic_city::EncodeCarlaSC,
+    poses_txt::PosesTxt,
     aggregate_scene::AggregateScene,
+    conditions::DitConditions,
     encode_occ3d::EncodeOcc3d,
     eval::EvalOccupancy,
     exact::ExactOccupancy,
