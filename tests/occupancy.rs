@@ -25,13 +25,14 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     // The shipped pipeline with DynamicCity's windows of 4 frames (the scene has 4), one per frame.
     let shipped = std::fs::read_to_string(repo().join("pipelines/occupancy.ron")).unwrap();
     let windowed = shipped.replace("frame, 0, 15)", "frame, 0, 3)");
-    assert_eq!(windowed.matches("frame, 0, 3)").count(), 2);
+    assert_eq!(windowed.matches("frame, 0, 3)").count(), 3);
     let pipeline = tmp.path().join("occupancy.ron");
     std::fs::write(&pipeline, windowed).unwrap();
     let pipeline = pipeline.to_str().unwrap().to_string();
     let run = |extra: &[&str]| {
         let mut args = vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
         args.extend(["--set", "conditions.frames=4", "--set", "conditions.stride=1"]);
+        args.extend(["--set", "hexplane.frames=4", "--set", "hexplane.stride=4"]);
         args.extend(["--out", out.to_str().unwrap()]);
         args.extend(extra);
         let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
@@ -54,6 +55,7 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     let eval = |extra: &[&str]| {
         let mut args = vec!["eval", pipeline.as_str(), "--set", &root, "--progress", "off"];
         args.extend(["--set", "conditions.frames=4", "--set", "conditions.stride=1"]);
+        args.extend(["--set", "hexplane.frames=4", "--set", "hexplane.stride=4"]);
         args.extend(["--cache", cache.to_str().unwrap()]);
         args.extend(extra);
         let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
@@ -147,6 +149,15 @@ assert np.allclose(np.array(ours['trajectory']), traj, atol=1e-6), (ours['trajec
 assert ours['command'] == command, (ours['command'], command)
 layout = np.load(sys.argv[3])['layout']
 assert layout.dtype == np.uint8 and layout.shape == (4, 100, 100) and layout.max() == 1, (layout.dtype, layout.shape)
+# The DiT's read of a rollout (hexplane_dataset.py: np.load(path)['rollout'].squeeze()) and the
+# released rollout_to_hexplane's slices, with (T, X, Y, Z) = (4, 200, 200, 16).
+f = np.load(sys.argv[4])
+r, mask = f['rollout'].squeeze(), f['mask']
+T, X, Y, Z = 4, 200, 200, 16
+assert r.dtype == np.float32 and r.shape == (18, X + T + Z, Y + Z + T) and mask.shape == r.shape[1:], (r.shape, mask.shape)
+xy, tz = r[:, :X, :Y], r[:, X:X + T, Y:Y + Z]
+assert np.allclose(xy.sum(0), 1, atol=1e-4), 'the baseline xy plane is a class distribution per cell'
+assert (r[:, X:X + T, Y + Z:] == 0).all() and (mask[X:, Y + Z:] == 0).all() and (mask[:X, :Y] == 1).all()
 print('ok')
 "#;
     let dc = out.join("dynamiccity");
@@ -157,10 +168,18 @@ print('ok')
             dc.join("Cartesian").to_str().unwrap(),
             dc.join("conditions/16/Train/synth-0000/000000.json").to_str().unwrap(),
             dc.join("layout/16/Train/synth-0000/000000.npz").to_str().unwrap(),
+            dc.join("rollout/baseline/Train/synth-0000/000000.npz").to_str().unwrap(),
         ])
         .output()
         .unwrap();
     assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
+    // The baseline HexPlane's reconstruction of the window: the ground and the free air come back.
+    let scores: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(dc.join("rollout/baseline/Train/synth-0000/000000_scores.json")).unwrap(),
+    )
+    .unwrap();
+    let road = scores["iou"]["driveable_surface"].as_f64().unwrap();
+    assert!(road > 0.7 && scores["miou"].as_f64().unwrap() > 0.3, "{scores}");
 }
 
 /// The shared real recordings: the nuScenes keyframe (folder named by its sample token) and the

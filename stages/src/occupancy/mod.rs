@@ -13,6 +13,7 @@ crate::stage_modules! {
     encode_occ3d::EncodeOcc3d,
     eval::EvalOccupancy,
     exact::ExactOccupancy,
+    hexplane::HexPlaneBaseline,
     occupancy_frame::Occupancy,
     preview::OccupancyPreview,
 }
