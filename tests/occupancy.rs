@@ -46,6 +46,28 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
         serde_json::from_slice(&std::fs::read(out.join("synth-0000/aggregate.json")).unwrap()).unwrap();
     assert_eq!(summary["sweeps_with_labels"], 4, "the synthetic lidarseg files are read: {summary}");
     assert!(summary["tracks"].as_u64().unwrap() > 0, "{summary}");
+    // Occ3D's annotations.json, merged from the scenes' parts: every frame in time order, its
+    // cameras, poses and the labels.npz it points at.
+    let o = dist4d(&["occ3d-annotations", out.to_str().unwrap(), "--val", "synth-0000"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let a: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("annotations.json")).unwrap()).unwrap();
+    assert_eq!((a["val_split"].clone(), a["train_split"].clone()), (serde_json::json!(["synth-0000"]), serde_json::json!([])));
+    let frames = a["scene_infos"]["synth-0000"].as_object().unwrap();
+    assert_eq!(frames.len(), 4);
+    let heads: Vec<_> = frames.values().filter(|f| f["prev"] == "").collect();
+    assert_eq!(heads.len(), 1, "one first frame");
+    for (token, f) in frames {
+        assert!(out.join(f["gt_path"].as_str().unwrap()).is_file(), "{token}: {}", f["gt_path"]);
+        assert_eq!(f["camera_sensor"].as_object().unwrap().len(), 6);
+        if f["next"] != "" {
+            assert_eq!(frames[f["next"].as_str().unwrap()]["prev"], token.as_str());
+        }
+        let cam = f["camera_sensor"].as_object().unwrap().values().next().unwrap();
+        assert!(data.join(cam["img_path"].as_str().unwrap()).is_file() && cam["extrinsic"]["rotation"].as_array().unwrap().len() == 4);
+    }
+    let bad = dist4d(&["occ3d-annotations", out.to_str().unwrap(), "--val", "scene-nope"]);
+    assert!(!bad.status.success() && text(&bad).contains("names scene scene-nope"), "{}", text(&bad));
+
     // A per-frame param: the scene's aggregate is reused.
     let again = run(&["--set", "occupancy.ground_fill=1"]);
     assert_eq!((column(&again, "scene", 3), column(&again, "occupancy", 3)), (0, 4), "{again}");

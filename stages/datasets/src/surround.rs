@@ -20,7 +20,7 @@ pub(crate) const DIMS: [DimSpec; 3] = [
     DimSpec { name: "frame", ordered: true },
     DimSpec { name: "camera", ordered: false },
 ];
-pub(crate) const PORTS: [SourcePortSpec; 13] = [
+pub(crate) const PORTS: [SourcePortSpec; 14] = [
     SourcePortSpec {
         name: "lidar",
         ty: "PointCloud",
@@ -66,6 +66,12 @@ pub(crate) const PORTS: [SourcePortSpec; 13] = [
         ty: "File",
         grain: "scene",
         doc: "a synthetic dataset's world, to render any view exactly: JSON {\"scene\": label, \"synth\": groundtruth/synth.json}; empty for other datasets",
+    },
+    SourcePortSpec {
+        name: "frame_token",
+        ty: "File",
+        grain: "frame",
+        doc: "the dataset's id of the frame, UTF-8 (nuScenes: a keyframe's sample token, another frame's LiDAR sample_data token; DGP: the LiDAR datum key), as `{frame.token}` in export paths",
     },
     SourcePortSpec {
         name: "map",
@@ -262,6 +268,7 @@ impl<R: SurroundReader> Dataset for Surround<R> {
         match port {
             "boxes" => return Ok(self.0.boxes(item)?.encode()),
             "camera_boxes" => return Ok(self.0.camera_boxes(item)?.encode()),
+            "frame_token" => return Ok(self.token(item).unwrap_or_default().into_bytes()),
             "map" => {
                 return match self.0.map_file(item.idx[0] as usize) {
                     Some(path) => std::fs::read(path).with_context(|| format!("reading the map {}", path.display())),

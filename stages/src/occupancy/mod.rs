@@ -9,6 +9,7 @@ crate::stage_modules! {
     dynamic_city::EncodeCarlaSC,
     poses_txt::PosesTxt,
     aggregate_scene::AggregateScene,
+    annotations::Occ3dAnnotations,
     conditions::DitConditions,
     encode_occ3d::EncodeOcc3d,
     eval::EvalOccupancy,
