@@ -233,3 +233,33 @@ fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
     }
     assert!(tmp.path().join("out-nuscenes/gts/scene-0061/ca9a282c9e77460f8360f564131a8af5/labels.npz").is_file());
 }
+
+/// Occupancy at the LiDAR's rate (`frames: Sweeps`, 20 Hz), which Occ3D lacks: the sweeps
+/// between keyframes have no lidarseg labels and take the nearest labelled point's, and every
+/// sweep gets its labels.npz, named by its LiDAR sample_data token.
+#[test]
+fn occupancy_at_every_sweep_takes_labels_from_the_keyframes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let o = dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "3", "--width", "320", "--height", "180"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let root = format!("dataset.root={}", data.display());
+    let out = tmp.path().join("out");
+    let o = std::process::Command::new(bin())
+        .current_dir(repo())
+        .args(["run", "pipelines/occupancy.ron", "--set", &root, "--set", "dataset.frames=Sweeps"])
+        .args(["--set", "exact.samples=1", "--progress", "off", "--cache", tmp.path().join("cache").to_str().unwrap()])
+        .args(["--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let frames = column(&t, "occupancy", 3);
+    assert!(frames > 3 * 5, "20 Hz sweeps, not the 3 keyframes: {frames}\n{t}");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("synth-0000/aggregate.json")).unwrap()).unwrap();
+    assert_eq!(summary["sweeps_with_labels"], 3, "{summary}");
+    assert!(summary["static_labels_transferred"].as_u64().unwrap() > summary["static_labels_by_height"].as_u64().unwrap() * 4, "{summary}");
+    let written = std::fs::read_dir(out.join("gts/synth-0000")).unwrap().count() as u64;
+    assert_eq!(written, frames);
+}

@@ -7,10 +7,14 @@
 //! inside the ego vehicle's box or nearer than `min_distance` to the LiDAR are dropped. A point
 //! inside a box of its frame (grown by `box_margin`, bottom raised by `ground_clearance` so the
 //! road under a car stays road) goes to that box's track, with the box's class; the others are
-//! static. Classes ([`super::classes`]): nuScenes-lidarseg labels where the sweep has them; a
-//! sweep without labels falls back to height: within `fallback_ground` metres of the ego frame's
-//! ground plane driveable surface, above it manmade (named in the `summary`). Both clouds are
-//! thinned to one point per voxel (`voxel`, `track_voxel`), the first in sweep, then point order.
+//! static. Classes ([`super::classes`]): nuScenes-lidarseg labels where the sweep has them. A
+//! sweep without labels (nuScenes labels keyframes only: at 10-20 Hz, most sweeps) takes, for
+//! each static point, the label of the nearest labelled static point of the scene in the world
+//! frame, within `transfer_distance` metres (the labelled sweeps' static points are gathered
+//! first). A point with none that near, or a scene without any labels, falls back to height:
+//! within `fallback_ground` metres of the ego frame's ground plane driveable surface, above it
+//! manmade. The `summary` says how many points took which. Both clouds are thinned to one point
+//! per voxel (`voxel`, `track_voxel`), the first in sweep, then point order.
 
 use super::classes::{self, DRIVEABLE_SURFACE, DROP, MANMADE};
 use crate::stage::Stage;
@@ -22,7 +26,7 @@ use dist4d_types::geometry::{BoxTest, Se3};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
-use std::collections::{BTreeMap, HashSet};
+use std::collections::{BTreeMap, HashMap, HashSet};
 
 /// Where the points of annotated objects are gathered.
 #[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
@@ -54,6 +58,8 @@ pub struct Params {
     pub ego_box_max: [f64; 3],
     /// Without point labels: points below this height (m, ego frame) are driveable surface.
     pub fallback_ground: f64,
+    /// An unlabelled point takes the label of the nearest labelled one within this distance (m).
+    pub transfer_distance: f64,
 }
 
 impl Default for Params {
@@ -68,6 +74,7 @@ impl Default for Params {
             ego_box_min: [-1.0, -1.0, -1.0],
             ego_box_max: [3.4, 1.0, 2.0],
             fallback_ground: 0.3,
+            transfer_distance: 0.5,
         }
     }
 }
@@ -80,7 +87,8 @@ impl Validate for Params {
             .within("box_margin", self.box_margin, 0.0, 100.0)
             .within("ground_clearance", self.ground_clearance, 0.0, 100.0)
             .within("min_distance", self.min_distance, 0.0, 1000.0)
-            .within("fallback_ground", self.fallback_ground, -100.0, 100.0);
+            .within("fallback_ground", self.fallback_ground, -100.0, 100.0)
+            .within("transfer_distance", self.transfer_distance, 0.0, 100.0);
         for a in 0..3 {
             c.check(
                 self.ego_box_min[a].is_finite() && self.ego_box_max[a].is_finite() && self.ego_box_min[a] <= self.ego_box_max[a],
@@ -120,7 +128,8 @@ pub struct AggregateScene(Params);
 
 impl Stage for AggregateScene {
     const KIND: &'static str = "AggregateScene";
-    const VERSION: u32 = 1;
+    // 2: unlabelled sweeps take the nearest labelled point's label.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str =
         "a scene's LiDAR gathered once: static points in the world, each object's in its box frame, Occ3D classes";
     const GRAINS: &'static [&'static str] = &["scene"];
@@ -168,10 +177,60 @@ fn voxel_of(p: DVec3, size: f64) -> Voxel {
     ((p.x / size).floor() as i64, (p.y / size).floor() as i64, (p.z / size).floor() as i64)
 }
 
+/// A static point of a sweep, in the world, with its class if its sweep had labels, and its
+/// height in its own ego frame (for the height fallback).
+struct StaticPoint {
+    world: DVec3,
+    intensity: f32,
+    class: Option<u8>,
+    ego_z: f64,
+}
+
+/// Labelled points binned by voxel of `size`, for nearest-label lookups.
+struct LabelIndex {
+    size: f64,
+    cells: HashMap<Voxel, Vec<(DVec3, u8)>>,
+}
+
+impl LabelIndex {
+    fn nearest(&self, p: DVec3, within: f64) -> Option<u8> {
+        let (cx, cy, cz) = voxel_of(p, self.size);
+        let reach = (within / self.size).ceil() as i64;
+        let mut best: Option<(f64, u8)> = None;
+        for dx in -reach..=reach {
+            for dy in -reach..=reach {
+                for dz in -reach..=reach {
+                    for (q, class) in self.cells.get(&(cx + dx, cy + dy, cz + dz)).into_iter().flatten() {
+                        let d = (*q - p).length();
+                        if d <= within && best.is_none_or(|(bd, _)| d < bd) {
+                            best = Some((d, *class));
+                        }
+                    }
+                }
+            }
+        }
+        best.map(|(_, c)| c)
+    }
+}
+
 /// The aggregation of the module doc: static points, tracks and a summary.
 pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serde_json::Value) {
-    let mut static_points = PointCloud::default();
-    let mut static_seen: HashSet<Voxel> = HashSet::new();
+    // One static point per voxel (the first; a labelled point replaces an unlabelled one), so
+    // that memory follows the scene's extent, not its number of sweeps.
+    let mut statics: Vec<StaticPoint> = Vec::new();
+    let mut static_at: HashMap<Voxel, usize> = HashMap::new();
+    let mut keep = |sp: StaticPoint| match static_at.entry(voxel_of(sp.world, p.voxel)) {
+        std::collections::hash_map::Entry::Vacant(e) => {
+            e.insert(statics.len());
+            statics.push(sp);
+        }
+        std::collections::hash_map::Entry::Occupied(e) => {
+            let old = &mut statics[*e.get()];
+            if old.class.is_none() && sp.class.is_some() {
+                *old = sp;
+            }
+        }
+    };
     // instance -> (class, voxels seen, points)
     let mut tracks: BTreeMap<String, (u8, HashSet<Voxel>, Vec<[f32; 3]>)> = BTreeMap::new();
     let (emin, emax) = (DVec3::from_array(p.ego_box_min), DVec3::from_array(p.ego_box_max));
@@ -203,10 +262,7 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
             let world = s.pose.ego_to_world.apply(ego);
             let in_box = boxes.iter().find(|(t, _)| t.contains(world));
             if let (Some((_, b)), Objects::World) = (in_box, p.objects) {
-                if static_seen.insert(voxel_of(world, p.voxel)) {
-                    static_points.points.push([world.x as f32, world.y as f32, world.z as f32, q[3]]);
-                    static_points.labels.push(classes::of_category(&b.category));
-                }
+                keep(StaticPoint { world, intensity: q[3], class: Some(classes::of_category(&b.category)), ego_z: ego.z });
                 continue;
             }
             if let Some((test, b)) = in_box {
@@ -217,22 +273,43 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
                 }
                 continue;
             }
-            let class = if has_labels {
-                classes::of_lidarseg(s.points.labels[k])
-            } else if ego.z < p.fallback_ground {
-                DRIVEABLE_SURFACE
-            } else {
-                MANMADE
-            };
-            if class == DROP {
+            let class = has_labels.then(|| classes::of_lidarseg(s.points.labels[k]));
+            if class == Some(DROP) {
                 dropped += 1;
                 continue;
             }
-            if static_seen.insert(voxel_of(world, p.voxel)) {
-                static_points.points.push([world.x as f32, world.y as f32, world.z as f32, q[3]]);
-                static_points.labels.push(class);
-            }
+            keep(StaticPoint { world, intensity: q[3], class, ego_z: ego.z });
         }
+    }
+    drop(keep);
+    // Labels for the points of unlabelled sweeps: the nearest labelled static point's.
+    let size = p.transfer_distance.max(0.05);
+    let mut index = LabelIndex { size, cells: HashMap::new() };
+    for sp in statics.iter().filter(|sp| sp.class.is_some()) {
+        index.cells.entry(voxel_of(sp.world, size)).or_default().push((sp.world, sp.class.unwrap_or(0)));
+    }
+    let (mut transferred, mut fallback) = (0usize, 0usize);
+    let mut static_points = PointCloud::default();
+    for sp in &statics {
+        let class = match sp.class {
+            Some(c) => c,
+            None => match index.nearest(sp.world, p.transfer_distance) {
+                Some(c) => {
+                    transferred += 1;
+                    c
+                }
+                None => {
+                    fallback += 1;
+                    if sp.ego_z < p.fallback_ground {
+                        DRIVEABLE_SURFACE
+                    } else {
+                        MANMADE
+                    }
+                }
+            },
+        };
+        static_points.points.push([sp.world.x as f32, sp.world.y as f32, sp.world.z as f32, sp.intensity]);
+        static_points.labels.push(class);
     }
     let tracks = TrackClouds {
         tracks: tracks
@@ -243,7 +320,7 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
     let source = match labelled {
         0 => "fallback: no sweep has point labels; boxes give their class, the rest is driveable surface below `fallback_ground` (ego frame) and manmade above",
         l if l == sweeps.len() => "nuScenes-lidarseg (every sweep), boxes give their class",
-        _ => "nuScenes-lidarseg where a sweep has it, the height fallback elsewhere; boxes give their class",
+        _ => "nuScenes-lidarseg where a sweep has it; the other sweeps' static points take the nearest labelled point's label within `transfer_distance` (else the height fallback); boxes give their class",
     };
     let summary = json!({
         "sweeps": sweeps.len(),
@@ -251,6 +328,8 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
         "labels": source,
         "points_read": points_in,
         "points_dropped": dropped,
+        "static_labels_transferred": transferred,
+        "static_labels_by_height": fallback,
         "static_points": static_points.points.len(),
         "tracks": tracks.tracks.len(),
         "track_points": tracks.tracks.iter().map(|t| t.points.len()).sum::<usize>(),
