@@ -25,7 +25,7 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     // The shipped pipeline with DynamicCity's windows of 4 frames (the scene has 4), one per frame.
     let shipped = std::fs::read_to_string(repo().join("pipelines/occupancy.ron")).unwrap();
     let windowed = shipped.replace("frame, 0, 15)", "frame, 0, 3)");
-    assert_eq!(windowed.matches("frame, 0, 3)").count(), 3);
+    assert_eq!(windowed.matches("frame, 0, 3)").count(), 4);
     let pipeline = tmp.path().join("occupancy.ron");
     std::fs::write(&pipeline, windowed).unwrap();
     let pipeline = pipeline.to_str().unwrap().to_string();
@@ -33,6 +33,7 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
         let mut args = vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
         args.extend(["--set", "conditions.frames=4", "--set", "conditions.stride=1"]);
         args.extend(["--set", "hexplane.frames=4", "--set", "hexplane.stride=4"]);
+        args.extend(["--set", "sheet.frames=4", "--set", "sheet.stride=4", "--set", "sheet.columns=2"]);
         args.extend(["--out", out.to_str().unwrap()]);
         args.extend(extra);
         let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
@@ -45,6 +46,10 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("synth-0000/aggregate.json")).unwrap()).unwrap();
     assert_eq!(summary["sweeps_with_labels"], 4, "the synthetic lidarseg files are read: {summary}");
+    // The window's sheet: 4 bird's-eye views of 400 x 400 in 2 columns, 4 px apart.
+    let sheet = image::open(out.join("synth-0000/occupancy/000_window_sheet.png")).unwrap();
+    assert_eq!((sheet.width(), sheet.height()), (804, 804));
+    assert!(!out.join("synth-0000/occupancy/001_window_sheet.png").exists(), "one sheet per window");
     assert!(summary["tracks"].as_u64().unwrap() > 0, "{summary}");
     // Occ3D's annotations.json, merged from the scenes' parts: every frame in time order, its
     // cameras, poses and the labels.npz it points at.

@@ -17,4 +17,5 @@ crate::stage_modules! {
     hexplane::HexPlaneBaseline,
     occupancy_frame::Occupancy,
     preview::OccupancyPreview,
+    sheet::OccupancySheet,
 }

@@ -1,0 +1,101 @@
+//! `OccupancySheet`: a window of occupancy frames on one image, to see a sequence the way a 4D
+//! model sees it: the frames' bird's-eye views ([`super::preview`]) in rows of `columns`, in time
+//! order, one sheet per window start (every `stride` frames, as the DiT's windows).
+
+use crate::stage::Stage;
+use anyhow::{ensure, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_types::artifact::Image;
+use serde::{Deserialize, Serialize};
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Frames per window; wire `views` with `Window(.., frame, 0, frames - 1)`.
+    pub frames: u32,
+    /// A sheet every this many frames.
+    pub stride: u32,
+    /// Views per row.
+    pub columns: u32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { frames: 16, stride: 16, columns: 4 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        c.count("frames", self.frames as u64, 1, 1024).count("stride", self.stride as u64, 1, 1024).count(
+            "columns",
+            self.columns as u64,
+            1,
+            64,
+        );
+        c.done()
+    }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// the window's bird's-eye views (`Window("preview.bev", frame, 0, 15)`)
+        views: Many<Image>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// the sheet
+        sheet: One<Image>,
+    }
+}
+
+pub struct OccupancySheet(Params);
+
+impl Stage for OccupancySheet {
+    const KIND: &'static str = "OccupancySheet";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str = "a window of occupancy frames' bird's-eye views on one sheet, in time order";
+    const GRAINS: &'static [&'static str] = &["frame"];
+    // Which frames start a window depends on the item's position: its keys hold the item.
+    const SEEDED: bool = true;
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+
+    fn new(params: Params) -> Result<Self> {
+        Ok(OccupancySheet(params))
+    }
+
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let t = self.0.frames as usize;
+        let start = ctx.item.coords().get(1).copied().unwrap_or(0);
+        if start % self.0.stride != 0 {
+            return Err(NotApplicable(format!("a sheet starts every {} frames", self.0.stride)).into());
+        }
+        if i.views.len() < t {
+            return Err(NotApplicable(format!("the window of {t} frames runs past the scene's end")).into());
+        }
+        let mut views: Vec<&(i64, Image)> = i.views.iter().collect();
+        views.sort_by_key(|(pos, _)| *pos);
+        let (w, h) = (views[0].1.width as usize, views[0].1.height as usize);
+        ensure!(views.iter().all(|(_, v)| (v.width as usize, v.height as usize) == (w, h)), "the views differ in size");
+        let cols = (self.0.columns as usize).min(t);
+        let rows = t.div_ceil(cols);
+        let gap = 4;
+        let (sw, sh) = (cols * w + (cols - 1) * gap, rows * h + (rows - 1) * gap);
+        let mut rgb = vec![255u8; sw * sh * 3];
+        for (k, (_, v)) in views.iter().take(t).enumerate() {
+            let (x0, y0) = ((k % cols) * (w + gap), (k / cols) * (h + gap));
+            for y in 0..h {
+                let src = &v.rgb[3 * y * w..3 * (y + 1) * w];
+                let at = 3 * ((y0 + y) * sw + x0);
+                rgb[at..at + 3 * w].copy_from_slice(src);
+            }
+        }
+        Ok(Outputs { sheet: Image { width: sw as u32, height: sh as u32, rgb } })
+    }
+}
