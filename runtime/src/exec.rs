@@ -801,6 +801,13 @@ impl Coord {
                 }
                 if run.plan.drop_upstream(d as u32, u as u32) {
                     run.state[d] = State::Skipped;
+                    // Nothing to make: what an earlier run exported for it goes.
+                    let (node, item) = (run.plan.tasks[d].node as usize, run.plan.tasks[d].item);
+                    if let Some(exporter) = self.exporter.as_ref() {
+                        for x in e.pipeline.exports.iter().filter(|x| x.node == node) {
+                            exporter.remove_stale(x, &item, e.dataset);
+                        }
+                    }
                     let dn = self.counter_of[run.plan.tasks[d].node as usize];
                     self.stats[dn].not_applicable += 1;
                     self.counters.done[dn].fetch_add(1, Ordering::Relaxed);
@@ -816,7 +823,6 @@ impl Coord {
                 }
             }
         }
-        let _ = e;
     }
 
     /// Frees the slot of an outer item whose tasks, exports and reruns have all ended.
@@ -866,8 +872,12 @@ impl Coord {
         let mut awaiting = record.map(|record| Awaiting { record: Some(record), files_left: 0 });
         if let Some(exporter) = self.exporter.as_mut() {
             for x in p.exports.iter().filter(|x| x.node == node) {
-                // A task with nothing to make (no outputs) has nothing to export.
-                let Some(out) = produced.get(x.port) else { continue };
+                // A task with nothing to make (no outputs) has nothing to export, and what an
+                // earlier run exported for it goes.
+                let Some(out) = produced.get(x.port) else {
+                    exporter.remove_stale(x, &item, e.dataset);
+                    continue;
+                };
                 let names = (p.nodes[node].name.as_str(), p.nodes[node].outputs[x.port].name.as_str());
                 let waiting = awaiting.as_mut().filter(|_| out.only_in_folder);
                 match exporter.plan(x, names, &item, e.dataset, &out.r, out.mem.clone(), e.store) {

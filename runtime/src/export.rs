@@ -443,6 +443,19 @@ impl Exporter {
         })
     }
 
+    /// For a task that now has nothing to make: removes the file an earlier run of this pipeline
+    /// exported for it (only a file the manifest lists, so never one dist4d did not write); the
+    /// manifest drops it at the end of the run. Without this a rerun would leave it beside the
+    /// new files, listed nowhere but in the manifest.
+    pub fn remove_stale(&self, export: &Export, item: &ItemKey, dataset: &dyn Dataset) {
+        let Ok(rel) = render(export, item, dataset, &self.folder.dims) else { return };
+        if self.folder.manifest.files.contains_key(&rel) {
+            if let Ok(dest) = confined(&self.folder.dir, &rel) {
+                let _ = std::fs::remove_file(dest);
+            }
+        }
+    }
+
     /// The folder as this run found it, for the cache decision of outputs kept only there.
     pub fn folder(&self) -> Arc<OutputFolder> {
         self.folder.clone()
