@@ -6,8 +6,11 @@
 //! Per sweep: points go sensor -> ego -> world through its calibration and ego pose; points
 //! inside the ego vehicle's box or nearer than `min_distance` to the LiDAR are dropped. A point
 //! inside a box of its frame (grown by `box_margin`, bottom raised by `ground_clearance` so the
-//! road under a car stays road) goes to that box's track, with the box's class; the others are
-//! static. Classes ([`super::classes`]): nuScenes-lidarseg labels where the sweep has them. A
+//! road under a car stays road) goes to that box's track, with the box's class. A labelled point
+//! goes by its label instead: into the box when its label is the box's class, the bottom
+//! included (a pedestrian's feet, which would otherwise stay behind as a trail of static
+//! pedestrian points), and never when it is something else (a pole by a pedestrian). The others
+//! are static. Classes ([`super::classes`]): nuScenes-lidarseg labels where the sweep has them. A
 //! sweep without labels (nuScenes labels keyframes only: at 10-20 Hz, most sweeps) takes, for
 //! each static point, the label of the nearest labelled static point of the scene in the world
 //! frame, within `transfer_distance` metres (the labelled sweeps' static points are gathered
@@ -129,7 +132,8 @@ pub struct AggregateScene(Params);
 impl Stage for AggregateScene {
     const KIND: &'static str = "AggregateScene";
     // 2: unlabelled sweeps take the nearest labelled point's label.
-    const VERSION: u32 = 2;
+    // 3: a labelled point joins a track exactly when its label is the box's class, feet included.
+    const VERSION: u32 = 4;
     const SUMMARY: &'static str =
         "a scene's LiDAR gathered once: static points in the world, each object's in its box frame, Occ3D classes";
     const GRAINS: &'static [&'static str] = &["scene"];
@@ -238,13 +242,20 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
     for s in sweeps {
         let has_labels = s.points.labels.len() == s.points.points.len() && !s.points.points.is_empty();
         labelled += has_labels as usize;
-        let boxes: Vec<(BoxTest, &dist4d_types::artifact::Box3D)> = s
+        // Per box: the test for unlabelled points (its bottom raised: the ground under a car is
+        // not the car) and the one for points its class labels (whole: a pedestrian's feet are).
+        let boxes: Vec<(BoxTest, BoxTest, u8, &dist4d_types::artifact::Box3D)> = s
             .boxes
             .boxes
             .iter()
             .map(|b| {
                 let pose = Se3::from_wxyz_t(b.rotation, b.center);
-                (BoxTest::new(b.size, &pose, &Se3::default(), p.box_margin, p.ground_clearance), b)
+                (
+                    BoxTest::new(b.size, &pose, &Se3::default(), p.box_margin, p.ground_clearance),
+                    BoxTest::new(b.size, &pose, &Se3::default(), p.box_margin, 0.0),
+                    classes::of_category(&b.category),
+                    b,
+                )
             })
             .collect();
         for (k, q) in s.points.points.iter().enumerate() {
@@ -260,7 +271,17 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
                 continue;
             }
             let world = s.pose.ego_to_world.apply(ego);
-            let in_box = boxes.iter().find(|(t, _)| t.contains(world));
+            let label = has_labels.then(|| classes::of_lidarseg(s.points.labels[k]));
+            // A labelled point joins a box's track only when its label is the box's class: the
+            // pole or the wall a pedestrian stands by, inside the grown box, is not the pedestrian
+            // (drawn at every pose of the track, it would walk along with it).
+            let in_box = boxes
+                .iter()
+                .find(|(raised, whole, class, _)| match label {
+                    None => raised.contains(world),
+                    Some(l) => l == *class && whole.contains(world),
+                })
+                .map(|(_, whole, _, b)| (whole, *b));
             if let (Some((_, b)), Objects::World) = (in_box, p.objects) {
                 keep(StaticPoint { world, intensity: q[3], class: Some(classes::of_category(&b.category)), ego_z: ego.z });
                 continue;
@@ -273,7 +294,7 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
                 }
                 continue;
             }
-            let class = has_labels.then(|| classes::of_lidarseg(s.points.labels[k]));
+            let class = label;
             if class == Some(DROP) {
                 dropped += 1;
                 continue;

@@ -1,7 +1,8 @@
 //! `ExactOccupancy`: a synthetic dataset's exact semantic occupancy of a frame, the reference
-//! the LiDAR-built occupancy is scored against: the world's primitives sampled in every voxel of
-//! the same grid ([`dist4d_synth::Snapshot::occupancy`], 3 x 3 x 3 samples by default), their
-//! classes mapped to Occ3D's as the synthetic lidarseg files are, and the visibility masks cast
+//! the LiDAR-built occupancy is scored against: every voxel of the same grid that shares volume
+//! with one of the world's primitives or reaches below the ground
+//! ([`dist4d_synth::Snapshot::occupancy`]: exact overlap tests, the class by 3 x 3 x 3 samples),
+//! the classes mapped to Occ3D's as the synthetic lidarseg files are, and the visibility masks cast
 //! exactly as [`super::occupancy_frame`] casts them (the frame's sweep for `mask_lidar`, camera
 //! rays stopping at the first occupied voxel for `mask_camera`). On a dataset that is not
 //! synthetic it has nothing to make.
@@ -23,7 +24,7 @@ pub struct Params {
     pub grid: GridParams,
     pub camera_ray_step: u32,
     pub camera_max_distance: f64,
-    /// Samples per voxel along each axis.
+    /// Samples per voxel along each axis (they choose the class where primitives meet).
     pub samples: u32,
 }
 
@@ -81,7 +82,9 @@ pub struct ExactOccupancy(Params);
 
 impl Stage for ExactOccupancy {
     const KIND: &'static str = "ExactOccupancy";
-    const VERSION: u32 = 1;
+    // 2: a voxel is occupied when it shares any volume with a primitive (exact tests), not only
+    // when one of its 27 samples is inside one: slivers up to 6.7 cm thick were left free.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str = "a synthetic world's exact semantic occupancy of a frame (the occupancy reference)";
     const GRAINS: &'static [&'static str] = &["frame"];
     type Params = Params;

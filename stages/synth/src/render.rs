@@ -98,11 +98,13 @@ impl<'w> Snapshot<'w> {
 
     /// The exact semantic occupancy of a voxel grid around an ego pose: voxel (i, j, k) of
     /// `dims` (C order) spans `min + (i, j, k) * voxel` in the ego frame (`ego_to_world` places
-    /// it in the world). It is sampled at `samples`^3 points; a voxel is occupied when a sample is
-    /// inside a primitive or below the ground plane (z = 0), and its class (Cityscapes id) is the
-    /// most common class of the samples inside primitives, else the ground's there (road within
-    /// the road's half width of the path, terrain beyond). 0 = free. The ego vehicle's body is not
-    /// in it (Occ3D leaves the ego out).
+    /// it in the world; the synthetic ego only turns about z). A voxel is occupied when it shares
+    /// any volume with a primitive (exact tests, [`crate::shapes::Shape::overlaps_box`]) or reaches
+    /// below the ground plane (z = 0). Its class (Cityscapes id) is the class of the primitive
+    /// with the most of `samples`^3 points inside it (a primitive that shares only a sliver, no
+    /// sample, still counts), else the ground's there (road within the road's half width of the
+    /// path, terrain beyond). 0 = free. The ego vehicle's body is not in it (Occ3D leaves the ego
+    /// out).
     pub fn occupancy(&self, ego_to_world: &Se3, min: DVec3, voxel: f64, dims: [usize; 3], samples: usize) -> Vec<u8> {
         let s = samples.max(1);
         let [nx, ny, nz] = dims;
@@ -122,28 +124,39 @@ impl<'w> Snapshot<'w> {
                         }
                     }
                 }
+                let (yaw_cos, yaw_sin) = {
+                    let x = ego_to_world.rotation * DVec3::X;
+                    let n = (x.x * x.x + x.y * x.y).sqrt().max(1e-12);
+                    (x.x / n, x.y / n)
+                };
+                let h = voxel / 2.0;
                 let mut column = vec![0u8; nz];
                 for (k, out) in column.iter_mut().enumerate() {
-                    let mut counts = [0u16; 256];
-                    let mut ground: Option<u8> = None;
-                    for a in 0..s {
-                        for b in 0..s {
-                            for d in 0..s {
-                                let e = corner + DVec3::new(offset(a), offset(b), k as f64 * voxel + offset(d));
-                                let w = ego_to_world.apply(e);
-                                if let Some(p) = near.iter().find(|p| p.shape.contains(w)) {
-                                    counts[p.class as usize] += 1;
-                                } else if w.z < 0.0 && ground.is_none() {
-                                    ground = Some(match self.world.path.station(w.x, w.y) {
-                                        Some((_, dd)) if dd.abs() <= ROAD_HALF_WIDTH => class::ROAD,
-                                        _ => class::TERRAIN,
-                                    });
+                    let centre = ego_to_world.apply(corner + DVec3::new(h, h, k as f64 * voxel + h));
+                    let touching: Vec<&Prim> =
+                        near.iter().copied().filter(|p| p.shape.overlaps_box(centre, h, yaw_cos, yaw_sin)).collect();
+                    if !touching.is_empty() {
+                        // The class of the primitive holding the most samples (the first on ties).
+                        let mut counts = vec![0u32; touching.len()];
+                        for a in 0..s {
+                            for b in 0..s {
+                                for d in 0..s {
+                                    let e = corner + DVec3::new(offset(a), offset(b), k as f64 * voxel + offset(d));
+                                    let w = ego_to_world.apply(e);
+                                    if let Some(n) = touching.iter().position(|p| p.shape.contains(w)) {
+                                        counts[n] += 1;
+                                    }
                                 }
                             }
                         }
+                        let best = (0..touching.len()).max_by_key(|&n| (counts[n], std::cmp::Reverse(n))).unwrap_or(0);
+                        *out = touching[best].class;
+                    } else if centre.z - h < 0.0 {
+                        *out = match self.world.path.station(centre.x, centre.y) {
+                            Some((_, dd)) if dd.abs() <= ROAD_HALF_WIDTH => class::ROAD,
+                            _ => class::TERRAIN,
+                        };
                     }
-                    let best = (1..256).max_by_key(|&c| (counts[c], std::cmp::Reverse(c))).filter(|&c| counts[c] > 0);
-                    *out = best.map(|c| c as u8).or(ground).unwrap_or(0);
                 }
                 column
             })

@@ -48,6 +48,47 @@ impl Shape {
         }
     }
 
+    /// Whether the solid and a box rotated about z only (centre `c`, half size `h`, yaw cos/sin)
+    /// share any volume (touching is not sharing). Exact: separating axes for two boxes, the
+    /// nearest point of the box for a cylinder's disc and a sphere.
+    pub fn overlaps_box(&self, c: DVec3, h: f64, cos: f64, sin: f64) -> bool {
+        // A point in the box's frame (its x, y axes; z unchanged).
+        let local = |p: DVec3| {
+            let d = p - c;
+            DVec3::new(d.x * cos + d.y * sin, -d.x * sin + d.y * cos, d.z)
+        };
+        let eps = 1e-9;
+        match *self {
+            Shape::Box { c: bc, half, cos: bcos, sin: bsin } => {
+                if (bc.z - c.z).abs() >= half[2] + h - eps {
+                    return false;
+                }
+                // 2D separating axes: the two boxes' x and y axes.
+                let axes = [(cos, sin), (-sin, cos), (bcos, bsin), (-bsin, bcos)];
+                let d = (bc.x - c.x, bc.y - c.y);
+                axes.iter().all(|&(ax, ay)| {
+                    let dist = (d.0 * ax + d.1 * ay).abs();
+                    let r_voxel = h * ((cos * ax + sin * ay).abs() + (-sin * ax + cos * ay).abs());
+                    let r_prim = half[0] * (bcos * ax + bsin * ay).abs() + half[1] * (-bsin * ax + bcos * ay).abs();
+                    dist < r_voxel + r_prim - eps
+                })
+            }
+            Shape::Cylinder { x, y, r, z0, z1 } => {
+                if z1 <= c.z - h + eps || z0 >= c.z + h - eps {
+                    return false;
+                }
+                let q = local(DVec3::new(x, y, c.z));
+                let (nx, ny) = (q.x.clamp(-h, h), q.y.clamp(-h, h));
+                (q.x - nx).powi(2) + (q.y - ny).powi(2) < r * r - eps
+            }
+            Shape::Sphere { c: sc, r } => {
+                let q = local(sc);
+                let n = DVec3::new(q.x.clamp(-h, h), q.y.clamp(-h, h), q.z.clamp(-h, h));
+                (q - n).length_squared() < r * r - eps
+            }
+        }
+    }
+
     /// Corners of the footprint (boxes), or of the bounding square.
     pub fn footprint_corners(&self) -> Vec<(f64, f64)> {
         match *self {
@@ -421,6 +462,19 @@ mod tests {
         let (t, n) = c.intersect(o, d, 0.0, 100.0).unwrap();
         assert!((t - 7.0).abs() < 1e-12 && n.z == 1.0);
         let s = Shape::Sphere { c: DVec3::new(0.0, 10.0, 0.0), r: 2.0 };
+        // Exact overlap with a voxel (a cube of half size 0.2, yawed 30 degrees).
+        let (vc, vs) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
+        assert!(s.overlaps_box(DVec3::new(0.0, 11.9, 0.0), 0.2, vc, vs), "a sliver of the sphere");
+        assert!(!s.overlaps_box(DVec3::new(0.0, 12.5, 0.0), 0.2, vc, vs));
+        assert!(c.overlaps_box(DVec3::new(5.6, 0.0, 1.0), 0.2, 1.0, 0.0), "0.1 m of the cylinder in it");
+        assert!(!c.overlaps_box(DVec3::new(5.75, 0.0, 1.0), 0.2, 1.0, 0.0), "5 cm apart");
+        assert!(!c.overlaps_box(DVec3::new(5.7, 0.0, 1.0), 0.2, 1.0, 0.0), "touching is not sharing");
+        // A box yawed 90 degrees (2 m along y, 4 m along x after the turn) against voxels.
+        let b = Shape::oriented_box(DVec3::new(10.0, 0.0, 1.0), [1.0, 2.0, 1.0], std::f64::consts::FRAC_PI_2);
+        assert!(b.overlaps_box(DVec3::new(12.15, 0.0, 1.0), 0.2, 1.0, 0.0), "5 cm of it");
+        assert!(!b.overlaps_box(DVec3::new(12.25, 0.0, 1.0), 0.2, 1.0, 0.0));
+        assert!(b.overlaps_box(DVec3::new(10.0, 1.15, 1.0), 0.2, vc, vs), "a yawed voxel at its side");
+        assert!(!b.overlaps_box(DVec3::new(10.0, 1.0, 2.2), 0.2, 1.0, 0.0), "above its top");
         let (o, d) = ray([0.0, 0.0, 0.0], [0.0, 1.0, 0.0]);
         assert!((s.intersect(o, d, 0.0, 100.0).unwrap().0 - 8.0).abs() < 1e-12);
     }
