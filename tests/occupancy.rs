@@ -200,6 +200,33 @@ print('ok')
         .output()
         .unwrap();
     assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
+    // The same window through the reference HexPlane worker (numpy, the released
+    // hexplane_to_rollout's concatenations): the same rollout as the built-in baseline's.
+    let worker = format!(
+        "hexplane.worker=Some((program: {:?}, args: [{:?}]))",
+        python.display().to_string(),
+        repo().join("workers/hexplane_means.py").display().to_string()
+    );
+    let worker_out = tmp.path().join("worker");
+    let mut args = vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
+    args.extend(["--set", "conditions.frames=4", "--set", "conditions.stride=1", "--set", "hexplane.frames=4"]);
+    args.extend(["--set", "hexplane.stride=4", "--set", "sheet.frames=4", "--set", "sheet.stride=4", "--set", &worker]);
+    args.extend(["--out", worker_out.to_str().unwrap()]);
+    let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let compare = "import sys, numpy as np
+a, b = np.load(sys.argv[1]), np.load(sys.argv[2])
+assert a['rollout'].shape == b['rollout'].shape, (a['rollout'].shape, b['rollout'].shape)
+assert np.allclose(a['rollout'], b['rollout'], atol=1e-6), np.abs(a['rollout'] - b['rollout']).max()
+assert (a['mask'] == b['mask']).all()
+print('ok')";
+    let rel = "dynamiccity/rollout/baseline/Train/synth-0000/000000.npz";
+    let o = std::process::Command::new(&python)
+        .args(["-c", compare, out.join(rel).to_str().unwrap(), worker_out.join(rel).to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
+
     // The baseline HexPlane's reconstruction of the window: the ground and the free air come back.
     let scores: serde_json::Value = serde_json::from_slice(
         &std::fs::read(dc.join("rollout/baseline/Train/synth-0000/000000_scores.json")).unwrap(),

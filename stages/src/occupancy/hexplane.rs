@@ -14,11 +14,13 @@
 //! rows X+T..     yz transposed    zeros       zeros
 //! ```
 //!
-//! `HexPlaneBaseline` is a baseline, not DynamicCity's VAE (a model: it runs as a worker): its
-//! encoder takes each plane as the mean of the window's one-hot volume over the two other axes,
-//! its decoder the class that maximises the six planes' product at each voxel. It makes the
-//! chain from occupancy to rollout files run without a GPU, and its reconstruction mIoU is the
-//! floor a learned VAE must clear.
+//! `HexPlaneBaseline` is a baseline, not DynamicCity's VAE: its encoder takes each plane as the
+//! mean of the window's one-hot volume over the two other axes, its decoder the class that
+//! maximises the six planes' product at each voxel. It makes the chain from occupancy to rollout
+//! files run without a GPU, and its reconstruction mIoU is the floor a learned VAE must clear.
+//! The VAE itself runs as a worker (`worker`, op `encode_hexplane`: the window's classes in, the
+//! rollout out; docs/workers.md); `workers/hexplane_means.py` is a numpy reference that computes
+//! the baseline's planes and rolls them out as the released code does.
 
 use super::classes::{FREE, NAMES};
 use super::eval::scores;
@@ -233,11 +235,16 @@ pub struct Params {
     pub frames: u32,
     /// A window starts every this many frames.
     pub stride: u32,
+    /// A learned HexPlane encoder (DynamicCity's VAE) as an external worker in place of the
+    /// baseline: op `encode_hexplane` (docs/workers.md). Its name, version and weights enter the
+    /// task keys. Its rollout has no reconstruction scores (the decoder is its model's).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub worker: Option<crate::model_worker::WorkerSpec>,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { frames: 16, stride: 16 }
+        Params { frames: 16, stride: 16, worker: None }
     }
 }
 
@@ -245,6 +252,9 @@ impl Validate for Params {
     fn validate(&self) -> Vec<ParamProblem> {
         let mut c = ParamChecks::new();
         c.count("frames", self.frames as u64, 1, 1024).count("stride", self.stride as u64, 1, 1024);
+        if let Some(w) = &self.worker {
+            w.check(&mut c);
+        }
         c.done()
     }
 }
@@ -266,7 +276,7 @@ crate::ports! {
     }
 }
 
-pub struct HexPlaneBaseline(Params);
+pub struct HexPlaneBaseline(Params, crate::model_worker::ModelWorker);
 
 impl Stage for HexPlaneBaseline {
     const KIND: &'static str = "HexPlaneBaseline";
@@ -282,7 +292,14 @@ impl Stage for HexPlaneBaseline {
     type Outputs = Outputs;
 
     fn new(params: Params) -> Result<Self> {
-        Ok(HexPlaneBaseline(params))
+        let worker = crate::model_worker::ModelWorker::new(params.worker.clone());
+        Ok(HexPlaneBaseline(params, worker))
+    }
+    fn identity(&self) -> Result<Option<String>> {
+        self.1.identity()
+    }
+    fn resource(&self) -> Option<dist4d_runtime::Resource> {
+        self.1.resource()
     }
 
     fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
@@ -306,6 +323,9 @@ impl Stage for HexPlaneBaseline {
         let [x, y, z] = dims.map(|d| d as usize);
         let c = NAMES.len();
         let frames: Vec<&[u8]> = grids.iter().map(|(_, g)| g.semantics.as_slice()).collect();
+        if self.1.is_set() {
+            return encode_by_worker(ctx, &self.1, &frames, [t, x, y, z]);
+        }
         let planes = encode_baseline(&frames, c, x, y, z);
         let (h, w) = planes.rollout_size();
         let file = npz(&[
@@ -338,6 +358,48 @@ impl Stage for HexPlaneBaseline {
         });
         Ok(Outputs { rollout: File(file), scores: File(serde_json::to_vec_pretty(&scores)?) })
     }
+}
+
+/// The rollout from the stage's worker (op `encode_hexplane`: input `semantics`, NPY uint8
+/// (T, X, Y, Z), the Occ3D classes, 17 = free; output `rollout`, NPY float32 (C, H, W), which the
+/// engine checks to be finite and three-dimensional, and `hexplane`, a JSON file with the
+/// HexPlane's `[T, X, Y, Z]` (`hex_txyz`), from which the mask is made and the rollout's H and W
+/// are checked: H = X + T + Z, W = Y + Z + T).
+fn encode_by_worker(
+    ctx: &TaskContext,
+    worker: &crate::model_worker::ModelWorker,
+    frames: &[&[u8]],
+    [t, x, y, z]: [usize; 4],
+) -> Result<Outputs> {
+    use crate::model_worker::Exchange;
+    use anyhow::Context;
+    let ex = Exchange::new()?;
+    let volume: Vec<u8> = frames.concat();
+    let inputs = vec![ex.put("semantics", "semantics.npy", &npy_u8(&[t, x, y, z], &volume))?];
+    let outputs = worker.call(ctx, &ex, "encode_hexplane", inputs, json!({ "classes": NAMES, "free": FREE }))?;
+    let (shape, rollout) = dist4d_types::formats::read_npy_f32(&ex.get(&outputs, "rollout")?)
+        .context("the worker's `rollout` (float32 NPY)")?;
+    let txyz: [usize; 4] = serde_json::from_slice::<serde_json::Value>(&ex.get(&outputs, "hexplane")?)
+        .ok()
+        .and_then(|v| serde_json::from_value(v["hex_txyz"].clone()).ok())
+        .context("the worker's `hexplane` JSON names no `hex_txyz` [T, X, Y, Z]")?;
+    let [ht, hx, hy, hz] = txyz;
+    ensure!(
+        shape.len() == 3 && shape[1] == hx + ht + hz && shape[2] == hy + hz + ht,
+        "the worker's rollout has shape {shape:?}, not (C, X+T+Z, Y+Z+T) = (C, {}, {}) for hex_txyz {txyz:?}",
+        hx + ht + hz,
+        hy + hz + ht
+    );
+    if let Some(bad) = rollout.iter().position(|v| !v.is_finite()) {
+        anyhow::bail!("the worker's rollout holds {} at {bad}", rollout[bad]);
+    }
+    let (h, w) = (shape[1], shape[2]);
+    let file = npz(&[
+        ("rollout", npy_f32(&shape, &rollout)),
+        ("mask", npy_u8(&[h, w], &rollout_mask(ht, hx, hy, hz))),
+    ]);
+    let scores = json!({ "frames": t, "rollout_size": shape, "hex_txyz": txyz, "encoder": "worker" });
+    Ok(Outputs { rollout: File(file), scores: File(serde_json::to_vec_pretty(&scores)?) })
 }
 
 #[cfg(test)]
