@@ -73,6 +73,17 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     let bad = dist4d(&["occ3d-annotations", out.to_str().unwrap(), "--val", "scene-nope"]);
     assert!(!bad.status.success() && text(&bad).contains("names scene scene-nope"), "{}", text(&bad));
 
+    // `dist4d synth` writes the exact occupancy of its keyframes itself, in Occ3D's layout: the
+    // same bytes as the pipeline's `exact` stage (same grid, classes and ray casting).
+    let synth_gts = data.join("groundtruth/occupancy/gts/synth-0000");
+    let tokens: Vec<_> = std::fs::read_dir(&synth_gts).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(tokens.len(), 4);
+    for t in &tokens {
+        let written = std::fs::read(synth_gts.join(t).join("labels.npz")).unwrap();
+        let staged = std::fs::read(out.join("exact/gts/synth-0000").join(t).join("labels.npz")).unwrap();
+        assert!(written == staged, "{t:?}: synth's and the pipeline's exact occupancy differ");
+    }
+
     // A per-frame param: the scene's aggregate is reused.
     let again = run(&["--set", "occupancy.ground_fill=1"]);
     assert_eq!((column(&again, "scene", 3), column(&again, "occupancy", 3)), (0, 4), "{again}");

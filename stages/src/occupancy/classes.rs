@@ -1,5 +1,6 @@
 //! The 18 Occ3D-nuScenes classes (0-16 as the nuScenes-lidarseg challenge's 16 classes plus
-//! `others`, 17 = free), and where points and boxes get theirs.
+//! `others`, 17 = free), and where points and boxes get theirs (the tables are
+//! `dist4d_types::occ3d`'s).
 //!
 //! nuScenes-lidarseg's 32 classes map as SurroundOcc's `learning_map` does
 //! (weiyithu/SurroundOcc, `tools/generate_occupancy_nuscenes/nuscenes.yaml`, the lidarseg
@@ -8,27 +9,7 @@
 //! strollers, wheelchairs) is Occ3D's `others` (0), except noise and the ego vehicle, whose points
 //! are dropped: a spurious return or the ego's own body is not occupancy.
 
-/// Occ3D-nuScenes class names, by index.
-pub const NAMES: [&str; 18] = [
-    "others",
-    "barrier",
-    "bicycle",
-    "bus",
-    "car",
-    "construction_vehicle",
-    "motorcycle",
-    "pedestrian",
-    "traffic_cone",
-    "trailer",
-    "truck",
-    "driveable_surface",
-    "other_flat",
-    "sidewalk",
-    "terrain",
-    "manmade",
-    "vegetation",
-    "free",
-];
+pub use dist4d_types::occ3d::{of_lidarseg, DRIVEABLE_SURFACE, DROP, FREE, FROM_LIDARSEG, MANMADE, NAMES};
 
 /// A colour per class, as SurroundOcc's visualisation draws Occ3D-nuScenes (weiyithu/SurroundOcc,
 /// `tools/visual.py`, the `colors` table), which the occupancy papers' figures use; free is
@@ -53,53 +34,6 @@ pub const PALETTE: [[u8; 3]; 18] = [
     [0, 175, 0],
     [40, 40, 40],
 ];
-
-pub const FREE: u8 = 17;
-pub const DRIVEABLE_SURFACE: u8 = 11;
-pub const MANMADE: u8 = 15;
-/// A point that makes no occupancy (noise, the ego vehicle).
-pub const DROP: u8 = 255;
-
-/// nuScenes-lidarseg class index -> Occ3D class.
-pub const FROM_LIDARSEG: [u8; 32] = [
-    DROP, // 0 noise
-    0,    // 1 animal
-    7,    // 2 human.pedestrian.adult
-    7,    // 3 human.pedestrian.child
-    7,    // 4 human.pedestrian.construction_worker
-    0,    // 5 human.pedestrian.personal_mobility
-    7,    // 6 human.pedestrian.police_officer
-    0,    // 7 human.pedestrian.stroller
-    0,    // 8 human.pedestrian.wheelchair
-    1,    // 9 movable_object.barrier
-    0,    // 10 movable_object.debris
-    0,    // 11 movable_object.pushable_pullable
-    8,    // 12 movable_object.trafficcone
-    0,    // 13 static_object.bicycle_rack
-    2,    // 14 vehicle.bicycle
-    3,    // 15 vehicle.bus.bendy
-    3,    // 16 vehicle.bus.rigid
-    4,    // 17 vehicle.car
-    5,    // 18 vehicle.construction
-    0,    // 19 vehicle.emergency.ambulance
-    0,    // 20 vehicle.emergency.police
-    6,    // 21 vehicle.motorcycle
-    9,    // 22 vehicle.trailer
-    10,   // 23 vehicle.truck
-    11,   // 24 flat.driveable_surface
-    12,   // 25 flat.other
-    13,   // 26 flat.sidewalk
-    14,   // 27 flat.terrain
-    15,   // 28 static.manmade
-    0,    // 29 static.other
-    16,   // 30 static.vegetation
-    DROP, // 31 vehicle.ego
-];
-
-/// The Occ3D class of a lidarseg label (labels past the table are `others`).
-pub fn of_lidarseg(label: u8) -> u8 {
-    FROM_LIDARSEG.get(label as usize).copied().unwrap_or(0)
-}
 
 /// The Occ3D class of a box's category: nuScenes names (`vehicle.car`) by the same table, other
 /// datasets' names (DGP's `Car`, `Pedestrian`) by what they say.

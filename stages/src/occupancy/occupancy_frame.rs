@@ -28,6 +28,7 @@ use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::{Boxes3D, Calibration, OccupancyGrid, PointCloud, Pose, TrackClouds};
 use dist4d_types::geometry::Se3;
+use dist4d_types::voxels::{cast_masks, MaskCamera};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
@@ -246,7 +247,7 @@ fn fill_ground(semantics: &mut [u8], dims: [usize; 3], r: usize) {
     }
 }
 
-/// Steps 2 and 3 of the module doc.
+/// Steps 2 and 3 of the module doc ([`dist4d_types::voxels::cast_masks`]).
 pub fn with_masks(
     p: &Params,
     mut grid: OccupancyGrid,
@@ -257,37 +258,31 @@ pub fn with_masks(
 ) -> Result<OccupancyGrid> {
     let g = p.grid.grid();
     ensure!(grid.voxels() == g.len(), "the grid has {} voxels, its params {}", grid.voxels(), g.len());
-    let origin = lidar_calib.sensor_to_ego.translation;
-    for q in &sweep.points {
-        let end = lidar_calib.sensor_to_ego.apply(DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64));
-        if (end - origin).length() < 0.5 {
-            continue; // no return
-        }
-        g.trace(origin, end, |v| {
-            grid.mask_lidar[v] = 1;
-            true
+    let mut views = Vec::with_capacity(cameras.len());
+    for (k, (calib, pose)) in cameras.iter().enumerate() {
+        views.push(MaskCamera {
+            ego_from_camera: ego_from_world.then_from(&pose.ego_to_world.then_from(&calib.sensor_to_ego)),
+            k: calib.intrinsics.with_context(|| format!("camera {k}: its calibration has no intrinsics"))?,
+            width: calib.width,
+            height: calib.height,
         });
     }
-    let step = p.camera_ray_step as usize;
-    for (k, (calib, pose)) in cameras.iter().enumerate() {
-        let kk = calib.intrinsics.with_context(|| format!("camera {k}: its calibration has no intrinsics"))?;
-        let ego_from_camera = ego_from_world.then_from(&pose.ego_to_world.then_from(&calib.sensor_to_ego));
-        let centre = ego_from_camera.translation;
-        let (w, h) = (calib.width as usize, calib.height as usize);
-        for y in (step / 2..h).step_by(step) {
-            for x in (step / 2..w).step_by(step) {
-                let yc = (y as f64 + 0.5 - kk[1][2]) / kk[1][1];
-                let xc = (x as f64 + 0.5 - kk[0][2] - kk[0][1] * yc) / kk[0][0];
-                let dir = ego_from_camera.rotation * DVec3::new(xc, yc, 1.0).normalize();
-                g.trace(centre, centre + dir * p.camera_max_distance, |v| {
-                    if grid.mask_lidar[v] != 0 {
-                        grid.mask_camera[v] = 1;
-                    }
-                    grid.semantics[v] == FREE
-                });
-            }
-        }
-    }
+    let returns = sweep
+        .points
+        .iter()
+        .map(|q| lidar_calib.sensor_to_ego.apply(DVec3::new(q[0] as f64, q[1] as f64, q[2] as f64)));
+    let (lidar, camera) = cast_masks(
+        &g,
+        &grid.semantics,
+        FREE,
+        lidar_calib.sensor_to_ego.translation,
+        returns,
+        &views,
+        p.camera_ray_step as usize,
+        p.camera_max_distance,
+    );
+    grid.mask_lidar = lidar;
+    grid.mask_camera = camera;
     Ok(grid)
 }
 

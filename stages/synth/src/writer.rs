@@ -359,6 +359,19 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
         .collect::<Result<_>>()?;
     let keyframe_labels: Vec<(Vec<u8>, Vec<u32>)> = keyframe_labels.into_iter().flatten().collect();
 
+    // The exact semantic occupancy of every keyframe, in Occ3D-nuScenes' grid and files, with
+    // the visibility masks cast as dist4d's occupancy stages cast them.
+    if config.ground_truth {
+        let scene_name = format!("synth-{scene:04}");
+        lidar.par_iter().filter(|r| r.key).try_for_each(|r| -> Result<()> {
+            let labels_npz = exact_occupancy(config, &world, r, &cameras, &ego, secs(r.timestamp), root)?;
+            let dir = root.join(GROUND_TRUTH_DIR).join("occupancy/gts").join(&scene_name).join(tok(&format!("sample/{}", r.sample)));
+            std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+            let path = dir.join("labels.npz");
+            std::fs::write(&path, labels_npz).with_context(|| format!("writing {}", path.display()))
+        })?;
+    }
+
     // Camera images with their ground truth.
     let gt = root.join(GROUND_TRUTH_DIR);
     let jobs: Vec<(usize, &Reading)> =
@@ -585,6 +598,65 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
     summary.lidar_sweeps += lidar.len();
     summary.camera_images += jobs.len();
     Ok(())
+}
+
+/// The exact occupancy of keyframe reading `r` as Occ3D's `labels.npz`: the world's primitives
+/// in Occ3D-nuScenes' grid around the ego ([`Snapshot::occupancy`]), classes mapped Cityscapes ->
+/// lidarseg -> Occ3D as the lidarseg files and the occupancy stages map them, and the masks cast
+/// from the keyframe's LiDAR sweep (read back as written) and its six cameras.
+fn exact_occupancy(
+    config: &SynthConfig,
+    world: &World,
+    r: &Reading,
+    cameras: &[Vec<Reading>],
+    ego: &(dyn Fn(i64) -> Se3 + Sync),
+    t: f64,
+    root: &Path,
+) -> Result<Vec<u8>> {
+    use dist4d_types::occ3d::{of_lidarseg, DROP, FREE};
+    use dist4d_types::voxels::{cast_masks, MaskCamera};
+    let g = dist4d_types::occ3d::grid();
+    let ego_to_world = ego(r.timestamp);
+    let ids = Snapshot::new(world, t).occupancy(&ego_to_world, g.min, g.voxel, g.dims, 3);
+    let semantics: Vec<u8> = ids
+        .iter()
+        .map(|&id| match id {
+            0 => FREE,
+            c => match of_lidarseg(lidarseg_index(c)) {
+                DROP => FREE,
+                class => class,
+            },
+        })
+        .collect();
+    let lidar_to_ego = LIDAR_TOP.sensor_to_ego();
+    let bytes = std::fs::read(root.join(&r.filename)).with_context(|| format!("reading {}", r.filename))?;
+    let returns = bytes.chunks_exact(20).map(|p| {
+        let f = |i: usize| f32::from_le_bytes([p[i], p[i + 1], p[i + 2], p[i + 3]]) as f64;
+        lidar_to_ego.apply(DVec3::new(f(0), f(4), f(8)))
+    });
+    let ego_from_world = ego_to_world.inverse();
+    let views: Vec<MaskCamera> = CAMERA_RIG
+        .iter()
+        .zip(cameras)
+        .filter_map(|(rig, readings)| {
+            let c = readings.iter().find(|c| c.key && c.sample == r.sample)?;
+            Some(MaskCamera {
+                ego_from_camera: ego_from_world.then_from(&ego(c.timestamp).then_from(&rig.sensor_to_ego())),
+                k: rig.intrinsics(config.width, config.height),
+                width: config.width,
+                height: config.height,
+            })
+        })
+        .collect();
+    // The occupancy stages' defaults: a camera ray every 4 pixels, out to 100 m.
+    let (mask_lidar, mask_camera) =
+        cast_masks(&g, &semantics, FREE, lidar_to_ego.translation, returns, &views, 4, 100.0);
+    let shape = g.dims;
+    Ok(dist4d_types::formats::npz(&[
+        ("semantics", dist4d_types::formats::npy_u8(&shape, &semantics)),
+        ("mask_lidar", dist4d_types::formats::npy_u8(&shape, &mask_lidar)),
+        ("mask_camera", dist4d_types::formats::npy_u8(&shape, &mask_camera)),
+    ]))
 }
 
 fn pinhole(config: &SynthConfig, camera: usize, ego_to_world: &Se3) -> PinholeCamera {

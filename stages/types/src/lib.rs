@@ -5,4 +5,6 @@
 pub mod artifact;
 pub mod formats;
 pub mod geometry;
+pub mod occ3d;
 pub mod rng;
+pub mod voxels;
