@@ -24,16 +24,18 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
     // The shipped pipeline with DynamicCity's windows of 4 frames (the scene has 4), one per frame.
     let shipped = std::fs::read_to_string(repo().join("pipelines/occupancy.ron")).unwrap();
-    let windowed = shipped.replace("frame, 0, 15)", "frame, 0, 3)");
+    let windowed = shipped.replace("frame, 0, 15)", "frame, 0, 3)").replace("every: 16", "every: 4");
     assert_eq!(windowed.matches("frame, 0, 3)").count(), 4);
+    // The conditions at every frame, as the released loader's sliding windows.
+    let windowed = windowed.replacen("            every: 4,\n", "            every: 1,\n", 1);
+    assert_eq!(windowed.matches("every: 1,").count(), 1);
     let pipeline = tmp.path().join("occupancy.ron");
     std::fs::write(&pipeline, windowed).unwrap();
     let pipeline = pipeline.to_str().unwrap().to_string();
     let run = |extra: &[&str]| {
         let mut args = vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
-        args.extend(["--set", "conditions.frames=4", "--set", "conditions.stride=1"]);
-        args.extend(["--set", "hexplane.frames=4", "--set", "hexplane.stride=4"]);
-        args.extend(["--set", "sheet.frames=4", "--set", "sheet.stride=4", "--set", "sheet.columns=2"]);
+        args.extend(["--set", "conditions.frames=4", "--set", "hexplane.frames=4"]);
+        args.extend(["--set", "sheet.frames=4", "--set", "sheet.columns=2"]);
         args.extend(["--out", out.to_str().unwrap()]);
         args.extend(extra);
         let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
@@ -92,9 +94,8 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     // objects gathered in the world instead of their box frames smear the moving ones.
     let eval = |extra: &[&str]| {
         let mut args = vec!["eval", pipeline.as_str(), "--set", &root, "--progress", "off"];
-        args.extend(["--set", "conditions.frames=4", "--set", "conditions.stride=1"]);
-        args.extend(["--set", "hexplane.frames=4", "--set", "hexplane.stride=4"]);
-        args.extend(["--cache", cache.to_str().unwrap()]);
+        args.extend(["--set", "conditions.frames=4", "--set", "hexplane.frames=4", "--set", "sheet.frames=4"]);
+        args.extend(["--set", "sheet.columns=2", "--cache", cache.to_str().unwrap()]);
         args.extend(extra);
         let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
         let t = text(&o);
@@ -220,8 +221,8 @@ print('ok')
     );
     let worker_out = tmp.path().join("worker");
     let mut args = vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
-    args.extend(["--set", "conditions.frames=4", "--set", "conditions.stride=1", "--set", "hexplane.frames=4"]);
-    args.extend(["--set", "hexplane.stride=4", "--set", "sheet.frames=4", "--set", "sheet.stride=4", "--set", &worker]);
+    args.extend(["--set", "conditions.frames=4", "--set", "hexplane.frames=4"]);
+    args.extend(["--set", "sheet.frames=4", "--set", &worker]);
     args.extend(["--out", worker_out.to_str().unwrap()]);
     let o = std::process::Command::new(bin()).current_dir(repo()).args(&args).output().unwrap();
     assert!(o.status.success(), "{}", text(&o));

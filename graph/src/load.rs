@@ -633,7 +633,7 @@ impl<'c> Checker<'c> {
                 return;
             }
         };
-        self.known_fields(fields, &["inputs", "params", "grain"], &format!("stage `{name}`"));
+        self.known_fields(fields, &["inputs", "params", "grain", "every"], &format!("stage `{name}`"));
         let what = format!("stage `{name}` ({})", schema.kind);
         let params = self.params(value.field("params").map(|f| &f.value), &schema.params, &what, key.span);
 
@@ -678,6 +678,27 @@ impl<'c> Checker<'c> {
             }
         };
 
+        let every = match value.field("every") {
+            None => 1,
+            Some(f) => match &f.value.kind {
+                ValueKind::Int(n) if (1..=1_000_000).contains(n) => *n as u32,
+                other => {
+                    let found = match other {
+                        ValueKind::Int(n) => n.to_string(),
+                        _ => self.text(&f.value),
+                    };
+                    self.err(
+                        Diagnostic::error(
+                            format!("{what}: `every` is a whole number of items, 1 to 1000000, found {found}"),
+                            f.value.span,
+                        )
+                        .with_note("`every: 16` runs the stage on every 16th item of its grain's innermost dimension"),
+                    );
+                    1
+                }
+            },
+        };
+
         let inputs = value.field("inputs").map(|f| &f.value);
         if inputs.is_none() && !schema.inputs.is_empty() {
             self.err(Diagnostic::error(format!("{what} has no `inputs`"), kind.span).with_note(format!(
@@ -697,6 +718,7 @@ impl<'c> Checker<'c> {
                 version: schema.version,
                 params: params.unwrap_or_default(),
                 seeded: schema.seeded,
+                every,
                 inputs: Vec::new(),
                 variants,
             }),

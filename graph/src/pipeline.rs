@@ -85,6 +85,9 @@ pub struct StageNode {
     /// The checked params: typed, for building the operator, and canonical, for task keys.
     pub params: ParamsValue,
     pub seeded: bool,
+    /// Runs on every `every`-th item of its grain's innermost dimension only (1: every item): a
+    /// window per stride (DynamicCity's windows of 16 frames), not one at every frame.
+    pub every: u32,
     pub inputs: Vec<Input>,
     /// For a stage that declares variants: its params split per variant (it runs per
     /// [`crate::VARIANT_DIM`]).

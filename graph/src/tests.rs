@@ -406,6 +406,16 @@ fn a_dimension_may_be_named_by_its_token_or_zero_padded_and_nothing_else() {
 }
 
 #[test]
+fn every_takes_a_positive_whole_number() {
+    let with = |every: &str| GOOD.replacen("\"fuse\": Fuse(", &format!("\"fuse\": Fuse(every: {every}, "), 1);
+    assert!(with("2").contains("every: 2"), "{}", with("2"));
+    let p = load(&with("2"), &[]).unwrap();
+    assert_eq!(p.nodes[p.node_by_name("fuse").unwrap()].stage().unwrap().every, 2);
+    let out = errors(&with("0"), &[]);
+    assert!(out.contains("`every` is a whole number of items, 1 to 1000000, found 0"), "{out}");
+}
+
+#[test]
 fn missing_dataset_and_unknown_top_level_fields() {
     let out = errors("Pipeline(stages: {}, stagse: 1)", &[]);
     assert!(out.contains("the pipeline has no `dataset`"), "{out}");

@@ -84,6 +84,9 @@ pub fn pipeline_digest(p: &Pipeline) -> Digest {
         b.str(&node.name).u64(node.grain as u64);
         if let Some(s) = node.stage() {
             b.str(&s.kind).u64(s.version as u64).str(&s.params.canonical);
+            if s.every != 1 {
+                b.str("every").u64(s.every as u64);
+            }
             for i in &s.inputs {
                 b.str(&i.port).str(&p.nodes[i.from].name).u64(i.from_port as u64).str(&format!("{:?}", i.selector));
             }

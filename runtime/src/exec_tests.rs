@@ -1031,3 +1031,21 @@ fn tasks_waiting_on_a_resource_take_its_slots_not_the_cpu_threads() {
     assert_eq!(most.load(Ordering::SeqCst), 2, "as many waiting at once as the resource has slots");
     assert!(saw_others.load(Ordering::SeqCst) >= 20, "the CPU stage ran while the model's tasks waited: {saw_others:?}");
 }
+
+#[test]
+fn a_stage_with_every_runs_on_every_nth_item_and_its_readers_only_there() {
+    let text = r#"Pipeline(
+        dataset: Grid(scenes: 2, frames: 5, cameras: 3),
+        stages: {
+            "frames": Merge(inputs: {"xs": Gather("dataset.camera_value", camera)}),
+            "windows": Merge(inputs: {"xs": Window("frames.y", frame, 0, 1)}, every: 2),
+            "after": Echo(inputs: {"x": "windows.y"}, grain: frame),
+        },
+    )"#;
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(text, &[]);
+    let r = run(&p, &testkit::grid_of(&p), dir.path());
+    // Frames 0, 2 and 4 of each of the 2 scenes; the window at frame 4 is clipped to one frame.
+    assert_eq!(executed(&r), counts(&[("frames", 10), ("windows", 6), ("after", 6)]));
+    assert_eq!(r.stages.iter().find(|s| s.stage == "windows").unwrap().total, 6, "the others are not planned");
+}

@@ -405,6 +405,7 @@ mod tests {
             version: 3,
             params: ParamsValue::new(params).unwrap(),
             seeded: true,
+            every: 1,
             inputs: vec![
                 wire("one", Selector::Same, false),
                 wire("window", Selector::Window { dim: 1, before: -1, after: 1 }, true),

@@ -125,7 +125,8 @@ impl OuterPlan {
 }
 
 /// Plans every task under outer item `outer`. Tasks whose single input does not exist (an `Offset`
-/// past the end of a dimension) are not planned, nor are tasks that depend on them.
+/// past the end of a dimension) are not planned, nor are tasks that depend on them, nor the
+/// items a stage's `every` skips.
 pub fn plan_outer(pipeline: &Pipeline, view: &View, outer: u32) -> OuterPlan {
     let mut tasks: Vec<Task> = Vec::new();
     let mut index: HashMap<(u32, ItemKey), u32> = HashMap::new();
@@ -139,6 +140,10 @@ pub fn plan_outer(pipeline: &Pipeline, view: &View, outer: u32) -> OuterPlan {
         items.clear();
         view.items_under(outer_key, node.grain, &mut items);
         'items: for &item in &items {
+            // `every: n`: only every n-th item of its innermost dimension.
+            if stage.every > 1 && item.coords().last().is_some_and(|&c| c % stage.every != 0) {
+                continue;
+            }
             let mut inputs = Vec::with_capacity(stage.inputs.len());
             let mut ups: Vec<u32> = Vec::new();
             // A variant's plan: its offset, and the optional inputs it does not read.

@@ -1,5 +1,5 @@
 //! `DitConditions`: the conditions DynamicCity's DiT is trained with, per window of `frames`
-//! occupancy frames (T = 16), one window every `stride` frames, computed as its released code
+//! occupancy frames (T = 16), computed as its released code
 //! computes them (3DTopia/DynamicCity, `dynamic_city/utils/data_utils.py`):
 //!
 //! - the trajectory, `get_trajectory`: per frame [x - x0, y - y0, yaw], x and y the world-frame
@@ -13,9 +13,10 @@
 //! - the layout, `convert_voxels_to_layouts`: the vehicle voxels, max over z, max-pooled by
 //!   `layout_factor` (T x X/f x Y/f, uint8), as `layout.npz` key `layout`.
 //!
-//! A task is a window start: the frames off the stride, and the windows that would run past the
-//! scene's end, have nothing to make. Its keys hold its item (it is declared seeded): which frames
-//! start a window depends on where the item is.
+//! A task is a window start; which frames start one is the pipeline's `every` on the stage
+//! (`every: 16`: disjoint windows; 1: a window at every frame, as the released loader's sliding
+//! windows), so the engine plans only those. A window that would run past the scene's end has
+//! nothing to make.
 
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
@@ -31,9 +32,6 @@ use serde_json::json;
 pub struct Params {
     /// Frames per window (T); wire the inputs with `Window(.., frame, 0, frames - 1)`.
     pub frames: u32,
-    /// A window starts every this many frames (1: at every frame, as the released loader's
-    /// sliding windows; `frames`: disjoint windows).
-    pub stride: u32,
     /// The Occ3D classes the layout counts as vehicles.
     pub vehicle_classes: Vec<u8>,
     /// The layout's max-pooling factor.
@@ -46,7 +44,6 @@ impl Default for Params {
     fn default() -> Self {
         Params {
             frames: 16,
-            stride: 16,
             vehicle_classes: vec![3, 4, 5, 9, 10],
             layout_factor: 2,
             angle_threshold: 0.0025,
@@ -59,7 +56,6 @@ impl Validate for Params {
     fn validate(&self) -> Vec<ParamProblem> {
         let mut c = ParamChecks::new();
         c.count("frames", self.frames as u64, 1, 1024)
-            .count("stride", self.stride as u64, 1, 1024)
             .count("layout_factor", self.layout_factor as u64, 1, 64)
             .above("angle_threshold", self.angle_threshold, 0.0, 10.0)
             .above("forward_threshold", self.forward_threshold, 0.0, 1e6);
@@ -93,7 +89,6 @@ impl Stage for DitConditions {
     const SUMMARY: &'static str =
         "DynamicCity's DiT conditions per window of occupancy frames: trajectory, command, vehicle layout";
     const GRAINS: &'static [&'static str] = &["frame"];
-    const SEEDED: bool = true;
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;
@@ -102,13 +97,9 @@ impl Stage for DitConditions {
         Ok(DitConditions(params))
     }
 
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let p = &self.0;
         let t = p.frames as usize;
-        let start = ctx.item.coords().get(1).copied().unwrap_or(0);
-        if start % p.stride != 0 {
-            return Err(NotApplicable(format!("a window starts every {} frames", p.stride)).into());
-        }
         ensure!(
             i.grids.iter().map(|(pos, _)| *pos).chain(i.poses.iter().map(|(pos, _)| *pos)).all(|pos| pos >= 0 && (pos as usize) < t),
             "the inputs reach past the window of {t} frames: wire them with Window(.., frame, 0, {})",

@@ -233,8 +233,6 @@ pub fn decode_baseline(p: &HexPlane) -> Vec<Vec<u8>> {
 pub struct Params {
     /// Frames per window (T); wire `grids` with `Window(.., frame, 0, frames - 1)`.
     pub frames: u32,
-    /// A window starts every this many frames.
-    pub stride: u32,
     /// A learned HexPlane encoder (DynamicCity's VAE) as an external worker in place of the
     /// baseline: op `encode_hexplane` (docs/workers.md). Its name, version and weights enter the
     /// task keys. Its rollout has no reconstruction scores (the decoder is its model's).
@@ -244,14 +242,14 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        Params { frames: 16, stride: 16, worker: None }
+        Params { frames: 16, worker: None }
     }
 }
 
 impl Validate for Params {
     fn validate(&self) -> Vec<ParamProblem> {
         let mut c = ParamChecks::new();
-        c.count("frames", self.frames as u64, 1, 1024).count("stride", self.stride as u64, 1, 1024);
+        c.count("frames", self.frames as u64, 1, 1024);
         if let Some(w) = &self.worker {
             w.check(&mut c);
         }
@@ -285,8 +283,6 @@ impl Stage for HexPlaneBaseline {
     const SUMMARY: &'static str =
         "baseline HexPlane of a window of occupancy (per-plane means of the one-hot volume) as DynamicCity's padded rollout, with its ESS-argmax reconstruction scores";
     const GRAINS: &'static [&'static str] = &["frame"];
-    // Which frames start a window depends on the item's position: its keys hold the item.
-    const SEEDED: bool = true;
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;
@@ -304,10 +300,6 @@ impl Stage for HexPlaneBaseline {
 
     fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
         let t = self.0.frames as usize;
-        let start = ctx.item.coords().get(1).copied().unwrap_or(0);
-        if start % self.0.stride != 0 {
-            return Err(NotApplicable(format!("a window starts every {} frames", self.0.stride)).into());
-        }
         ensure!(
             i.grids.iter().all(|(pos, _)| *pos >= 0 && (*pos as usize) < t),
             "`grids` reaches past the window of {t} frames: wire it with Window(.., frame, 0, {})",

@@ -1,6 +1,6 @@
 //! `OccupancySheet`: a window of occupancy frames on one image, to see a sequence the way a 4D
 //! model sees it: the frames' bird's-eye views ([`super::preview`]) in rows of `columns`, in time
-//! order, one sheet per window start (every `stride` frames, as the DiT's windows).
+//! order, one sheet per window start (the pipeline's `every` on the stage, as the DiT's windows).
 
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
@@ -14,22 +14,20 @@ use serde::{Deserialize, Serialize};
 pub struct Params {
     /// Frames per window; wire `views` with `Window(.., frame, 0, frames - 1)`.
     pub frames: u32,
-    /// A sheet every this many frames.
-    pub stride: u32,
     /// Views per row.
     pub columns: u32,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { frames: 16, stride: 16, columns: 4 }
+        Params { frames: 16, columns: 4 }
     }
 }
 
 impl Validate for Params {
     fn validate(&self) -> Vec<ParamProblem> {
         let mut c = ParamChecks::new();
-        c.count("frames", self.frames as u64, 1, 1024).count("stride", self.stride as u64, 1, 1024).count(
+        c.count("frames", self.frames as u64, 1, 1024).count(
             "columns",
             self.columns as u64,
             1,
@@ -60,8 +58,6 @@ impl Stage for OccupancySheet {
     const VERSION: u32 = 1;
     const SUMMARY: &'static str = "a window of occupancy frames' bird's-eye views on one sheet, in time order";
     const GRAINS: &'static [&'static str] = &["frame"];
-    // Which frames start a window depends on the item's position: its keys hold the item.
-    const SEEDED: bool = true;
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;
@@ -70,12 +66,8 @@ impl Stage for OccupancySheet {
         Ok(OccupancySheet(params))
     }
 
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let t = self.0.frames as usize;
-        let start = ctx.item.coords().get(1).copied().unwrap_or(0);
-        if start % self.0.stride != 0 {
-            return Err(NotApplicable(format!("a sheet starts every {} frames", self.0.stride)).into());
-        }
         if i.views.len() < t {
             return Err(NotApplicable(format!("the window of {t} frames runs past the scene's end")).into());
         }
