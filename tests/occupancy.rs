@@ -274,6 +274,10 @@ fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
         }
         let summary = std::fs::read_to_string(out.join(scene.file_name().unwrap()).join("aggregate.json")).unwrap();
         assert!(summary.contains("fallback"), "{name}: {summary}");
+        // The report says so too.
+        let o = dist4d(&["eval", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
+        let t = text(&o);
+        assert!(o.status.success() && t.contains("# labels of ") && t.contains("fallback: no sweep has point labels"), "{name}: {t}");
     }
     assert!(tmp.path().join("out-nuscenes/gts/scene-0061/ca9a282c9e77460f8360f564131a8af5/labels.npz").is_file());
 }

@@ -326,6 +326,22 @@ fn occupancy_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
 
 /// Per `EvalOccupancy` stage: the confusion matrices of its frames summed, each class's IoU, the
 /// mIoU and the geometry IoU (Occ3D's metric, see `crate::occupancy::eval`).
+/// Where each scene's occupancy classes came from, as the exported summaries of its
+/// `AggregateScene` stages say (lidarseg, transferred, or the height fallback).
+fn label_sources(pipeline: &Pipeline, index: &[dist4d_runtime::export::IndexEntry], out_dir: &Path) -> String {
+    let mut text = String::new();
+    for n in pipeline.nodes.iter().filter(|n| n.stage().is_some_and(|s| s.kind == "AggregateScene")) {
+        for entry in index.iter().filter(|e| e.stage == n.name) {
+            let Ok(bytes) = std::fs::read(out_dir.join(&entry.path)) else { continue };
+            let Ok(v) = serde_json::from_slice::<serde_json::Value>(&bytes) else { continue };
+            if let Some(labels) = v["labels"].as_str() {
+                text.push_str(&format!("\n# labels of {} ({}): {labels}\n", entry.item, n.name));
+            }
+        }
+    }
+    text
+}
+
 fn occupancy_tables(pipeline: &Pipeline, index: &[dist4d_runtime::export::IndexEntry], out_dir: &Path) -> Result<String> {
     use crate::occupancy::eval::{scores, FrameConfusion};
     let mut text = String::new();
@@ -348,6 +364,7 @@ fn occupancy_tables(pipeline: &Pipeline, index: &[dist4d_runtime::export::IndexE
             classes = f.classes;
             frames += 1;
         }
+        text.push_str(&label_sources(pipeline, index, out_dir));
         let Some(m) = sum else {
             text.push_str(&format!("\n# {stage}: no frame has a reference (not a synthetic dataset)\n"));
             continue;
