@@ -153,6 +153,20 @@ print('ok')
         .unwrap();
     assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
 
+    // The voxel preview as Open3D reads it: one coloured point per occupied voxel, on the grid.
+    let ply = out.join("synth-0000/occupancy/001_voxels.ply");
+    let check = "import sys, numpy as np, open3d as o3d
+p = o3d.io.read_point_cloud(sys.argv[1])
+x, c = np.asarray(p.points), np.asarray(p.colors)
+assert len(x) > 1000 and p.has_colors(), len(x)
+v = (x[:, :2] + 40) / 0.4 - 0.5
+assert np.abs(v - np.round(v)).max() < 1e-3, 'voxel centres'
+assert np.isclose(x[:, 2].min(), 0, atol=1e-4), 'the lowest layer is centred on the road'
+assert (np.abs(c - [1, 0, 1]).sum(1) < 1e-3).any(), 'driveable surface in magenta'
+print('ok')";
+    let o = std::process::Command::new(&python).args(["-c", check, ply.to_str().unwrap()]).output().unwrap();
+    assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
+
     // DynamicCity's released loader (dynamic_city/dataset/carlasc.py), its path logic and reads
     // reimplemented on the output: sliding windows of `sequence_length` with `skip`, `.label` ->
     // `.bin` by name, and the trajectory and command of data_utils.py from poses.txt, which must be
