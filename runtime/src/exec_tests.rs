@@ -267,6 +267,24 @@ fn explain_says_what_changed() {
     assert_eq!(a.reasons["input `x` (from `dataset.camera_value`) changed"].1, "s0/000/cam0");
 }
 
+/// After switching an upstream stage to other params and back (the second run cached), the
+/// reasons compare with what the last run used, not with the newer records of the switch.
+#[test]
+fn explain_compares_with_what_the_last_run_used() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = testkit::grid_of(&testkit::load(CHAIN, &[]));
+    for sets in [&[][..], &["a.salt=9"][..], &[][..]] {
+        run(&testkit::load(CHAIN, sets), &grid, dir.path());
+    }
+    let changed = testkit::load(CHAIN, &["b.salt=3"]);
+    let s = Store::open(dir.path(), Access::Shared).unwrap();
+    let ops = testkit::operators(&changed);
+    let e = crate::explain::explain(&Engine { pipeline: &changed, dataset: &grid, operators: &ops, store: &s }, None, None, None)
+        .unwrap();
+    let b = e.iter().find(|s| s.stage == "b").unwrap();
+    assert_eq!(b.reasons.keys().collect::<Vec<_>>(), vec!["param `salt` changed: 0 -> 3"], "{:?}", b.reasons);
+}
+
 /// Explain walks the key layer a run walks, so it predicts what the next run executes (up to
 /// early cutoff, which only running can find: it counts a task downstream of one that will run).
 #[test]

@@ -12,7 +12,7 @@ use crate::plan::{plan_outer, InputSrc, View};
 use crate::record::TaskRecord;
 use crate::runs::list_runs;
 use anyhow::Result;
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, HashMap, HashSet};
 use std::path::Path;
 use std::sync::Arc;
 
@@ -33,6 +33,8 @@ pub struct StageExplain {
 
 /// What the previous task for the same stage and item looked like.
 struct Previous {
+    /// Whether the last run of the pipeline used it.
+    used: bool,
     finished_ms: u64,
     version: u32,
     params: Digest,
@@ -53,19 +55,28 @@ pub fn explain(
     let view = View { space: engine.dataset, second_dim_limit };
     let outers = select_outer(engine.dataset, &p.dims[0].name, outer_items)?;
 
-    // The latest record of every (stage, item), for saying what changed.
+    // The record of every (stage, item) to say what changed against: the one the last run of this
+    // pipeline used, else the latest. (The latest alone misleads after switching back: a run on a
+    // worker writes newer records than the cached ones the next run goes back to.)
     // Keyed by kind too: pipelines sharing a store may give one stage name to stages of different
     // kinds, whose params have nothing to compare.
+    let last_run = list_runs(&store.runs_dir())?.into_iter().rev().find(|r| r.pipeline == p.name);
+    let last_keys: HashSet<Digest> = match &last_run {
+        Some(r) => crate::gc::read_keys(&crate::runs::keys_path(store, &r.id))?.into_iter().collect(),
+        None => HashSet::new(),
+    };
     let mut previous: HashMap<(String, String, ItemKey), Previous> = HashMap::new();
     for (_, payload) in store.all_records() {
         let Ok(rec) = TaskRecord::decode(payload) else { continue };
+        let used = last_keys.contains(&rec.key);
         let slot = previous.entry((rec.stage.clone(), rec.kind.clone(), rec.item));
         let newer = match &slot {
-            std::collections::hash_map::Entry::Occupied(o) => o.get().finished_ms <= rec.finished_ms,
+            std::collections::hash_map::Entry::Occupied(o) => (o.get().used, o.get().finished_ms) <= (used, rec.finished_ms),
             std::collections::hash_map::Entry::Vacant(_) => true,
         };
         if newer {
             let prev = Previous {
+                used,
                 finished_ms: rec.finished_ms,
                 version: rec.version,
                 params: rec.params,
@@ -82,10 +93,7 @@ pub fn explain(
         }
     }
     // Failures of the last run of this pipeline.
-    let last_failures: HashMap<(String, String), String> = list_runs(&store.runs_dir())?
-        .into_iter()
-        .rev()
-        .find(|r| r.pipeline == p.name)
+    let last_failures: HashMap<(String, String), String> = last_run
         .map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect())
         .unwrap_or_default();
 

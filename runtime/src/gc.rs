@@ -124,7 +124,8 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcRep
     Ok(report)
 }
 
-fn read_keys(path: &Path) -> Result<Vec<Digest>> {
+/// The task keys a run used (cached or run), as its keys file lists them; none when it has none.
+pub(crate) fn read_keys(path: &Path) -> Result<Vec<Digest>> {
     match std::fs::read(path) {
         Ok(b) => Ok(b.chunks_exact(32).map(|c| Digest(c.try_into().unwrap())).collect()),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(Vec::new()),
