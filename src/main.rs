@@ -62,6 +62,23 @@ struct PipelineArgs {
     /// Only the first N frames of each scene.
     #[arg(long, value_name = "N")]
     limit: Option<u32>,
+    /// Only shard I of N of the scenes (0 <= I < N; scenes dealt to shards by size, the same on
+    /// every machine): run the N shards at once, anywhere, against one shared --cache.
+    #[arg(long, value_name = "I/N", value_parser = parse_shard)]
+    shard: Option<(u32, u32)>,
+}
+
+/// `I/N` with 0 <= I < N.
+fn parse_shard(s: &str) -> std::result::Result<(u32, u32), String> {
+    let (i, n) = s.split_once('/').ok_or_else(|| format!("`{s}` is not I/N (e.g. 0/4)"))?;
+    let (i, n): (u32, u32) = (
+        i.trim().parse().map_err(|_| format!("`{i}` in `{s}` is not a number"))?,
+        n.trim().parse().map_err(|_| format!("`{n}` in `{s}` is not a number"))?,
+    );
+    if n == 0 || i >= n {
+        return Err(format!("shard `{s}`: I must be 0 to N - 1 and N at least 1"));
+    }
+    Ok((i, n))
 }
 
 #[derive(Subcommand)]
@@ -445,7 +462,14 @@ fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> 
             .with_context(|| format!("writing {}", pipeline_file.display()))?;
     }
     let registry = Registry::default();
-    let args = PipelineArgs { pipeline: pipeline_file.clone(), sets: vec![], cache: None, scenes: None, limit: None };
+    let args = PipelineArgs {
+        pipeline: pipeline_file.clone(),
+        sets: vec![],
+        cache: None,
+        scenes: None,
+        limit: None,
+        shard: None,
+    };
     let (pipeline, out_dir, code) = match run_pipeline(&registry, &args, |_| Ok(()), None, false, None, progress)? {
         Ok(x) => x,
         Err(code) => return Ok(code),
@@ -487,6 +511,7 @@ fn run_pipeline(
         fail_fast,
         outer_items: p.scenes.clone(),
         second_dim_limit: p.limit,
+        shard: p.shard,
         out_dir: Some(out_dir.clone()),
         progress: progress_mode(progress),
         ..Default::default()

@@ -23,7 +23,7 @@ use crate::progress::{Counters, ProgressMode, Reporter};
 use crate::record::{OutputRef, RecordInput, TaskRecord, INLINE_MAX};
 use crate::runs::{self, Failure, RunRecord, RunStatus, StageStats};
 use crate::store::{BlobError, Store};
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, ensure, Context, Result};
 use crossbeam_channel::{unbounded, Receiver, RecvTimeoutError, Sender};
 use dist4d_graph::{NodeKind, Pipeline};
 use std::cmp::Reverse;
@@ -45,6 +45,8 @@ pub struct RunOptions {
     pub outer_items: Option<Vec<String>>,
     /// Only the first N items along the second dimension under each outer item.
     pub second_dim_limit: Option<u32>,
+    /// Only shard `i` of `n` of the (selected) outer items ([`shard_outer`]).
+    pub shard: Option<(u32, u32)>,
     /// Where exported files go; nothing is exported when `None`.
     pub out_dir: Option<PathBuf>,
     /// Set (by a Ctrl-C handler) to stop cleanly: running tasks finish, nothing new starts.
@@ -59,6 +61,7 @@ impl Default for RunOptions {
             fail_fast: false,
             outer_items: None,
             second_dim_limit: None,
+            shard: None,
             out_dir: None,
             cancel: Arc::new(AtomicBool::new(false)),
             progress: ProgressMode::Off,
@@ -121,6 +124,27 @@ pub fn select_outer(space: &dyn ItemSpace, dim: &str, names: Option<&[String]>) 
     out.sort();
     out.dedup();
     Ok(out)
+}
+
+/// Shard `i` of `n` of the outer items `outers`: the items are dealt, largest first (by their
+/// number of items at `depth`, a measure of their tasks; ties by index), each to the shard with
+/// the fewest items so far (ties to the lower shard), so shards are balanced and the split is the
+/// same on every machine. Returned in index order.
+pub fn shard_outer(view: &View, outers: &[u32], depth: usize, (i, n): (u32, u32)) -> Vec<u32> {
+    let n = n.max(1) as usize;
+    let mut sized: Vec<(u64, u32)> = outers.iter().map(|&o| (count_items(view, ItemKey::new(&[o]), depth), o)).collect();
+    sized.sort_by_key(|&(size, o)| (std::cmp::Reverse(size), o));
+    let mut load = vec![0u64; n];
+    let mut mine = Vec::new();
+    for (size, o) in sized {
+        let s = (0..n).min_by_key(|&s| (load[s], s)).unwrap_or(0);
+        load[s] += size.max(1);
+        if s == i as usize {
+            mine.push(o);
+        }
+    }
+    mine.sort();
+    mine
 }
 
 /// What a run did.
@@ -259,8 +283,12 @@ impl<'a> Engine<'a> {
         let millis =
             std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis()).unwrap_or(0);
         let run_id = format!("{millis:013}-{}", self.store.writer_id());
-        let outers = select_outer(self.dataset, &p.dims[0].name, opts.outer_items.as_deref())?;
         let view = View { space: self.dataset, second_dim_limit: opts.second_dim_limit };
+        let mut outers = select_outer(self.dataset, &p.dims[0].name, opts.outer_items.as_deref())?;
+        if let Some((i, n)) = opts.shard {
+            ensure!(n >= 1 && i < n, "shard {i}/{n}: the shard is 0 to n - 1 of n");
+            outers = shard_outer(&view, &outers, p.dims.len(), (i, n));
+        }
 
         let mut exporter = match &opts.out_dir {
             Some(dir) if !p.exports.is_empty() => {

@@ -1,0 +1,95 @@
+//! End-to-end: `dist4d run --shard I/N` splits the scenes between processes that share one store;
+//! the shards, run at the same time, give the bytes one process gives.
+
+mod common;
+use common::*;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Every exported file under `dir` (not dist4d's own bookkeeping), by relative path, with its bytes.
+fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            let rel = p.strip_prefix(dir).unwrap().to_string_lossy().into_owned();
+            if rel.starts_with('.') || rel == "index.json" {
+                continue;
+            }
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.insert(rel, std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn shards_run_at_once_on_one_store_give_the_bytes_of_one_process() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let o = dist4d(&[
+        "synth", "--out", data.to_str().unwrap(), "--scenes", "3", "--keyframes", "2", "--width", "320", "--height", "180",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let root = format!("dataset.root={}", data.display());
+    let pipeline = repo().join("pipelines/lidar_depth.ron");
+    let args = |cache: &Path, out: &Path, shard: Option<&str>| {
+        let mut a: Vec<String> = ["run", pipeline.to_str().unwrap(), "--set", &root, "--progress", "off"]
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        a.extend(["--cache".into(), cache.display().to_string(), "--out".into(), out.display().to_string()]);
+        if let Some(s) = shard {
+            a.extend(["--shard".into(), s.into()]);
+        }
+        a
+    };
+    let one = tmp.path().join("one");
+    let o = std::process::Command::new(bin()).args(args(&tmp.path().join("cache-one"), &one, None)).output().unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+
+    // Two shards at once against one store, each exporting to its own folder.
+    let shared = tmp.path().join("cache-shared");
+    let children: Vec<_> = ["0/2", "1/2"]
+        .iter()
+        .map(|s| {
+            let out = tmp.path().join(format!("shard{}", &s[..1]));
+            std::process::Command::new(bin())
+                .args(args(&shared, &out, Some(s)))
+                .stdout(std::process::Stdio::piped())
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    let mut union = BTreeMap::new();
+    let mut scenes = Vec::new();
+    for (k, c) in children.into_iter().enumerate() {
+        let o = c.wait_with_output().unwrap();
+        assert!(o.status.success(), "shard {k}: {}", text(&o));
+        let got = files(&tmp.path().join(format!("shard{k}")));
+        let mine: std::collections::BTreeSet<String> =
+            got.keys().filter_map(|p| p.split('/').next().map(str::to_string)).collect();
+        scenes.push(mine);
+        union.extend(got);
+    }
+    assert!(scenes[0].is_disjoint(&scenes[1]), "the shards split the scenes: {scenes:?}");
+    assert_eq!(scenes[0].len() + scenes[1].len(), 3, "{scenes:?}");
+    let whole = files(&one);
+    assert_eq!(whole.keys().collect::<Vec<_>>(), union.keys().collect::<Vec<_>>());
+    for (path, bytes) in &whole {
+        assert!(union[path] == *bytes, "{path} differs between one process and the shards");
+    }
+
+    // A rerun of one shard finds its work done in the shared store.
+    let o = std::process::Command::new(bin()).args(args(&shared, &tmp.path().join("shard0"), Some("0/2"))).output().unwrap();
+    let t = text(&o);
+    assert!(o.status.success() && t.contains(" 0 executed"), "{t}");
+    // A bad shard is refused before anything runs.
+    let o = std::process::Command::new(bin()).args(args(&shared, &tmp.path().join("x"), Some("2/2"))).output().unwrap();
+    assert!(!o.status.success() && text(&o).contains("I must be 0 to N - 1"), "{}", text(&o));
+}
