@@ -325,3 +325,62 @@ fn occupancy_at_every_sweep_takes_labels_from_the_keyframes() {
     let written = std::fs::read_dir(out.join("gts/synth-0000")).unwrap().count() as u64;
     assert_eq!(written, frames);
 }
+
+/// DynamicCity's DiT as a worker (the persistence reference of workers/hexplane_persist.py): the
+/// window after the first gets a generated rollout from its conditions and the previous
+/// window's; without a worker the stage has nothing to make.
+#[test]
+fn a_dit_worker_generates_the_next_windows_hexplane() {
+    let Some(python) = peers_python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let o = dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "8", "--width", "320", "--height", "180"]);
+    assert!(o.status.success(), "{}", text(&o));
+    // Windows of 4 frames, one every 4: windows at frames 0 and 4.
+    let shipped = std::fs::read_to_string(repo().join("pipelines/occupancy.ron")).unwrap();
+    let windowed = shipped.replace("frame, 0, 15)", "frame, 0, 3)").replace("every: 16", "every: 4").replace("frame, -16)", "frame, -4)");
+    let pipeline = tmp.path().join("occupancy.ron");
+    std::fs::write(&pipeline, windowed).unwrap();
+    let run = |out: &str, extra: &[&str]| {
+        let root = format!("dataset.root={}", data.display());
+        let mut args = vec!["run", pipeline.to_str().unwrap(), "--set", root.as_str(), "--progress", "off"];
+        args.extend(["--set", "conditions.frames=4", "--set", "hexplane.frames=4", "--set", "sheet.frames=4"]);
+        args.extend(["--set", "exact.samples=1"]);
+        let cache = tmp.path().join("cache");
+        let out = tmp.path().join(out);
+        args.extend(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+        args.extend(extra);
+        let o = dist4d(&args);
+        let t = text(&o);
+        assert!(o.status.success(), "{t}");
+        t
+    };
+    let without = run("without", &[]);
+    let line = without.lines().find(|l| l.starts_with("generate ")).unwrap().to_string();
+    assert!(line.split_whitespace().nth(7) == Some("1"), "one window with a previous one, nothing to make: {line}");
+    let worker = format!(
+        "generate.worker=Some((program: {:?}, args: [{:?}]))",
+        python.display().to_string(),
+        repo().join("workers/hexplane_persist.py").display().to_string()
+    );
+    let with = run("with", &["--set", &worker]);
+    let line = with.lines().find(|l| l.starts_with("generate ")).unwrap().to_string();
+    assert!(line.split_whitespace().nth(3) == Some("1"), "{with}");
+    let dc = tmp.path().join("with/dynamiccity/rollout");
+    let check = "import sys, numpy as np
+g, p = np.load(sys.argv[1]), np.load(sys.argv[2])
+assert sorted(g.files) == ['hex_txyz', 'mask', 'rollout'], g.files
+assert (g['rollout'] == p['rollout']).all() and (g['mask'] == p['mask']).all(), 'persistence: the previous window'
+assert list(g['hex_txyz']) == [4, 200, 200, 16], g['hex_txyz']
+print('ok')";
+    let o = std::process::Command::new(&python)
+        .args([
+            "-c",
+            check,
+            dc.join("generated/Train/synth-0000/000004.npz").to_str().unwrap(),
+            dc.join("baseline/Train/synth-0000/000000.npz").to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
+}

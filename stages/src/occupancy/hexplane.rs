@@ -266,8 +266,8 @@ crate::ports! {
 
 crate::ports! {
     pub struct Outputs {
-        /// rollout.npz: `rollout` (C, X+T+Z, Y+Z+T) float32, C = the 18 Occ3D classes, and its
-        /// `mask` (X+T+Z, Y+Z+T) uint8
+        /// rollout.npz: `rollout` (C, X+T+Z, Y+Z+T) float32, C = the 18 Occ3D classes, its
+        /// `mask` (X+T+Z, Y+Z+T) uint8, and `hex_txyz` (T, X, Y, Z) as 4 float32
         rollout: One<File>,
         /// JSON: the baseline's reconstruction scores against the window (camera-visible voxels)
         scores: One<File>,
@@ -279,7 +279,8 @@ pub struct HexPlaneBaseline(Params, crate::model_worker::ModelWorker);
 impl Stage for HexPlaneBaseline {
     const KIND: &'static str = "HexPlaneBaseline";
     // 2: the decoder divides each class's planes by its share of the window.
-    const VERSION: u32 = 2;
+    // 3: the rollout file names its HexPlane's sizes (`hex_txyz`).
+    const VERSION: u32 = 3;
     const SUMMARY: &'static str =
         "baseline HexPlane of a window of occupancy (per-plane means of the one-hot volume) as DynamicCity's padded rollout, with its ESS-argmax reconstruction scores";
     const GRAINS: &'static [&'static str] = &["frame"];
@@ -323,6 +324,7 @@ impl Stage for HexPlaneBaseline {
         let file = npz(&[
             ("rollout", npy_f32(&[c, h, w], &rollout(&planes))),
             ("mask", npy_u8(&[h, w], &rollout_mask(t, x, y, z))),
+            ("hex_txyz", npy_f32(&[4], &[t as f32, x as f32, y as f32, z as f32])),
         ]);
         // The reconstruction, scored as occupancy is (the camera-visible voxels of each frame).
         let decoded = decode_baseline(&planes);
@@ -389,6 +391,7 @@ fn encode_by_worker(
     let file = npz(&[
         ("rollout", npy_f32(&shape, &rollout)),
         ("mask", npy_u8(&[h, w], &rollout_mask(ht, hx, hy, hz))),
+        ("hex_txyz", npy_f32(&[4], &[ht as f32, hx as f32, hy as f32, hz as f32])),
     ]);
     let scores = json!({ "frames": t, "rollout_size": shape, "hex_txyz": txyz, "encoder": "worker" });
     Ok(Outputs { rollout: File(file), scores: File(serde_json::to_vec_pretty(&scores)?) })

@@ -14,6 +14,7 @@ crate::stage_modules! {
     encode_occ3d::EncodeOcc3d,
     eval::EvalOccupancy,
     exact::ExactOccupancy,
+    generate::GenerateHexPlane,
     hexplane::HexPlaneBaseline,
     occupancy_frame::Occupancy,
     preview::OccupancyPreview,
