@@ -564,7 +564,19 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 Store::open(&p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d")), Access::Shared)?;
             let engine = Engine { pipeline: &pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
             let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
-            let report = dist4d_runtime::explain::explain(&engine, p.scenes.as_deref(), p.limit, Some(&out_dir))?;
+            // The scenes a run with the same --shard would take.
+            let scenes = match p.shard {
+                Some(shard) => Some(dist4d_runtime::exec::shard_labels(
+                    dataset.as_ref(),
+                    pipeline.dims.len(),
+                    &pipeline.dims[0].name,
+                    p.scenes.as_deref(),
+                    p.limit,
+                    shard,
+                )?),
+                None => p.scenes.clone(),
+            };
+            let report = dist4d_runtime::explain::explain(&engine, scenes.as_deref(), p.limit, Some(&out_dir))?;
             for s in &report {
                 let failed = if s.failed_last_run > 0 {
                     format!(", {} failed last run", s.failed_last_run)

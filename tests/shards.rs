@@ -89,6 +89,27 @@ fn shards_run_at_once_on_one_store_give_the_bytes_of_one_process() {
     let o = std::process::Command::new(bin()).args(args(&shared, &tmp.path().join("shard0"), Some("0/2"))).output().unwrap();
     let t = text(&o);
     assert!(o.status.success() && t.contains(" 0 executed"), "{t}");
+    // `explain` with the same --shard looks at that shard's scenes (all cached now); without it,
+    // at every scene.
+    let cached = |shard: Option<&str>| -> (u64, u64) {
+        let cache = shared.display().to_string();
+        let mut a = vec!["explain", pipeline.to_str().unwrap(), "--set", &root, "--cache", &cache];
+        if let Some(s) = shard {
+            a.extend(["--shard", s]);
+        }
+        let o = dist4d(&a);
+        let t = text(&o);
+        assert!(o.status.success(), "{t}");
+        // "project (ProjectLidar): N cached, M will run"
+        let line = t.lines().next().unwrap().to_string();
+        let n = |w: &str| line.split(": ").nth(1).unwrap().split(", ").find(|p| p.ends_with(w)).unwrap().split(' ').next().unwrap().parse().unwrap();
+        (n("cached"), n("will run"))
+    };
+    let (all, _) = cached(None);
+    let (c0, r0) = cached(Some("0/2"));
+    let (c1, r1) = cached(Some("1/2"));
+    assert_eq!((r0, r1, c0 + c1), (0, 0, all), "shard 0 {c0}, shard 1 {c1}, all {all}");
+    assert!(c0 > 0 && c1 > 0);
     // A bad shard is refused before anything runs.
     let o = std::process::Command::new(bin()).args(args(&shared, &tmp.path().join("x"), Some("2/2"))).output().unwrap();
     assert!(!o.status.success() && text(&o).contains("I must be 0 to N - 1"), "{}", text(&o));

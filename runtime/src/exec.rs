@@ -147,6 +147,22 @@ pub fn shard_outer(view: &View, outers: &[u32], depth: usize, (i, n): (u32, u32)
     mine
 }
 
+/// The labels of the outer items shard `shard` of a run holds (selected by `names`, seen through
+/// `second_dim_limit`, as [`Engine::run`] deals them), for commands that take item names.
+pub fn shard_labels(
+    space: &dyn ItemSpace,
+    dims: usize,
+    dim_name: &str,
+    names: Option<&[String]>,
+    second_dim_limit: Option<u32>,
+    shard: (u32, u32),
+) -> Result<Vec<String>> {
+    ensure!(shard.1 >= 1 && shard.0 < shard.1, "shard {}/{}: the shard is 0 to n - 1 of n", shard.0, shard.1);
+    let view = View { space, second_dim_limit };
+    let outers = select_outer(space, dim_name, names)?;
+    Ok(shard_outer(&view, &outers, dims, shard).into_iter().map(|o| space.label(&ItemKey::new(&[o]))).collect())
+}
+
 /// What a run did.
 pub struct RunSummary {
     pub record: RunRecord,
