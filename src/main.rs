@@ -666,7 +666,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Occ3dAnnotations { out, val } => {
             let dir = out.join("occ3d/scenes");
             let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-                .with_context(|| format!("reading {} (run pipelines/occupancy.ron into {} first)", dir.display(), out.display()))?
+                .with_context(|| {
+                    format!("reading {} (run pipelines/occupancy.ron into {} first)", dir.display(), out.display())
+                })?
                 .filter_map(|e| e.ok().map(|e| e.path()))
                 .filter(|p| p.extension().is_some_and(|x| x == "json"))
                 .collect();
@@ -682,7 +684,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             let tmp = out.join(".annotations.json.tmp");
             std::fs::write(&tmp, serde_json::to_vec(&merged)?).with_context(|| format!("writing {}", tmp.display()))?;
             std::fs::rename(&tmp, &target).with_context(|| format!("writing {}", target.display()))?;
-            let frames: usize = merged["scene_infos"].as_object().map_or(0, |s| s.values().filter_map(|v| v.as_object()).map(|f| f.len()).sum());
+            let frames: usize = merged["scene_infos"]
+                .as_object()
+                .map_or(0, |s| s.values().filter_map(|v| v.as_object()).map(|f| f.len()).sum());
             println!(
                 "{}: {} scene(s) ({} train, {} val), {frames} frames",
                 target.display(),

@@ -18,7 +18,8 @@ fn column(report: &str, stage: &str, col: usize) -> u64 {
 fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_only_its_stage() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
-    let o = dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "4", "--width", "320", "--height", "180"]);
+    let o =
+        dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "4", "--width", "320", "--height", "180"]);
     assert!(o.status.success(), "{}", text(&o));
     let root = format!("dataset.root={}", data.display());
     let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
@@ -33,7 +34,8 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     std::fs::write(&pipeline, windowed).unwrap();
     let pipeline = pipeline.to_str().unwrap().to_string();
     let run = |extra: &[&str]| {
-        let mut args = vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
+        let mut args =
+            vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
         args.extend(["--set", "conditions.frames=4", "--set", "hexplane.frames=4"]);
         args.extend(["--set", "sheet.frames=4", "--set", "sheet.columns=2"]);
         args.extend(["--out", out.to_str().unwrap()]);
@@ -44,7 +46,11 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
         t
     };
     let first = run(&[]);
-    assert_eq!((column(&first, "scene", 3), column(&first, "occupancy", 3), column(&first, "occ3d", 3)), (1, 4, 4), "{first}");
+    assert_eq!(
+        (column(&first, "scene", 3), column(&first, "occupancy", 3), column(&first, "occ3d", 3)),
+        (1, 4, 4),
+        "{first}"
+    );
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("synth-0000/aggregate.json")).unwrap()).unwrap();
     assert_eq!(summary["sweeps_with_labels"], 4, "the synthetic lidarseg files are read: {summary}");
@@ -58,7 +64,10 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     let o = dist4d(&["occ3d-annotations", out.to_str().unwrap(), "--val", "synth-0000"]);
     assert!(o.status.success(), "{}", text(&o));
     let a: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("annotations.json")).unwrap()).unwrap();
-    assert_eq!((a["val_split"].clone(), a["train_split"].clone()), (serde_json::json!(["synth-0000"]), serde_json::json!([])));
+    assert_eq!(
+        (a["val_split"].clone(), a["train_split"].clone()),
+        (serde_json::json!(["synth-0000"]), serde_json::json!([]))
+    );
     let frames = a["scene_infos"]["synth-0000"].as_object().unwrap();
     assert_eq!(frames.len(), 4);
     let heads: Vec<_> = frames.values().filter(|f| f["prev"] == "").collect();
@@ -70,7 +79,10 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
             assert_eq!(frames[f["next"].as_str().unwrap()]["prev"], token.as_str());
         }
         let cam = f["camera_sensor"].as_object().unwrap().values().next().unwrap();
-        assert!(data.join(cam["img_path"].as_str().unwrap()).is_file() && cam["extrinsic"]["rotation"].as_array().unwrap().len() == 4);
+        assert!(
+            data.join(cam["img_path"].as_str().unwrap()).is_file()
+                && cam["extrinsic"]["rotation"].as_array().unwrap().len() == 4
+        );
     }
     let bad = dist4d(&["occ3d-annotations", out.to_str().unwrap(), "--val", "scene-nope"]);
     assert!(!bad.status.success() && text(&bad).contains("names scene scene-nope"), "{}", text(&bad));
@@ -111,7 +123,10 @@ fn occ3d_labels_from_the_cli_load_like_the_real_occ3d_frame_and_a_param_reruns_o
     assert!(miou > 0.6 && geometry > 0.7, "mIoU {miou}, geometry IoU {geometry}\n{t}");
     let (_, _, car_ab, pedestrian_ab, t_ab) =
         eval(&["--out", ab_out.to_str().unwrap(), "--set", "scene.objects=World"]);
-    assert!(car > car_ab && pedestrian > pedestrian_ab, "box frames {car}/{pedestrian}, world {car_ab}/{pedestrian_ab}\n{t}\n{t_ab}");
+    assert!(
+        car > car_ab && pedestrian > pedestrian_ab,
+        "box frames {car}/{pedestrian}, world {car_ab}/{pedestrian_ab}\n{t}\n{t_ab}"
+    );
 
     let Some(python) = peers_python() else { return };
     let real = repo().join("../shared/data/occ3d-nuscenes-sample/29796060110c4163b07f06eff4af0753/labels.npz");
@@ -234,7 +249,8 @@ print('ok')
         repo().join("workers/hexplane_means.py").display().to_string()
     );
     let worker_out = tmp.path().join("worker");
-    let mut args = vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
+    let mut args =
+        vec!["run", pipeline.as_str(), "--set", &root, "--progress", "off", "--cache", cache.to_str().unwrap()];
     args.extend(["--set", "conditions.frames=4", "--set", "hexplane.frames=4"]);
     args.extend(["--set", "sheet.frames=4", "--set", &worker]);
     args.extend(["--out", worker_out.to_str().unwrap()]);
@@ -269,7 +285,13 @@ fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
     let (Some(nuscenes), Some(dgp)) = (shared_nuscenes(), shared_dgp()) else { return };
     let tmp = tempfile::tempdir().unwrap();
     let pipelines = [
-        ("nuscenes", with_dataset("occupancy", &format!("NuScenes(root: {:?}, version: \"v1.0-mini\")", nuscenes.display().to_string()))),
+        (
+            "nuscenes",
+            with_dataset(
+                "occupancy",
+                &format!("NuScenes(root: {:?}, version: \"v1.0-mini\")", nuscenes.display().to_string()),
+            ),
+        ),
         ("dgp", with_dataset("occupancy", &format!("Dgp(root: {:?})", dgp.display().to_string()))),
     ];
     for (name, pipeline) in pipelines {
@@ -279,7 +301,11 @@ fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
         let o = dist4d(&["run", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
         let t = text(&o);
         assert!(o.status.success(), "{name}: {t}");
-        assert_eq!(column(&t, "exact", 7), column(&t, "exact", 2), "{name}: no exact occupancy off synthetic data\n{t}");
+        assert_eq!(
+            column(&t, "exact", 7),
+            column(&t, "exact", 2),
+            "{name}: no exact occupancy off synthetic data\n{t}"
+        );
         let scene = std::fs::read_dir(out.join("gts")).unwrap().next().unwrap().unwrap().path();
         let frames: Vec<_> = std::fs::read_dir(&scene).unwrap().map(|e| e.unwrap().path()).collect();
         assert_eq!(frames.len() as u64, column(&t, "occupancy", 3), "{name}");
@@ -291,7 +317,10 @@ fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
         // The report says so too.
         let o = dist4d(&["eval", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
         let t = text(&o);
-        assert!(o.status.success() && t.contains("# labels of ") && t.contains("fallback: no sweep has point labels"), "{name}: {t}");
+        assert!(
+            o.status.success() && t.contains("# labels of ") && t.contains("fallback: no sweep has point labels"),
+            "{name}: {t}"
+        );
     }
     assert!(tmp.path().join("out-nuscenes/gts/scene-0061/ca9a282c9e77460f8360f564131a8af5/labels.npz").is_file());
 }
@@ -303,7 +332,8 @@ fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
 fn occupancy_at_every_sweep_takes_labels_from_the_keyframes() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
-    let o = dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "3", "--width", "320", "--height", "180"]);
+    let o =
+        dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "3", "--width", "320", "--height", "180"]);
     assert!(o.status.success(), "{}", text(&o));
     let root = format!("dataset.root={}", data.display());
     let out = tmp.path().join("out");
@@ -321,7 +351,11 @@ fn occupancy_at_every_sweep_takes_labels_from_the_keyframes() {
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("synth-0000/aggregate.json")).unwrap()).unwrap();
     assert_eq!(summary["sweeps_with_labels"], 3, "{summary}");
-    assert!(summary["static_labels_transferred"].as_u64().unwrap() > summary["static_labels_by_height"].as_u64().unwrap() * 4, "{summary}");
+    assert!(
+        summary["static_labels_transferred"].as_u64().unwrap()
+            > summary["static_labels_by_height"].as_u64().unwrap() * 4,
+        "{summary}"
+    );
     let written = std::fs::read_dir(out.join("gts/synth-0000")).unwrap().count() as u64;
     assert_eq!(written, frames);
 }
@@ -334,11 +368,15 @@ fn a_dit_worker_generates_the_next_windows_hexplane() {
     let Some(python) = peers_python() else { return };
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
-    let o = dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "8", "--width", "320", "--height", "180"]);
+    let o =
+        dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "8", "--width", "320", "--height", "180"]);
     assert!(o.status.success(), "{}", text(&o));
     // Windows of 4 frames, one every 4: windows at frames 0 and 4.
     let shipped = std::fs::read_to_string(repo().join("pipelines/occupancy.ron")).unwrap();
-    let windowed = shipped.replace("frame, 0, 15)", "frame, 0, 3)").replace("every: 16", "every: 4").replace("frame, -16)", "frame, -4)");
+    let windowed = shipped
+        .replace("frame, 0, 15)", "frame, 0, 3)")
+        .replace("every: 16", "every: 4")
+        .replace("frame, -16)", "frame, -4)");
     let pipeline = tmp.path().join("occupancy.ron");
     std::fs::write(&pipeline, windowed).unwrap();
     let run = |out: &str, extra: &[&str]| {

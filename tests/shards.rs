@@ -32,7 +32,17 @@ fn shards_run_at_once_on_one_store_give_the_bytes_of_one_process() {
     let tmp = tempfile::tempdir().unwrap();
     let data = tmp.path().join("data");
     let o = dist4d(&[
-        "synth", "--out", data.to_str().unwrap(), "--scenes", "3", "--keyframes", "2", "--width", "320", "--height", "180",
+        "synth",
+        "--out",
+        data.to_str().unwrap(),
+        "--scenes",
+        "3",
+        "--keyframes",
+        "2",
+        "--width",
+        "320",
+        "--height",
+        "180",
     ]);
     assert!(o.status.success(), "{}", text(&o));
     let root = format!("dataset.root={}", data.display());
@@ -86,7 +96,10 @@ fn shards_run_at_once_on_one_store_give_the_bytes_of_one_process() {
     }
 
     // A rerun of one shard finds its work done in the shared store.
-    let o = std::process::Command::new(bin()).args(args(&shared, &tmp.path().join("shard0"), Some("0/2"))).output().unwrap();
+    let o = std::process::Command::new(bin())
+        .args(args(&shared, &tmp.path().join("shard0"), Some("0/2")))
+        .output()
+        .unwrap();
     let t = text(&o);
     assert!(o.status.success() && t.contains(" 0 executed"), "{t}");
     // `explain` with the same --shard looks at that shard's scenes (all cached now); without it,
@@ -102,7 +115,19 @@ fn shards_run_at_once_on_one_store_give_the_bytes_of_one_process() {
         assert!(o.status.success(), "{t}");
         // "project (ProjectLidar): N cached, M will run"
         let line = t.lines().next().unwrap().to_string();
-        let n = |w: &str| line.split(": ").nth(1).unwrap().split(", ").find(|p| p.ends_with(w)).unwrap().split(' ').next().unwrap().parse().unwrap();
+        let n = |w: &str| {
+            line.split(": ")
+                .nth(1)
+                .unwrap()
+                .split(", ")
+                .find(|p| p.ends_with(w))
+                .unwrap()
+                .split(' ')
+                .next()
+                .unwrap()
+                .parse()
+                .unwrap()
+        };
         (n("cached"), n("will run"))
     };
     let (all, _) = cached(None);

@@ -199,7 +199,10 @@ fn a_misbehaving_worker_fails_its_items_only_and_a_crash_mid_run_is_survived() {
             assert!(chain.contains(w), "{item}: `{w}` in\n{chain}");
         }
     };
-    says("000/CAM_BACK_LEFT", &["failed 2 times", "the worker died", "segmentation fault on synth-0000/000/CAM_BACK_LEFT"]);
+    says(
+        "000/CAM_BACK_LEFT",
+        &["failed 2 times", "the worker died", "segmentation fault on synth-0000/000/CAM_BACK_LEFT"],
+    );
     says("001/CAM_BACK_LEFT", &["failed 2 times", "segmentation fault on synth-0000/001/CAM_BACK_LEFT"]);
     says("001/CAM_FRONT_RIGHT", &["no reply within 3.0 s", "stuck on synth-0000/001/CAM_FRONT_RIGHT"]);
     says("000/CAM_BACK_RIGHT", &["the worker's `depth` has shape [320, 180], not [180, 320]"]);

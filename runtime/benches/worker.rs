@@ -16,7 +16,9 @@ use std::time::{Duration, Instant};
 fn main() {
     round_trip();
     println!();
-    println!("## Worker busy share through the engine: 240 ready items, a worker sleeping 20 ms per request, 2 CPU threads");
+    println!(
+        "## Worker busy share through the engine: 240 ready items, a worker sleeping 20 ms per request, 2 CPU threads"
+    );
     println!("| workers | max batch | items | sleep | ideal | wall | busy |");
     println!("| ---: | ---: | ---: | ---: | ---: | ---: | ---: |");
     busy(1, 1);
@@ -76,8 +78,11 @@ fn busy(workers: usize, batch: usize) {
     // Started before the clock, as a run does when it asks the workers' identity.
     pool.hello().expect("the sleeping worker starts");
     let mut stage = Some(SleepStage { pool, sleep_s, slots: workers * batch * 2 });
-    let ops: Vec<Option<Box<dyn Operator>>> =
-        p.nodes.iter().map(|n| n.stage().and_then(|_| stage.take()).map(|s| Box::new(s) as Box<dyn Operator>)).collect();
+    let ops: Vec<Option<Box<dyn Operator>>> = p
+        .nodes
+        .iter()
+        .map(|n| n.stage().and_then(|_| stage.take()).map(|s| Box::new(s) as Box<dyn Operator>))
+        .collect();
     let engine = Engine { pipeline: &p, dataset: &grid, operators: &ops, store: &store };
     let t = Instant::now();
     let r = engine.run(&RunOptions { jobs: 2, ..Default::default() }).expect("the run");

@@ -132,7 +132,8 @@ pub fn select_outer(space: &dyn ItemSpace, dim: &str, names: Option<&[String]>) 
 /// same on every machine. Returned in index order.
 pub fn shard_outer(view: &View, outers: &[u32], depth: usize, (i, n): (u32, u32)) -> Vec<u32> {
     let n = n.max(1) as usize;
-    let mut sized: Vec<(u64, u32)> = outers.iter().map(|&o| (count_items(view, ItemKey::new(&[o]), depth), o)).collect();
+    let mut sized: Vec<(u64, u32)> =
+        outers.iter().map(|&o| (count_items(view, ItemKey::new(&[o]), depth), o)).collect();
     sized.sort_by_key(|&(size, o)| (std::cmp::Reverse(size), o));
     let mut load = vec![0u64; n];
     let mut mine = Vec::new();
@@ -269,13 +270,7 @@ enum Msg {
         result: Result<Outcome>,
     },
     /// An export job ended; `awaiting` is the id of the task record waiting for it, if any.
-    Exported {
-        slot: u32,
-        task: u32,
-        rel: String,
-        result: Result<FileStat>,
-        awaiting: Option<u64>,
-    },
+    Exported { slot: u32, task: u32, rel: String, result: Result<FileStat>, awaiting: Option<u64> },
 }
 
 /// The record of an executed task whose outputs are kept only in the output folder, waiting for
@@ -405,90 +400,90 @@ impl<'a> Engine<'a> {
 
         // The scopes guarantee every spawned job has ended before they return, even on an error.
         wait_pool.in_place_scope(|wait_scope| -> Result<()> {
-        pool.in_place_scope(|scope| -> Result<()> {
-            loop {
-                if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
-                    stopping = Some(RunStatus::Interrupted);
-                }
-                // Admit outer items while there is room.
-                while stopping.is_none() && next_outer < outers.len() && c.live_tasks < task_budget {
-                    c.admit(p, &view, outers[next_outer], next_outer as u64, &stage_nodes);
-                    next_outer += 1;
-                }
-
-                // Start ready tasks: cache hits complete here, the rest go to the pools.
-                while stopping.is_none() && inflight < max_inflight {
-                    let Some(Reverse((_, _, _, slot, task))) = c.ready.pop() else { break };
-                    let run = c.active[slot as usize].as_ref().unwrap();
-                    let node = run.plan.tasks[task as usize].node as usize;
-                    if let Some(why) = &unavailable[node] {
-                        c.finish(self, slot, task, Err(anyhow!("{why}")))?;
-                        continue;
+            pool.in_place_scope(|scope| -> Result<()> {
+                loop {
+                    if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
+                        stopping = Some(RunStatus::Interrupted);
                     }
-                    match ctx.prepare(run, slot, task) {
-                        Err(e) => c.finish(self, slot, task, Err(e))?,
-                        Ok(Prepared::Cached(key, outs)) => {
-                            c.finish(self, slot, task, Ok(Outcome::Cached(key, outs)))?
+                    // Admit outer items while there is room.
+                    while stopping.is_none() && next_outer < outers.len() && c.live_tasks < task_budget {
+                        c.admit(p, &view, outers[next_outer], next_outer as u64, &stage_nodes);
+                        next_outer += 1;
+                    }
+
+                    // Start ready tasks: cache hits complete here, the rest go to the pools.
+                    while stopping.is_none() && inflight < max_inflight {
+                        let Some(Reverse((_, _, _, slot, task))) = c.ready.pop() else { break };
+                        let run = c.active[slot as usize].as_ref().unwrap();
+                        let node = run.plan.tasks[task as usize].node as usize;
+                        if let Some(why) = &unavailable[node] {
+                            c.finish(self, slot, task, Err(anyhow!("{why}")))?;
+                            continue;
                         }
-                        Ok(Prepared::Job(job)) => {
-                            c.active[slot as usize].as_mut().unwrap().state[task as usize] = State::Running;
-                            match classes.of_node[job.node] {
-                                None => {
-                                    inflight += 1;
-                                    spawn_task(scope, &ctx, &tx, job, None);
+                        match ctx.prepare(run, slot, task) {
+                            Err(e) => c.finish(self, slot, task, Err(e))?,
+                            Ok(Prepared::Cached(key, outs)) => {
+                                c.finish(self, slot, task, Ok(Outcome::Cached(key, outs)))?
+                            }
+                            Ok(Prepared::Job(job)) => {
+                                c.active[slot as usize].as_mut().unwrap().state[task as usize] = State::Running;
+                                match classes.of_node[job.node] {
+                                    None => {
+                                        inflight += 1;
+                                        spawn_task(scope, &ctx, &tx, job, None);
+                                    }
+                                    Some(k) if busy[k] < classes.slots[k] => {
+                                        busy[k] += 1;
+                                        waiting += 1;
+                                        spawn_task(wait_scope, &ctx, &tx, job, Some(k));
+                                    }
+                                    Some(k) => parked[k].push_back(job),
                                 }
-                                Some(k) if busy[k] < classes.slots[k] => {
-                                    busy[k] += 1;
-                                    waiting += 1;
-                                    spawn_task(wait_scope, &ctx, &tx, job, Some(k));
-                                }
-                                Some(k) => parked[k].push_back(job),
                             }
                         }
+                        if opts.fail_fast && !c.failures.is_empty() {
+                            stopping.get_or_insert(RunStatus::Stopped);
+                        }
+                        inflight += c.spawn_exports(scope, &tx);
+                    }
+
+                    let outers_left = stopping.is_none() && next_outer < outers.len();
+                    let ready_left = stopping.is_none() && !c.ready.is_empty();
+                    if inflight == 0 && waiting == 0 && !outers_left && !ready_left {
+                        return Ok(());
+                    }
+                    if inflight == 0 && waiting == 0 {
+                        continue;
+                    }
+                    match rx.recv_timeout(Duration::from_millis(200)) {
+                        Ok(Msg::Task { slot, task, waited, result }) => {
+                            match waited {
+                                None => inflight -= 1,
+                                Some(k) => {
+                                    waiting -= 1;
+                                    busy[k] -= 1;
+                                    if let Some(job) = parked[k].pop_front().filter(|_| stopping.is_none()) {
+                                        busy[k] += 1;
+                                        waiting += 1;
+                                        spawn_task(wait_scope, &ctx, &tx, job, Some(k));
+                                    }
+                                }
+                            }
+                            c.finish(self, slot, task, result)?;
+                            inflight += c.spawn_exports(scope, &tx);
+                        }
+                        Ok(Msg::Exported { slot, task, rel, result, awaiting }) => {
+                            inflight -= 1;
+                            c.exported(self, slot, task, &rel, result, awaiting);
+                        }
+                        Err(RecvTimeoutError::Timeout) => {}
+                        Err(RecvTimeoutError::Disconnected) => bail!("the worker pool stopped unexpectedly"),
                     }
                     if opts.fail_fast && !c.failures.is_empty() {
                         stopping.get_or_insert(RunStatus::Stopped);
                     }
-                    inflight += c.spawn_exports(scope, &tx);
                 }
-
-                let outers_left = stopping.is_none() && next_outer < outers.len();
-                let ready_left = stopping.is_none() && !c.ready.is_empty();
-                if inflight == 0 && waiting == 0 && !outers_left && !ready_left {
-                    return Ok(());
-                }
-                if inflight == 0 && waiting == 0 {
-                    continue;
-                }
-                match rx.recv_timeout(Duration::from_millis(200)) {
-                    Ok(Msg::Task { slot, task, waited, result }) => {
-                        match waited {
-                            None => inflight -= 1,
-                            Some(k) => {
-                                waiting -= 1;
-                                busy[k] -= 1;
-                                if let Some(job) = parked[k].pop_front().filter(|_| stopping.is_none()) {
-                                    busy[k] += 1;
-                                    waiting += 1;
-                                    spawn_task(wait_scope, &ctx, &tx, job, Some(k));
-                                }
-                            }
-                        }
-                        c.finish(self, slot, task, result)?;
-                        inflight += c.spawn_exports(scope, &tx);
-                    }
-                    Ok(Msg::Exported { slot, task, rel, result, awaiting }) => {
-                        inflight -= 1;
-                        c.exported(self, slot, task, &rel, result, awaiting);
-                    }
-                    Err(RecvTimeoutError::Timeout) => {}
-                    Err(RecvTimeoutError::Disconnected) => bail!("the worker pool stopped unexpectedly"),
-                }
-                if opts.fail_fast && !c.failures.is_empty() {
-                    stopping.get_or_insert(RunStatus::Stopped);
-                }
-            }
-        })
+            })
         })?;
         drop(wait_pool);
         drop(pool);

@@ -3,11 +3,11 @@
 
 use crate::exec::{Engine, RunOptions};
 use crate::item::ItemKey;
+use crate::operator::{Artifact, Operator, Output, Resource, TaskContext};
 use crate::runs::{RunRecord, RunStatus};
 use crate::store::{Access, Store};
 use crate::testkit::{self, Grid};
 use dist4d_graph::Pipeline;
-use crate::operator::{Artifact, Operator, Output, Resource, TaskContext};
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -279,8 +279,13 @@ fn explain_compares_with_what_the_last_run_used() {
     let changed = testkit::load(CHAIN, &["b.salt=3"]);
     let s = Store::open(dir.path(), Access::Shared).unwrap();
     let ops = testkit::operators(&changed);
-    let e = crate::explain::explain(&Engine { pipeline: &changed, dataset: &grid, operators: &ops, store: &s }, None, None, None)
-        .unwrap();
+    let e = crate::explain::explain(
+        &Engine { pipeline: &changed, dataset: &grid, operators: &ops, store: &s },
+        None,
+        None,
+        None,
+    )
+    .unwrap();
     let b = e.iter().find(|s| s.stage == "b").unwrap();
     assert_eq!(b.reasons.keys().collect::<Vec<_>>(), vec!["param `salt` changed: 0 -> 3"], "{:?}", b.reasons);
 }
@@ -1047,7 +1052,10 @@ fn tasks_waiting_on_a_resource_take_its_slots_not_the_cpu_threads() {
     assert_eq!(r.status, RunStatus::Complete);
     assert_eq!(executed(&r), counts(&[("model", 24), ("cpu", 24)]));
     assert_eq!(most.load(Ordering::SeqCst), 2, "as many waiting at once as the resource has slots");
-    assert!(saw_others.load(Ordering::SeqCst) >= 20, "the CPU stage ran while the model's tasks waited: {saw_others:?}");
+    assert!(
+        saw_others.load(Ordering::SeqCst) >= 20,
+        "the CPU stage ran while the model's tasks waited: {saw_others:?}"
+    );
 }
 
 #[test]

@@ -71,7 +71,9 @@ pub fn explain(
         let used = last_keys.contains(&rec.key);
         let slot = previous.entry((rec.stage.clone(), rec.kind.clone(), rec.item));
         let newer = match &slot {
-            std::collections::hash_map::Entry::Occupied(o) => (o.get().used, o.get().finished_ms) <= (used, rec.finished_ms),
+            std::collections::hash_map::Entry::Occupied(o) => {
+                (o.get().used, o.get().finished_ms) <= (used, rec.finished_ms)
+            }
             std::collections::hash_map::Entry::Vacant(_) => true,
         };
         if newer {
@@ -93,9 +95,8 @@ pub fn explain(
         }
     }
     // Failures of the last run of this pipeline.
-    let last_failures: HashMap<(String, String), String> = last_run
-        .map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect())
-        .unwrap_or_default();
+    let last_failures: HashMap<(String, String), String> =
+        last_run.map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect()).unwrap_or_default();
 
     let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
     let identities = crate::operator::Identities::of(engine.operators, &names).all()?;

@@ -226,14 +226,15 @@ impl WorkerPool {
     pub fn call(&self, request: &Request) -> Result<Reply> {
         let mut s = self.lock()?;
         if let Some(why) = &s.broken {
-            bail!("worker `{}` broke the protocol earlier in this run, so it is not started again: {why}", self.command);
+            bail!(
+                "worker `{}` broke the protocol earlier in this run, so it is not started again: {why}",
+                self.command
+            );
         }
         let id = s.next_ticket;
         s.next_ticket += 1;
-        s.tickets.insert(
-            id,
-            Ticket { request: request.clone(), tries: 0, last: String::new(), alone: false, result: None },
-        );
+        s.tickets
+            .insert(id, Ticket { request: request.clone(), tries: 0, last: String::new(), alone: false, result: None });
         s.queue.push_back(id);
         loop {
             if s.tickets[&id].result.is_some() {
@@ -304,12 +305,14 @@ impl WorkerPool {
                         }
                         Status::Error => {
                             let tail = w.stderr_tail();
-                            ticket.result = Some(Err(anyhow!("worker `{program}` could not do it: {}{tail}", reply.message)));
+                            ticket.result =
+                                Some(Err(anyhow!("worker `{program}` could not do it: {}{tail}", reply.message)));
                         }
                         Status::Retryable => {
                             ticket.last = format!("try {}: retryable: {}", ticket.tries, reply.message);
                             if ticket.tries >= tries {
-                                ticket.result = Some(Err(anyhow!("worker `{program}` failed {}: {}", times(tries), ticket.last)));
+                                ticket.result =
+                                    Some(Err(anyhow!("worker `{program}` failed {}: {}", times(tries), ticket.last)));
                             } else {
                                 s.queue.push_front(*t);
                             }
@@ -344,7 +347,8 @@ impl WorkerPool {
                     if malformed {
                         ticket.result = Some(Err(anyhow!("worker `{program}`: {e}{tail}")));
                     } else if ticket.tries >= tries {
-                        ticket.result = Some(Err(anyhow!("worker `{program}` failed {}: {}", times(tries), ticket.last)));
+                        ticket.result =
+                            Some(Err(anyhow!("worker `{program}` failed {}: {}", times(tries), ticket.last)));
                     } else {
                         s.queue.push_front(*t);
                     }

@@ -33,10 +33,17 @@ pub struct Registry {
 impl Default for Registry {
     fn default() -> Self {
         Registry {
-            stages: [curation::stages(), eval::stages(), generation::stages(), novel_view::stages(), occupancy::stages(), output::stages()]
-                .into_iter()
-                .flatten()
-                .collect(),
+            stages: [
+                curation::stages(),
+                eval::stages(),
+                generation::stages(),
+                novel_view::stages(),
+                occupancy::stages(),
+                output::stages(),
+            ]
+            .into_iter()
+            .flatten()
+            .collect(),
             nuscenes: dist4d_datasets::nuscenes::schema(),
             dgp: dist4d_datasets::dgp::schema(),
         }

@@ -10,9 +10,9 @@ use dist4d_runtime::worker_pool::{PoolOptions, WorkerPool};
 use dist4d_runtime::TaskContext;
 use dist4d_types::formats::{npy_u8, read_npy_u8};
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::collections::HashMap;
 use std::sync::{Arc, Mutex, OnceLock, Weak};
 use std::time::Duration;
 
@@ -144,7 +144,10 @@ impl ModelWorker {
         let spec = self.spec.as_ref()?;
         let batch = self.pool.get().and_then(|p| p.known_hello()).map_or(1, |h| h.max_batch.max(1) as usize);
         Some(dist4d_runtime::Resource {
-            name: format!("worker `{}`", std::iter::once(&spec.program).chain(&spec.args).cloned().collect::<Vec<_>>().join(" ")),
+            name: format!(
+                "worker `{}`",
+                std::iter::once(&spec.program).chain(&spec.args).cloned().collect::<Vec<_>>().join(" ")
+            ),
             slots: spec.max_workers as usize * batch * 2,
         })
     }

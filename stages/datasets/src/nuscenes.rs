@@ -454,7 +454,9 @@ impl NuScenes {
                         map_of_log.insert(log.as_str(), path.clone());
                     }
                 }
-                Ok(path) => w.push(format!("{}: row {row}: the map {} does not exist", map_file.display(), path.display())),
+                Ok(path) => {
+                    w.push(format!("{}: row {row}: the map {} does not exist", map_file.display(), path.display()))
+                }
                 Err(e) => w.push(e),
             }
         }
@@ -817,7 +819,17 @@ impl NuScenes {
         let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
         let sidecars = Sidecars::new(&root, config.semantics.as_deref());
         let tree = Tree { root, cameras, scenes: out, sidecars };
-        Ok(NuScenes { config, tree, scene_tokens, maps, sample_tokens, annotations, annotation_by_token, sample_time, warnings })
+        Ok(NuScenes {
+            config,
+            tree,
+            scene_tokens,
+            maps,
+            sample_tokens,
+            annotations,
+            annotation_by_token,
+            sample_time,
+            warnings,
+        })
     }
 
     /// The devkit's `box_velocity`: centre difference of the neighbouring annotations, NaN when

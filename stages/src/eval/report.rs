@@ -342,7 +342,11 @@ fn label_sources(pipeline: &Pipeline, index: &[dist4d_runtime::export::IndexEntr
     text
 }
 
-fn occupancy_tables(pipeline: &Pipeline, index: &[dist4d_runtime::export::IndexEntry], out_dir: &Path) -> Result<String> {
+fn occupancy_tables(
+    pipeline: &Pipeline,
+    index: &[dist4d_runtime::export::IndexEntry],
+    out_dir: &Path,
+) -> Result<String> {
     use crate::occupancy::eval::{scores, FrameConfusion};
     let mut text = String::new();
     for stage in occupancy_stages(pipeline)? {

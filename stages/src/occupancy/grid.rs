@@ -33,8 +33,7 @@ impl GridParams {
     pub fn check(&self, c: &mut ParamChecks) {
         c.above("voxel", self.voxel, 0.0, 100.0).within("lift", self.lift, -100.0, 100.0);
         let [x0, y0, z0, x1, y1, z1] = self.range;
-        let range_ok =
-            self.range.iter().all(|v| v.is_finite() && v.abs() <= 1000.0) && x0 < x1 && y0 < y1 && z0 < z1;
+        let range_ok = self.range.iter().all(|v| v.is_finite() && v.abs() <= 1000.0) && x0 < x1 && y0 < y1 && z0 < z1;
         c.check(range_ok, "range", || {
             format!(
                 "must be [x_min, y_min, z_min, x_max, y_max, z_max] within +-1000 m with min < max, found {:?}",
@@ -51,11 +50,7 @@ impl GridParams {
 
     pub fn grid(&self) -> Grid {
         let dims = [0, 1, 2].map(|a| (((self.range[a + 3] - self.range[a]) / self.voxel).round() as usize).max(1));
-        Grid {
-            min: DVec3::new(self.range[0], self.range[1], self.range[2] + self.lift),
-            voxel: self.voxel,
-            dims,
-        }
+        Grid { min: DVec3::new(self.range[0], self.range[1], self.range[2] + self.lift), voxel: self.voxel, dims }
     }
 }
 
@@ -77,5 +72,4 @@ mod tests {
         let c = g.centre(road);
         assert!((c - DVec3::new(0.2, 0.2, 0.0)).length() < 1e-9, "{c}");
     }
-
 }

@@ -43,7 +43,9 @@ impl Shape {
                 let (lx, ly) = (d.x * cos + d.y * sin, -d.x * sin + d.y * cos);
                 lx.abs() <= half[0] && ly.abs() <= half[1] && d.z.abs() <= half[2]
             }
-            Shape::Cylinder { x, y, r, z0, z1 } => (p.x - x).powi(2) + (p.y - y).powi(2) <= r * r && p.z >= z0 && p.z <= z1,
+            Shape::Cylinder { x, y, r, z0, z1 } => {
+                (p.x - x).powi(2) + (p.y - y).powi(2) <= r * r && p.z >= z0 && p.z <= z1
+            }
             Shape::Sphere { c, r } => (p - c).length_squared() <= r * r,
         }
     }

@@ -365,7 +365,11 @@ fn write_scene(config: &SynthConfig, scene: u32, root: &Path, t: &mut Tables, su
         let scene_name = format!("synth-{scene:04}");
         lidar.par_iter().filter(|r| r.key).try_for_each(|r| -> Result<()> {
             let labels_npz = exact_occupancy(config, &world, r, &cameras, &ego, secs(r.timestamp), root)?;
-            let dir = root.join(GROUND_TRUTH_DIR).join("occupancy/gts").join(&scene_name).join(tok(&format!("sample/{}", r.sample)));
+            let dir = root
+                .join(GROUND_TRUTH_DIR)
+                .join("occupancy/gts")
+                .join(&scene_name)
+                .join(tok(&format!("sample/{}", r.sample)));
             std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
             let path = dir.join("labels.npz");
             std::fs::write(&path, labels_npz).with_context(|| format!("writing {}", path.display()))

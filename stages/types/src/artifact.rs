@@ -499,7 +499,11 @@ impl Artifact for TrackClouds {
             let class = r.take(1)?[0];
             let count = r.u32()? as usize;
             let flat = r.f32s(count.checked_mul(3).context("size overflow")?)?;
-            tracks.push(TrackCloud { instance, class, points: flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect() });
+            tracks.push(TrackCloud {
+                instance,
+                class,
+                points: flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect(),
+            });
         }
         Ok(TrackClouds { tracks })
     }
@@ -651,13 +655,20 @@ mod tests {
 
     #[test]
     fn artifacts_round_trip_and_reject_bad_bytes() {
-        let pc = PointCloud { points: vec![[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]], labels: vec![], rgb: Vec::new() };
+        let pc =
+            PointCloud { points: vec![[1.0, 2.0, 3.0, 4.0], [5.0, 6.0, 7.0, 8.0]], labels: vec![], rgb: Vec::new() };
         assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
         let pc = PointCloud { labels: vec![24, 17], ..pc };
         assert_eq!(PointCloud::decode(&pc.encode()).unwrap(), pc);
-        let grid = OccupancyGrid { dims: [2, 1, 2], semantics: vec![17, 11, 4, 17], mask_lidar: vec![1, 1, 0, 0], mask_camera: vec![0, 1, 0, 0] };
+        let grid = OccupancyGrid {
+            dims: [2, 1, 2],
+            semantics: vec![17, 11, 4, 17],
+            mask_lidar: vec![1, 1, 0, 0],
+            mask_camera: vec![0, 1, 0, 0],
+        };
         assert_eq!(OccupancyGrid::decode(&grid.encode()).unwrap(), grid);
-        let tracks = TrackClouds { tracks: vec![TrackCloud { instance: "a".into(), class: 4, points: vec![[1.0, 2.0, 3.0]] }] };
+        let tracks =
+            TrackClouds { tracks: vec![TrackCloud { instance: "a".into(), class: 4, points: vec![[1.0, 2.0, 3.0]] }] };
         assert_eq!(TrackClouds::decode(&tracks.encode()).unwrap(), tracks);
         assert!(TrackClouds::decode(&tracks.encode()[..12]).is_err());
         let pc = PointCloud { rgb: vec![[1, 2, 3], [250, 251, 252]], ..pc };

@@ -72,7 +72,6 @@ pub fn of_lidarseg(label: u8) -> u8 {
     FROM_LIDARSEG.get(label as usize).copied().unwrap_or(0)
 }
 
-
 /// Occ3D-nuScenes' grid: [x_min, y_min, z_min, x_max, y_max, z_max] (m), as its README states it.
 pub const RANGE: [f64; 6] = [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4];
 /// Its voxel edge (m).
