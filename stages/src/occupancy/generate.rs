@@ -9,11 +9,10 @@
 
 use crate::model_worker::{Exchange, ModelWorker, WorkerSpec};
 use crate::stage::Stage;
-use anyhow::{ensure, Context, Result};
+use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::{NotApplicable, TaskContext};
 use dist4d_types::artifact::File;
-use dist4d_types::formats::{npy_f32, npy_u8, npz};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
@@ -87,27 +86,7 @@ impl Stage for GenerateHexPlane {
             ex.put("previous", "previous.npz", &i.previous.0)?,
         ];
         let outputs = self.0.call(ctx, &ex, "generate_hexplane", inputs, json!({}))?;
-        let (shape, rollout) = dist4d_types::formats::read_npy_f32(&ex.get(&outputs, "rollout")?)
-            .context("the worker's `rollout` (float32 NPY)")?;
-        let txyz: [usize; 4] = serde_json::from_slice::<serde_json::Value>(&ex.get(&outputs, "hexplane")?)
-            .ok()
-            .and_then(|v| serde_json::from_value(v["hex_txyz"].clone()).ok())
-            .context("the worker's `hexplane` JSON names no `hex_txyz` [T, X, Y, Z]")?;
-        let [t, x, y, z] = txyz;
-        ensure!(
-            shape.len() == 3 && shape[1] == x + t + z && shape[2] == y + z + t,
-            "the worker's rollout has shape {shape:?}, not (C, X+T+Z, Y+Z+T) for hex_txyz {txyz:?}"
-        );
-        if let Some(bad) = rollout.iter().position(|v| !v.is_finite()) {
-            anyhow::bail!("the worker's rollout holds {} at {bad}", rollout[bad]);
-        }
-        let mask = super::hexplane::rollout_mask(t, x, y, z);
-        Ok(Outputs {
-            rollout: File(npz(&[
-                ("rollout", npy_f32(&shape, &rollout)),
-                ("mask", npy_u8(&[shape[1], shape[2]], &mask)),
-                ("hex_txyz", npy_f32(&[4], &[t as f32, x as f32, y as f32, z as f32])),
-            ])),
-        })
+        let (_, _, file) = super::hexplane::worker_rollout(&ex, &outputs)?;
+        Ok(Outputs { rollout: File(file) })
     }
 }

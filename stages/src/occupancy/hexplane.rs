@@ -321,11 +321,7 @@ impl Stage for HexPlaneBaseline {
         }
         let planes = encode_baseline(&frames, c, x, y, z);
         let (h, w) = planes.rollout_size();
-        let file = npz(&[
-            ("rollout", npy_f32(&[c, h, w], &rollout(&planes))),
-            ("mask", npy_u8(&[h, w], &rollout_mask(t, x, y, z))),
-            ("hex_txyz", npy_f32(&[4], &[t as f32, x as f32, y as f32, z as f32])),
-        ]);
+        let file = rollout_file(&[c, h, w], &rollout(&planes), [t, x, y, z]);
         // The reconstruction, scored as occupancy is (the camera-visible voxels of each frame).
         let decoded = decode_baseline(&planes);
         let mut m = vec![vec![0u64; c]; c];
@@ -365,36 +361,51 @@ fn encode_by_worker(
     frames: &[&[u8]],
     [t, x, y, z]: [usize; 4],
 ) -> Result<Outputs> {
-    use crate::model_worker::Exchange;
-    use anyhow::Context;
-    let ex = Exchange::new()?;
+    let ex = crate::model_worker::Exchange::new()?;
     let volume: Vec<u8> = frames.concat();
     let inputs = vec![ex.put("semantics", "semantics.npy", &npy_u8(&[t, x, y, z], &volume))?];
     let outputs = worker.call(ctx, &ex, "encode_hexplane", inputs, json!({ "classes": NAMES, "free": FREE }))?;
-    let (shape, rollout) = dist4d_types::formats::read_npy_f32(&ex.get(&outputs, "rollout")?)
+    let (shape, txyz, file) = worker_rollout(&ex, &outputs)?;
+    let scores = json!({ "frames": t, "rollout_size": shape, "hex_txyz": txyz, "encoder": "worker" });
+    Ok(Outputs { rollout: File(file), scores: File(serde_json::to_vec_pretty(&scores)?) })
+}
+
+/// A rollout file as the HexPlane stages write it: `rollout` (C, H, W) float32, its padding
+/// `mask` and the planes' sizes `hex_txyz` (T, X, Y, Z) as 4 float32.
+pub fn rollout_file(shape: &[usize], rollout: &[f32], [t, x, y, z]: [usize; 4]) -> Vec<u8> {
+    npz(&[
+        ("rollout", npy_f32(shape, rollout)),
+        ("mask", npy_u8(&[x + t + z, y + z + t], &rollout_mask(t, x, y, z))),
+        ("hex_txyz", npy_f32(&[4], &[t as f32, x as f32, y as f32, z as f32])),
+    ])
+}
+
+/// The rollout a HexPlane worker returned (`rollout`, NPY float32, and `hexplane`, JSON with its
+/// `hex_txyz`), checked: three-dimensional, shaped (C, X+T+Z, Y+Z+T) as its sizes say, finite.
+/// Its shape, sizes and [`rollout_file`].
+pub fn worker_rollout(
+    ex: &crate::model_worker::Exchange,
+    outputs: &[dist4d_runtime::worker::FileRef],
+) -> Result<(Vec<usize>, [usize; 4], Vec<u8>)> {
+    use anyhow::Context;
+    let (shape, rollout) = dist4d_types::formats::read_npy_f32(&ex.get(outputs, "rollout")?)
         .context("the worker's `rollout` (float32 NPY)")?;
-    let txyz: [usize; 4] = serde_json::from_slice::<serde_json::Value>(&ex.get(&outputs, "hexplane")?)
+    let txyz: [usize; 4] = serde_json::from_slice::<serde_json::Value>(&ex.get(outputs, "hexplane")?)
         .ok()
         .and_then(|v| serde_json::from_value(v["hex_txyz"].clone()).ok())
         .context("the worker's `hexplane` JSON names no `hex_txyz` [T, X, Y, Z]")?;
-    let [ht, hx, hy, hz] = txyz;
+    let [t, x, y, z] = txyz;
     ensure!(
-        shape.len() == 3 && shape[1] == hx + ht + hz && shape[2] == hy + hz + ht,
+        shape.len() == 3 && shape[1] == x + t + z && shape[2] == y + z + t,
         "the worker's rollout has shape {shape:?}, not (C, X+T+Z, Y+Z+T) = (C, {}, {}) for hex_txyz {txyz:?}",
-        hx + ht + hz,
-        hy + hz + ht
+        x + t + z,
+        y + z + t
     );
     if let Some(bad) = rollout.iter().position(|v| !v.is_finite()) {
         anyhow::bail!("the worker's rollout holds {} at {bad}", rollout[bad]);
     }
-    let (h, w) = (shape[1], shape[2]);
-    let file = npz(&[
-        ("rollout", npy_f32(&shape, &rollout)),
-        ("mask", npy_u8(&[h, w], &rollout_mask(ht, hx, hy, hz))),
-        ("hex_txyz", npy_f32(&[4], &[ht as f32, hx as f32, hy as f32, hz as f32])),
-    ]);
-    let scores = json!({ "frames": t, "rollout_size": shape, "hex_txyz": txyz, "encoder": "worker" });
-    Ok(Outputs { rollout: File(file), scores: File(serde_json::to_vec_pretty(&scores)?) })
+    let file = rollout_file(&shape, &rollout, txyz);
+    Ok((shape, txyz, file))
 }
 
 #[cfg(test)]
