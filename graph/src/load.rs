@@ -1337,16 +1337,16 @@ fn parse_template(template: &str, dims: &[Dim], grain: usize) -> Result<Vec<Temp
         };
         let placeholder = &rest[open + 1..open + close];
         let (placeholder, width) = match placeholder.split_once(':') {
-            Some((p, w)) => match w
-                .strip_prefix('0')
-                .and_then(|w| w.parse::<usize>().ok())
-                .filter(|w| (1..=20).contains(w))
-            {
-                Some(w) => (p, Some(w)),
-                None => return Err(format!(
+            Some((p, w)) => {
+                match w.strip_prefix('0').and_then(|w| w.parse::<usize>().ok()).filter(|w| (1..=20).contains(w)) {
+                    Some(w) => (p, Some(w)),
+                    None => {
+                        return Err(format!(
                     "`{{{p}:{w}}}`: the format is `:0N`, the label zero-padded to N digits (1-20), e.g. `{{{p}:06}}`"
-                )),
-            },
+                ))
+                    }
+                }
+            }
             None => (placeholder, None),
         };
         let (name, token) = match placeholder.split_once('.') {

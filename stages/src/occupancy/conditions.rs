@@ -21,7 +21,7 @@
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::{File, OccupancyGrid, Pose};
 use dist4d_types::formats::{npy_u8, npz};
 use serde::{Deserialize, Serialize};
@@ -100,23 +100,13 @@ impl Stage for DitConditions {
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let p = &self.0;
         let t = p.frames as usize;
-        ensure!(
-            i.grids.iter().map(|(pos, _)| *pos).chain(i.poses.iter().map(|(pos, _)| *pos)).all(|pos| pos >= 0 && (pos as usize) < t),
-            "the inputs reach past the window of {t} frames: wire them with Window(.., frame, 0, {})",
-            t - 1
-        );
-        if i.grids.len() < t || i.poses.len() < t {
-            return Err(NotApplicable(format!("the window of {t} frames runs past the scene's end")).into());
-        }
-        let mut poses: Vec<&(i64, Pose)> = i.poses.iter().collect();
-        poses.sort_by_key(|(pos, _)| *pos);
-        let mut grids: Vec<&(i64, OccupancyGrid)> = i.grids.iter().collect();
-        grids.sort_by_key(|(pos, _)| *pos);
+        let grids = super::window("grids", &i.grids, t)?;
+        let poses = super::window("poses", &i.poses, t)?;
         let trajectory: Vec<[f64; 3]> = {
-            let first = poses[0].1.ego_to_world.translation;
+            let first = poses[0].ego_to_world.translation;
             poses
                 .iter()
-                .map(|(_, p)| {
+                .map(|p| {
                     let r = p.ego_to_world.matrix();
                     let t = p.ego_to_world.translation;
                     [t.x - first.x, t.y - first.y, r.x_axis.y.atan2(r.x_axis.x)]
@@ -125,7 +115,7 @@ impl Stage for DitConditions {
         };
         let command = command(&trajectory, p.angle_threshold, p.forward_threshold);
         let names = ["STATIC", "FORWARD", "LEFT", "RIGHT"];
-        let layout = layout(p, &grids.iter().map(|(_, g)| g).collect::<Vec<_>>())?;
+        let layout = layout(p, &grids)?;
         Ok(Outputs {
             json: File(serde_json::to_vec_pretty(&json!({
                 "frames": t,

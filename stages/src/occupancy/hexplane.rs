@@ -27,7 +27,7 @@ use super::eval::scores;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::{File, OccupancyGrid};
 use dist4d_types::formats::{npy_f32, npy_u8, npz};
 use serde::{Deserialize, Serialize};
@@ -301,21 +301,12 @@ impl Stage for HexPlaneBaseline {
 
     fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
         let t = self.0.frames as usize;
-        ensure!(
-            i.grids.iter().all(|(pos, _)| *pos >= 0 && (*pos as usize) < t),
-            "`grids` reaches past the window of {t} frames: wire it with Window(.., frame, 0, {})",
-            t - 1
-        );
-        if i.grids.len() < t {
-            return Err(NotApplicable(format!("the window of {t} frames runs past the scene's end")).into());
-        }
-        let mut grids: Vec<&(i64, OccupancyGrid)> = i.grids.iter().collect();
-        grids.sort_by_key(|(pos, _)| *pos);
-        let dims = grids[0].1.dims;
-        ensure!(grids.iter().all(|(_, g)| g.dims == dims), "the window's grids differ in size");
+        let grids = super::window("grids", &i.grids, t)?;
+        let dims = grids[0].dims;
+        ensure!(grids.iter().all(|g| g.dims == dims), "the window's grids differ in size");
         let [x, y, z] = dims.map(|d| d as usize);
         let c = NAMES.len();
-        let frames: Vec<&[u8]> = grids.iter().map(|(_, g)| g.semantics.as_slice()).collect();
+        let frames: Vec<&[u8]> = grids.iter().map(|g| g.semantics.as_slice()).collect();
         if self.1.is_set() {
             return encode_by_worker(ctx, &self.1, &frames, [t, x, y, z]);
         }
@@ -325,7 +316,7 @@ impl Stage for HexPlaneBaseline {
         // The reconstruction, scored as occupancy is (the camera-visible voxels of each frame).
         let decoded = decode_baseline(&planes);
         let mut m = vec![vec![0u64; c]; c];
-        for ((_, g), d) in grids.iter().zip(&decoded) {
+        for (g, d) in grids.iter().zip(&decoded) {
             for v in 0..g.voxels() {
                 if g.mask_camera[v] != 0 {
                     m[g.semantics[v] as usize % c][d[v] as usize % c] += 1;

@@ -5,7 +5,7 @@
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::Image;
 use serde::{Deserialize, Serialize};
 
@@ -68,19 +68,15 @@ impl Stage for OccupancySheet {
 
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let t = self.0.frames as usize;
-        if i.views.len() < t {
-            return Err(NotApplicable(format!("the window of {t} frames runs past the scene's end")).into());
-        }
-        let mut views: Vec<&(i64, Image)> = i.views.iter().collect();
-        views.sort_by_key(|(pos, _)| *pos);
-        let (w, h) = (views[0].1.width as usize, views[0].1.height as usize);
-        ensure!(views.iter().all(|(_, v)| (v.width as usize, v.height as usize) == (w, h)), "the views differ in size");
+        let views = super::window("views", &i.views, t)?;
+        let (w, h) = (views[0].width as usize, views[0].height as usize);
+        ensure!(views.iter().all(|v| (v.width as usize, v.height as usize) == (w, h)), "the views differ in size");
         let cols = (self.0.columns as usize).min(t);
         let rows = t.div_ceil(cols);
         let gap = 4;
         let (sw, sh) = (cols * w + (cols - 1) * gap, rows * h + (rows - 1) * gap);
         let mut rgb = vec![255u8; sw * sh * 3];
-        for (k, (_, v)) in views.iter().take(t).enumerate() {
+        for (k, v) in views.iter().enumerate() {
             let (x0, y0) = ((k % cols) * (w + gap), (k / cols) * (h + gap));
             for y in 0..h {
                 let src = &v.rgb[3 * y * w..3 * (y + 1) * w];
