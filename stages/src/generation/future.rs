@@ -17,7 +17,7 @@
 
 use crate::model_worker::{npy_rgb8, read_npy_rgb8, worker_depth, Exchange, ModelWorker, WorkerSpec};
 use crate::novel_view::fill_baseline::fill;
-use crate::novel_view::frame_pair::{frame_record, info_view, view_of};
+use crate::novel_view::frame_pair::{camera_views, frame_record, info_view, view_of};
 use crate::novel_view::moving::{split, Moving};
 use crate::novel_view::splat::{reproject, PinholeView, RgbdView, SplatParams};
 use crate::stage::{variant_of, Stage};
@@ -221,19 +221,8 @@ struct Reference<'a> {
 
 /// The reference cameras that have an image, matched by position.
 fn references(i: &Inputs) -> Result<Vec<Reference<'_>>> {
-    ensure!(
-        i.images.len() == i.depths.len() && i.images.len() == i.infos.len(),
-        "`images`, `depths` and `infos` hold {}, {} and {} items: wire them with the same selector (Across(.., camera))",
-        i.images.len(),
-        i.depths.len(),
-        i.infos.len()
-    );
     let mut out = Vec::new();
-    for (((pi, image), (pd, depth)), (pn, info)) in i.images.iter().zip(&i.depths).zip(&i.infos) {
-        ensure!(pi == pd && pd == pn, "`images`, `depths` and `infos` must be wired with the same selector");
-        if info.missing.is_some() {
-            continue;
-        }
+    for (image, depth, info) in camera_views(&i.images, &i.depths, &i.infos, "`images`, `depths` and `infos`")? {
         let view = view_of(info, image, depth).with_context(|| format!("the reference {}", info.camera))?;
         out.push(Reference { image, depth, info, view });
     }

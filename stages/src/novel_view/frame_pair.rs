@@ -201,21 +201,14 @@ impl Stage for FramePair {
             Sources::Others => {
                 let s = &inputs;
                 anyhow::ensure!(
-                    !s.surround_images.is_empty() && s.surround_images.len() == s.surround_depths.len() && s.surround_images.len() == s.surround_infos.len(),
+                    !s.surround_images.is_empty(),
                     "variant `{label}` draws from the other cameras: wire `surround_images`, `surround_depths` and `surround_infos` with Across(.., camera)"
                 );
-                let mut out: Vec<(&Image, &DepthMap, &ImageInfo)> = Vec::new();
-                for ((pi, image), ((pd, depth), (pn, info))) in
-                    s.surround_images.iter().zip(s.surround_depths.iter().zip(&s.surround_infos))
-                {
-                    anyhow::ensure!(
-                        pi == pd && pd == pn,
-                        "the `surround_*` inputs must be wired with the same selector"
-                    );
-                    if info.camera != src_info.camera && info.missing.is_none() {
-                        out.push((image, depth, info));
-                    }
-                }
+                let out: Vec<(&Image, &DepthMap, &ImageInfo)> =
+                    camera_views(&s.surround_images, &s.surround_depths, &s.surround_infos, "the `surround_*` inputs")?
+                        .into_iter()
+                        .filter(|(_, _, info)| info.camera != src_info.camera)
+                        .collect();
                 anyhow::ensure!(
                     !out.is_empty(),
                     "variant `{label}` draws from the other cameras of frame t, and the `surround_*` inputs hold none \
@@ -276,6 +269,32 @@ impl Stage for FramePair {
             record: File(serde_json::to_vec(&record)?),
         })
     }
+}
+
+/// A frame's camera images wired with `Across(.., camera)` as three inputs (images, their depths
+/// and infos), matched by position; cameras without an image (a dropped frame) are left out.
+/// `what` names the inputs in errors.
+pub fn camera_views<'a>(
+    images: &'a [(i64, Image)],
+    depths: &'a [(i64, DepthMap)],
+    infos: &'a [(i64, ImageInfo)],
+    what: &str,
+) -> Result<Vec<(&'a Image, &'a DepthMap, &'a ImageInfo)>> {
+    ensure!(
+        images.len() == depths.len() && images.len() == infos.len(),
+        "{what} hold {}, {} and {} items: wire them with the same selector (Across(.., camera))",
+        images.len(),
+        depths.len(),
+        infos.len()
+    );
+    let mut out = Vec::with_capacity(images.len());
+    for (((pi, image), (pd, depth)), (pn, info)) in images.iter().zip(depths).zip(infos) {
+        ensure!(pi == pd && pd == pn, "{what} must be wired with the same selector");
+        if info.missing.is_none() {
+            out.push((image, depth, info));
+        }
+    }
+    Ok(out)
 }
 
 /// The camera of an image, as its info gives it.
