@@ -119,10 +119,6 @@ impl WorkerPool {
         }
     }
 
-    pub fn options(&self) -> &PoolOptions {
-        &self.options
-    }
-
     /// The workers' hello (starting one if none ran yet): name, version and weights digest are
     /// what a task key holds of a worker.
     pub fn hello(&self) -> Result<Hello> {
@@ -145,11 +141,6 @@ impl WorkerPool {
     /// The hello of a worker that started, without starting one.
     pub fn known_hello(&self) -> Option<Hello> {
         self.state.lock().ok()?.hello.clone()
-    }
-
-    /// How many requests went in batches of more than one.
-    pub fn batched(&self) -> u64 {
-        self.state.lock().map(|s| s.batched).unwrap_or(0)
     }
 
     fn lock(&self) -> Result<MutexGuard<'_, State>> {
@@ -485,7 +476,8 @@ mod tests {
         for (w, r) in whats.iter().zip(&results) {
             assert_eq!(r.as_ref().unwrap(), w);
         }
-        assert!(pool.batched() >= 3, "the six waiting calls went in batches: {} batched", pool.batched());
+        let batched = pool.state.lock().unwrap().batched;
+        assert!(batched >= 3, "the six waiting calls went in batches: {batched} batched");
         // The worker asserts that no batch is larger than 3: it would have crashed.
         assert_eq!(pool.state.lock().unwrap().failures, 0);
     }
@@ -505,7 +497,7 @@ mod tests {
                 _ => assert_eq!(r.as_ref().unwrap(), w),
             }
         }
-        assert!(pool.batched() > 0, "the crash was in a batch");
+        assert!(pool.state.lock().unwrap().batched > 0, "the crash was in a batch");
     }
 
     #[test]
