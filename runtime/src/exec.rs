@@ -17,6 +17,7 @@ use crate::digest::{Digest, DigestBuilder};
 use crate::export::{ExportJob, Exporter, FileStat};
 use crate::item::{ItemKey, ItemSpace};
 use crate::keys::{Decision, Input, Keys, Unknown};
+use crate::lease::{Claim, Holder};
 use crate::operator::{Artifact, Blob, Dataset, Identities, NotApplicable, Operator, Output, TaskContext};
 use crate::plan::{plan_outer, InputSrc, OuterPlan, View};
 use crate::progress::{Counters, ProgressMode, Reporter};
@@ -206,11 +207,74 @@ struct OuterRun {
     redoing: HashMap<u32, Vec<u32>>,
     /// How often each task was run again (bounded by [`MAX_REDO`]).
     redone: HashMap<u32, u32>,
+    /// This process's claim on the outer item, released when it closes (see [`Claims`]).
+    claim: Option<Claim>,
 }
 
 impl OuterRun {
     fn closed(&self) -> bool {
         self.open == 0 && self.exports_pending == 0 && self.redoing.is_empty()
+    }
+}
+
+/// How often a run looks again at the outer items other processes hold.
+const CLAIM_POLL: Duration = Duration::from_millis(200);
+
+/// Claims on outer items, so that processes sharing a store share the work instead of each
+/// doing all of it: a process runs an outer item only while it holds the item's claim (a file
+/// under the store's `leases/claims/`, see [`crate::lease::Claim`]); an item another live
+/// process holds waits, and once let go it is admitted and finds its tasks cached. The claim's
+/// name is the pipeline's digest with the item's label: processes running different pipelines
+/// (or params) do not wait for each other.
+struct Claims<'e> {
+    store: &'e Store,
+    space: &'e dyn ItemSpace,
+    pipeline: String,
+    dim: String,
+    said: std::collections::HashSet<u32>,
+    last_poll: Instant,
+}
+
+impl<'e> Claims<'e> {
+    fn new(engine: &'e Engine, p: &Pipeline) -> Claims<'e> {
+        Claims {
+            store: engine.store,
+            space: engine.dataset,
+            pipeline: pipeline_digest(p).hex(),
+            dim: p.dims[0].name.clone(),
+            said: Default::default(),
+            last_poll: Instant::now(),
+        }
+    }
+
+    fn take(&mut self, outer: u32) -> Result<std::result::Result<Claim, Holder>> {
+        let label = self.space.label(&ItemKey::new(&[outer]));
+        let name = DigestBuilder::new("dist4d-claim").str(&self.pipeline).str(&label).finish().hex();
+        self.store.claim(&name[..32])
+    }
+
+    /// Says that the run waits for another process (for the first few items: with many
+    /// processes on one store, collisions are many and each one is ordinary).
+    fn waiting_for(&mut self, outer: u32, holder: &Holder) {
+        if self.said.len() == 3 && self.said.insert(outer) {
+            eprintln!("(and more: items other processes are running are waited for, silently from now on)");
+        }
+        if self.said.len() < 3 && self.said.insert(outer) {
+            let label = self.space.label(&ItemKey::new(&[outer]));
+            eprintln!(
+                "{} `{label}` is being run by another process sharing the store ({}); this run takes its results when it ends",
+                self.dim,
+                holder.describe()
+            );
+        }
+    }
+
+    fn poll_due(&mut self) -> bool {
+        let due = self.last_poll.elapsed() >= CLAIM_POLL;
+        if due {
+            self.last_poll = Instant::now();
+        }
+        due
     }
 }
 
@@ -375,6 +439,9 @@ impl<'a> Engine<'a> {
         let (tx, rx): (Sender<Msg>, Receiver<Msg>) = unbounded();
         let max_inflight = opts.jobs.max(1) * 2;
         let task_budget = 4096usize.max(opts.jobs * 256);
+        // Outer items in flight at once: enough to keep every thread busy, and no more, since
+        // each holds a claim other processes sharing the store would otherwise take.
+        let outer_budget = opts.jobs.max(1) * 2 + 2;
         let mut c = Coord {
             active: Vec::new(),
             ready: BinaryHeap::new(),
@@ -389,6 +456,7 @@ impl<'a> Engine<'a> {
             export_jobs: Vec::new(),
             awaiting: HashMap::new(),
             next_awaiting: 0,
+            released: Vec::new(),
         };
         let ctx = Ctx { engine: self, keys: &keys };
         let mut next_outer = 0usize;
@@ -397,6 +465,8 @@ impl<'a> Engine<'a> {
         let mut parked: Vec<VecDeque<Job>> = classes.slots.iter().map(|_| VecDeque::new()).collect();
         let mut waiting = 0usize;
         let mut stopping: Option<RunStatus> = None;
+        let mut claims = Claims::new(self, p);
+        let mut deferred: VecDeque<(u32, u64)> = VecDeque::new();
 
         // The scopes guarantee every spawned job has ended before they return, even on an error.
         wait_pool.in_place_scope(|wait_scope| -> Result<()> {
@@ -405,10 +475,40 @@ impl<'a> Engine<'a> {
                     if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
                         stopping = Some(RunStatus::Interrupted);
                     }
-                    // Admit outer items while there is room.
-                    while stopping.is_none() && next_outer < outers.len() && c.live_tasks < task_budget {
-                        c.admit(p, &view, outers[next_outer], next_outer as u64, &stage_nodes);
+                    // Admit outer items while there is room; one that another process is
+                    // running waits, and is admitted (its tasks then cached) when it lets go.
+                    while stopping.is_none() && next_outer < outers.len() && c.has_room(task_budget, outer_budget) {
+                        let o = outers[next_outer];
+                        match claims.take(o)? {
+                            Ok(claim) => c.admit(p, &view, o, next_outer as u64, &stage_nodes, Some(claim)),
+                            Err(holder) => {
+                                claims.waiting_for(o, &holder);
+                                deferred.push_back((o, next_outer as u64));
+                            }
+                        }
                         next_outer += 1;
+                    }
+                    if stopping.is_none()
+                        && !deferred.is_empty()
+                        && c.has_room(task_budget, outer_budget)
+                        && claims.poll_due()
+                    {
+                        for _ in 0..deferred.len() {
+                            let (o, seq) = deferred.pop_front().expect("counted");
+                            match claims.take(o)? {
+                                Ok(claim) => {
+                                    self.store.refresh()?;
+                                    c.admit(p, &view, o, seq, &stage_nodes, Some(claim));
+                                }
+                                Err(_) => deferred.push_back((o, seq)),
+                            }
+                        }
+                    }
+                    // Released claims: the records of their items go to the server first, so
+                    // that a process on another node that takes the item over finds them.
+                    if !c.released.is_empty() {
+                        self.store.sync_records()?;
+                        c.released.clear();
                     }
 
                     // Start ready tasks: cache hits complete here, the rest go to the pools.
@@ -447,12 +547,16 @@ impl<'a> Engine<'a> {
                         inflight += c.spawn_exports(scope, &tx);
                     }
 
-                    let outers_left = stopping.is_none() && next_outer < outers.len();
+                    let outers_left = stopping.is_none() && (next_outer < outers.len() || !deferred.is_empty());
                     let ready_left = stopping.is_none() && !c.ready.is_empty();
                     if inflight == 0 && waiting == 0 && !outers_left && !ready_left {
                         return Ok(());
                     }
                     if inflight == 0 && waiting == 0 {
+                        if !ready_left && next_outer == outers.len() {
+                            // Only items other processes hold are left.
+                            std::thread::sleep(CLAIM_POLL);
+                        }
                         continue;
                     }
                     match rx.recv_timeout(Duration::from_millis(200)) {
@@ -687,11 +791,18 @@ struct Coord {
     /// Task records waiting for their exports, by id.
     awaiting: HashMap<u64, Awaiting>,
     next_awaiting: u64,
+    /// Claims of outer items that closed, to be let go once their records are synced.
+    released: Vec<Claim>,
 }
 
 impl Coord {
+    /// Whether another outer item may be admitted.
+    fn has_room(&self, task_budget: usize, outer_budget: usize) -> bool {
+        self.live_tasks < task_budget && self.active.iter().filter(|a| a.is_some()).count() < outer_budget
+    }
+
     /// Plans an outer item and queues its tasks that have no upstream tasks.
-    fn admit(&mut self, p: &Pipeline, view: &View, outer: u32, seq: u64, stage_nodes: &[usize]) {
+    fn admit(&mut self, p: &Pipeline, view: &View, outer: u32, seq: u64, stage_nodes: &[usize], claim: Option<Claim>) {
         let plan = plan_outer(p, view, outer);
         // Tasks that could not be planned (offsets past the end of a dimension) leave the totals.
         for (i, &n) in stage_nodes.iter().enumerate() {
@@ -721,6 +832,7 @@ impl Coord {
             exports_pending: 0,
             redoing: HashMap::new(),
             redone: HashMap::new(),
+            claim,
             plan,
         };
         for (t, task) in run.plan.tasks.iter().enumerate() {
@@ -870,7 +982,9 @@ impl Coord {
     /// Frees the slot of an outer item whose tasks, exports and reruns have all ended.
     fn close_if_done(&mut self, slot: u32) {
         if run_of(&self.active, slot).closed() {
-            self.active[slot as usize] = None;
+            if let Some(claim) = self.active[slot as usize].take().and_then(|r| r.claim) {
+                self.released.push(claim);
+            }
         }
     }
 

@@ -1075,3 +1075,37 @@ fn a_stage_with_every_runs_on_every_nth_item_and_its_readers_only_there() {
     assert_eq!(executed(&r), counts(&[("frames", 10), ("windows", 6), ("after", 6)]));
     assert_eq!(r.stages.iter().find(|s| s.stage == "windows").unwrap().total, 6, "the others are not planned");
 }
+
+#[test]
+fn processes_sharing_a_store_share_the_work_instead_of_each_doing_all_of_it() {
+    let text = r#"Pipeline(
+        dataset: Grid(scenes: 8, frames: 2, cameras: 2),
+        stages: {
+            "a": Echo(inputs: {"x": "dataset.camera_value"}, params: (sleep_ms: 15)),
+            "b": Echo(inputs: {"x": "a.y"}, params: (size: 100)),
+        },
+    )"#;
+    let p = testkit::load(text, &[]);
+    let grid = testkit::grid_of(&p);
+    let alone = tempfile::tempdir().unwrap();
+    let whole = run_with(&p, &grid, alone.path(), &RunOptions { jobs: 1, ..Default::default() });
+    let total: u64 = whole.stages.iter().map(|s| s.executed).sum();
+    assert_eq!(total, 8 * 2 * 2 * 2);
+
+    let shared = tempfile::tempdir().unwrap();
+    let records: Vec<RunRecord> = std::thread::scope(|scope| {
+        let runs: Vec<_> = (0..2)
+            .map(|_| scope.spawn(|| run_with(&p, &grid, shared.path(), &RunOptions { jobs: 1, ..Default::default() })))
+            .collect();
+        runs.into_iter().map(|r| r.join().unwrap()).collect()
+    });
+    let executed: Vec<u64> = records.iter().map(|r| r.stages.iter().map(|s| s.executed).sum()).collect();
+    for r in &records {
+        assert_eq!(r.status, RunStatus::Complete);
+        let done: u64 = r.stages.iter().map(|s| s.executed + s.cached).sum();
+        assert_eq!(done, total, "each run ends with every task done, by itself or by the other");
+    }
+    assert_eq!(executed.iter().sum::<u64>(), total, "no task was run twice: {executed:?}");
+    assert!(executed.iter().all(|&n| n > 0), "both did some of the work: {executed:?}");
+    assert!(!shared.path().join("leases/claims").read_dir().unwrap().any(|_| true), "claims are let go");
+}

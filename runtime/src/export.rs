@@ -420,7 +420,7 @@ impl Exporter {
             let p = e?.path();
             let writer =
                 p.file_name().and_then(|n| n.to_str()).and_then(|n| n.rsplit_once('-')).map(|(w, _)| w.to_string());
-            if writer.is_none_or(|w| !store.writer_alive(&w)) {
+            if writer.is_none_or(|w| store.temp_abandoned(&w, &p)) {
                 let _ = std::fs::remove_file(&p);
             }
         }

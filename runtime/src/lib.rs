@@ -10,6 +10,7 @@ pub mod export;
 pub mod gc;
 pub mod item;
 pub mod keys;
+pub mod lease;
 pub mod operator;
 pub mod plan;
 pub mod progress;

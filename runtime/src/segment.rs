@@ -93,8 +93,14 @@ impl Segment {
 
     /// Valid entries as (offset of payload, payload). Stops at the first torn or corrupt entry.
     pub fn entries(&self) -> impl Iterator<Item = (usize, &[u8])> {
+        self.entries_from(0)
+    }
+
+    /// Valid entries from byte offset `from`, which is 0 (the first entry) or the end of an
+    /// entry ([`Segment::end_of`]): what a writer appended since the segment was last read.
+    pub fn entries_from(&self, from: usize) -> impl Iterator<Item = (usize, &[u8])> {
         let bytes = self.bytes();
-        let mut pos = if bytes.starts_with(MAGIC) { MAGIC.len() } else { bytes.len() };
+        let mut pos = if !bytes.starts_with(MAGIC) { bytes.len() } else { from.max(MAGIC.len()) };
         std::iter::from_fn(move || {
             if pos + 8 > bytes.len() {
                 return None;
@@ -112,6 +118,11 @@ impl Segment {
             pos = start + len as usize;
             Some((start, payload))
         })
+    }
+
+    /// The byte offset just past the entry whose payload starts at `offset` and is `len` long.
+    pub fn end_of(offset: usize, len: usize) -> usize {
+        offset + len
     }
 
     /// The payload at an offset returned by [`Segment::entries`].
@@ -210,6 +221,11 @@ mod tests {
         assert_eq!(got, vec![&b"first"[..], &b"second"[..]]);
         let (off, _) = seg.entries().nth(1).unwrap();
         assert_eq!(seg.payload_at(off), Some(&b"second"[..]));
+        // A writer that goes on after the torn tail was read: its next entries are found from
+        // where the last valid one ended (a real writer never leaves a torn entry mid-file).
+        let (off, first) = seg.entries().next().unwrap();
+        let rest: Vec<&[u8]> = seg.entries_from(Segment::end_of(off, first.len())).map(|(_, p)| p).collect();
+        assert_eq!(rest, vec![&b"second"[..]]);
     }
 
     #[test]

@@ -2,7 +2,9 @@
 //!
 //! ```text
 //! <store>/
-//!   store.lock          shared-locked by runs, exclusively by gc
+//!   leases/<writer>.lease   one per process using the store, kept fresh by a heartbeat
+//!   leases/gc.lease     held by gc, which needs the store alone (see [`crate::lease`])
+//!   leases/claims/      the outer items runs are working on, so that they share the work
 //!   cas/ab/cdef...      blobs named by the blake3 digest of their bytes; compressed when that
 //!                       pays, behind a header (see [`crate::blob`])
 //!   ac/<writer>.seg     task records, packed in per-process append-only segments
@@ -15,15 +17,18 @@
 //! fsynced first; blobs together at the end of a run, see [`Store::sync`]); segment entries carry
 //! checksums. So a killed process leaves nothing half-written, and
 //! several processes (or cluster nodes on a shared filesystem) can use one store at once: they
-//! write different segments, and renaming a blob over an identical one is harmless.
+//! write different segments, and renaming a blob over an identical one is harmless. Who is using
+//! the store is told by lease files, not by `flock` (which does not work across nodes on Lustre
+//! or NFS): see [`crate::lease`].
 
 use crate::blob;
 use crate::digest::{Digest, DigestMap};
+use crate::lease::{self, Holder, Lease, Liveness};
 use crate::record::TaskRecord;
 use crate::segment::{enc, segment_paths, Segment, SegmentWriter};
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use std::collections::HashMap;
-use std::fs::{self, File, OpenOptions};
+use std::fs::{self, File};
 use std::io::Write;
 use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
@@ -62,6 +67,14 @@ pub enum Access {
     Exclusive,
 }
 
+/// Records found after open, and how far each segment file has been read.
+#[derive(Default)]
+struct Later {
+    segments: Vec<Segment>,
+    index: DigestMap<(u32, u64)>,
+    read_to: HashMap<PathBuf, usize>,
+}
+
 /// What a raw file looked like when it was hashed.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 struct FileStamp {
@@ -74,12 +87,16 @@ struct FileStamp {
 pub struct Store {
     pub root: PathBuf,
     writer_id: String,
-    _store_lock: File,
-    _writer_lock: File,
+    /// Our lease; gc's too when gc holds the store (dropped first: gc lets go before it leaves).
+    gc_lease: Option<Lease>,
+    writer_lease: Lease,
     records: Mutex<Option<SegmentWriter>>,
     fp_writer: Mutex<Option<SegmentWriter>>,
+    /// The records found at open: read without a lock (lookups are on the hot path).
     segments: Vec<Segment>,
     index: DigestMap<(u32, u64)>,
+    /// Records other processes appended since, found by [`Store::refresh`].
+    later: RwLock<Later>,
     fingerprints: RwLock<HashMap<PathBuf, (FileStamp, Digest)>>,
     tmp_counter: AtomicU64,
     /// Whether this process wrote a blob since its last `sync` (which then flushes them).
@@ -89,36 +106,60 @@ pub struct Store {
 impl Store {
     /// Opens (creating if needed) the store at `root` and loads its record index and fingerprint memo.
     pub fn open(root: &Path, access: Access) -> Result<Store> {
-        for d in ["cas", "ac", "fp", "runs", "tmp"] {
+        for d in ["cas", "ac", "fp", "runs", "tmp", "leases"] {
             fs::create_dir_all(root.join(d))
                 .with_context(|| format!("creating store directory {}", root.join(d).display()))?;
         }
-        let lock_path = root.join("store.lock");
-        let store_lock = OpenOptions::new()
-            .create(true)
-            .truncate(false)
-            .write(true)
-            .open(&lock_path)
-            .with_context(|| format!("opening {}", lock_path.display()))?;
-        match access {
-            Access::Shared => store_lock.lock_shared(),
-            Access::Exclusive => store_lock
-                .try_lock()
-                .map_err(|_| std::io::Error::other("another dist4d process is using this store; gc needs it alone")),
-        }
-        .with_context(|| format!("locking {}", lock_path.display()))?;
-
         let writer_id = unique_writer_id();
-        let writer_lock_path = root.join("tmp").join(format!("{writer_id}.lock"));
-        let writer_lock = lock_writer_file(&writer_lock_path)?;
-        remove_dead_writers_temps(&root.join("tmp"), &writer_id)?;
+        let leases = root.join("leases");
+        let me = Holder::me(&writer_id);
+        let writer_lease = Lease::create(&leases.join(format!("{writer_id}.lease")), &me)?
+            .with_context(|| format!("writer id {writer_id} is taken in {}", leases.display()))?;
+        let now = || lease::fs_now(writer_lease.path());
+        let gc_path = leases.join("gc.lease");
+        let gc_lease = match access {
+            Access::Exclusive => {
+                let gc = match lease::acquire(&gc_path, &me, now)? {
+                    Ok(l) => l,
+                    Err(h) => bail!("another gc ({}) is working on the store {}", h.describe(), root.display()),
+                };
+                let users = live_writers(&leases, &writer_id, now());
+                if !users.is_empty() {
+                    bail!(
+                        "{} other dist4d process{} using the store {} ({}); gc needs it alone: run it when they end",
+                        users.len(),
+                        if users.len() == 1 { " is" } else { "es are" },
+                        root.display(),
+                        users.iter().take(4).map(|h| h.describe()).collect::<Vec<_>>().join(", ")
+                    );
+                }
+                Some(gc)
+            }
+            Access::Shared => {
+                // Our lease is out first, so a gc starting now sees us and gives way; one that
+                // already checked is waited for.
+                let mut said = false;
+                while let Liveness::Live(h) = lease::judge(&gc_path, now()) {
+                    if !said {
+                        eprintln!("waiting: gc ({}) is working on the store {}", h.describe(), root.display());
+                        said = true;
+                    }
+                    std::thread::sleep(std::time::Duration::from_millis(250));
+                }
+                None
+            }
+        };
+        remove_abandoned(root, &writer_id, now());
 
         let mut segments: Vec<Segment> = Vec::new();
         let mut index = DigestMap::default();
+        let mut later = Later::default();
         for path in segment_paths(&root.join("ac"))? {
             let seg = Segment::open(&path)?;
             let si = segments.len() as u32;
+            let mut end = 0;
             for (off, payload) in seg.entries() {
+                end = Segment::end_of(off, payload.len());
                 let Some(key) = TaskRecord::key_of(payload) else { continue };
                 // A key recorded twice (a task run again) is rare: only then is a record compared.
                 let earlier = match index.get(&key) {
@@ -129,18 +170,20 @@ impl Store {
                     index.insert(key, (si, off as u64));
                 }
             }
+            later.read_to.insert(path, end);
             segments.push(seg);
         }
         let fingerprints = load_fingerprints(&root.join("fp"))?;
         Ok(Store {
             root: root.to_path_buf(),
             writer_id,
-            _store_lock: store_lock,
-            _writer_lock: writer_lock,
+            gc_lease,
+            writer_lease,
             records: Mutex::new(None),
             fp_writer: Mutex::new(None),
             segments,
             index,
+            later: RwLock::new(later),
             fingerprints: RwLock::new(fingerprints),
             tmp_counter: AtomicU64::new(0),
             unsynced_blobs: AtomicBool::new(false),
@@ -152,11 +195,69 @@ impl Store {
         self.index.len()
     }
 
-    /// The record of a task key, if a finished task with that key is in the store.
+    /// The record of a task key, if a finished task with that key is in the store (found at
+    /// open, or by a [`Store::refresh`] since).
     pub fn lookup(&self, key: &Digest) -> Option<TaskRecord> {
-        let (seg, off) = *self.index.get(key)?;
-        let payload = self.segments[seg as usize].payload_at(off as usize)?;
-        TaskRecord::decode(payload).ok()
+        if let Some(&(seg, off)) = self.index.get(key) {
+            let payload = self.segments[seg as usize].payload_at(off as usize)?;
+            return TaskRecord::decode(payload).ok();
+        }
+        let later = self.later.read().unwrap();
+        let &(seg, off) = later.index.get(key)?;
+        TaskRecord::decode(later.segments[seg as usize].payload_at(off as usize)?).ok()
+    }
+
+    /// Reads the records other processes appended since the store was opened (or last
+    /// refreshed): a run that waited for another process to finish an item then finds that
+    /// item's tasks cached. Returns how many records it found.
+    pub fn refresh(&self) -> Result<usize> {
+        let own = self.records.lock().unwrap().as_ref().map(|w| w.path().to_path_buf());
+        let mut later = self.later.write().unwrap();
+        let mut found = 0;
+        for path in segment_paths(&self.root.join("ac"))? {
+            if own.as_ref() == Some(&path) {
+                continue;
+            }
+            let from = later.read_to.get(&path).copied().unwrap_or(0);
+            let len = fs::metadata(&path).map(|m| m.len() as usize).unwrap_or(0);
+            if len <= from {
+                continue;
+            }
+            // Opened anew: on NFS, opening is what revalidates a file another node appended to.
+            let seg = Segment::open(&path)?;
+            let si = later.segments.len() as u32;
+            let mut end = from;
+            let mut entries = Vec::new();
+            for (off, payload) in seg.entries_from(from) {
+                end = Segment::end_of(off, payload.len());
+                if let Some(key) = TaskRecord::key_of(payload) {
+                    entries.push((key, off as u64));
+                }
+            }
+            found += entries.len();
+            for (key, off) in entries {
+                later.index.insert(key, (si, off));
+            }
+            later.read_to.insert(path, end);
+            later.segments.push(seg);
+        }
+        Ok(found)
+    }
+
+    /// Makes the task records this process appended durable and visible to other nodes (on
+    /// NFS, another client sees appended bytes once they reach the server).
+    pub fn sync_records(&self) -> Result<()> {
+        match self.records.lock().unwrap().as_mut() {
+            Some(w) => w.sync(),
+            None => Ok(()),
+        }
+    }
+
+    /// Claims `name` (an item of work) for this process until the claim is dropped;
+    /// `Ok(Err(holder))` when a live process holds it (see [`lease::Claim`]).
+    pub fn claim(&self, name: &str) -> Result<std::result::Result<lease::Claim, Holder>> {
+        let leases = self.root.join("leases");
+        lease::Claim::take(&leases.join("claims").join(format!("{name}.claim")), &leases, &self.holder(), self.fs_now())
     }
 
     /// Every record in the store, as loaded at open (for explain and gc).
@@ -284,15 +385,32 @@ impl Store {
         self.root.join("runs")
     }
 
-    /// Whether the writer with this id is still running (it holds the lock on `tmp/<id>.lock`).
+    /// Whether the writer with this id is still running (its lease is live).
     pub fn writer_alive(&self, id: &str) -> bool {
-        if id == self.writer_id {
-            return true;
-        }
-        match File::open(self.root.join("tmp").join(format!("{id}.lock"))) {
-            Ok(f) => f.try_lock().is_err(),
-            Err(_) => false,
-        }
+        id == self.writer_id || matches!(self.writer_lease_state(id, self.fs_now()), Liveness::Live(_))
+    }
+
+    /// Whether a temp file that writer `writer` left (in the store or an output folder) may be
+    /// removed: its writer is dead on this host, or not live and the file is older than the
+    /// lease timeout (a temp file younger than that may belong to a writer whose lease we cannot
+    /// see yet, on another node).
+    pub fn temp_abandoned(&self, writer: &str, path: &Path) -> bool {
+        let now = self.fs_now();
+        abandoned(&self.root.join("leases"), writer, path, now)
+    }
+
+    fn writer_lease_state(&self, id: &str, now: std::time::SystemTime) -> Liveness {
+        lease::judge(&self.root.join("leases").join(format!("{id}.lease")), now)
+    }
+
+    /// The time now on the store's filesystem clock (see [`lease::fs_now`]).
+    pub fn fs_now(&self) -> std::time::SystemTime {
+        lease::fs_now(self.writer_lease.path())
+    }
+
+    /// This process, as its lease names it.
+    pub fn holder(&self) -> Holder {
+        Holder::me(&self.writer_id)
     }
 
     /// This process's unique writer id (names its segments and temp files).
@@ -304,8 +422,8 @@ impl Store {
 impl Drop for Store {
     fn drop(&mut self) {
         let _ = self.sync();
-        // Our lock file goes while we still hold the lock, so no one mistakes it for a dead writer's.
-        let _ = fs::remove_file(self.root.join("tmp").join(format!("{}.lock", self.writer_id)));
+        // The gc lease first: our writer lease dropping after it means gc holds the store to the end.
+        drop(self.gc_lease.take());
     }
 }
 
@@ -362,7 +480,17 @@ pub fn write_whole_via(tmp: &Path, dest: &Path, bytes: &[u8], durable: bool) -> 
         } else {
             start_writeback(&f);
         }
-        fs::rename(tmp, dest)
+        // Closed before the rename: on NFS, closing is what sends the bytes to the server, so
+        // another node that opens the new name reads them all.
+        drop(f);
+        fs::rename(tmp, dest)?;
+        if durable {
+            // The rename itself survives a power loss once its directory is synced.
+            if let Some(dir) = dest.parent() {
+                File::open(dir)?.sync_all()?;
+            }
+        }
+        Ok(())
     })();
     if result.is_err() {
         let _ = fs::remove_file(tmp);
@@ -381,54 +509,59 @@ fn unique_writer_id() -> String {
     format!("{}-{}", std::process::id(), &d.hex()[..10])
 }
 
-/// Creates and locks this writer's lock file. Between creating the file and locking it, another
-/// process opening the store may take the still-free lock, judge the writer dead and unlink the
-/// file; we would then hold a lock on a file nobody can find, and our temp files would be removed
-/// as a dead writer's. So after locking, the path must still name the file we locked, or we retry.
-fn lock_writer_file(path: &Path) -> Result<File> {
-    use std::os::unix::fs::MetadataExt;
-    loop {
-        let f = File::create(path).with_context(|| format!("creating {}", path.display()))?;
-        f.lock().with_context(|| format!("locking {}", path.display()))?;
-        let locked = f.metadata().with_context(|| format!("reading {}", path.display()))?;
-        match fs::metadata(path) {
-            Ok(m) if m.dev() == locked.dev() && m.ino() == locked.ino() => return Ok(f),
-            Ok(_) => continue,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
-            Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+/// The writers other than `me` whose leases are live.
+fn live_writers(leases: &Path, me: &str, now: std::time::SystemTime) -> Vec<Holder> {
+    let Ok(rd) = fs::read_dir(leases) else { return Vec::new() };
+    rd.filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name().to_str()?.to_string();
+            let writer = name.strip_suffix(".lease")?;
+            if writer == me || writer == "gc" {
+                return None;
+            }
+            match lease::judge(&e.path(), now) {
+                Liveness::Live(h) => Some(h),
+                _ => None,
+            }
+        })
+        .collect()
+}
+
+/// Whether writer `writer`'s temp file at `path` may go (see [`Store::temp_abandoned`]).
+fn abandoned(leases: &Path, writer: &str, path: &Path, now: std::time::SystemTime) -> bool {
+    match lease::judge(&leases.join(format!("{writer}.lease")), now) {
+        Liveness::Live(_) => false,
+        Liveness::Dead(Some(h)) if h.on_this_host() => true,
+        _ => {
+            let modified = fs::symlink_metadata(path).and_then(|m| m.modified()).unwrap_or(now);
+            now.duration_since(modified).is_ok_and(|age| age > lease::timeout())
         }
     }
 }
 
-/// Removes temp files of writers that are gone. A live writer holds the lock on its
-/// `tmp/<writer>.lock`; if we can take it, its process has exited or been killed.
-fn remove_dead_writers_temps(tmp: &Path, me: &str) -> Result<()> {
-    let mut dead = Vec::new();
-    for e in fs::read_dir(tmp)? {
-        let p = e?.path();
-        let Some(name) = p.file_name().and_then(|n| n.to_str()) else { continue };
-        let Some(writer) = name.strip_suffix(".lock") else { continue };
-        if writer == me {
-            continue;
-        }
-        if let Ok(f) = File::open(&p) {
-            if f.try_lock().is_ok() {
-                dead.push(writer.to_string());
+/// Removes what dead writers left: their temp files and their leases (older dist4d versions'
+/// `tmp/*.lock` files too). Best effort: a file another process removes first is no matter.
+fn remove_abandoned(root: &Path, me: &str, now: std::time::SystemTime) {
+    let leases = root.join("leases");
+    if let Ok(rd) = fs::read_dir(root.join("tmp")) {
+        for e in rd.filter_map(|e| e.ok()) {
+            let p = e.path();
+            let Some(name) = p.file_name().and_then(|n| n.to_str()) else { continue };
+            let stem = name.strip_suffix(".tmp").or_else(|| name.strip_suffix(".lock")).unwrap_or(name);
+            let writer = if name.ends_with(".lock") { stem } else { stem.rsplit_once('-').map_or(stem, |(w, _)| w) };
+            if writer != me && abandoned(&leases, writer, &p, now) {
                 let _ = fs::remove_file(&p);
             }
         }
     }
-    if dead.is_empty() {
-        return Ok(());
-    }
-    for e in fs::read_dir(tmp)? {
-        let p = e?.path();
-        let Some(name) = p.file_name().and_then(|n| n.to_str()) else { continue };
-        if dead.iter().any(|w| name.starts_with(&format!("{w}-"))) {
-            let _ = fs::remove_file(&p);
+    if let Ok(rd) = fs::read_dir(&leases) {
+        for e in rd.filter_map(|e| e.ok()) {
+            let p = e.path();
+            if p.extension().is_some_and(|x| x == "lease") && matches!(lease::judge(&p, now), Liveness::Dead(_)) {
+                let _ = fs::remove_file(&p);
+            }
         }
     }
-    Ok(())
 }
 
 fn load_fingerprints(dir: &Path) -> Result<HashMap<PathBuf, (FileStamp, Digest)>> {
@@ -599,32 +732,68 @@ mod tests {
     #[test]
     fn temp_files_of_dead_writers_are_removed() {
         let dir = tempfile::tempdir().unwrap();
-        let tmp = dir.path().join("tmp");
+        let (tmp, leases) = (dir.path().join("tmp"), dir.path().join("leases"));
         fs::create_dir_all(&tmp).unwrap();
-        fs::write(tmp.join("dead-1.lock"), b"").unwrap();
+        fs::create_dir_all(&leases).unwrap();
+        // A writer killed on this host: its lease names a process that is gone.
+        let mut child = std::process::Command::new("true").spawn().unwrap();
+        let dead_pid = child.id();
+        child.wait().unwrap();
+        let dead = Holder { pid: dead_pid, ..Holder::me("dead-1") }.encode();
+        fs::write(leases.join("dead-1.lease"), dead).unwrap();
         fs::write(tmp.join("dead-1-3.tmp"), b"half").unwrap();
+        // A temp file whose writer has no lease: young, it stays (its writer may be on another
+        // node whose lease we do not see yet); older than the lease timeout, it goes.
+        fs::write(tmp.join("unknown-7-1.tmp"), b"young").unwrap();
+        fs::write(tmp.join("unknown-8-1.tmp"), b"old").unwrap();
+        let old = std::time::SystemTime::now() - lease::timeout() * 2;
+        File::options().write(true).open(tmp.join("unknown-8-1.tmp")).unwrap().set_modified(old).unwrap();
         let live = Store::open(dir.path(), Access::Shared).unwrap();
         let live_tmp = live.temp_path();
         fs::write(&live_tmp, b"mine").unwrap();
         assert!(!tmp.join("dead-1-3.tmp").exists());
+        assert!(!leases.join("dead-1.lease").exists(), "a dead writer's lease goes too");
+        assert!(tmp.join("unknown-7-1.tmp").exists());
+        assert!(!tmp.join("unknown-8-1.tmp").exists());
         let _other = Store::open(dir.path(), Access::Shared).unwrap();
         assert!(live_tmp.exists(), "a live writer's temp files stay");
-        assert!(Store::open(dir.path(), Access::Exclusive).is_err(), "gc waits for runs to end");
+        let e = Store::open(dir.path(), Access::Exclusive).err().expect("gc waits for runs to end").to_string();
+        assert!(e.contains("2 other dist4d processes are using the store") && e.contains("gc needs it alone"), "{e}");
+        assert!(!leases.join("gc.lease").exists(), "a gc that gave way leaves no lease");
     }
 
     #[test]
-    fn stores_opened_at_once_each_keep_their_lock_file() {
-        // A store opening judges writers whose lock it can take dead and unlinks their lock
-        // files; one that had created its file but not yet locked it used to lose it, and then
-        // its temp files (in the store and in output folders) were removed under it.
+    fn a_run_waits_for_a_gc_and_a_gc_refuses_a_second_gc() {
+        let dir = tempfile::tempdir().unwrap();
+        let gc = Store::open(dir.path(), Access::Exclusive).unwrap();
+        let e = Store::open(dir.path(), Access::Exclusive).err().unwrap().to_string();
+        assert!(e.contains("another gc (pid"), "{e}");
+        let (tx, rx) = std::sync::mpsc::channel();
+        let root = dir.path().to_path_buf();
+        let t = std::thread::spawn(move || {
+            let s = Store::open(&root, Access::Shared).unwrap();
+            tx.send(()).unwrap();
+            drop(s);
+        });
+        assert!(rx.recv_timeout(std::time::Duration::from_millis(600)).is_err(), "the run waits for gc");
+        drop(gc);
+        rx.recv_timeout(std::time::Duration::from_secs(5)).expect("and goes on once gc is done");
+        t.join().unwrap();
+    }
+
+    #[test]
+    fn stores_opened_at_once_each_keep_their_lease() {
+        // A store opening judges writers dead and removes their leases; one that had just
+        // created its lease must never be among them (with flock it once was), or its temp
+        // files (in the store and in output folders) would be removed under it.
         let dir = tempfile::tempdir().unwrap();
         std::thread::scope(|scope| {
             for _ in 0..4 {
                 scope.spawn(|| {
                     for _ in 0..100 {
                         let s = Store::open(dir.path(), Access::Shared).unwrap();
-                        let lock = dir.path().join("tmp").join(format!("{}.lock", s.writer_id()));
-                        assert!(lock.exists(), "{} lost its lock file", s.writer_id());
+                        let lease = dir.path().join("leases").join(format!("{}.lease", s.writer_id()));
+                        assert!(lease.exists(), "{} lost its lease", s.writer_id());
                         let other = Store::open(dir.path(), Access::Shared).unwrap();
                         assert!(other.writer_alive(s.writer_id()), "{} judged dead while open", s.writer_id());
                     }
