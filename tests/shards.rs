@@ -62,46 +62,67 @@ fn shards_run_at_once_on_one_store_give_the_bytes_of_one_process() {
     let o = std::process::Command::new(bin()).args(args(&tmp.path().join("cache-one"), &one, None)).output().unwrap();
     assert!(o.status.success(), "{}", text(&o));
 
-    // Two shards at once against one store, each exporting to its own folder.
+    // Two shards at once against one store, exporting into one folder.
     let shared = tmp.path().join("cache-shared");
+    let together = tmp.path().join("together");
     let children: Vec<_> = ["0/2", "1/2"]
         .iter()
         .map(|s| {
-            let out = tmp.path().join(format!("shard{}", &s[..1]));
             std::process::Command::new(bin())
-                .args(args(&shared, &out, Some(s)))
+                .args(args(&shared, &together, Some(s)))
                 .stdout(std::process::Stdio::piped())
                 .stderr(std::process::Stdio::piped())
                 .spawn()
                 .unwrap()
         })
         .collect();
-    let mut union = BTreeMap::new();
-    let mut scenes = Vec::new();
     for (k, c) in children.into_iter().enumerate() {
         let o = c.wait_with_output().unwrap();
         assert!(o.status.success(), "shard {k}: {}", text(&o));
-        let got = files(&tmp.path().join(format!("shard{k}")));
-        let mine: std::collections::BTreeSet<String> =
-            got.keys().filter_map(|p| p.split('/').next().map(str::to_string)).collect();
-        scenes.push(mine);
-        union.extend(got);
     }
-    assert!(scenes[0].is_disjoint(&scenes[1]), "the shards split the scenes: {scenes:?}");
-    assert_eq!(scenes[0].len() + scenes[1].len(), 3, "{scenes:?}");
     let whole = files(&one);
+    let union = files(&together);
     assert_eq!(whole.keys().collect::<Vec<_>>(), union.keys().collect::<Vec<_>>());
     for (path, bytes) in &whole {
         assert!(union[path] == *bytes, "{path} differs between one process and the shards");
     }
+    // Each shard left its part of the index; the folder's index.json lists both, byte for byte
+    // the index of one process (neither shard's index overwrote the other's).
+    let parts: Vec<String> = std::fs::read_dir(together.join(".dist4d-index.d"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(parts.len(), 2, "{parts:?}");
+    let index = |dir: &Path| std::fs::read_to_string(dir.join("index.json")).unwrap();
+    assert!(index(&together) == index(&one), "the merged index is the whole run's");
+    // Each shard exported only its own scenes.
+    let scenes = |part: &str| -> std::collections::BTreeSet<String> {
+        let v: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(together.join(".dist4d-index.d").join(part)).unwrap()).unwrap();
+        v["files"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["item"].as_str().unwrap().split('/').next().unwrap().into())
+            .collect()
+    };
+    let (s0, s1) = (scenes("shard-0-of-2.json"), scenes("shard-1-of-2.json"));
+    assert!(s0.is_disjoint(&s1) && s0.len() + s1.len() == 3, "{s0:?} {s1:?}");
 
-    // A rerun of one shard finds its work done in the shared store.
-    let o = std::process::Command::new(bin())
-        .args(args(&shared, &tmp.path().join("shard0"), Some("0/2")))
-        .output()
-        .unwrap();
+    // A rerun of one shard finds its work done in the shared store, and its files in place.
+    let o = std::process::Command::new(bin()).args(args(&shared, &together, Some("0/2"))).output().unwrap();
     let t = text(&o);
     assert!(o.status.success() && t.contains(" 0 executed"), "{t}");
+    assert!(index(&together) == index(&one));
+    // A run over the whole dataset (the merge job) folds the shards' parts into one index and
+    // one manifest, executing nothing.
+    let o = std::process::Command::new(bin()).args(args(&shared, &together, None)).output().unwrap();
+    let t = text(&o);
+    assert!(o.status.success() && t.contains(" 0 executed"), "{t}");
+    assert!(!together.join(".dist4d-index.d").exists());
+    assert_eq!(std::fs::read_dir(together.join(".dist4d-manifest.d")).unwrap().count(), 0);
+    assert!(index(&together) == index(&one));
+    assert_eq!(files(&together), whole);
     // `explain` with the same --shard looks at that shard's scenes (all cached now); without it,
     // at every scene.
     let cached = |shard: Option<&str>| -> (u64, u64) {

@@ -368,7 +368,7 @@ impl<'a> Engine<'a> {
         let mut exporter = match &opts.out_dir {
             Some(dir) if !p.exports.is_empty() => {
                 let stages: Vec<&str> = p.stage_order().map(|n| p.nodes[n].name.as_str()).collect();
-                Some(Exporter::open(dir, self.store, &p.name, &stages, &p.dims)?)
+                Some(Exporter::open(dir, self.store, &p.name, &stages, &p.dims, opts.shard)?)
             }
             _ => None,
         };
@@ -957,7 +957,7 @@ impl Coord {
                     run.state[d] = State::Skipped;
                     // Nothing to make: what an earlier run exported for it goes.
                     let (node, item) = (run.plan.tasks[d].node as usize, run.plan.tasks[d].item);
-                    if let Some(exporter) = self.exporter.as_ref() {
+                    if let Some(exporter) = self.exporter.as_mut() {
                         for x in e.pipeline.exports.iter().filter(|x| x.node == node) {
                             exporter.remove_stale(x, &item, e.dataset);
                         }

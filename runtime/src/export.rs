@@ -3,9 +3,17 @@
 //! ```text
 //! <out>/
 //!   .dist4d-manifest   which pipeline owns the folder, and what each exported path holds
+//!   .dist4d-manifest.d/<time>-<writer>   what one sharded run changed, applied over the manifest
 //!   .dist4d-tmp/       temp files, renamed into place when complete
+//!   .dist4d-index.d/shard-<i>-of-<n>.json   the files one shard exported
 //!   index.json         every file of the last run with its stage, item and digest
 //! ```
+//!
+//! A run over the whole dataset rewrites the manifest (folding in the shards' deltas) and
+//! `index.json` whole. The shards of a sharded run (`--shard I/N`, one Slurm array task each)
+//! run at once into one folder, so none of them may rewrite what the others write: each leaves
+//! a manifest delta and an index part, and readers merge them ([`read_index`]); each also
+//! rewrites `index.json` from the parts, for tools that read only that file.
 //!
 //! Files are written whole (temp file, rename; fsynced together, once, before the manifest). A
 //! file whose blob the store keeps raw is made by reflink where the filesystem allows (it then
@@ -41,8 +49,10 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 
 const MANIFEST: &str = ".dist4d-manifest";
+const MANIFEST_DELTAS: &str = ".dist4d-manifest.d";
 const TMP: &str = ".dist4d-tmp";
 const INDEX: &str = "index.json";
+const INDEX_PARTS: &str = ".dist4d-index.d";
 /// First word of a version-2 manifest; version 1 had no header and no stats.
 const MANIFEST_V2: &str = "dist4d-manifest 2";
 
@@ -100,6 +110,8 @@ struct Manifest {
     /// The pipeline that owns the folder; None for a version-1 manifest, which named none.
     owner: Option<String>,
     files: BTreeMap<String, Held>,
+    /// The deltas of sharded runs applied over the manifest file, in order.
+    deltas: Vec<PathBuf>,
 }
 
 /// The first line of a manifest that is neither version 1 nor 2: written by a newer dist4d, or
@@ -109,10 +121,48 @@ fn unknown_header(first_line: &str) -> bool {
 }
 
 impl Manifest {
-    /// Reads the manifest of `dir`; `Ok(None)` when there is none.
+    /// Reads the manifest of `dir` with the deltas of sharded runs applied over it; `Ok(None)`
+    /// when there is none.
     fn read(dir: &Path) -> Result<Option<Manifest>> {
-        let path = dir.join(MANIFEST);
-        let text = match std::fs::read_to_string(&path) {
+        let mut m = Manifest::read_file(&dir.join(MANIFEST))?;
+        let deltas = dir.join(MANIFEST_DELTAS);
+        let mut names: Vec<PathBuf> = match std::fs::read_dir(&deltas) {
+            Ok(rd) => rd.filter_map(|e| e.ok()).map(|e| e.path()).collect(),
+            Err(_) => Vec::new(),
+        };
+        names.sort();
+        for path in names {
+            // A delta removed by a run folding it in since we listed it is in the manifest now.
+            let Some(delta) = Manifest::read_file(&path)? else { continue };
+            let m = m.get_or_insert_with(|| Manifest { owner: delta.owner.clone(), ..Default::default() });
+            if m.owner.is_none() {
+                m.owner = delta.owner.clone();
+            }
+            if delta.owner != m.owner {
+                bail!(
+                    "{} names pipeline {:?} and {} names {:?}: remove the folder, or export elsewhere",
+                    path.display(),
+                    delta.owner.as_deref().unwrap_or_default(),
+                    dir.join(MANIFEST).display(),
+                    m.owner.as_deref().unwrap_or_default()
+                );
+            }
+            for (rel, held) in delta.files {
+                if held.size == u64::MAX {
+                    m.files.remove(&rel);
+                } else {
+                    m.files.insert(rel, held);
+                }
+            }
+            m.deltas.push(path);
+        }
+        Ok(m)
+    }
+
+    /// Reads one manifest file (tombstones of a delta, `- <path>`, come back with size
+    /// `u64::MAX`); `Ok(None)` when there is none.
+    fn read_file(path: &Path) -> Result<Option<Manifest>> {
+        let text = match std::fs::read_to_string(path) {
             Ok(t) => t,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
             Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
@@ -132,6 +182,10 @@ impl Manifest {
             lines.next();
         }
         for line in lines {
+            if let Some(rel) = line.strip_prefix("- ") {
+                m.files.insert(rel.to_string(), Held { digest: Digest::default(), size: u64::MAX, stat: None });
+                continue;
+            }
             // v2: `<digest> <size> <stat> <path>`; v1: `<digest> <size> <path>`.
             let parts: Vec<&str> = line.splitn(if m.owner.is_some() { 4 } else { 3 }, ' ').collect();
             let (d, n, stat, rel) = match parts[..] {
@@ -147,12 +201,20 @@ impl Manifest {
     }
 
     fn write(&self, dir: &Path, tmp: &Path) -> Result<()> {
+        write_atomic_via(tmp, &dir.join(MANIFEST), self.text(&[]).as_bytes())
+    }
+
+    /// The manifest's text, with tombstones for `removed` (in a delta).
+    fn text(&self, removed: &[String]) -> String {
         let mut text = format!("{MANIFEST_V2} {}\n", self.owner.as_deref().unwrap_or_default());
         for (rel, h) in &self.files {
             let stat = h.stat.map(|s| s.encode()).unwrap_or_else(|| "-".into());
             text.push_str(&format!("{} {} {stat} {rel}\n", h.digest.hex(), h.size));
         }
-        write_atomic_via(tmp, &dir.join(MANIFEST), text.as_bytes())
+        for rel in removed {
+            text.push_str(&format!("- {rel}\n"));
+        }
+        text
     }
 }
 
@@ -172,15 +234,72 @@ pub struct IndexEntry {
 #[derive(Deserialize)]
 struct Index {
     files: Vec<IndexEntry>,
+    #[serde(default)]
+    sources: BTreeMap<String, serde_json::Value>,
 }
 
-/// The files the last run exported into `out_dir`, as its `index.json` lists them.
+impl Index {
+    fn read(path: &Path) -> Result<Index> {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        serde_json::from_slice(&bytes).with_context(|| format!("{} is not a dist4d index", path.display()))
+    }
+}
+
+/// The files the last run exported into `out_dir`: those of its `index.json`, or, when the last
+/// run was sharded, the union of its shards' index parts (see the module doc).
 pub fn read_index(out_dir: &Path) -> Result<Vec<IndexEntry>> {
-    let path = out_dir.join(INDEX);
-    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-    let index: Index =
-        serde_json::from_slice(&bytes).with_context(|| format!("{} is not a dist4d index", path.display()))?;
-    Ok(index.files)
+    match merged_parts(out_dir)? {
+        Some((index, _)) => Ok(index.files),
+        None => Ok(Index::read(&out_dir.join(INDEX))?.files),
+    }
+}
+
+/// The index parts of the newest sharded run merged, with the part files read; `None` when
+/// there are none. Parts of an earlier split (another shard count) are left out.
+fn merged_parts(out_dir: &Path) -> Result<Option<(Index, Vec<PathBuf>)>> {
+    let dir = out_dir.join(INDEX_PARTS);
+    let Ok(rd) = std::fs::read_dir(&dir) else { return Ok(None) };
+    let mut parts: Vec<(PathBuf, u32, std::time::SystemTime)> = Vec::new();
+    for e in rd.filter_map(|e| e.ok()) {
+        let path = e.path();
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(n) = name.strip_suffix(".json").and_then(|n| n.rsplit_once("-of-")).and_then(|(_, n)| n.parse().ok())
+        else {
+            continue;
+        };
+        let modified = e.metadata().and_then(|m| m.modified()).unwrap_or(std::time::UNIX_EPOCH);
+        parts.push((path, n, modified));
+    }
+    let Some(&(_, newest, _)) = parts.iter().max_by_key(|p| p.2) else { return Ok(None) };
+    parts.retain(|p| p.1 == newest);
+    parts.sort();
+    let mut files: BTreeMap<String, IndexEntry> = BTreeMap::new();
+    let mut sources = BTreeMap::new();
+    for (path, ..) in &parts {
+        let part = match Index::read(path) {
+            Ok(p) => p,
+            // Folded away by a whole run since it was listed.
+            Err(_) if !path.exists() => continue,
+            Err(e) => return Err(e),
+        };
+        files.extend(part.files.into_iter().map(|f| (f.path.clone(), f)));
+        sources.extend(part.sources);
+    }
+    let index = Index { files: files.into_values().collect(), sources };
+    Ok(Some((index, parts.into_iter().map(|p| p.0).collect())))
+}
+
+/// The bytes of an `index.json` listing `files` (in path order) and their items' sources.
+fn index_json<'a>(
+    files: impl IntoIterator<Item = &'a IndexEntry>,
+    sources: &BTreeMap<String, serde_json::Value>,
+) -> Result<Vec<u8>> {
+    let files: Vec<&IndexEntry> = files.into_iter().collect();
+    let items: std::collections::BTreeSet<&str> = files.iter().map(|e| e.item.as_str()).collect();
+    let sources: BTreeMap<&String, &serde_json::Value> =
+        sources.iter().filter(|(item, _)| items.contains(item.as_str())).collect();
+    // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
+    Ok(serde_json::to_vec_pretty(&serde_json::json!({ "files": files, "sources": sources }))?)
 }
 
 /// An output folder as a run (or explain) found it: its manifest as earlier runs left it, read
@@ -283,6 +402,11 @@ pub struct Exporter {
     reflinks: Arc<AtomicBool>,
     /// Whether a job ran (wrote or confirmed a file) since the folder was last synced.
     jobs_done: bool,
+    /// The shard this run is (`shard-<i>-of-<n>`), which leaves a delta and an index part
+    /// instead of rewriting the manifest and index; None for a run over the whole dataset.
+    part: Option<String>,
+    /// Files removed as stale (their tasks now have nothing to make).
+    removed: Vec<String>,
 }
 
 /// One file to write.
@@ -383,7 +507,16 @@ impl Exporter {
     /// owns, or one that holds files but no manifest (it was not made by dist4d), before anything
     /// is written; claims a new or empty folder by writing its manifest at once, so that a run
     /// killed before its end still leaves the folder marked as this pipeline's.
-    pub fn open(dir: &Path, store: &Store, pipeline: &str, stages: &[&str], dims: &[Dim]) -> Result<Exporter> {
+    ///
+    /// `shard` = (i, n) for shard i of n of a sharded run (see the module doc).
+    pub fn open(
+        dir: &Path,
+        store: &Store,
+        pipeline: &str,
+        stages: &[&str],
+        dims: &[Dim],
+        shard: Option<(u32, u32)>,
+    ) -> Result<Exporter> {
         let mut manifest = match Manifest::read(dir)? {
             Some(m) => match &m.owner {
                 None => {
@@ -440,6 +573,8 @@ impl Exporter {
             sources: BTreeMap::new(),
             reflinks: Arc::new(AtomicBool::new(true)),
             jobs_done: false,
+            part: shard.map(|(i, n)| format!("shard-{i}-of-{n}")),
+            removed: Vec::new(),
         })
     }
 
@@ -447,11 +582,12 @@ impl Exporter {
     /// exported for it (only a file the manifest lists, so never one dist4d did not write); the
     /// manifest drops it at the end of the run. Without this a rerun would leave it beside the
     /// new files, listed nowhere but in the manifest.
-    pub fn remove_stale(&self, export: &Export, item: &ItemKey, dataset: &dyn Dataset) {
+    pub fn remove_stale(&mut self, export: &Export, item: &ItemKey, dataset: &dyn Dataset) {
         let Ok(rel) = render(export, item, dataset, &self.folder.dims) else { return };
         if self.folder.manifest.files.contains_key(&rel) {
             if let Ok(dest) = confined(&self.folder.dir, &rel) {
                 let _ = std::fs::remove_file(dest);
+                self.removed.push(rel);
             }
         }
     }
@@ -539,38 +675,75 @@ impl Exporter {
     /// Both list only files that exist: a path whose export failed keeps its manifest entry only
     /// while the file earlier runs wrote is still there, untouched, and is left out of the index.
     pub fn finish(mut self) -> Result<u64> {
-        let (manifest_tmp, index_tmp) = (self.tmp_path("manifest"), self.tmp_path("index"));
-        let Exporter { folder, entries, done, sources, jobs_done, .. } = self;
+        let tmps: Vec<PathBuf> = ["manifest", "index", "part"].iter().map(|w| self.tmp_path(w)).collect();
+        let Exporter { folder, entries, done, sources, jobs_done, part, removed, writer, .. } = self;
         let dir = folder.dir.clone();
         // Shared with the key layer during the run; by its end, normally ours alone.
         let mut manifest = Arc::try_unwrap(folder).map(|f| f.manifest).unwrap_or_else(|f| f.manifest.clone());
+        let mut mine = Manifest { owner: manifest.owner.clone(), ..Default::default() };
         for (rel, entry) in &entries {
             if let Some(stat) = done.get(rel) {
                 let digest = Digest::from_hex(&entry.digest).unwrap_or_default();
-                manifest.files.insert(rel.clone(), Held { digest, size: entry.bytes, stat: Some(*stat) });
+                mine.files.insert(rel.clone(), Held { digest, size: entry.bytes, stat: Some(*stat) });
             }
         }
-        manifest.files.retain(|rel, held| match FileStat::of(&dir.join(rel)) {
-            None => false,
-            Some(now) => held.stat.is_none_or(|s| s == now) || done.contains_key(rel),
-        });
         let files: Vec<&IndexEntry> =
             entries.iter().filter(|(rel, _)| done.contains_key(*rel)).map(|(_, e)| e).collect();
         let count = files.len() as u64;
-        let items: std::collections::BTreeSet<&str> = files.iter().map(|e| e.item.as_str()).collect();
-        let sources: BTreeMap<&String, &serde_json::Value> =
-            sources.iter().filter(|(item, _)| items.contains(item.as_str())).collect();
         // The files written without an fsync each reach the disk before the manifest that lists
         // them as written: after a power loss, a file the manifest trusts holds its bytes.
         if jobs_done {
             sync_filesystem(&dir)?;
         }
-        // Through a JSON value, whose keys are sorted: the index's bytes do not depend on field order.
-        let json = serde_json::to_vec_pretty(&serde_json::json!({ "files": files, "sources": sources }))?;
-        manifest.write(&dir, &manifest_tmp)?;
-        write_atomic_via(&index_tmp, &dir.join(INDEX), &json)?;
+        let json = index_json(files, &sources)?;
+        match part {
+            Some(part) => {
+                let removed: Vec<String> = removed.into_iter().filter(|r| !mine.files.contains_key(r)).collect();
+                let millis = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map(|d| d.as_millis())
+                    .unwrap_or(0);
+                let delta = dir.join(MANIFEST_DELTAS).join(format!("{millis:013}-{writer}"));
+                write_atomic_via(&tmps[0], &delta, mine.text(&removed).as_bytes())?;
+                write_atomic_via(&tmps[2], &dir.join(INDEX_PARTS).join(format!("{part}.json")), &json)?;
+                write_merged_index(&dir, &tmps[1])?;
+            }
+            None => {
+                manifest.files.extend(mine.files);
+                manifest.files.retain(|rel, held| match FileStat::of(&dir.join(rel)) {
+                    None => false,
+                    Some(now) => held.stat.is_none_or(|s| s == now) || done.contains_key(rel),
+                });
+                manifest.write(&dir, &tmps[0])?;
+                write_atomic_via(&tmps[1], &dir.join(INDEX), &json)?;
+                // Folded in: the shards' deltas this run read, and their index parts (this
+                // index lists the whole dataset).
+                for delta in &manifest.deltas {
+                    let _ = std::fs::remove_file(delta);
+                }
+                let _ = std::fs::remove_dir_all(dir.join(INDEX_PARTS));
+            }
+        }
         Ok(count)
     }
+}
+
+/// Rewrites `index.json` from the index parts, again while parts changed as it merged them: of
+/// shards finishing at once, the last to write its part also writes the index that lists it.
+fn write_merged_index(dir: &Path, tmp: &Path) -> Result<()> {
+    let stamp = |paths: &[PathBuf]| -> Vec<Option<std::time::SystemTime>> {
+        paths.iter().map(|p| std::fs::metadata(p).and_then(|m| m.modified()).ok()).collect()
+    };
+    for _ in 0..16 {
+        let Some((index, read)) = merged_parts(dir)? else { return Ok(()) };
+        let before = stamp(&read);
+        write_atomic_via(tmp, &dir.join(INDEX), &index_json(&index.files, &index.sources)?)?;
+        match merged_parts(dir)? {
+            Some((_, now)) if now == read && stamp(&now) == before => return Ok(()),
+            _ => continue,
+        }
+    }
+    Ok(())
 }
 
 /// A folder with a version-1 manifest (which named no owner, like an empty one) is taken over
@@ -610,7 +783,7 @@ fn not_bookkeeping(dir: &Path, most: usize) -> Vec<String> {
     entries
         .filter_map(|e| e.ok())
         .map(|e| e.file_name().to_string_lossy().into_owned())
-        .filter(|n| n != MANIFEST && n != TMP)
+        .filter(|n| ![MANIFEST, MANIFEST_DELTAS, TMP, INDEX_PARTS].contains(&n.as_str()))
         .take(most)
         .collect()
 }
@@ -781,7 +954,7 @@ mod tests {
         let (first, second) = (dir.path().join("s0/000.bin"), dir.path().join("s0/001.bin"));
         std::fs::write(&first, b"first").unwrap();
         std::fs::write(&second, b"second").unwrap();
-        let mut m = Manifest { owner: Some("test".into()), files: BTreeMap::new() };
+        let mut m = Manifest { owner: Some("test".into()), ..Default::default() };
         for (rel, bytes) in [("s0/000.bin", &b"first"[..]), ("s0/001.bin", b"second")] {
             let stat = FileStat::of(&dir.path().join(rel));
             m.files.insert(rel.into(), Held { digest: Digest::of(bytes), size: bytes.len() as u64, stat });
@@ -813,7 +986,7 @@ mod tests {
     fn manifests_keep_owner_digests_and_stats() {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("a b.bin"), b"xyz").unwrap();
-        let mut m = Manifest { owner: Some("curation".into()), files: BTreeMap::new() };
+        let mut m = Manifest { owner: Some("curation".into()), ..Default::default() };
         let stat = FileStat::of(&dir.path().join("a b.bin"));
         m.files.insert("a b.bin".into(), Held { digest: Digest::of(b"xyz"), size: 3, stat });
         m.write(dir.path(), &dir.path().join("tmp")).unwrap();

@@ -429,12 +429,39 @@ impl Drop for Store {
 
 /// Reads the blob file at `path`, unpacks it and checks its digest; a corrupt one is removed.
 pub fn read_blob(path: &Path, digest: &Digest) -> Result<Vec<u8>, BlobError> {
-    let file = fs::read(path)
+    let file = read_retrying(path)
         .map_err(|e| BlobError { digest: *digest, problem: format!("cannot be read ({}): {e}", path.display()) })?;
     blob::unpack(file, digest).map_err(|why| {
         let _ = fs::remove_file(path);
         BlobError { digest: *digest, problem: format!("{why} and was removed ({})", path.display()) }
     })
+}
+
+/// How long a read waits for a file that a record names but that is not there: on NFS, a
+/// client's cached view of a directory may not yet show a file another node just renamed into
+/// it. 1 s, or `DIST4D_READ_RETRY_MS`.
+fn read_retry() -> std::time::Duration {
+    static T: std::sync::OnceLock<std::time::Duration> = std::sync::OnceLock::new();
+    *T.get_or_init(|| {
+        let ms = std::env::var("DIST4D_READ_RETRY_MS").ok().and_then(|s| s.trim().parse().ok()).unwrap_or(1000);
+        std::time::Duration::from_millis(ms)
+    })
+}
+
+/// Reads a file, retrying "not found" with backoff for [`read_retry`]: a blob that is still
+/// missing then is missing (and its task runs again).
+pub fn read_retrying(path: &Path) -> std::io::Result<Vec<u8>> {
+    let started = std::time::Instant::now();
+    let mut wait = std::time::Duration::from_millis(5);
+    loop {
+        match fs::read(path) {
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound && started.elapsed() + wait <= read_retry() => {
+                std::thread::sleep(wait);
+                wait *= 2;
+            }
+            other => return other,
+        }
+    }
 }
 
 /// Writes `bytes` to `tmp`, fsyncs, and renames it to `dest` (creating `dest`'s directory).
@@ -643,6 +670,25 @@ mod tests {
             let found = s.lookup(&Digest::of(key)).unwrap();
             assert_eq!((found.finished_ms, found.outputs[0].digest), (2000, Digest::of(b"new")));
         }
+    }
+
+    #[test]
+    fn a_file_that_appears_late_is_read_and_a_missing_one_fails_in_bounded_time() {
+        let dir = tempfile::tempdir().unwrap();
+        let late = dir.path().join("late");
+        let writer = {
+            let late = late.clone();
+            std::thread::spawn(move || {
+                std::thread::sleep(std::time::Duration::from_millis(100));
+                fs::write(late, b"here").unwrap();
+            })
+        };
+        assert_eq!(read_retrying(&late).unwrap(), b"here");
+        writer.join().unwrap();
+        let started = std::time::Instant::now();
+        let e = read_retrying(&dir.path().join("never")).unwrap_err();
+        assert_eq!(e.kind(), std::io::ErrorKind::NotFound);
+        assert!(started.elapsed() <= read_retry() + std::time::Duration::from_millis(500));
     }
 
     #[test]
