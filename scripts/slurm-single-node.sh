@@ -7,6 +7,9 @@
 #   export SLURM_CONF=DIR/slurm.conf         # then sbatch / squeue / scancel as usual
 #   scripts/slurm-single-node.sh stop DIR    # stops the daemons it started, by PID
 #
+# SLURM_PORT_BASE (default 6817) sets slurmctld's port, slurmd's is the next: clusters started
+# at once (tests, a user's own) need different ones.
+#
 # Exit 3 when Slurm cannot be had here (no root to install it): callers skip, saying so.
 set -euo pipefail
 cmd=${1:?start or stop}
@@ -41,6 +44,8 @@ mkdir -p "$dir/state" "$dir/spool" "$dir/munge"
 cat > "$dir/slurm.conf" <<CONF
 ClusterName=dist4d
 SlurmctldHost=$host
+SlurmctldPort=${SLURM_PORT_BASE:-6817}
+SlurmdPort=$(( ${SLURM_PORT_BASE:-6817} + 1 ))
 SlurmUser=$(id -un)
 AuthType=auth/munge
 StateSaveLocation=$dir/state

@@ -10,6 +10,8 @@ use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, AtomicI32, Ordering};
 use std::sync::Arc;
 
+mod slurm;
+
 // Stages allocate and free image-sized buffers (a 1600x900 f32 map is 5.8 MB) many times a
 // second; glibc hands each one back to the kernel and faults it in again, which cost as much
 // system time as the stages' own work. mimalloc keeps them.
@@ -103,6 +105,87 @@ enum Command {
         out: Option<PathBuf>,
         /// Progress: auto (bars on a terminal, lines otherwise), lines, off.
         #[arg(long, default_value = "auto")]
+        progress: String,
+        /// Record the run as part of group NAME: the shards and merge of one cluster submission
+        /// show as one run in `dist4d runs` (the job scripts of `dist4d slurm` set it).
+        #[arg(long, value_name = "NAME")]
+        group: Option<String>,
+        /// Leave the stages served by model workers to a later run: their tasks are taken from
+        /// the cache or left missing (the CPU array of `dist4d slurm --gres`).
+        #[arg(long)]
+        defer_workers: bool,
+    },
+    /// Submit a pipeline to Slurm: one job array over the scenes that have work left (shard i of
+    /// N per array task, all against the shared --cache), and a merge job after it.
+    ///
+    /// Plans on this node: scenes whose tasks are all cached get no shard. Writes the job scripts
+    /// and logs into <cache>/slurm/<group>/ (put the store on the shared filesystem). With --gres,
+    /// the stages served by model workers go to a second array on GPU nodes, after the first.
+    /// The merge job reads what the shards recorded in the store, retries items that failed,
+    /// and writes the index and run report; rerun the same command to submit what is still
+    /// missing. See docs/cluster.md.
+    ///
+    /// Example: dist4d slurm pipelines/curation.ron --cache /shared/d4/store --out /shared/d4/out --shards 64 --array-limit 16 --partition cpu --sbatch=--time=4:00:00
+    Slurm {
+        #[command(flatten)]
+        p: PipelineArgs,
+        /// Where exported files go [default: out/<pipeline name>/ beside the pipeline file].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Array tasks (at most one per scene with work left).
+        #[arg(long, default_value_t = 8)]
+        shards: u32,
+        /// Array tasks running at once (--array=0-N%K), so the controller is not flooded.
+        #[arg(long, value_name = "K")]
+        array_limit: Option<u32>,
+        #[arg(long)]
+        partition: Option<String>,
+        /// CPUs per array task; each shard runs that many threads.
+        #[arg(long, default_value_t = 4)]
+        cpus_per_task: u32,
+        /// An extra sbatch option for every job (repeatable), e.g. --sbatch=--time=4:00:00 --sbatch=--account=ad.
+        #[arg(long, value_name = "OPTION", allow_hyphen_values = true)]
+        sbatch: Vec<String>,
+        /// Put the stages served by model workers in a second array with this --gres (e.g. gpu:1).
+        #[arg(long)]
+        gres: Option<String>,
+        /// Array tasks of the GPU array (each keeps one long-lived worker per model).
+        #[arg(long, default_value_t = 1)]
+        gpu_shards: u32,
+        /// Partition of the GPU array [default: --partition].
+        #[arg(long)]
+        gpu_partition: Option<String>,
+        /// Print the job scripts and sbatch commands instead of submitting.
+        #[arg(long)]
+        dry_run: bool,
+    },
+    /// The merge job of a `dist4d slurm` submission: reads what the group's shards recorded,
+    /// retries the scenes with failed items, collects everything else from the cache (a lost
+    /// shard's missing work is reported, not redone here), and writes the index and run record.
+    ///
+    /// Exit code 0 when every task is done, 1 when some failed or are missing.
+    Merge {
+        #[command(flatten)]
+        p: PipelineArgs,
+        /// Where exported files go [default: out/<pipeline name>/ beside the pipeline file].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// The group of the submission.
+        #[arg(long)]
+        group: String,
+        /// Tasks of its CPU array.
+        #[arg(long)]
+        shards: u32,
+        /// Tasks of its GPU array, if it had one.
+        #[arg(long)]
+        gpu_shards: Option<u32>,
+        /// List the failed items instead of retrying them.
+        #[arg(long)]
+        no_retry: bool,
+        /// Worker threads [default: the number of cores].
+        #[arg(long, short, value_parser = parse_jobs)]
+        jobs: Option<usize>,
+        #[arg(long, default_value = "lines")]
         progress: String,
     },
     /// Run a pipeline (cached tasks are not redone) and tabulate the scores of its EvalDepth
@@ -360,7 +443,7 @@ fn execute(
     cache: &Path,
     out_dir: &Path,
     opts: RunOptions,
-) -> Result<ExitCode> {
+) -> Result<(ExitCode, dist4d_runtime::RunRecord)> {
     let dataset = registry.open_dataset(pipeline)?;
     let ops = registry.operators(pipeline)?;
     let store = Store::open(cache, Access::Shared).with_context(|| format!("opening the store {}", cache.display()))?;
@@ -379,6 +462,12 @@ fn execute(
     }
     if rec.stages.iter().any(|s| s.not_applicable > 0) {
         println!("(n/a: tasks with nothing to make, e.g. the exact view of a dataset that is not synthetic, and the tasks that needed them)");
+    }
+    if rec.missing() > 0 {
+        println!(
+            "missing: {} tasks neither cached nor executed (this run executes only some of them: see the note below)",
+            rec.missing()
+        );
     }
     let recomputed: u64 = rec.stages.iter().map(|s| s.recomputed).sum();
     if recomputed > 0 {
@@ -401,12 +490,13 @@ fn execute(
         rec.exported,
         out_dir.display()
     );
-    Ok(match rec.status {
+    let code = match rec.status {
         RunStatus::Complete => ExitCode::SUCCESS,
         // 128 + the signal, as a shell reports a process that the signal ended.
         RunStatus::Interrupted => ExitCode::from(128 + stopped_by.load(Ordering::SeqCst).clamp(1, 127) as u8),
-        RunStatus::Failed | RunStatus::Stopped => ExitCode::from(1),
-    })
+        RunStatus::Failed | RunStatus::Stopped | RunStatus::Incomplete => ExitCode::from(1),
+    };
+    Ok((code, rec))
 }
 
 /// `s` with control characters escaped (`\u{1b}`), line breaks of multi-line errors kept.
@@ -470,10 +560,11 @@ fn demo(dir: &Path, keyframes: u32, width: u32, height: u32, progress: &str) -> 
         limit: None,
         shard: None,
     };
-    let (pipeline, out_dir, code) = match run_pipeline(&registry, &args, |_| Ok(()), None, false, None, progress)? {
-        Ok(x) => x,
-        Err(code) => return Ok(code),
-    };
+    let (pipeline, out_dir, code) =
+        match run_pipeline(&registry, &args, |_| Ok(()), None, false, None, progress, |_| ())? {
+            Ok(x) => x,
+            Err(code) => return Ok(code),
+        };
     print!("{}", dist4d_stages::eval::report::tables(&pipeline, &out_dir)?);
     println!();
     println!("demo outputs:");
@@ -496,6 +587,7 @@ fn run_pipeline(
     fail_fast: bool,
     out: Option<PathBuf>,
     progress: &str,
+    tweak: impl FnOnce(&mut RunOptions),
 ) -> Result<Result<(Pipeline, PathBuf, ExitCode), ExitCode>> {
     let pipeline = match load(p, registry)? {
         Ok(x) => x,
@@ -519,8 +611,151 @@ fn run_pipeline(
     if let Some(j) = jobs {
         opts.jobs = j;
     }
-    let code = execute(registry, &pipeline, &cache, &out_dir, opts)?;
+    tweak(&mut opts);
+    let (code, _) = execute(registry, &pipeline, &cache, &out_dir, opts)?;
     Ok(Ok((pipeline, out_dir, code)))
+}
+
+/// `dist4d slurm`: plans on this node, then writes and submits the job scripts.
+fn slurm_submit(
+    registry: &Registry,
+    p: &PipelineArgs,
+    out: Option<PathBuf>,
+    submit: &slurm::Submit,
+) -> Result<ExitCode> {
+    if p.shard.is_some() {
+        anyhow::bail!("--shard is for `dist4d run`; `dist4d slurm` makes the shards (--shards N)");
+    }
+    let pipeline = match load(p, registry)? {
+        Ok(x) => x,
+        Err(code) => return Ok(code),
+    };
+    let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
+    let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+    let pending = {
+        let dataset = registry.open_dataset(&pipeline)?;
+        let ops = registry.operators(&pipeline)?;
+        let store =
+            Store::open(&cache, Access::Shared).with_context(|| format!("opening the store {}", cache.display()))?;
+        let engine = Engine { pipeline: &pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
+        let (_, per_outer) =
+            dist4d_runtime::explain::explain_per_outer(&engine, p.scenes.as_deref(), p.limit, Some(&out_dir))?;
+        let label = |o: u32| dataset.label(&dist4d_runtime::ItemKey::new(&[o]));
+        slurm::Pending {
+            scenes: per_outer.iter().filter(|(_, n)| *n > 0).map(|&(o, _)| label(o)).collect(),
+            tasks: per_outer.iter().map(|(_, n)| n).sum(),
+            all_scenes: per_outer.len(),
+            has_workers: ops.iter().flatten().any(|op| op.resource().is_some()),
+        }
+    };
+    let dim = &pipeline.dims[0].name;
+    if pending.scenes.is_empty() {
+        println!(
+            "nothing to submit: every task of the {} {dim}s is cached (`dist4d explain` says what a run would do)",
+            pending.all_scenes
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    let group = slurm::group_name(&pipeline.name);
+    let bin = std::env::current_exe().context("finding the dist4d executable")?;
+    let target = slurm::Target {
+        pipeline: p.pipeline.clone(),
+        sets: p.sets.clone(),
+        cache: cache.clone(),
+        out: out_dir,
+        scenes: p.scenes.clone(),
+        limit: p.limit,
+    };
+    let jobs = slurm::jobs(&target, submit, &pending, &group, &bin)?;
+    let dir = slurm::job_dir(&cache, &group)?;
+    println!(
+        "{} of {} {dim}s have work left ({} tasks): group {group}",
+        pending.scenes.len(),
+        pending.all_scenes,
+        pending.tasks
+    );
+    if submit.dry_run {
+        let ids: Vec<String> = jobs.iter().map(|j| format!("<{} job id>", j.name)).collect();
+        for job in &jobs {
+            let script = dir.join(format!("{}.sh", job.name));
+            println!(
+                "
+# sbatch {}",
+                slurm::sbatch_args(job, &ids, &script).join(" ")
+            );
+            print!("{}", job.script);
+        }
+        return Ok(ExitCode::SUCCESS);
+    }
+    let ids = slurm::submit(&jobs, &dir)?;
+    for (job, id) in jobs.iter().zip(&ids) {
+        println!(
+            "submitted {} as job {id}{}",
+            job.name,
+            job.array.as_ref().map(|a| format!(" (array {a})")).unwrap_or_default()
+        );
+    }
+    println!(
+        "scripts and logs: {}
+follow with: dist4d runs --cache {}",
+        dir.display(),
+        cache.display()
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `dist4d merge`: the last job of a submission.
+#[allow(clippy::too_many_arguments)]
+fn slurm_merge(
+    registry: &Registry,
+    p: &PipelineArgs,
+    out: Option<PathBuf>,
+    group: &str,
+    shards: u32,
+    gpu_shards: Option<u32>,
+    no_retry: bool,
+    jobs: Option<usize>,
+    progress: &str,
+) -> Result<ExitCode> {
+    let pipeline = match load(p, registry)? {
+        Ok(x) => x,
+        Err(code) => return Ok(code),
+    };
+    let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
+    let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+    let runs = dist4d_runtime::runs::list_runs(&cache.join("runs"))?;
+    let arrays: Vec<u32> = std::iter::once(shards).chain(gpu_shards).collect();
+    let report = slurm::shards_report(&runs, group, &arrays);
+    println!("group {group}:");
+    for line in &report.lines {
+        println!("  {line}");
+    }
+    let retry = if no_retry { Vec::new() } else { report.failed_scenes.clone() };
+    if !retry.is_empty() {
+        println!("retrying the {} scene(s) with failed items: {}", retry.len(), retry.join(", "));
+    }
+    let mut opts = RunOptions {
+        outer_items: p.scenes.clone(),
+        second_dim_limit: p.limit,
+        out_dir: Some(out_dir.clone()),
+        progress: progress_mode(progress),
+        execute_only: Some(retry),
+        group: Some(group.to_string()),
+        ..Default::default()
+    };
+    if let Some(j) = jobs {
+        opts.jobs = j;
+    }
+    let (code, rec) = execute(registry, &pipeline, &cache, &out_dir, opts)?;
+    if rec.missing() > 0 {
+        println!(
+            "{} tasks are missing ({} shard(s) did not finish): rerun the same `dist4d slurm` command; only the {}s with missing work become shards",
+            rec.missing(),
+            report.unfinished,
+            pipeline.dims[0].name
+        );
+    }
+    Ok(code)
 }
 
 fn beside(pipeline: &Path, rel: &str) -> PathBuf {
@@ -598,20 +833,53 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Eval { p, jobs, out, progress } => {
             // A pipeline that cannot be reported on fails before its run, not after.
             let reportable = |p: &Pipeline| dist4d_stages::eval::report::scored_stages(p).map(|_| ());
-            let (pipeline, out_dir, code) = match run_pipeline(&registry, &p, reportable, jobs, false, out, &progress)?
-            {
-                Ok(x) => x,
-                Err(code) => return Ok(code),
-            };
+            let (pipeline, out_dir, code) =
+                match run_pipeline(&registry, &p, reportable, jobs, false, out, &progress, |_| ())? {
+                    Ok(x) => x,
+                    Err(code) => return Ok(code),
+                };
             // A stopped run has not exported every score: say how it ended, not what is missing.
             if code == ExitCode::SUCCESS || code == ExitCode::from(1) {
                 print!("{}", dist4d_stages::eval::report::tables(&pipeline, &out_dir)?);
             }
             Ok(code)
         }
-        Command::Run { p, jobs, fail_fast, out, progress } => {
-            Ok(run_pipeline(&registry, &p, |_| Ok(()), jobs, fail_fast, out, &progress)?
+        Command::Run { p, jobs, fail_fast, out, progress, group, defer_workers } => {
+            let tweak = |o: &mut RunOptions| {
+                o.group = group;
+                o.defer_resources = defer_workers;
+            };
+            Ok(run_pipeline(&registry, &p, |_| Ok(()), jobs, fail_fast, out, &progress, tweak)?
                 .map_or_else(|code| code, |(_, _, code)| code))
+        }
+        Command::Slurm {
+            p,
+            out,
+            shards,
+            array_limit,
+            partition,
+            cpus_per_task,
+            sbatch,
+            gres,
+            gpu_shards,
+            gpu_partition,
+            dry_run,
+        } => {
+            let submit = slurm::Submit {
+                shards,
+                array_limit,
+                partition,
+                cpus_per_task,
+                sbatch,
+                gres,
+                gpu_shards,
+                gpu_partition,
+                dry_run,
+            };
+            slurm_submit(&registry, &p, out, &submit)
+        }
+        Command::Merge { p, out, group, shards, gpu_shards, no_retry, jobs, progress } => {
+            slurm_merge(&registry, &p, out, &group, shards, gpu_shards, no_retry, jobs, &progress)
         }
         Command::Runs { cache, json } => {
             let runs = dist4d_runtime::runs::list_runs(&cache.join("runs"))?;
@@ -622,17 +890,42 @@ fn run(cli: Cli) -> Result<ExitCode> {
             if runs.is_empty() {
                 println!("no runs recorded in {}", cache.display());
             }
-            for r in &runs {
+            for group in dist4d_runtime::runs::grouped(&runs) {
+                let first = group[0];
+                let sum = |f: fn(&dist4d_runtime::RunRecord) -> u64| group.iter().map(|r| f(r)).sum::<u64>();
+                // A group's time is from its first start to its last end (its jobs overlap).
+                let end = group.iter().map(|r| r.started as f64 + r.seconds).fold(0.0, f64::max);
+                let shards = group.iter().filter(|r| r.shard.is_some()).count();
+                let (id, what) = match &first.group {
+                    Some(g) => (
+                        g.clone(),
+                        format!(
+                            " ({} runs: {shards} shards{})",
+                            group.len(),
+                            if group.len() > shards { " + merge" } else { "" }
+                        ),
+                    ),
+                    None => (first.id.clone(), String::new()),
+                };
+                // What the group's last run found is what the group left: its merge sees the
+                // shards' work as cached, so cached counts what was there before the group.
+                let last = group[group.len() - 1];
+                let executed = sum(|r| r.executed());
+                let missing = if last.missing() > 0 { format!(", {} missing", last.missing()) } else { String::new() };
                 println!(
-                    "{}  {}  {:<14} {:?}  {} executed, {} cached, {} failed, {:.1}s",
-                    dist4d_runtime::runs::format_utc(r.started),
-                    r.id,
-                    r.pipeline,
-                    r.status,
-                    r.executed(),
-                    r.cached(),
-                    r.failed(),
-                    r.seconds
+                    "{}  {}  {:<14} {:?}  {} executed, {} cached, {} failed{missing}, {:.1}s{what}",
+                    dist4d_runtime::runs::format_utc(first.started),
+                    id,
+                    first.pipeline,
+                    dist4d_runtime::runs::group_status(&group),
+                    executed,
+                    if group.len() > 1 {
+                        (last.cached() + last.executed()).saturating_sub(executed)
+                    } else {
+                        last.cached()
+                    },
+                    last.failed(),
+                    end - first.started as f64
                 );
             }
             Ok(ExitCode::SUCCESS)

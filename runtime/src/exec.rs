@@ -48,6 +48,18 @@ pub struct RunOptions {
     pub second_dim_limit: Option<u32>,
     /// Only shard `i` of `n` of the (selected) outer items ([`shard_outer`]).
     pub shard: Option<(u32, u32)>,
+    /// Only the tasks of these outer items (by label) are executed; the other items' tasks are
+    /// taken from the cache or, when not there, counted as missing (see [`NotExecuted`]). All
+    /// are executed when `None`. What a merge job after a cluster array uses: it retries the
+    /// items that failed and collects what the array made, without redoing a lost shard.
+    pub execute_only: Option<Vec<String>>,
+    /// Tasks of operators served by an external resource (model workers) are not executed,
+    /// only taken from the cache (counted as missing otherwise): the CPU array of a cluster
+    /// submission leaves them to a GPU array that runs after it.
+    pub defer_resources: bool,
+    /// The group of runs this run belongs to (the shards and merge of one cluster submission),
+    /// recorded in its run record.
+    pub group: Option<String>,
     /// Where exported files go; nothing is exported when `None`.
     pub out_dir: Option<PathBuf>,
     /// Set (by a Ctrl-C handler) to stop cleanly: running tasks finish, nothing new starts.
@@ -63,6 +75,9 @@ impl Default for RunOptions {
             outer_items: None,
             second_dim_limit: None,
             shard: None,
+            execute_only: None,
+            defer_resources: false,
+            group: None,
             out_dir: None,
             cancel: Arc::new(AtomicBool::new(false)),
             progress: ProgressMode::Off,
@@ -165,6 +180,19 @@ pub fn shard_labels(
     Ok(shard_outer(&view, &outers, dims, shard).into_iter().map(|o| space.label(&ItemKey::new(&[o]))).collect())
 }
 
+/// A task that a run with [`RunOptions::execute_only`] did not execute: it is not cached, and
+/// its outer item is not among those the run executes.
+#[derive(Debug)]
+pub struct NotExecuted;
+
+impl std::fmt::Display for NotExecuted {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "not cached, and this run executes none of its item's tasks")
+    }
+}
+
+impl std::error::Error for NotExecuted {}
+
 /// What a run did.
 pub struct RunSummary {
     pub record: RunRecord,
@@ -209,6 +237,8 @@ struct OuterRun {
     redone: HashMap<u32, u32>,
     /// This process's claim on the outer item, released when it closes (see [`Claims`]).
     claim: Option<Claim>,
+    /// Whether its tasks may be executed ([`RunOptions::execute_only`]).
+    may_execute: bool,
 }
 
 impl OuterRun {
@@ -300,6 +330,8 @@ struct Job {
     inputs: Vec<Vec<Input>>,
     /// Where the bytes of each input are, in the shape of `inputs`.
     srcs: Vec<Vec<Src>>,
+    /// False: only a cache hit is taken ([`RunOptions::execute_only`]).
+    may_execute: bool,
 }
 
 /// A ready task, as the coordinator found it.
@@ -458,7 +490,8 @@ impl<'a> Engine<'a> {
             next_awaiting: 0,
             released: Vec::new(),
         };
-        let ctx = Ctx { engine: self, keys: &keys };
+        let deferred = classes.of_node.iter().map(|c| c.is_some() && opts.defer_resources).collect();
+        let ctx = Ctx { engine: self, keys: &keys, deferred };
         let mut next_outer = 0usize;
         let mut inflight = 0usize;
         let mut busy = vec![0usize; classes.slots.len()];
@@ -466,6 +499,11 @@ impl<'a> Engine<'a> {
         let mut waiting = 0usize;
         let mut stopping: Option<RunStatus> = None;
         let mut claims = Claims::new(self, p);
+        let executed_outers: Option<Vec<u32>> = match &opts.execute_only {
+            Some(names) => Some(select_outer(self.dataset, &p.dims[0].name, Some(names))?),
+            None => None,
+        };
+        let may_execute = |o: u32| executed_outers.as_ref().is_none_or(|v| v.binary_search(&o).is_ok());
         let mut deferred: VecDeque<(u32, u64)> = VecDeque::new();
 
         // The scopes guarantee every spawned job has ended before they return, even on an error.
@@ -480,7 +518,9 @@ impl<'a> Engine<'a> {
                     while stopping.is_none() && next_outer < outers.len() && c.has_room(task_budget, outer_budget) {
                         let o = outers[next_outer];
                         match claims.take(o)? {
-                            Ok(claim) => c.admit(p, &view, o, next_outer as u64, &stage_nodes, Some(claim)),
+                            Ok(claim) => {
+                                c.admit(p, &view, o, next_outer as u64, &stage_nodes, Some(claim), may_execute(o))
+                            }
                             Err(holder) => {
                                 claims.waiting_for(o, &holder);
                                 deferred.push_back((o, next_outer as u64));
@@ -498,7 +538,7 @@ impl<'a> Engine<'a> {
                             match claims.take(o)? {
                                 Ok(claim) => {
                                     self.store.refresh()?;
-                                    c.admit(p, &view, o, seq, &stage_nodes, Some(claim));
+                                    c.admit(p, &view, o, seq, &stage_nodes, Some(claim), may_execute(o));
                                 }
                                 Err(_) => deferred.push_back((o, seq)),
                             }
@@ -613,8 +653,9 @@ impl<'a> Engine<'a> {
         std::fs::rename(&keys_tmp, runs::keys_path(self.store, &id)).with_context(|| "saving the run's task keys")?;
         let status = match stopping {
             Some(s) => s,
-            None if failures.is_empty() => RunStatus::Complete,
-            None => RunStatus::Failed,
+            None if !failures.is_empty() => RunStatus::Failed,
+            None if stats.iter().any(|s| s.missing > 0) => RunStatus::Incomplete,
+            None => RunStatus::Complete,
         };
         let record = RunRecord {
             id,
@@ -629,6 +670,8 @@ impl<'a> Engine<'a> {
             failures,
             exported,
             out_dir: opts.out_dir.as_ref().map(|d| d.display().to_string()),
+            group: opts.group.clone(),
+            shard: opts.shard,
         };
         runs::write_run(self.store, &record)?;
         Ok(RunSummary { record })
@@ -649,6 +692,7 @@ impl<'a> Engine<'a> {
                 }
                 match keys.decide(job.node, &job.item, &job.inputs, true) {
                     Decision::Cached { key, outputs } => return Ok(Outcome::Cached(key, outputs)),
+                    Decision::Run { .. } if !job.may_execute => return Err(NotExecuted.into()),
                     Decision::Run { key, .. } => key,
                     Decision::Unknown => bail!("{}", self.unknown_inputs(&job)),
                 }
@@ -802,7 +846,17 @@ impl Coord {
     }
 
     /// Plans an outer item and queues its tasks that have no upstream tasks.
-    fn admit(&mut self, p: &Pipeline, view: &View, outer: u32, seq: u64, stage_nodes: &[usize], claim: Option<Claim>) {
+    #[allow(clippy::too_many_arguments)]
+    fn admit(
+        &mut self,
+        p: &Pipeline,
+        view: &View,
+        outer: u32,
+        seq: u64,
+        stage_nodes: &[usize],
+        claim: Option<Claim>,
+        may_execute: bool,
+    ) {
         let plan = plan_outer(p, view, outer);
         // Tasks that could not be planned (offsets past the end of a dimension) leave the totals.
         for (i, &n) in stage_nodes.iter().enumerate() {
@@ -833,6 +887,7 @@ impl Coord {
             redoing: HashMap::new(),
             redone: HashMap::new(),
             claim,
+            may_execute,
             plan,
         };
         for (t, task) in run.plan.tasks.iter().enumerate() {
@@ -894,6 +949,13 @@ impl Coord {
                     self.release(slot, &dependents);
                 }
             }
+            Err(err) if err.downcast_ref::<NotExecuted>().is_some() => {
+                self.stats[ci].missing += 1;
+                self.counters.failed[ci].fetch_add(1, Ordering::Relaxed);
+                run.state[t] = State::Skipped;
+                let dependents: Vec<usize> = run.plan.tasks[t].dependents.iter().map(|&d| d as usize).collect();
+                self.skip_all(slot, dependents, true);
+            }
             Err(err) => {
                 self.stats[ci].failed += 1;
                 self.counters.failed[ci].fetch_add(1, Ordering::Relaxed);
@@ -904,7 +966,7 @@ impl Coord {
                     error: format!("{err:#}"),
                 });
                 let dependents: Vec<usize> = run.plan.tasks[t].dependents.iter().map(|&d| d as usize).collect();
-                self.skip_all(slot, dependents);
+                self.skip_all(slot, dependents, false);
             }
         }
         let run = self.active[slot as usize].as_mut().unwrap();
@@ -990,7 +1052,9 @@ impl Coord {
 
     /// Marks the tasks of `stack` and everything downstream of them that still waits as skipped:
     /// an input of theirs failed.
-    fn skip_all(&mut self, slot: u32, mut stack: Vec<usize>) {
+    /// `missing`: the input was not executed ([`NotExecuted`]), so neither are they (counted
+    /// as missing, not skipped).
+    fn skip_all(&mut self, slot: u32, mut stack: Vec<usize>, missing: bool) {
         let run = self.active[slot as usize].as_mut().unwrap();
         while let Some(d) = stack.pop() {
             if run.state[d] != State::Waiting {
@@ -998,7 +1062,11 @@ impl Coord {
             }
             run.state[d] = State::Skipped;
             let dn = self.counter_of[run.plan.tasks[d].node as usize];
-            self.stats[dn].skipped += 1;
+            if missing {
+                self.stats[dn].missing += 1;
+            } else {
+                self.stats[dn].skipped += 1;
+            }
             self.counters.failed[dn].fetch_add(1, Ordering::Relaxed);
             release_inputs(run, d);
             run.open -= 1;
@@ -1149,7 +1217,7 @@ impl Coord {
                     item: e.dataset.path(&run.plan.tasks[t].item),
                     error: format!("run again to replace a lost cache blob, it failed: {err:#}"),
                 });
-                self.skip_all(slot, waiters.into_iter().map(|w| w as usize).collect());
+                self.skip_all(slot, waiters.into_iter().map(|w| w as usize).collect(), false);
             }
         }
         self.close_if_done(slot);
@@ -1209,6 +1277,8 @@ impl Coord {
 struct Ctx<'e, 'a> {
     engine: &'e Engine<'a>,
     keys: &'e Keys<'e>,
+    /// Per node: its tasks are only taken from the cache ([`RunOptions::defer_resources`]).
+    deferred: Vec<bool>,
 }
 
 impl Ctx<'_, '_> {
@@ -1218,6 +1288,7 @@ impl Ctx<'_, '_> {
         let p = self.engine.pipeline;
         let t = &run.plan.tasks[task as usize];
         let node = t.node as usize;
+        let may_execute = run.may_execute && !self.deferred[node];
         let output = |u: u32, port: u16| run.outputs[u as usize].as_ref().map(|o| &o[port as usize]);
         let mut inputs = self.keys.resolve(&run.plan, task, |u, port| output(u, port).map(|o| o.r.digest), false);
         if let Some(e) = take_unreadable(&mut inputs) {
@@ -1226,6 +1297,7 @@ impl Ctx<'_, '_> {
         // Without hashing: a raw file, or an exported file whose stat changed, is for the worker.
         let key = match self.keys.decide(node, &t.item, &inputs, false) {
             Decision::Cached { key, outputs } => return Ok(Prepared::Cached(key, outputs)),
+            Decision::Run { .. } if !may_execute => return Err(NotExecuted.into()),
             Decision::Run { key, .. } => Some(key),
             Decision::Unknown => None,
         };
@@ -1251,7 +1323,7 @@ impl Ctx<'_, '_> {
                     .collect()
             })
             .collect();
-        Ok(Prepared::Job(Job { slot, task, node, item: t.item, key, inputs, srcs }))
+        Ok(Prepared::Job(Job { slot, task, node, item: t.item, key, inputs, srcs, may_execute }))
     }
 }
 

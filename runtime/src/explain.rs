@@ -50,6 +50,17 @@ pub fn explain(
     second_dim_limit: Option<u32>,
     out_dir: Option<&Path>,
 ) -> Result<Vec<StageExplain>> {
+    Ok(explain_per_outer(engine, outer_items, second_dim_limit, out_dir)?.0)
+}
+
+/// [`explain`], and for each outer item (by index) how many of its tasks will run: what a
+/// submission to a cluster plans shards from (an item with none needs no job).
+pub fn explain_per_outer(
+    engine: &Engine,
+    outer_items: Option<&[String]>,
+    second_dim_limit: Option<u32>,
+    out_dir: Option<&Path>,
+) -> Result<(Vec<StageExplain>, Vec<(u32, u64)>)> {
     let p = engine.pipeline;
     let store = engine.store;
     let view = View { space: engine.dataset, second_dim_limit };
@@ -113,7 +124,10 @@ pub fn explain(
         out[n].stage = p.nodes[n].name.clone();
         out[n].kind = p.nodes[n].stage().unwrap().kind.clone();
     }
+    let mut pending = Vec::with_capacity(outers.len());
+    let will_run = |out: &[StageExplain]| out.iter().map(|e| e.will_run).sum::<u64>();
     for outer in outers {
+        let before = will_run(&out);
         let mut plan = plan_outer(p, &view, outer);
         // Output digests of tasks known to be cached; None = will run.
         let mut outputs: Vec<Option<Vec<Digest>>> = vec![None; plan.tasks.len()];
@@ -220,8 +234,9 @@ pub fn explain(
                 entry.0 += 1;
             }
         }
+        pending.push((outer, will_run(&out) - before));
     }
-    Ok(p.stage_order().map(|n| std::mem::take(&mut out[n])).collect())
+    Ok((p.stage_order().map(|n| std::mem::take(&mut out[n])).collect(), pending))
 }
 
 fn first_line(s: &str) -> &str {

@@ -1,8 +1,8 @@
 //! `gc`: drop task records and blobs that no recent run used.
 //!
 //! Reachable = the task keys listed by the newest `keep_runs` runs (all pipelines sharing the
-//! store); with a size budget, older runs among those are dropped until the blobs they reach
-//! fit. Records are compacted into one new segment (written and fsynced before the old ones are
+//! store; the shards and merge of one cluster submission count as one run); with a size
+//! budget, older runs among those are dropped until the blobs they reach fit. Records are compacted into one new segment (written and fsynced before the old ones are
 //! removed, so a crash leaves duplicates at worst), then unreachable blobs are deleted. Needs
 //! the store alone: it waits for no run and refuses while one holds the store.
 
@@ -29,8 +29,10 @@ pub struct GcReport {
 
 pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcReport> {
     let store = Store::open(root, Access::Exclusive)?;
-    let mut runs = list_runs(&store.runs_dir())?;
-    runs.reverse(); // newest first
+    let all = list_runs(&store.runs_dir())?;
+    // A group (the shards and merge of one cluster submission) counts as one run.
+    let mut groups: Vec<Vec<&crate::runs::RunRecord>> = crate::runs::grouped(&all);
+    groups.reverse(); // newest first
     let mut report = GcReport::default();
 
     // Latest record per key (the one a run uses), with the blobs it references.
@@ -53,11 +55,14 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcRep
     let mut blobs: HashSet<Digest> = HashSet::new();
     let mut bytes = 0u64;
     let mut kept_runs = Vec::new();
-    for (i, run) in runs.iter().enumerate() {
+    for (i, group) in groups.iter().enumerate() {
         if i >= keep_runs {
             break;
         }
-        let run_keys = read_keys(&keys_path(&store, &run.id))?;
+        let mut run_keys = Vec::new();
+        for run in group {
+            run_keys.extend(read_keys(&keys_path(&store, &run.id))?);
+        }
         let mut new_blobs = Vec::new();
         let mut new_bytes = 0;
         for k in &run_keys {
@@ -76,10 +81,10 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcRep
         bytes += new_bytes;
         blobs.extend(new_blobs);
         keys.extend(run_keys);
-        kept_runs.push(run.id.clone());
+        kept_runs.extend(group.iter().map(|r| r.id.clone()));
     }
     report.runs_kept = kept_runs.len();
-    for run in runs.iter().filter(|r| !kept_runs.contains(&r.id)) {
+    for run in all.iter().filter(|r| !kept_runs.contains(&r.id)) {
         let _ = std::fs::remove_file(store.runs_dir().join(format!("{}.json", run.id)));
         let _ = std::fs::remove_file(keys_path(&store, &run.id));
         report.runs_dropped += 1;

@@ -24,6 +24,10 @@ pub struct StageStats {
     /// Finished tasks run again because a blob of theirs was found missing or corrupt.
     #[serde(default)]
     pub recomputed: u64,
+    /// Not cached and not executed: the run executed only some items' tasks (a merge job
+    /// collecting what a cluster array made; see `RunOptions::execute_only`).
+    #[serde(default)]
+    pub missing: u64,
     /// Summed run time of executed tasks.
     pub seconds: f64,
 }
@@ -48,6 +52,9 @@ pub enum RunStatus {
     Stopped,
     /// Stopped by Ctrl-C; rerun the same command to continue.
     Interrupted,
+    /// No task failed, but some were neither cached nor executed (a run that executes only
+    /// some items: see `RunOptions::execute_only`, `defer_resources`).
+    Incomplete,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -67,6 +74,12 @@ pub struct RunRecord {
     /// Files written or confirmed in the output directory.
     pub exported: u64,
     pub out_dir: Option<String>,
+    /// The group of runs this one belongs to (the shards and merge of one cluster submission).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub group: Option<String>,
+    /// The shard (i, n) this run was, if it was one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shard: Option<(u32, u32)>,
 }
 
 impl RunRecord {
@@ -78,6 +91,9 @@ impl RunRecord {
     }
     pub fn failed(&self) -> u64 {
         self.stages.iter().map(|s| s.failed).sum()
+    }
+    pub fn missing(&self) -> u64 {
+        self.stages.iter().map(|s| s.missing).sum()
     }
 }
 
@@ -111,6 +127,43 @@ pub fn list_runs(runs_dir: &Path) -> Result<Vec<RunRecord>> {
     }
     out.sort_by(|a, b| (a.started, &a.id).cmp(&(b.started, &b.id)));
     Ok(out)
+}
+
+/// Runs as users think of them: the shards and merge of one cluster submission (one group) are
+/// one run; a run without a group is one by itself. Oldest first (by first start), each
+/// group's runs in start order.
+pub fn grouped(runs: &[RunRecord]) -> Vec<Vec<&RunRecord>> {
+    let mut out: Vec<Vec<&RunRecord>> = Vec::new();
+    let mut at: std::collections::HashMap<&str, usize> = std::collections::HashMap::new();
+    for r in runs {
+        match r.group.as_deref() {
+            Some(g) => match at.get(g) {
+                Some(&i) => out[i].push(r),
+                None => {
+                    at.insert(g, out.len());
+                    out.push(vec![r]);
+                }
+            },
+            None => out.push(vec![r]),
+        }
+    }
+    out
+}
+
+/// A group of runs summed up as one: its status is its last run's that was not a shard (the
+/// merge), or, without one, the worst of its shards'.
+pub fn group_status(runs: &[&RunRecord]) -> RunStatus {
+    if let Some(merge) = runs.iter().rev().find(|r| r.shard.is_none()) {
+        return merge.status;
+    }
+    let worst = |s: RunStatus| match s {
+        RunStatus::Complete => 0,
+        RunStatus::Incomplete => 1,
+        RunStatus::Failed => 2,
+        RunStatus::Stopped => 3,
+        RunStatus::Interrupted => 4,
+    };
+    runs.iter().map(|r| r.status).max_by_key(|&s| worst(s)).unwrap_or(RunStatus::Complete)
 }
 
 /// `2026-11-21 09:15:02 UTC` from Unix seconds.
