@@ -1109,3 +1109,71 @@ fn processes_sharing_a_store_share_the_work_instead_of_each_doing_all_of_it() {
     assert!(executed.iter().all(|&n| n > 0), "both did some of the work: {executed:?}");
     assert!(!shared.path().join("leases/claims").read_dir().unwrap().any(|_| true), "claims are let go");
 }
+
+/// Wraps an operator as served by an external resource (a model worker).
+struct OnGpu(Box<dyn Operator>);
+
+impl Operator for OnGpu {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> anyhow::Result<Vec<Output>> {
+        self.0.run(ctx, inputs)
+    }
+    fn resource(&self) -> Option<Resource> {
+        Some(Resource { name: "gpu".into(), slots: 1 })
+    }
+}
+
+fn missing(r: &RunRecord) -> BTreeMap<String, u64> {
+    r.stages.iter().map(|s| (s.stage.clone(), s.missing)).collect()
+}
+
+#[test]
+fn a_cpu_array_leaves_worker_stages_and_what_reads_them_to_the_gpu_array() {
+    let text = r#"Pipeline(
+        dataset: Grid(scenes: 2, frames: 2, cameras: 2),
+        stages: {
+            "prep": Echo(inputs: {"x": "dataset.camera_value"}),
+            "model": Echo(inputs: {"x": "prep.y"}, params: (salt: 1)),
+            "encode": Echo(inputs: {"x": "model.y"}, params: (salt: 2)),
+        },
+    )"#;
+    let p = testkit::load(text, &[]);
+    let grid = testkit::grid_of(&p);
+    let dir = tempfile::tempdir().unwrap();
+    let run_as = |defer: bool| {
+        let store = Store::open(dir.path(), Access::Shared).unwrap();
+        let mut ops = testkit::operators(&p);
+        let model = p.nodes.iter().position(|n| n.name == "model").unwrap();
+        ops[model] = Some(Box::new(OnGpu(ops[model].take().unwrap())));
+        let engine = Engine { pipeline: &p, dataset: &grid, operators: &ops, store: &store };
+        engine.run(&RunOptions { jobs: 2, defer_resources: defer, ..Default::default() }).unwrap().record
+    };
+    let cpu = run_as(true);
+    assert_eq!(cpu.status, RunStatus::Incomplete);
+    assert_eq!(executed(&cpu), counts(&[("prep", 8), ("model", 0), ("encode", 0)]));
+    assert_eq!(missing(&cpu), counts(&[("prep", 0), ("model", 8), ("encode", 8)]));
+    assert!(cpu.failures.is_empty(), "missing is not failed");
+    let gpu = run_as(false);
+    assert_eq!(gpu.status, RunStatus::Complete);
+    assert_eq!(executed(&gpu), counts(&[("prep", 0), ("model", 8), ("encode", 8)]));
+}
+
+#[test]
+fn a_merge_executes_only_the_items_it_retries_and_takes_the_rest_from_the_cache() {
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let dir = tempfile::tempdir().unwrap();
+    // Scene s0 was done by a shard; s1's shard was lost.
+    let shard = run_with(&p, &grid, dir.path(), &RunOptions { jobs: 2, shard: Some((0, 2)), ..Default::default() });
+    assert_eq!(shard.status, RunStatus::Complete);
+    let merge = |retry: Vec<String>| {
+        run_with(&p, &grid, dir.path(), &RunOptions { jobs: 2, execute_only: Some(retry), ..Default::default() })
+    };
+    let r = merge(vec![]);
+    assert_eq!(r.status, RunStatus::Incomplete);
+    assert_eq!(r.executed(), 0);
+    assert_eq!(r.cached(), shard.executed(), "the shard's work is collected");
+    assert_eq!(r.missing(), shard.executed(), "the lost shard's is reported, not redone");
+    let lost = crate::item::ItemSpace::label(&grid, &ItemKey::new(&[1]));
+    let r = merge(vec![lost]);
+    assert_eq!((r.status, r.executed(), r.missing()), (RunStatus::Complete, shard.executed(), 0));
+}
