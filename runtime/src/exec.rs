@@ -471,9 +471,10 @@ impl<'a> Engine<'a> {
         let (tx, rx): (Sender<Msg>, Receiver<Msg>) = unbounded();
         let max_inflight = opts.jobs.max(1) * 2;
         let task_budget = 4096usize.max(opts.jobs * 256);
-        // Outer items in flight at once: enough to keep every thread busy, and no more, since
-        // each holds a claim other processes sharing the store would otherwise take.
-        let outer_budget = opts.jobs.max(1) * 2 + 2;
+        // Outer items in flight at once: enough to keep every thread busy (the next item is
+        // planned while the last tasks of one run), and no more, since each holds a claim that
+        // other processes sharing the store would otherwise take.
+        let outer_budget = opts.jobs.max(1) + 1;
         let mut c = Coord {
             active: Vec::new(),
             ready: BinaryHeap::new(),
