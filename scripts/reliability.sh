@@ -73,7 +73,7 @@ rm -rf store out
 t0=$(date +%s.%N)
 run store out >/dev/null 2>&1 & run store out >/dev/null 2>&1 & wait
 both=$(awk -v a="$t0" -v b="$(date +%s.%N)" 'BEGIN { printf "%.2f", b - a }')
-each=$("$bin" runs --cache store --json | grep -o '"executed": [0-9]*' | awk '{s = s " " $2} END {print s}')
+each=$("$bin" runs --cache store | grep -o '[0-9]* executed' | awk '{s = s " " $1} END {print s}')
 [ "$(sums out)" = "$ref_sums" ] && same=identical || same=DIFFERENT
 echo "two unsharded processes at once: ${both}s, tasks executed per process:$each; outputs $same"
 

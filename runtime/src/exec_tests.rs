@@ -334,6 +334,22 @@ fn gc_keeps_what_recent_runs_use() {
     assert_eq!(old.stages.iter().find(|s| s.stage == "b").unwrap().executed, 24);
 }
 
+#[test]
+fn gc_counts_the_shards_of_one_group_as_one_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = testkit::grid_of(&testkit::load(CHAIN, &[]));
+    run(&testkit::load(CHAIN, &["b.salt=1"]), &grid, dir.path());
+    // The newest "run" is a group of two shards, each with half the scenes.
+    let p = testkit::load(CHAIN, &["b.salt=2"]);
+    for i in 0..2 {
+        let opts = RunOptions { jobs: 2, shard: Some((i, 2)), group: Some("g".into()), ..Default::default() };
+        run_with(&p, &grid, dir.path(), &opts);
+    }
+    let report = crate::gc::gc(dir.path(), 1, None).unwrap();
+    assert_eq!((report.runs_kept, report.runs_dropped), (2, 1), "both shards kept, the older run dropped");
+    assert_eq!(run(&p, &grid, dir.path()).executed(), 0, "both shards' work is still cached");
+}
+
 /// Every file under `dir` but the manifest (which holds file stats), relative path -> digest.
 fn files_under(dir: &Path) -> BTreeMap<String, String> {
     let mut out = BTreeMap::new();
