@@ -33,8 +33,10 @@ if ! command -v slurmctld >/dev/null || ! command -v munged >/dev/null; then
     echo "SKIPPED: slurm-wlm and munge are not installed and this is not root" >&2
     exit 3
   fi
-  apt-get update -qq >/dev/null
-  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq slurm-wlm munge >/dev/null
+  if ! { apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq slurm-wlm munge >/dev/null; }; then
+    echo "SKIPPED: slurm-wlm and munge could not be installed (apt-get failed)" >&2
+    exit 3
+  fi
 fi
 
 host=$(hostname)

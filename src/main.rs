@@ -639,7 +639,7 @@ fn slurm_submit(
             Store::open(&cache, Access::Shared).with_context(|| format!("opening the store {}", cache.display()))?;
         let engine = Engine { pipeline: &pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
         let (_, per_outer) =
-            dist4d_runtime::explain::explain_per_outer(&engine, p.scenes.as_deref(), p.limit, Some(&out_dir))?;
+            dist4d_runtime::explain::explain_per_outer(&engine, p.scenes.as_deref(), p.limit, Some(&out_dir), false)?;
         let label = |o: u32| dataset.label(&dist4d_runtime::ItemKey::new(&[o]));
         slurm::Pending {
             scenes: per_outer.iter().filter(|(_, n)| *n > 0).map(|&(o, _)| label(o)).collect(),
@@ -739,7 +739,7 @@ fn slurm_merge(
         second_dim_limit: p.limit,
         out_dir: Some(out_dir.clone()),
         progress: progress_mode(progress),
-        execute_only: Some(retry),
+        execute_only: Some(retry.clone()),
         group: Some(group.to_string()),
         ..Default::default()
     };
@@ -747,6 +747,27 @@ fn slurm_merge(
         opts.jobs = j;
     }
     let (code, rec) = execute(registry, &pipeline, &cache, &out_dir, opts)?;
+    // The group's report, beside its scripts and logs.
+    let report_path = slurm::job_dir(&cache, group)?.join("report.json");
+    let json = serde_json::json!({
+        "group": group,
+        "pipeline": pipeline.name,
+        "shards": report.lines,
+        "retried": retry,
+        "merge_run": rec.id,
+        "status": rec.status,
+        "executed": rec.executed(),
+        "cached": rec.cached(),
+        "missing": rec.missing(),
+        "failures": rec.failures,
+        "out_dir": out_dir.display().to_string(),
+    });
+    let tmp = report_path.with_extension("json.tmp");
+    std::fs::create_dir_all(report_path.parent().unwrap_or(Path::new(".")))
+        .and_then(|_| std::fs::write(&tmp, serde_json::to_vec_pretty(&json).unwrap_or_default()))
+        .and_then(|_| std::fs::rename(&tmp, &report_path))
+        .with_context(|| format!("writing the group report {}", report_path.display()))?;
+    println!("report: {}", report_path.display());
     if rec.missing() > 0 {
         println!(
             "{} tasks are missing ({} shard(s) did not finish): rerun the same `dist4d slurm` command; only the {}s with missing work become shards",

@@ -198,6 +198,9 @@ fn a_submission_with_a_cancelled_shard_resubmitted_gives_the_bytes_of_one_proces
     cluster.wait_gone(&[&ids["array"], &ids["merge"]], "the resubmission");
     let merge_log = std::fs::read_to_string(newest_group().join("merge.log")).unwrap();
     assert!(merge_log.contains("Complete in") && !merge_log.contains("missing"), "{merge_log}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(newest_group().join("report.json")).unwrap()).unwrap();
+    assert_eq!((report["status"].as_str(), report["missing"].as_u64()), (Some("complete"), Some(0)), "{report}");
 
     let (got, want) = (files(&out), files(&reference));
     assert_eq!(got.keys().collect::<Vec<_>>(), want.keys().collect::<Vec<_>>());

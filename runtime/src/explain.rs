@@ -50,16 +50,19 @@ pub fn explain(
     second_dim_limit: Option<u32>,
     out_dir: Option<&Path>,
 ) -> Result<Vec<StageExplain>> {
-    Ok(explain_per_outer(engine, outer_items, second_dim_limit, out_dir)?.0)
+    Ok(explain_per_outer(engine, outer_items, second_dim_limit, out_dir, true)?.0)
 }
 
 /// [`explain`], and for each outer item (by index) how many of its tasks will run: what a
-/// submission to a cluster plans shards from (an item with none needs no job).
+/// submission to a cluster plans shards from (an item with none needs no job). Without `hash`,
+/// raw files the fingerprint memo does not know are not read (a login node should not read a
+/// dataset's terabytes): the tasks that read them count as will run.
 pub fn explain_per_outer(
     engine: &Engine,
     outer_items: Option<&[String]>,
     second_dim_limit: Option<u32>,
     out_dir: Option<&Path>,
+    hash: bool,
 ) -> Result<(Vec<StageExplain>, Vec<(u32, u64)>)> {
     let p = engine.pipeline;
     let store = engine.store;
@@ -149,9 +152,9 @@ pub fn explain_per_outer(
             let label = engine.dataset.path(&task.item);
             // The same resolution and decision as a run, hashing changed raw files as a run would.
             let upstream = |u: u32, port: u16| outputs[u as usize].as_ref().and_then(|o| o.get(port as usize).copied());
-            let inputs = keys.resolve(&plan, t as u32, upstream, true);
+            let inputs = keys.resolve(&plan, t as u32, upstream, hash);
             let e = &mut out[node];
-            let lost = match keys.decide(node, &task.item, &inputs, true) {
+            let lost = match keys.decide(node, &task.item, &inputs, hash) {
                 Decision::Cached { outputs: outs, .. } if outs.is_empty() && !p.nodes[node].outputs.is_empty() => {
                     e.not_applicable += 1;
                     for d in plan.tasks[t].dependents.clone() {

@@ -75,7 +75,9 @@ struct Later {
     read_to: HashMap<PathBuf, usize>,
 }
 
-/// What a raw file looked like when it was hashed.
+/// What a raw file looked like when it was hashed. The device number is kept but not compared
+/// (it is always 0 here): an NFS or Lustre mount has a different one on each node, while path,
+/// inode, size and mtime are the same, so the memo a shard on one node wrote holds on the others.
 #[derive(Clone, Copy, PartialEq, Eq, Debug)]
 struct FileStamp {
     dev: u64,
@@ -89,6 +91,9 @@ pub struct Store {
     writer_id: String,
     /// Our lease; gc's too when gc holds the store (dropped first: gc lets go before it leaves).
     gc_lease: Option<Lease>,
+    /// Writers found dead at open (their leases then removed): their temp files elsewhere (in
+    /// output folders) are abandoned too.
+    dead_writers: std::collections::HashSet<String>,
     writer_lease: Lease,
     records: Mutex<Option<SegmentWriter>>,
     fp_writer: Mutex<Option<SegmentWriter>>,
@@ -149,7 +154,7 @@ impl Store {
                 None
             }
         };
-        remove_abandoned(root, &writer_id, now());
+        let dead_writers = remove_abandoned(root, &writer_id, now());
 
         let mut segments: Vec<Segment> = Vec::new();
         let mut index = DigestMap::default();
@@ -178,6 +183,7 @@ impl Store {
             root: root.to_path_buf(),
             writer_id,
             gc_lease,
+            dead_writers,
             writer_lease,
             records: Mutex::new(None),
             fp_writer: Mutex::new(None),
@@ -344,7 +350,7 @@ impl Store {
     pub fn file_digest(&self, path: &Path, allow_hash: bool) -> Result<Option<Digest>> {
         let meta = fs::metadata(path).with_context(|| format!("reading {}", path.display()))?;
         let stamp = FileStamp {
-            dev: meta.dev(),
+            dev: 0,
             ino: meta.ino(),
             size: meta.size(),
             mtime_ns: meta.mtime() * 1_000_000_000 + meta.mtime_nsec(),
@@ -395,6 +401,9 @@ impl Store {
     /// lease timeout (a temp file younger than that may belong to a writer whose lease we cannot
     /// see yet, on another node).
     pub fn temp_abandoned(&self, writer: &str, path: &Path) -> bool {
+        if self.dead_writers.contains(writer) {
+            return true;
+        }
         let now = self.fs_now();
         abandoned(&self.root.join("leases"), writer, path, now)
     }
@@ -568,8 +577,10 @@ fn abandoned(leases: &Path, writer: &str, path: &Path, now: std::time::SystemTim
 
 /// Removes what dead writers left: their temp files and their leases (older dist4d versions'
 /// `tmp/*.lock` files too). Best effort: a file another process removes first is no matter.
-fn remove_abandoned(root: &Path, me: &str, now: std::time::SystemTime) {
+/// Returns the writers whose leases it found dead.
+fn remove_abandoned(root: &Path, me: &str, now: std::time::SystemTime) -> std::collections::HashSet<String> {
     let leases = root.join("leases");
+    let mut dead = std::collections::HashSet::new();
     if let Ok(rd) = fs::read_dir(root.join("tmp")) {
         for e in rd.filter_map(|e| e.ok()) {
             let p = e.path();
@@ -586,9 +597,13 @@ fn remove_abandoned(root: &Path, me: &str, now: std::time::SystemTime) {
             let p = e.path();
             if p.extension().is_some_and(|x| x == "lease") && matches!(lease::judge(&p, now), Liveness::Dead(_)) {
                 let _ = fs::remove_file(&p);
+                if let Some(writer) = p.file_stem().and_then(|s| s.to_str()) {
+                    dead.insert(writer.to_string());
+                }
             }
         }
     }
+    dead
 }
 
 fn load_fingerprints(dir: &Path) -> Result<HashMap<PathBuf, (FileStamp, Digest)>> {
@@ -600,7 +615,8 @@ fn load_fingerprints(dir: &Path) -> Result<HashMap<PathBuf, (FileStamp, Digest)>
             let parsed = (|| -> Result<(PathBuf, FileStamp, Digest)> {
                 use std::os::unix::ffi::OsStrExt;
                 let p = PathBuf::from(std::ffi::OsStr::from_bytes(r.bytes()?));
-                let stamp = FileStamp { dev: r.u64()?, ino: r.u64()?, size: r.u64()?, mtime_ns: r.u64()? as i64 };
+                let _dev = r.u64()?;
+                let stamp = FileStamp { dev: 0, ino: r.u64()?, size: r.u64()?, mtime_ns: r.u64()? as i64 };
                 Ok((p, stamp, Digest(r.take(32)?.try_into()?)))
             })();
             if let Ok((p, s, d)) = parsed {
@@ -799,6 +815,10 @@ mod tests {
         fs::write(&live_tmp, b"mine").unwrap();
         assert!(!tmp.join("dead-1-3.tmp").exists());
         assert!(!leases.join("dead-1.lease").exists(), "a dead writer's lease goes too");
+        assert!(
+            live.temp_abandoned("dead-1", &dir.path().join("out/.dist4d-tmp/dead-1-manifest1")),
+            "and its temp files in output folders are known abandoned once its lease is gone"
+        );
         assert!(tmp.join("unknown-7-1.tmp").exists());
         assert!(!tmp.join("unknown-8-1.tmp").exists());
         let _other = Store::open(dir.path(), Access::Shared).unwrap();
