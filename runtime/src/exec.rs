@@ -263,6 +263,8 @@ struct Claims<'e> {
     dim: String,
     said: std::collections::HashSet<u32>,
     last_poll: Instant,
+    others: bool,
+    last_others_check: Instant,
 }
 
 impl<'e> Claims<'e> {
@@ -274,6 +276,8 @@ impl<'e> Claims<'e> {
             dim: p.dims[0].name.clone(),
             said: Default::default(),
             last_poll: Instant::now(),
+            others: engine.store.other_writers_seen(),
+            last_others_check: Instant::now(),
         }
     }
 
@@ -297,6 +301,17 @@ impl<'e> Claims<'e> {
                 holder.describe()
             );
         }
+    }
+
+    /// Whether another process has used the store since this run started (it holds a lease
+    /// now, or has written segments): only then can records have appeared that this one did not
+    /// load. Checked at most every [`CLAIM_POLL`]; once true, it stays true.
+    fn others_active(&mut self) -> bool {
+        if !self.others && self.last_others_check.elapsed() >= CLAIM_POLL {
+            self.last_others_check = Instant::now();
+            self.others = self.store.other_writers_seen();
+        }
+        self.others
     }
 
     fn poll_due(&mut self) -> bool {
@@ -520,6 +535,11 @@ impl<'a> Engine<'a> {
                         let o = outers[next_outer];
                         match claims.take(o)? {
                             Ok(claim) => {
+                                // Another process may have run the item and let it go since this
+                                // one opened the store: its records are read first.
+                                if claims.others_active() {
+                                    self.store.refresh()?;
+                                }
                                 c.admit(p, &view, o, next_outer as u64, &stage_nodes, Some(claim), may_execute(o))
                             }
                             Err(holder) => {

@@ -1193,3 +1193,23 @@ fn a_merge_executes_only_the_items_it_retries_and_takes_the_rest_from_the_cache(
     let r = merge(vec![lost]);
     assert_eq!((r.status, r.executed(), r.missing()), (RunStatus::Complete, shard.executed(), 0));
 }
+
+#[test]
+fn an_item_another_process_finished_after_this_one_opened_the_store_is_not_run_again() {
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let dir = tempfile::tempdir().unwrap();
+    let late = Store::open(dir.path(), Access::Shared).unwrap();
+    // Another process runs scene s1 whole, claims and all, while `late` is open and idle.
+    let s1 = crate::item::ItemSpace::label(&grid, &ItemKey::new(&[1]));
+    let other =
+        run_with(&p, &grid, dir.path(), &RunOptions { jobs: 2, outer_items: Some(vec![s1]), ..Default::default() });
+    assert!(other.executed() > 0);
+    let ops = testkit::operators(&p);
+    let r = Engine { pipeline: &p, dataset: &grid, operators: &ops, store: &late }
+        .run(&RunOptions { jobs: 2, ..Default::default() })
+        .unwrap()
+        .record;
+    assert_eq!(r.cached(), other.executed(), "s1's tasks are found in the store, not run again");
+    assert_eq!(r.executed() + r.cached(), 2 * other.executed());
+}
