@@ -465,7 +465,7 @@ fn execute(
     }
     if rec.missing() > 0 {
         println!(
-            "missing: {} tasks neither cached nor executed (this run executes only some of them: see the note below)",
+            "missing: {} tasks neither cached nor executed: this run leaves them to another (--defer-workers: the GPU array; a merge: the next `dist4d slurm`)",
             rec.missing()
         );
     }
@@ -651,8 +651,9 @@ fn slurm_submit(
     let dim = &pipeline.dims[0].name;
     if pending.scenes.is_empty() {
         println!(
-            "nothing to submit: every task of the {} {dim}s is cached (`dist4d explain` says what a run would do)",
-            pending.all_scenes
+            "nothing to submit: every task of the {} {dim}{} is cached (`dist4d explain` says what a run would do)",
+            pending.all_scenes,
+            if pending.all_scenes == 1 { "" } else { "s" }
         );
         return Ok(ExitCode::SUCCESS);
     }
@@ -668,6 +669,14 @@ fn slurm_submit(
     };
     let jobs = slurm::jobs(&target, submit, &pending, &group, &bin)?;
     let dir = slurm::job_dir(&cache, &group)?;
+    // An earlier submission whose merge has not written its report is still queued or running
+    // (or its merge was cancelled): submitting again would do its work twice.
+    for earlier in slurm::unmerged_groups(&cache, &pipeline.name) {
+        eprintln!(
+            "warning: group {earlier} (submitted earlier) has no merge report yet: if its jobs are still queued or \
+             running (squeue), this submission repeats their scenes; scancel one of the two"
+        );
+    }
     println!(
         "{} of {} {dim}s have work left ({} tasks): group {group}",
         pending.scenes.len(),
@@ -676,13 +685,12 @@ fn slurm_submit(
     );
     if submit.dry_run {
         let ids: Vec<String> = jobs.iter().map(|j| format!("<{} job id>", j.name)).collect();
+        println!("--dry-run: nothing written or submitted; without it, these scripts are written and submitted as:");
         for job in &jobs {
             let script = dir.join(format!("{}.sh", job.name));
-            println!(
-                "
-# sbatch {}",
-                slurm::sbatch_args(job, &ids, &script).join(" ")
-            );
+            let args: Vec<String> =
+                slurm::sbatch_args(job, &ids, &script).iter().map(|a| slurm::shell_word(a)).collect();
+            println!("\n# sbatch {}", args.join(" "));
             print!("{}", job.script);
         }
         return Ok(ExitCode::SUCCESS);
@@ -752,11 +760,12 @@ fn slurm_merge(
     let json = serde_json::json!({
         "group": group,
         "pipeline": pipeline.name,
-        "shards": report.lines,
+        "shards": report.shards.iter().map(|s| s.to_json()).collect::<Vec<_>>(),
+        "executed_by_shards": report.shards.iter().map(|s| s.executed).sum::<u64>(),
         "retried": retry,
         "merge_run": rec.id,
         "status": rec.status,
-        "executed": rec.executed(),
+        "executed_by_merge": rec.executed(),
         "cached": rec.cached(),
         "missing": rec.missing(),
         "failures": rec.failures,
@@ -768,6 +777,15 @@ fn slurm_merge(
         .and_then(|_| std::fs::rename(&tmp, &report_path))
         .with_context(|| format!("writing the group report {}", report_path.display()))?;
     println!("report: {}", report_path.display());
+    if !rec.failures.is_empty() {
+        println!(
+            "{} task(s) failed{}: see the errors above. The same input fails the same way: fix it, or leave its {} out \
+             (--scenes); rerunning `dist4d slurm` retries them.",
+            rec.failures.len(),
+            if retry.is_empty() { "" } else { " (in the merge's retry too)" },
+            pipeline.dims[0].name
+        );
+    }
     if rec.missing() > 0 {
         println!(
             "{} tasks are missing ({} shard(s) did not finish): rerun the same `dist4d slurm` command; only the {}s with missing work become shards",
@@ -917,15 +935,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 // A group's time is from its first start to its last end (its jobs overlap).
                 let end = group.iter().map(|r| r.started as f64 + r.seconds).fold(0.0, f64::max);
                 let shards = group.iter().filter(|r| r.shard.is_some()).count();
+                let merged = group.len() > shards;
+                // Shards expected: the largest split the group's shards name (a GPU array's is smaller).
+                let expected = group.iter().filter_map(|r| r.shard).map(|(_, n)| n as usize).max().unwrap_or(0);
                 let (id, what) = match &first.group {
-                    Some(g) => (
-                        g.clone(),
-                        format!(
-                            " ({} runs: {shards} shards{})",
-                            group.len(),
-                            if group.len() > shards { " + merge" } else { "" }
-                        ),
-                    ),
+                    Some(g) if merged => (g.clone(), format!(" ({shards} shard runs + merge)")),
+                    Some(g) => (g.clone(), format!(" ({shards} of {expected} shards recorded, no merge yet)")),
                     None => (first.id.clone(), String::new()),
                 };
                 // What the group's last run found is what the group left: its merge sees the
@@ -934,11 +949,16 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 let executed = sum(|r| r.executed());
                 let missing = if last.missing() > 0 { format!(", {} missing", last.missing()) } else { String::new() };
                 println!(
-                    "{}  {}  {:<14} {:?}  {} executed, {} cached, {} failed{missing}, {:.1}s{what}",
+                    "{}  {}  {:<14} {}  {} executed, {} cached, {} failed{missing}, {:.1}s{what}",
                     dist4d_runtime::runs::format_utc(first.started),
                     id,
                     first.pipeline,
-                    dist4d_runtime::runs::group_status(&group),
+                    // A group whose merge has not run is not done, whatever its shards said.
+                    if first.group.is_some() && !merged {
+                        "Pending".to_string()
+                    } else {
+                        format!("{:?}", dist4d_runtime::runs::group_status(&group))
+                    },
                     executed,
                     if group.len() > 1 {
                         (last.cached() + last.executed()).saturating_sub(executed)

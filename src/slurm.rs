@@ -90,7 +90,11 @@ pub fn group_name(pipeline: &str) -> String {
 /// The jobs of a submission: the CPU array, the GPU array when asked for and the pipeline
 /// has worker stages, and the merge job after them.
 pub fn jobs(target: &Target, submit: &Submit, pending: &Pending, group: &str, bin: &Path) -> Result<Vec<Job>> {
+    if submit.shards == 0 || submit.gpu_shards == 0 {
+        bail!("--shards and --gpu-shards are at least 1");
+    }
     let dir = job_dir(&target.cache, group)?;
+    let cwd = std::env::current_dir()?;
     let base = target.args()?;
     let pipeline = group.rsplit_once('-').map_or(group, |(p, _)| p);
     let scenes = pending.scenes.join(",");
@@ -100,21 +104,21 @@ pub fn jobs(target: &Target, submit: &Submit, pending: &Pending, group: &str, bi
         Some(k) => format!("0-{}%{k}", n - 1),
         None => format!("0-{}", n - 1),
     };
-    let header = |name: &str, log: &str, partition: Option<&String>, gres: Option<&String>| {
-        let mut h = format!(
-            "#!/bin/bash\n# Written by `dist4d slurm` for group {group}: see docs/cluster.md.\n\
-             #SBATCH --job-name=dist4d-{pipeline}-{name}\n#SBATCH --output={}\n#SBATCH --cpus-per-task={}\n",
-            dir.join(log).display(),
-            submit.cpus_per_task
-        );
-        if let Some(p) = partition {
-            h.push_str(&format!("#SBATCH --partition={p}\n"));
-        }
-        if let Some(g) = gres {
-            h.push_str(&format!("#SBATCH --gres={g}\n"));
-        }
-        for o in &submit.sbatch {
-            h.push_str(&format!("#SBATCH {o}\n"));
+    // The role first: squeue shows 8 characters of a job's name.
+    let header = |role: &str, log: &str, partition: Option<&String>, gres: Option<&String>| {
+        let mut h = format!("#!/bin/bash\n# Written by `dist4d slurm` for group {group}: see docs/cluster.md.\n");
+        let mut options = vec![
+            format!("--job-name={role}-{pipeline}"),
+            format!("--output={}", dir.join(log).display()),
+            // Relative paths in --set (a dataset root) mean what they meant where it was submitted.
+            format!("--chdir={}", cwd.display()),
+            format!("--cpus-per-task={}", submit.cpus_per_task),
+        ];
+        options.extend(partition.map(|p| format!("--partition={p}")));
+        options.extend(gres.map(|g| format!("--gres={g}")));
+        options.extend(submit.sbatch.iter().cloned());
+        for o in options {
+            h.push_str(&format!("#SBATCH {}\n", directive(&o)));
         }
         // SIGTERM (scancel, a time limit) reaches dist4d itself, which stops cleanly.
         h.push_str("set -euo pipefail\nexec ");
@@ -146,17 +150,13 @@ pub fn jobs(target: &Target, submit: &Submit, pending: &Pending, group: &str, bi
         after: vec![],
     }];
     let gpu_shards = submit.gpu_shards.clamp(1, shards);
+    let gpu_partition = submit.gpu_partition.as_ref().or(submit.partition.as_ref());
     if let Some(g) = gpu {
         jobs.push(Job {
             name: "gpu-array",
             script: format!(
                 "{}{}\n",
-                header(
-                    "gpu-shard",
-                    "gpu-shard-%a.log",
-                    submit.gpu_partition.as_ref().or(submit.partition.as_ref()),
-                    Some(g)
-                ),
+                header("gpushard", "gpu-shard-%a.log", gpu_partition, Some(g)),
                 command("run", &shard_args(gpu_shards, false))
             ),
             array: Some(array(gpu_shards)),
@@ -176,7 +176,11 @@ pub fn jobs(target: &Target, submit: &Submit, pending: &Pending, group: &str, bi
         name: "merge",
         script: format!(
             "{}{}\n",
-            header("merge", "merge.log", submit.partition.as_ref(), None),
+            // With a GPU array, the merge retries failed worker tasks too: it gets a GPU.
+            match gpu {
+                Some(g) => header("merge", "merge.log", gpu_partition, Some(g)),
+                None => header("merge", "merge.log", submit.partition.as_ref(), None),
+            },
             command("merge", &merge_args)
         ),
         array: None,
@@ -189,6 +193,21 @@ pub fn jobs(target: &Target, submit: &Submit, pending: &Pending, group: &str, bi
 pub fn job_dir(cache: &Path, group: &str) -> Result<PathBuf> {
     let cache = if cache.is_absolute() { cache.to_path_buf() } else { std::env::current_dir()?.join(cache) };
     Ok(cache.join("slurm").join(group))
+}
+
+/// The groups of pipeline `pipeline` submitted into this store whose merge has written no
+/// report yet (queued, running, or their merge cancelled).
+pub fn unmerged_groups(cache: &Path, pipeline: &str) -> Vec<String> {
+    let Ok(dir) = job_dir(cache, "") else { return Vec::new() };
+    let Ok(rd) = std::fs::read_dir(&dir) else { return Vec::new() };
+    let mut out: Vec<String> = rd
+        .filter_map(|e| e.ok())
+        .filter(|e| !e.path().join("report.json").exists())
+        .filter_map(|e| e.file_name().to_str().map(String::from))
+        .filter(|g| g.rsplit_once('-').is_some_and(|(p, t)| p == pipeline && t.chars().all(|c| c.is_ascii_digit())))
+        .collect();
+    out.sort();
+    out
 }
 
 /// The `sbatch` command line of a job (the ids of the jobs it runs after filled in).
@@ -227,7 +246,12 @@ pub fn submit(jobs: &[Job], dir: &Path) -> Result<Vec<String>> {
                 if ids.is_empty() {
                     String::new()
                 } else {
-                    format!("; jobs {} were submitted already (scancel them, or let them run)", ids.join(", "))
+                    format!(
+                        "; job{} {} {} submitted already (scancel, or let run)",
+                        if ids.len() == 1 { "" } else { "s" },
+                        ids.join(", "),
+                        if ids.len() == 1 { "was" } else { "were" }
+                    )
                 }
             );
         }
@@ -242,9 +266,19 @@ pub fn submit(jobs: &[Job], dir: &Path) -> Result<Vec<String>> {
     Ok(ids)
 }
 
+/// An `#SBATCH` option with its value double-quoted when it holds anything but plain
+/// characters (sbatch splits directives at spaces, and reads double quotes).
+fn directive(option: &str) -> String {
+    let Some((name, value)) = option.split_once('=') else { return option.to_string() };
+    if value.chars().all(|c| c.is_ascii_alphanumeric() || "-_./:,+@%".contains(c)) {
+        return option.to_string();
+    }
+    format!("{name}=\"{}\"", value.replace('\\', "\\\\").replace('"', "\\\""))
+}
+
 /// A word for bash: as it is when it is plain, else single-quoted. `${SLURM_...}` words are
 /// double-quoted, so that the shell expands them.
-fn shell_word(w: &str) -> String {
+pub fn shell_word(w: &str) -> String {
     if w.contains("${SLURM_") {
         return format!("\"{w}\"");
     }
@@ -254,10 +288,34 @@ fn shell_word(w: &str) -> String {
     format!("'{}'", w.replace('\'', "'\\''"))
 }
 
+/// One expected shard of a group, as the merge found it.
+pub struct ShardState {
+    /// `i/n`.
+    pub shard: String,
+    /// The status of its last run (`complete`, `failed`, `interrupted`, ...), `no record` when
+    /// it never wrote one.
+    pub status: String,
+    pub run: Option<String>,
+    pub executed: u64,
+    pub cached: u64,
+    pub failed: u64,
+    pub seconds: f64,
+}
+
+impl ShardState {
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "shard": self.shard, "status": self.status, "run": self.run, "executed": self.executed,
+            "cached": self.cached, "failed": self.failed, "seconds": self.seconds,
+        })
+    }
+}
+
 /// What the shards of a group recorded, as the merge job reads it from the store.
 pub struct ShardsReport {
     /// One line per expected shard.
     pub lines: Vec<String>,
+    pub shards: Vec<ShardState>,
     /// Scenes with a failed item in a shard's last run: the merge job retries them.
     pub failed_scenes: Vec<String>,
     /// Shards with no record of an ended run (killed hard, or their node lost).
@@ -267,10 +325,21 @@ pub struct ShardsReport {
 /// Reads what the shards of `group` recorded: expected shards are `(i, n)` for each `n` of
 /// `arrays` (the CPU array's and the GPU array's shard counts).
 pub fn shards_report(runs: &[RunRecord], group: &str, arrays: &[u32]) -> ShardsReport {
-    let mut report = ShardsReport { lines: Vec::new(), failed_scenes: Vec::new(), unfinished: 0 };
+    let mut report = ShardsReport { lines: Vec::new(), shards: Vec::new(), failed_scenes: Vec::new(), unfinished: 0 };
     for &n in arrays {
         for i in 0..n {
             let last = runs.iter().rev().find(|r| r.group.as_deref() == Some(group) && r.shard == Some((i, n)));
+            report.shards.push(ShardState {
+                shard: format!("{i}/{n}"),
+                status: last.map_or("no record".into(), |r| {
+                    serde_json::to_value(r.status).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default()
+                }),
+                run: last.map(|r| r.id.clone()),
+                executed: last.map_or(0, |r| r.executed()),
+                cached: last.map_or(0, |r| r.cached()),
+                failed: last.map_or(0, |r| r.failed()),
+                seconds: last.map_or(0.0, |r| r.seconds),
+            });
             let line = match last {
                 None => {
                     report.unfinished += 1;
@@ -390,10 +459,44 @@ mod tests {
         assert!(!jobs[1].script.contains("--defer-workers") && jobs[1].script.contains("/2\""));
         assert_eq!((jobs[1].array.as_deref(), &jobs[1].after), (Some("0-1%2"), &vec![0]));
         assert_eq!(jobs[2].after, vec![0, 1]);
+        assert!(jobs[2].script.contains("#SBATCH --gres=gpu:1\n"), "the merge retries worker tasks too");
         assert!(jobs[2].script.contains("--shards 4 --gpu-shards 2"));
         // Without worker stages, --gres changes nothing.
         let cpu_only = Pending { has_workers: false, ..pending };
         assert_eq!(super::jobs(&target(), &submit(Some("gpu:1")), &cpu_only, "g", Path::new("/b")).unwrap().len(), 2);
+    }
+
+    #[test]
+    fn sbatch_directives_quote_values_with_spaces() {
+        assert_eq!(directive("--output=/a b/shard-%a.log"), "--output=\"/a b/shard-%a.log\"");
+        assert_eq!(directive("--comment=say \"hi\""), "--comment=\"say \\\"hi\\\"\"");
+        assert_eq!(directive("--time=2:00:00"), "--time=2:00:00");
+        assert_eq!(directive("--exclusive"), "--exclusive");
+        let spaced = Target { cache: "/shared/my store".into(), ..target() };
+        let pending = Pending { scenes: vec!["s1".into()], tasks: 1, all_scenes: 1, has_workers: false };
+        let jobs = jobs(&spaced, &submit(None), &pending, "g-1", Path::new("/b")).unwrap();
+        assert!(
+            jobs[0].script.contains("#SBATCH --output=\"/shared/my store/slurm/g-1/shard-%a.log\"\n"),
+            "{}",
+            jobs[0].script
+        );
+        assert!(jobs[0].script.contains("#SBATCH --job-name=shard-g\n"), "the role first: {}", jobs[0].script);
+        let none = Submit { shards: 0, ..submit(None) };
+        assert!(super::jobs(&target(), &none, &pending, "g-1", Path::new("/b")).is_err());
+    }
+
+    #[test]
+    fn a_group_without_a_merge_report_is_found_unmerged() {
+        let store = tempfile::tempdir().unwrap();
+        for (group, merged) in [("curation-100", true), ("curation-200", false), ("occupancy-300", false)] {
+            let dir = store.path().join("slurm").join(group);
+            std::fs::create_dir_all(&dir).unwrap();
+            if merged {
+                std::fs::write(dir.join("report.json"), b"{}").unwrap();
+            }
+        }
+        assert_eq!(unmerged_groups(store.path(), "curation"), ["curation-200"]);
+        assert!(unmerged_groups(&store.path().join("nowhere"), "curation").is_empty());
     }
 
     #[test]

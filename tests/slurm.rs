@@ -187,10 +187,11 @@ fn a_submission_with_a_cancelled_shard_resubmitted_gives_the_bytes_of_one_proces
         "{merge_log}"
     );
     let runs = text(&dist4d(&["runs", "--cache", store.to_str().unwrap()]));
-    assert!(runs.contains("Incomplete") && runs.contains("2 shards + merge"), "{runs}");
+    assert!(runs.contains("Incomplete") && runs.contains("2 shard runs + merge"), "{runs}");
 
     // Resubmitted: only the scenes the cancelled shard left unfinished become shards.
     let second = submit();
+    assert!(!second.contains("no merge report yet"), "the first group's merge reported: {second}");
     let left: usize =
         second.split(" of 4 scenes have work left").next().unwrap().rsplit(' ').next().unwrap().parse().unwrap();
     assert!((1..=2).contains(&left), "{second}");

@@ -420,7 +420,9 @@ impl<'a> Engine<'a> {
             _ => None,
         };
         let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
-        let Identities { ids: identities, unavailable } = Identities::of(self.operators, &names);
+        // A run that leaves the worker stages to another (a GPU array) does not start their workers.
+        let deferred_node = |op: &dyn Operator| opts.defer_resources && op.resource().is_some();
+        let Identities { ids: identities, unavailable } = Identities::of_except(self.operators, &names, deferred_node);
         let keys = match &exporter {
             Some(x) => Keys::new(p, self.dataset, self.store).with_identities(&identities).exporting_to(x.folder()),
             None => Keys::new(p, self.dataset, self.store).with_identities(&identities),
@@ -506,7 +508,7 @@ impl<'a> Engine<'a> {
             next_awaiting: 0,
             released: Vec::new(),
         };
-        let deferred = classes.of_node.iter().map(|c| c.is_some() && opts.defer_resources).collect();
+        let deferred = self.operators.iter().map(|op| op.as_deref().is_some_and(deferred_node)).collect();
         let ctx = Ctx { engine: self, keys: &keys, deferred };
         let mut next_outer = 0usize;
         let mut inflight = 0usize;
@@ -972,7 +974,7 @@ impl Coord {
             }
             Err(err) if err.downcast_ref::<NotExecuted>().is_some() => {
                 self.stats[ci].missing += 1;
-                self.counters.failed[ci].fetch_add(1, Ordering::Relaxed);
+                self.counters.missing[ci].fetch_add(1, Ordering::Relaxed);
                 run.state[t] = State::Skipped;
                 let dependents: Vec<usize> = run.plan.tasks[t].dependents.iter().map(|&d| d as usize).collect();
                 self.skip_all(slot, dependents, true);
@@ -1085,10 +1087,11 @@ impl Coord {
             let dn = self.counter_of[run.plan.tasks[d].node as usize];
             if missing {
                 self.stats[dn].missing += 1;
+                self.counters.missing[dn].fetch_add(1, Ordering::Relaxed);
             } else {
                 self.stats[dn].skipped += 1;
+                self.counters.failed[dn].fetch_add(1, Ordering::Relaxed);
             }
-            self.counters.failed[dn].fetch_add(1, Ordering::Relaxed);
             release_inputs(run, d);
             run.open -= 1;
             self.live_tasks -= 1;
@@ -1309,7 +1312,11 @@ impl Ctx<'_, '_> {
         let p = self.engine.pipeline;
         let t = &run.plan.tasks[task as usize];
         let node = t.node as usize;
-        let may_execute = run.may_execute && !self.deferred[node];
+        // Its worker is not started here, so its key (which holds the worker's identity) is not known.
+        if self.deferred[node] {
+            return Err(NotExecuted.into());
+        }
+        let may_execute = run.may_execute;
         let output = |u: u32, port: u16| run.outputs[u as usize].as_ref().map(|o| &o[port as usize]);
         let mut inputs = self.keys.resolve(&run.plan, task, |u, port| output(u, port).map(|o| o.r.digest), false);
         if let Some(e) = take_unreadable(&mut inputs) {

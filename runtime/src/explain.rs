@@ -54,9 +54,11 @@ pub fn explain(
 }
 
 /// [`explain`], and for each outer item (by index) how many of its tasks will run: what a
-/// submission to a cluster plans shards from (an item with none needs no job). Without `hash`,
-/// raw files the fingerprint memo does not know are not read (a login node should not read a
-/// dataset's terabytes): the tasks that read them count as will run.
+/// submission to a cluster plans shards from (an item with none needs no job). Without `hash`
+/// (planning on a login node), raw files the fingerprint memo does not know are not read (not a
+/// dataset's terabytes there) and model workers are not started (no GPU, maybe not the model's
+/// environment): the tasks that need either count as will run, so a plan may take an item
+/// whose work is done, never leave one out.
 pub fn explain_per_outer(
     engine: &Engine,
     outer_items: Option<&[String]>,
@@ -113,7 +115,9 @@ pub fn explain_per_outer(
         last_run.map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect()).unwrap_or_default();
 
     let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
-    let identities = crate::operator::Identities::of(engine.operators, &names).all()?;
+    let unasked = |op: &dyn crate::Operator| !hash && op.resource().is_some();
+    let identities = crate::operator::Identities::of_except(engine.operators, &names, unasked).all()?;
+    let unasked: Vec<bool> = engine.operators.iter().map(|op| op.as_deref().is_some_and(unasked)).collect();
     let mut keys = Keys::new(p, engine.dataset, store).with_identities(&identities);
     if let Some(dir) = out_dir.filter(|_| !p.exports.is_empty()) {
         // A folder another pipeline owns holds nothing of this one's (a run would refuse it).
@@ -150,6 +154,12 @@ pub fn explain_per_outer(
             let task = &plan.tasks[t];
             let stage = p.nodes[node].stage().unwrap();
             let label = engine.dataset.path(&task.item);
+            if unasked[node] {
+                out[node].will_run += 1;
+                let entry = out[node].reasons.entry("its model worker is not asked when planning".into());
+                entry.or_insert((0, label.clone())).0 += 1;
+                continue;
+            }
             // The same resolution and decision as a run, hashing changed raw files as a run would.
             let upstream = |u: u32, port: u16| outputs[u as usize].as_ref().and_then(|o| o.get(port as usize).copied());
             let inputs = keys.resolve(&plan, t as u32, upstream, hash);

@@ -122,10 +122,20 @@ pub struct Identities {
 
 impl Identities {
     pub fn of(operators: &[Option<Box<dyn Operator>>], names: &[String]) -> Identities {
+        Identities::of_except(operators, names, |_| false)
+    }
+
+    /// The identities of the operators but those `skip` names, which are not asked (asking
+    /// starts a model worker: not on a node that will not run it); theirs are `None`.
+    pub fn of_except(
+        operators: &[Option<Box<dyn Operator>>],
+        names: &[String],
+        skip: impl Fn(&dyn Operator) -> bool,
+    ) -> Identities {
         let mut ids = Vec::with_capacity(operators.len());
         let mut unavailable = Vec::with_capacity(operators.len());
         for (op, name) in operators.iter().zip(names) {
-            match op.as_ref().map(|op| op.identity()).transpose() {
+            match op.as_deref().filter(|op| !skip(*op)).map(|op| op.identity()).transpose() {
                 Ok(id) => {
                     ids.push(id.flatten());
                     unavailable.push(None);

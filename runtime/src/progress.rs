@@ -21,13 +21,15 @@ pub struct Counters {
     pub total: Vec<AtomicU64>,
     pub done: Vec<AtomicU64>,
     pub failed: Vec<AtomicU64>,
+    /// Neither cached nor executed (a run that executes only some tasks: a merge job, a CPU array).
+    pub missing: Vec<AtomicU64>,
 }
 
 impl Counters {
     pub fn new(names: Vec<String>) -> Counters {
         let n = names.len();
         let z = || (0..n).map(|_| AtomicU64::new(0)).collect::<Vec<_>>();
-        Counters { names, total: z(), done: z(), failed: z() }
+        Counters { names, total: z(), done: z(), failed: z(), missing: z() }
     }
 }
 
@@ -92,9 +94,12 @@ fn bars(c: &Counters, stop: &AtomicBool) {
         for (i, b) in bars.iter().enumerate() {
             b.set_length(c.total[i].load(Ordering::Relaxed));
             b.set_position(c.done[i].load(Ordering::Relaxed));
-            let f = c.failed[i].load(Ordering::Relaxed);
-            if f > 0 {
-                b.set_message(format!("{f} failed"));
+            let (f, m) = (c.failed[i].load(Ordering::Relaxed), c.missing[i].load(Ordering::Relaxed));
+            match (f, m) {
+                (0, 0) => {}
+                (f, 0) => b.set_message(format!("{f} failed")),
+                (0, m) => b.set_message(format!("{m} missing")),
+                (f, m) => b.set_message(format!("{f} failed, {m} missing")),
             }
         }
         if stopping {
@@ -121,6 +126,7 @@ fn lines(c: &Counters, stop: &AtomicBool, secs: u64) {
                     done: c.done[i].load(Ordering::Relaxed),
                     total: c.total[i].load(Ordering::Relaxed),
                     failed: c.failed[i].load(Ordering::Relaxed),
+                    missing: c.missing[i].load(Ordering::Relaxed),
                 })
                 .collect();
             eprintln!("{}", progress_line(start.elapsed(), &snapshot, &prev, dt));
@@ -138,6 +144,7 @@ struct StageCount<'a> {
     done: u64,
     total: u64,
     failed: u64,
+    missing: u64,
 }
 
 /// One log line: `progress [12s]: project 40/120 (3.3/s, ETA 24s); encode 12/120 (1.0/s, ETA 108s, 2 failed)`.
@@ -153,7 +160,8 @@ fn progress_line(elapsed: Duration, stages: &[StageCount], prev_done: &[u64], dt
                 String::new()
             };
             let failed = if s.failed > 0 { format!(", {} failed", s.failed) } else { String::new() };
-            format!("{} {}/{} ({rate:.1}/s{eta}{failed})", s.name, s.done, s.total)
+            let missing = if s.missing > 0 { format!(", {} missing", s.missing) } else { String::new() };
+            format!("{} {}/{} ({rate:.1}/s{eta}{failed}{missing})", s.name, s.done, s.total)
         })
         .collect();
     format!("progress [{:.0}s]: {}", elapsed.as_secs_f64(), parts.join("; "))
@@ -164,18 +172,21 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_line_names_every_stage_with_rate_eta_and_failures() {
+    fn a_line_names_every_stage_with_rate_eta_failures_and_missing_tasks() {
         let stages = [
-            StageCount { name: "project", done: 40, total: 120, failed: 0 },
-            StageCount { name: "encode", done: 12, total: 120, failed: 2 },
+            StageCount { name: "project", done: 40, total: 120, failed: 0, missing: 0 },
+            StageCount { name: "encode", done: 12, total: 120, failed: 2, missing: 3 },
         ];
         let line = progress_line(Duration::from_secs(12), &stages, &[10, 2], 10.0);
-        assert_eq!(line, "progress [12s]: project 40/120 (3.0/s, ETA 27s); encode 12/120 (1.0/s, ETA 108s, 2 failed)");
+        assert_eq!(
+            line,
+            "progress [12s]: project 40/120 (3.0/s, ETA 27s); encode 12/120 (1.0/s, ETA 108s, 2 failed, 3 missing)"
+        );
     }
 
     #[test]
     fn a_finished_stage_has_no_eta() {
-        let stages = [StageCount { name: "s", done: 5, total: 5, failed: 0 }];
+        let stages = [StageCount { name: "s", done: 5, total: 5, failed: 0, missing: 0 }];
         assert_eq!(progress_line(Duration::from_secs(1), &stages, &[5], 1.0), "progress [1s]: s 5/5 (0.0/s)");
     }
 }
