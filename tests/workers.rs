@@ -249,3 +249,31 @@ fn a_batching_worker_gets_items_together_and_gives_the_same_depths() {
         assert_eq!(read("one"), read("batch"), "{cam}");
     }
 }
+
+/// The CPU array of a GPU submission (`--defer-workers`) starts no model worker: a worker that
+/// could not even start there (no GPU, no model environment) fails nothing; its tasks, and what
+/// reads them, are missing; then the GPU array's run (the worker given) makes them.
+#[test]
+fn a_run_that_defers_workers_starts_none_and_leaves_their_tasks_missing() {
+    let scene = Scene::new();
+    let nowhere = worker_set("complete", Path::new("/nonexistent/model-worker"), &[]);
+    let o = scene.run("curation", "out", &[&nowhere], &[]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "without --defer-workers the worker is needed: {t}");
+    assert!(t.contains("its worker is unavailable"), "{t}");
+    let o = std::process::Command::new(bin())
+        .current_dir(repo())
+        .args(["run", "pipelines/curation.ron", "--defer-workers", "--set", &nowhere])
+        .args(["--set", &format!("dataset.root={}", scene.data.display())])
+        .args(["--cache", scene.out("cache").to_str().unwrap(), "--out", scene.out("out").to_str().unwrap()])
+        .output()
+        .unwrap();
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "incomplete: {t}");
+    assert!(!t.contains("failed:") && !t.contains("unavailable"), "nothing failed: {t}");
+    assert!(t.contains("Incomplete") && t.contains("missing:"), "{t}");
+    assert_eq!(executed(&t, "complete"), 0);
+    // The GPU array: here the built-in completion stands in for the model.
+    let gpu = scene.run_ok("curation", "out", &[], &[]);
+    assert!(executed(&gpu, "complete") > 0 && executed(&gpu, "aggregate") == 0, "{gpu}");
+}
