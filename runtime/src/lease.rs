@@ -97,9 +97,14 @@ pub enum Liveness {
 
 /// Judges the lease at `path`; `now` is the filesystem's current time (see [`fs_now`]).
 pub fn judge(path: &Path, now: SystemTime) -> Liveness {
-    let Ok(meta) = fs::metadata(path) else { return Liveness::Gone };
+    // Opened first, then stat'ed through the handle: on NFS, opening revalidates a file's
+    // attributes, where a path stat may answer from a cache up to a minute old, and a live
+    // heartbeat would look stale.
+    let Ok(mut file) = File::open(path) else { return Liveness::Gone };
+    let Ok(meta) = file.metadata() else { return Liveness::Gone };
     let age = meta.modified().ok().and_then(|m| now.duration_since(m).ok()).unwrap_or_default();
-    let holder = fs::read_to_string(path).ok().and_then(|t| Holder::decode(&t));
+    let mut text = String::new();
+    let holder = std::io::Read::read_to_string(&mut file, &mut text).ok().and_then(|_| Holder::decode(&text));
     match holder {
         Some(h) if h.on_this_host() => {
             if pid_start(h.pid).is_some_and(|s| s == h.start) {
