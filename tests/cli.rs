@@ -246,9 +246,9 @@ fn killed_runs_resume_to_byte_identical_outputs() {
 }
 
 #[test]
-fn two_processes_on_one_store_both_finish() {
+fn two_processes_on_one_store_both_finish_and_share_the_work() {
     let s = multi_frame(6);
-    run_ok(&s, "ref-cache", "ref-out", &[]);
+    let reference = run_ok(&s, "ref-cache", "ref-out", &[]);
     let children: Vec<_> = (0..2)
         .map(|_| run_cmd(&s, "cache", "out", &[]).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap())
         .collect();
@@ -258,6 +258,12 @@ fn two_processes_on_one_store_both_finish() {
     }
     assert_eq!(tree(&s.base.join("out")), tree(&s.base.join("ref-out")));
     assert_no_partial_files(&s, "cache", "out");
+    // Each task was executed by one of them: the other found it in the store.
+    let o = dist4d(&["runs", "--cache", s.base.join("cache").to_str().unwrap(), "--json"]);
+    let runs: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let total = |run: &serde_json::Value| executed(run).values().sum::<u64>();
+    let both: u64 = runs.as_array().unwrap().iter().map(total).sum();
+    assert_eq!(both, total(&reference), "{runs}");
 }
 
 #[test]
