@@ -494,7 +494,7 @@ fn execute(
         RunStatus::Complete => ExitCode::SUCCESS,
         // 128 + the signal, as a shell reports a process that the signal ended.
         RunStatus::Interrupted => ExitCode::from(128 + stopped_by.load(Ordering::SeqCst).clamp(1, 127) as u8),
-        RunStatus::Failed | RunStatus::Stopped | RunStatus::Incomplete => ExitCode::from(1),
+        RunStatus::Failed | RunStatus::Stopped | RunStatus::Incomplete | RunStatus::Running => ExitCode::from(1),
     };
     Ok((code, rec))
 }
@@ -953,11 +953,13 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     dist4d_runtime::runs::format_utc(first.started),
                     id,
                     first.pipeline,
-                    // A group whose merge has not run is not done, whatever its shards said.
-                    if first.group.is_some() && !merged {
-                        "Pending".to_string()
-                    } else {
-                        format!("{:?}", dist4d_runtime::runs::group_status(&group))
+                    // A group whose merge has not run is not done, whatever its shards said; a run
+                    // recorded as running is running, or was killed before it could say so.
+                    match dist4d_runtime::runs::running_or_killed(&cache, last) {
+                        _ if first.group.is_some() && !merged => "Pending".to_string(),
+                        Some("running") => "Running".to_string(),
+                        Some(_) => "Killed".to_string(),
+                        None => format!("{:?}", dist4d_runtime::runs::group_status(&group)),
                     },
                     executed,
                     if group.len() > 1 {

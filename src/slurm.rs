@@ -344,8 +344,8 @@ pub fn shards_report(runs: &[RunRecord], group: &str, arrays: &[u32]) -> ShardsR
                 None => {
                     report.unfinished += 1;
                     format!(
-                        "shard {i}/{n}: no run record: it did not start, or was killed before it could write one \
-                         (SIGKILL, node lost); its finished tasks are in the store"
+                        "shard {i}/{n}: no run record: it never started (cancelled while pending, or its job \
+                         failed before dist4d ran: see its log)"
                     )
                 }
                 Some(r) => {
@@ -355,18 +355,28 @@ pub fn shards_report(runs: &[RunRecord], group: &str, arrays: &[u32]) -> ShardsR
                             report.failed_scenes.push(scene);
                         }
                     }
-                    if r.status == RunStatus::Interrupted {
+                    if matches!(r.status, RunStatus::Interrupted | RunStatus::Running) {
                         report.unfinished += 1;
                     }
-                    format!(
-                        "shard {i}/{n}: {:?} in {:.1}s, {} executed, {} cached, {} failed (run {})",
-                        r.status,
-                        r.seconds,
-                        r.executed(),
-                        r.cached(),
-                        r.failed(),
-                        r.id
-                    )
+                    if r.status == RunStatus::Running {
+                        // The merge runs after the array: a shard still recorded as running died.
+                        report.shards.last_mut().expect("pushed above").status = "killed".into();
+                        format!(
+                            "shard {i}/{n}: killed (run {} started and never recorded its end: SIGKILL, a lost node, \
+                             out of memory); its finished tasks are in the store",
+                            r.id
+                        )
+                    } else {
+                        format!(
+                            "shard {i}/{n}: {:?} in {:.1}s, {} executed, {} cached, {} failed (run {})",
+                            r.status,
+                            r.seconds,
+                            r.executed(),
+                            r.cached(),
+                            r.failed(),
+                            r.id
+                        )
+                    }
                 }
             };
             report.lines.push(line);
@@ -527,6 +537,7 @@ mod tests {
             out_dir: None,
             group: Some("g".into()),
             shard,
+            writer: None,
         };
         let runs = vec![
             rec(Some((0, 3)), RunStatus::Failed, &["scene-a/003/CAM_FRONT"]),
@@ -538,5 +549,10 @@ mod tests {
         assert_eq!(r.unfinished, 2, "shard 1 never recorded, shard 2 was interrupted");
         assert!(r.lines[1].starts_with("shard 1/3: no run record"), "{:?}", r.lines);
         assert!(shards_report(&runs, "other", &[3]).failed_scenes.is_empty());
+        // A shard still recorded as running when the merge runs was killed.
+        let killed = [rec(Some((0, 1)), RunStatus::Running, &[])];
+        let r = shards_report(&killed, "g", &[1]);
+        assert_eq!((r.unfinished, r.shards[0].status.as_str()), (1, "killed"));
+        assert!(r.lines[0].starts_with("shard 0/1: killed"), "{:?}", r.lines);
     }
 }

@@ -211,6 +211,27 @@ fn assert_no_partial_files(s: &Setup, cache: &str, out: &str) {
 }
 
 #[test]
+fn runs_shows_a_run_in_progress_as_running_and_a_killed_one_as_killed() {
+    let s = multi_frame(10);
+    let cache = s.base.join("cache");
+    let mut child =
+        run_cmd(&s, "cache", "out", &["--jobs", "1"]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+    let runs = || text(&dist4d(&["runs", "--cache", cache.to_str().unwrap()]));
+    let t0 = Instant::now();
+    while !runs().contains("Running") {
+        assert!(t0.elapsed() < Duration::from_secs(30), "never shown running: {}", runs());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap(); // SIGKILL: no end recorded
+    child.wait().unwrap();
+    let listed = runs();
+    assert!(listed.contains("Killed") && !listed.contains("Running"), "{listed}");
+    let done = run_ok(&s, "cache", "out", &[]);
+    assert_eq!(done["status"], "complete");
+    assert!(runs().lines().last().unwrap().contains("Complete"), "{}", runs());
+}
+
+#[test]
 fn killed_runs_resume_to_byte_identical_outputs() {
     let s = multi_frame(10);
     let t0 = Instant::now();

@@ -466,6 +466,27 @@ impl<'a> Engine<'a> {
                 }
             })
             .collect();
+        // Recorded at once as running, so that `dist4d runs` (and a cluster's merge job) sees a
+        // run in progress, and one killed before it could record its end (its writer's lease
+        // dead) as killed.
+        let provisional = RunRecord {
+            id: run_id.clone(),
+            pipeline: p.name.clone(),
+            pipeline_path: p.path.display().to_string(),
+            pipeline_digest: pipeline_digest(p).hex(),
+            started: started_unix,
+            seconds: 0.0,
+            status: RunStatus::Running,
+            jobs: opts.jobs,
+            stages: stats.clone(),
+            failures: Vec::new(),
+            exported: 0,
+            out_dir: opts.out_dir.as_ref().map(|d| d.display().to_string()),
+            group: opts.group.clone(),
+            shard: opts.shard,
+            writer: Some(self.store.writer_id().to_string()),
+        };
+        runs::write_run(self.store, &provisional)?;
         let reporter = Reporter::start(counters.clone(), opts.progress);
 
         let keys_tmp = self.store.temp_path();
@@ -672,8 +693,8 @@ impl<'a> Engine<'a> {
         self.store.sync()?;
         keys_out.flush()?;
         drop(keys_out);
-        let id = run_id;
-        std::fs::rename(&keys_tmp, runs::keys_path(self.store, &id)).with_context(|| "saving the run's task keys")?;
+        std::fs::rename(&keys_tmp, runs::keys_path(self.store, &run_id))
+            .with_context(|| "saving the run's task keys")?;
         let status = match stopping {
             Some(s) => s,
             None if !failures.is_empty() => RunStatus::Failed,
@@ -681,20 +702,12 @@ impl<'a> Engine<'a> {
             None => RunStatus::Complete,
         };
         let record = RunRecord {
-            id,
-            pipeline: p.name.clone(),
-            pipeline_path: p.path.display().to_string(),
-            pipeline_digest: pipeline_digest(p).hex(),
-            started: started_unix,
             seconds: started.elapsed().as_secs_f64(),
             status,
-            jobs: opts.jobs,
             stages: stats,
             failures,
             exported,
-            out_dir: opts.out_dir.as_ref().map(|d| d.display().to_string()),
-            group: opts.group.clone(),
-            shard: opts.shard,
+            ..provisional
         };
         runs::write_run(self.store, &record)?;
         Ok(RunSummary { record })

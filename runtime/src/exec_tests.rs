@@ -345,8 +345,15 @@ fn gc_counts_the_shards_of_one_group_as_one_run() {
         let opts = RunOptions { jobs: 2, shard: Some((i, 2)), group: Some("g".into()), ..Default::default() };
         run_with(&p, &grid, dir.path(), &opts);
     }
+    // A run that was killed before it recorded its end (still "running"; gc holds the store
+    // alone, so it is dead) neither counts as a run nor stays.
+    let mut killed = crate::runs::list_runs(&dir.path().join("runs")).unwrap().remove(0);
+    (killed.id, killed.status, killed.started) = ("9999999999999-dead".into(), RunStatus::Running, u64::MAX / 2);
+    let killed_path = dir.path().join("runs").join(format!("{}.json", killed.id));
+    std::fs::write(&killed_path, serde_json::to_vec(&killed).unwrap()).unwrap();
     let report = crate::gc::gc(dir.path(), 1, None).unwrap();
     assert_eq!((report.runs_kept, report.runs_dropped), (2, 1), "both shards kept, the older run dropped");
+    assert!(!killed_path.exists());
     assert_eq!(run(&p, &grid, dir.path()).executed(), 0, "both shards' work is still cached");
 }
 

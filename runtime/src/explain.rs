@@ -76,7 +76,10 @@ pub fn explain_per_outer(
     // worker writes newer records than the cached ones the next run goes back to.)
     // Keyed by kind too: pipelines sharing a store may give one stage name to stages of different
     // kinds, whose params have nothing to compare.
-    let last_run = list_runs(&store.runs_dir())?.into_iter().rev().find(|r| r.pipeline == p.name);
+    let last_run = list_runs(&store.runs_dir())?
+        .into_iter()
+        .rev()
+        .find(|r| r.pipeline == p.name && r.status != crate::runs::RunStatus::Running);
     let last_keys: HashSet<Digest> = match &last_run {
         Some(r) => crate::gc::read_keys(&crate::runs::keys_path(store, &r.id))?.into_iter().collect(),
         None => HashSet::new(),

@@ -29,7 +29,12 @@ pub struct GcReport {
 
 pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcReport> {
     let store = Store::open(root, Access::Exclusive)?;
-    let all = list_runs(&store.runs_dir())?;
+    // Runs recorded as running are dead (gc holds the store alone): they recorded no keys.
+    let (all, dead): (Vec<_>, Vec<_>) =
+        list_runs(&store.runs_dir())?.into_iter().partition(|r| r.status != crate::runs::RunStatus::Running);
+    for run in &dead {
+        let _ = std::fs::remove_file(store.runs_dir().join(format!("{}.json", run.id)));
+    }
     // A group (the shards and merge of one cluster submission) counts as one run.
     let mut groups: Vec<Vec<&crate::runs::RunRecord>> = crate::runs::grouped(&all);
     groups.reverse(); // newest first

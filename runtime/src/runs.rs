@@ -55,6 +55,9 @@ pub enum RunStatus {
     /// No task failed, but some were neither cached nor executed (a run that executes only
     /// some items: see `RunOptions::execute_only`, `defer_resources`).
     Incomplete,
+    /// Started and not ended: running now, or killed before it could record its end (its
+    /// writer's lease tells which: [`running_or_killed`]).
+    Running,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
@@ -80,6 +83,9 @@ pub struct RunRecord {
     /// The shard (i, n) this run was, if it was one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub shard: Option<(u32, u32)>,
+    /// The store writer id of the process (its lease says whether a `Running` run still runs).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub writer: Option<String>,
 }
 
 impl RunRecord {
@@ -129,6 +135,20 @@ pub fn list_runs(runs_dir: &Path) -> Result<Vec<RunRecord>> {
     Ok(out)
 }
 
+/// For a run recorded as [`RunStatus::Running`]: "running" while its process's lease in the
+/// store at `root` is live, else "killed" (it ended without recording its end: SIGKILL, a lost
+/// node, an out-of-memory kill). `None` for a run that ended.
+pub fn running_or_killed(root: &Path, run: &RunRecord) -> Option<&'static str> {
+    if run.status != RunStatus::Running {
+        return None;
+    }
+    let live = run.writer.as_ref().is_some_and(|w| {
+        let lease = root.join("leases").join(format!("{w}.lease"));
+        matches!(crate::lease::judge(&lease, std::time::SystemTime::now()), crate::lease::Liveness::Live(_))
+    });
+    Some(if live { "running" } else { "killed" })
+}
+
 /// Runs as users think of them: the shards and merge of one cluster submission (one group) are
 /// one run; a run without a group is one by itself. Oldest first (by first start), each
 /// group's runs in start order.
@@ -162,6 +182,7 @@ pub fn group_status(runs: &[&RunRecord]) -> RunStatus {
         RunStatus::Failed => 2,
         RunStatus::Stopped => 3,
         RunStatus::Interrupted => 4,
+        RunStatus::Running => 5,
     };
     runs.iter().map(|r| r.status).max_by_key(|&s| worst(s)).unwrap_or(RunStatus::Complete)
 }
