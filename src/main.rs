@@ -465,8 +465,14 @@ fn execute(
     }
     if rec.missing() > 0 {
         println!(
-            "missing: {} tasks neither cached nor executed: this run leaves them to another (--defer-workers: the GPU array; a merge: the next `dist4d slurm`)",
+            "missing: {} tasks neither cached nor executed (a merge collects what the shards made; the next `dist4d slurm` submits the rest)",
             rec.missing()
+        );
+    }
+    if rec.deferred() > 0 {
+        println!(
+            "deferred: {} tasks of the stages served by model workers, and what reads them, are left to a later run (--defer-workers; the GPU array makes them)",
+            rec.deferred()
         );
     }
     let recomputed: u64 = rec.stages.iter().map(|s| s.recomputed).sum();

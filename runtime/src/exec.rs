@@ -183,12 +183,30 @@ pub fn shard_labels(
 /// A task that a run with [`RunOptions::execute_only`] did not execute: it is not cached, and
 /// its outer item is not among those the run executes.
 #[derive(Debug)]
-pub struct NotExecuted;
+pub struct NotExecuted {
+    /// Left by request to a later run ([`RunOptions::defer_resources`]): counted as deferred,
+    /// not missing.
+    deferred: bool,
+}
 
 impl std::fmt::Display for NotExecuted {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "not cached, and this run executes none of its item's tasks")
+        match self.deferred {
+            true => write!(f, "served by a model worker, which this run leaves to a later one"),
+            false => write!(f, "not cached, and this run executes none of its item's tasks"),
+        }
     }
+}
+
+/// How [`Coord::skip_all`] counts the tasks it skips.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Skip {
+    /// An input failed.
+    Failed,
+    /// An input was not executed ([`NotExecuted`]).
+    Missing,
+    /// An input was left to a later run.
+    Deferred,
 }
 
 impl std::error::Error for NotExecuted {}
@@ -552,6 +570,19 @@ impl<'a> Engine<'a> {
                     if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
                         stopping = Some(RunStatus::Interrupted);
                     }
+                    if stopping.is_none() && self.store.lease_lost() {
+                        // Others judged this process dead and may be redoing its items: it
+                        // stops rather than race them. What it finished is in the store.
+                        c.failures.push(Failure {
+                            stage: "-".into(),
+                            item: "-".into(),
+                            error: "this process's lease in the store was lost (it was stopped or its filesystem \
+                                    stalled for longer than the lease timeout, and other processes judged it dead): \
+                                    it stopped; rerun to finish"
+                                .into(),
+                        });
+                        stopping = Some(RunStatus::Stopped);
+                    }
                     // Admit outer items while there is room; one that another process is
                     // running waits, and is admitted (its tasks then cached) when it lets go.
                     while stopping.is_none() && next_outer < outers.len() && c.has_room(task_budget, outer_budget) {
@@ -578,6 +609,10 @@ impl<'a> Engine<'a> {
                         && claims.poll_due()
                     {
                         for _ in 0..deferred.len() {
+                            // All the claims of a process that just died free up at once.
+                            if !c.has_room(task_budget, outer_budget) {
+                                break;
+                            }
                             let (o, seq) = deferred.pop_front().expect("counted");
                             match claims.take(o)? {
                                 Ok(claim) => {
@@ -728,7 +763,7 @@ impl<'a> Engine<'a> {
                 }
                 match keys.decide(job.node, &job.item, &job.inputs, true) {
                     Decision::Cached { key, outputs } => return Ok(Outcome::Cached(key, outputs)),
-                    Decision::Run { .. } if !job.may_execute => return Err(NotExecuted.into()),
+                    Decision::Run { .. } if !job.may_execute => return Err(NotExecuted { deferred: false }.into()),
                     Decision::Run { key, .. } => key,
                     Decision::Unknown => bail!("{}", self.unknown_inputs(&job)),
                 }
@@ -986,11 +1021,14 @@ impl Coord {
                 }
             }
             Err(err) if err.downcast_ref::<NotExecuted>().is_some() => {
-                self.stats[ci].missing += 1;
-                self.counters.missing[ci].fetch_add(1, Ordering::Relaxed);
+                let how = match err.downcast_ref::<NotExecuted>() {
+                    Some(NotExecuted { deferred: true }) => Skip::Deferred,
+                    _ => Skip::Missing,
+                };
                 run.state[t] = State::Skipped;
                 let dependents: Vec<usize> = run.plan.tasks[t].dependents.iter().map(|&d| d as usize).collect();
-                self.skip_all(slot, dependents, true);
+                self.count_skipped(ci, how);
+                self.skip_all(slot, dependents, how);
             }
             Err(err) => {
                 self.stats[ci].failed += 1;
@@ -1002,7 +1040,7 @@ impl Coord {
                     error: format!("{err:#}"),
                 });
                 let dependents: Vec<usize> = run.plan.tasks[t].dependents.iter().map(|&d| d as usize).collect();
-                self.skip_all(slot, dependents, false);
+                self.skip_all(slot, dependents, Skip::Failed);
             }
         }
         let run = self.active[slot as usize].as_mut().unwrap();
@@ -1088,27 +1126,39 @@ impl Coord {
 
     /// Marks the tasks of `stack` and everything downstream of them that still waits as skipped:
     /// an input of theirs failed.
-    /// `missing`: the input was not executed ([`NotExecuted`]), so neither are they (counted
-    /// as missing, not skipped).
-    fn skip_all(&mut self, slot: u32, mut stack: Vec<usize>, missing: bool) {
-        let run = self.active[slot as usize].as_mut().unwrap();
+    /// `how` says why, and so how they count (see [`Skip`]).
+    fn skip_all(&mut self, slot: u32, mut stack: Vec<usize>, how: Skip) {
         while let Some(d) = stack.pop() {
+            let run = self.active[slot as usize].as_mut().unwrap();
             if run.state[d] != State::Waiting {
                 continue;
             }
             run.state[d] = State::Skipped;
             let dn = self.counter_of[run.plan.tasks[d].node as usize];
-            if missing {
-                self.stats[dn].missing += 1;
-                self.counters.missing[dn].fetch_add(1, Ordering::Relaxed);
-            } else {
-                self.stats[dn].skipped += 1;
-                self.counters.failed[dn].fetch_add(1, Ordering::Relaxed);
-            }
+            self.count_skipped(dn, how);
+            let run = self.active[slot as usize].as_mut().unwrap();
             release_inputs(run, d);
             run.open -= 1;
             self.live_tasks -= 1;
             stack.extend(run.plan.tasks[d].dependents.iter().map(|&x| x as usize));
+        }
+    }
+
+    /// Counts a task of stage counter `ci` that does not run, as `how` says.
+    fn count_skipped(&mut self, ci: usize, how: Skip) {
+        match how {
+            Skip::Failed => {
+                self.stats[ci].skipped += 1;
+                self.counters.failed[ci].fetch_add(1, Ordering::Relaxed);
+            }
+            Skip::Missing => {
+                self.stats[ci].missing += 1;
+                self.counters.missing[ci].fetch_add(1, Ordering::Relaxed);
+            }
+            Skip::Deferred => {
+                self.stats[ci].deferred += 1;
+                self.counters.missing[ci].fetch_add(1, Ordering::Relaxed);
+            }
         }
     }
 
@@ -1254,7 +1304,7 @@ impl Coord {
                     item: e.dataset.path(&run.plan.tasks[t].item),
                     error: format!("run again to replace a lost cache blob, it failed: {err:#}"),
                 });
-                self.skip_all(slot, waiters.into_iter().map(|w| w as usize).collect(), false);
+                self.skip_all(slot, waiters.into_iter().map(|w| w as usize).collect(), Skip::Failed);
             }
         }
         self.close_if_done(slot);
@@ -1327,7 +1377,7 @@ impl Ctx<'_, '_> {
         let node = t.node as usize;
         // Its worker is not started here, so its key (which holds the worker's identity) is not known.
         if self.deferred[node] {
-            return Err(NotExecuted.into());
+            return Err(NotExecuted { deferred: true }.into());
         }
         let may_execute = run.may_execute;
         let output = |u: u32, port: u16| run.outputs[u as usize].as_ref().map(|o| &o[port as usize]);
@@ -1338,7 +1388,7 @@ impl Ctx<'_, '_> {
         // Without hashing: a raw file, or an exported file whose stat changed, is for the worker.
         let key = match self.keys.decide(node, &t.item, &inputs, false) {
             Decision::Cached { key, outputs } => return Ok(Prepared::Cached(key, outputs)),
-            Decision::Run { .. } if !may_execute => return Err(NotExecuted.into()),
+            Decision::Run { .. } if !may_execute => return Err(NotExecuted { deferred: false }.into()),
             Decision::Run { key, .. } => Some(key),
             Decision::Unknown => None,
         };

@@ -53,6 +53,9 @@ pub fn explain(
     Ok(explain_per_outer(engine, outer_items, second_dim_limit, out_dir, true)?.0)
 }
 
+/// Per outer item (by index), how many of its tasks will run.
+pub type PerOuter = Vec<(u32, u64)>;
+
 /// [`explain`], and for each outer item (by index) how many of its tasks will run: what a
 /// submission to a cluster plans shards from (an item with none needs no job). Without `hash`
 /// (planning on a login node), raw files the fingerprint memo does not know are not read (not a
@@ -65,7 +68,7 @@ pub fn explain_per_outer(
     second_dim_limit: Option<u32>,
     out_dir: Option<&Path>,
     hash: bool,
-) -> Result<(Vec<StageExplain>, Vec<(u32, u64)>)> {
+) -> Result<(Vec<StageExplain>, PerOuter)> {
     let p = engine.pipeline;
     let store = engine.store;
     let view = View { space: engine.dataset, second_dim_limit };

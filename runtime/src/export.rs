@@ -248,9 +248,13 @@ impl Index {
 /// The files the last run exported into `out_dir`: those of its `index.json`, or, when the last
 /// run was sharded, the union of its shards' index parts (see the module doc).
 pub fn read_index(out_dir: &Path) -> Result<Vec<IndexEntry>> {
+    // Parts older than index.json are a whole run's leftovers (it removes them; a crash, or an
+    // NFS silly-renamed file, can keep them): that run's index lists everything.
+    let modified = |p: &Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
+    let whole = modified(&out_dir.join(INDEX));
     match merged_parts(out_dir)? {
-        Some((index, _)) => Ok(index.files),
-        None => Ok(Index::read(&out_dir.join(INDEX))?.files),
+        Some((index, parts)) if parts.iter().any(|p| modified(p) > whole) => Ok(index.files),
+        _ => Ok(Index::read(&out_dir.join(INDEX))?.files),
     }
 }
 
@@ -715,13 +719,14 @@ impl Exporter {
                     Some(now) => held.stat.is_none_or(|s| s == now) || done.contains_key(rel),
                 });
                 manifest.write(&dir, &tmps[0])?;
+                // Folded in: the shards' index parts (this index lists the whole dataset), before
+                // it is written, so that no part is left newer than it; then the deltas this
+                // run read, which its manifest now holds.
+                let _ = std::fs::remove_dir_all(dir.join(INDEX_PARTS));
                 write_atomic_via(&tmps[1], &dir.join(INDEX), &json)?;
-                // Folded in: the shards' deltas this run read, and their index parts (this
-                // index lists the whole dataset).
                 for delta in &manifest.deltas {
                     let _ = std::fs::remove_file(delta);
                 }
-                let _ = std::fs::remove_dir_all(dir.join(INDEX_PARTS));
             }
         }
         Ok(count)

@@ -28,6 +28,11 @@ pub struct StageStats {
     /// collecting what a cluster array made; see `RunOptions::execute_only`).
     #[serde(default)]
     pub missing: u64,
+    /// Left by request to a later run: tasks served by a model worker, and what reads them, in
+    /// a run with `--defer-workers` (the CPU array of a GPU submission). Not missing: the run
+    /// did what it was asked.
+    #[serde(default)]
+    pub deferred: u64,
     /// Summed run time of executed tasks.
     pub seconds: f64,
 }
@@ -100,6 +105,9 @@ impl RunRecord {
     }
     pub fn missing(&self) -> u64 {
         self.stages.iter().map(|s| s.missing).sum()
+    }
+    pub fn deferred(&self) -> u64 {
+        self.stages.iter().map(|s| s.deferred).sum()
     }
 }
 

@@ -76,15 +76,25 @@ pub struct Segment {
 
 impl Segment {
     pub fn open(path: &Path) -> Result<Segment> {
+        Ok(Segment::open_if_longer(path, 0)?.unwrap_or(Segment { path: path.to_path_buf(), map: None }))
+    }
+
+    /// The segment at `path` if its file is longer than `than` bytes (`None` otherwise, without
+    /// mapping it).
+    pub fn open_if_longer(path: &Path, than: usize) -> Result<Option<Segment>> {
         let file = File::open(path).with_context(|| format!("opening segment {}", path.display()))?;
+        // The length of the opened file (on NFS, opening revalidates it; a path stat may not).
         let len = file.metadata()?.len();
+        if than > 0 && len as usize <= than {
+            return Ok(None);
+        }
         // An empty file cannot be mapped; it has no entries anyway.
         let map = if len == 0 {
             None
         } else {
             Some(unsafe { Mmap::map(&file) }.with_context(|| format!("mapping {}", path.display()))?)
         };
-        Ok(Segment { path: path.to_path_buf(), map })
+        Ok(Some(Segment { path: path.to_path_buf(), map }))
     }
 
     fn bytes(&self) -> &[u8] {
@@ -108,7 +118,9 @@ impl Segment {
             let len = u32::from_le_bytes(bytes[pos..pos + 4].try_into().unwrap());
             let crc = u32::from_le_bytes(bytes[pos + 4..pos + 8].try_into().unwrap());
             let start = pos + 8;
-            if len > MAX_ENTRY || start + len as usize > bytes.len() {
+            // No writer appends an empty entry: zeros are a gap (bytes another node wrote not
+            // yet seen, on NFS), not an entry, whose checksum would pass (crc32 of nothing is 0).
+            if len == 0 || len > MAX_ENTRY || start + len as usize > bytes.len() {
                 return None;
             }
             let payload = &bytes[start..start + len as usize];
@@ -226,6 +238,22 @@ mod tests {
         let (off, first) = seg.entries().next().unwrap();
         let rest: Vec<&[u8]> = seg.entries_from(Segment::end_of(off, first.len())).map(|(_, p)| p).collect();
         assert_eq!(rest, vec![&b"second"[..]]);
+    }
+
+    #[test]
+    fn zeros_are_a_gap_not_entries() {
+        // On NFS a reader may see the end of a segment before bytes another node wrote in
+        // between: zeros, which would read as empty entries with a valid checksum (crc32 of
+        // nothing is 0), and the scan would go on past real entries it then never reads.
+        let dir = tempfile::tempdir().unwrap();
+        let mut w = SegmentWriter::create(dir.path(), "a").unwrap();
+        w.append(b"first").unwrap();
+        w.sync().unwrap();
+        let path = w.path().to_path_buf();
+        let mut f = OpenOptions::new().append(true).open(&path).unwrap();
+        f.write_all(&[0u8; 16]).unwrap();
+        let seg = Segment::open(&path).unwrap();
+        assert_eq!(seg.entries().map(|(_, p)| p).collect::<Vec<_>>(), vec![&b"first"[..]]);
     }
 
     #[test]

@@ -73,6 +73,9 @@ struct Later {
     segments: Vec<Segment>,
     index: DigestMap<(u32, u64)>,
     read_to: HashMap<PathBuf, usize>,
+    /// The place in `segments` of each file mapped since open: a file that grew again is mapped
+    /// anew in the same place (its offsets stay valid), so maps do not pile up.
+    slot: HashMap<PathBuf, u32>,
 }
 
 /// What a raw file looked like when it was hashed. The device number is kept but not compared
@@ -128,7 +131,19 @@ impl Store {
                     Ok(l) => l,
                     Err(h) => bail!("another gc ({}) is working on the store {}", h.describe(), root.display()),
                 };
-                let users = live_writers(&leases, &writer_id, now());
+                let mut users = live_writers(&leases, &writer_id, now());
+                // On a shared filesystem a run starting on another node now may not see gc's
+                // lease yet, nor gc its lease (directory caches): gc waits them out and looks
+                // again before it deletes anything.
+                if users.is_empty() && lease::network_filesystem(root) {
+                    eprintln!(
+                        "gc: the store is on a network filesystem; waiting {:.0} s (the lease timeout) for every node's \
+                         view of it to catch up",
+                        lease::timeout().as_secs_f64()
+                    );
+                    std::thread::sleep(lease::timeout());
+                    users = live_writers(&leases, &writer_id, now());
+                }
                 if !users.is_empty() {
                     bail!(
                         "{} other dist4d process{} using the store {} ({}); gc needs it alone: run it when they end",
@@ -225,13 +240,14 @@ impl Store {
                 continue;
             }
             let from = later.read_to.get(&path).copied().unwrap_or(0);
-            let len = fs::metadata(&path).map(|m| m.len() as usize).unwrap_or(0);
-            if len <= from {
-                continue;
-            }
-            // Opened anew: on NFS, opening is what revalidates a file another node appended to.
-            let seg = Segment::open(&path)?;
-            let si = later.segments.len() as u32;
+            // Opened anew, its length taken from the open file: on NFS, opening is what
+            // revalidates a file another node appended to.
+            let seg = match Segment::open_if_longer(&path, from) {
+                Ok(Some(s)) => s,
+                Ok(None) => continue,
+                Err(_) if !path.exists() => continue, // compacted away by gc meanwhile
+                Err(e) => return Err(e),
+            };
             let mut end = from;
             let mut entries = Vec::new();
             for (off, payload) in seg.entries_from(from) {
@@ -240,12 +256,26 @@ impl Store {
                     entries.push((key, off as u64));
                 }
             }
+            if end == from {
+                continue; // nothing new whole yet (a torn or unseen tail): no new map kept
+            }
+            let si = match later.slot.get(&path) {
+                Some(&si) => {
+                    later.segments[si as usize] = seg;
+                    si
+                }
+                None => {
+                    let si = later.segments.len() as u32;
+                    later.segments.push(seg);
+                    later.slot.insert(path.clone(), si);
+                    si
+                }
+            };
             found += entries.len();
             for (key, off) in entries {
                 later.index.insert(key, (si, off));
             }
             later.read_to.insert(path, end);
-            later.segments.push(seg);
         }
         Ok(found)
     }
@@ -266,7 +296,8 @@ impl Store {
         let later = self.later.read().unwrap();
         segment_paths(&self.root.join("ac")).is_ok_and(|paths| {
             paths.iter().filter(|p| own.as_ref() != Some(*p)).any(|p| {
-                let len = fs::metadata(p).map(|m| m.len() as usize).unwrap_or(0);
+                // Through the opened file: on NFS a path stat may answer from a stale cache.
+                let len = File::open(p).and_then(|f| f.metadata()).map(|m| m.len() as usize).unwrap_or(0);
                 later.read_to.get(p).is_none_or(|&read| len > read && len > 8)
             })
         })
@@ -439,6 +470,13 @@ impl Store {
         lease::fs_now(self.writer_lease.path())
     }
 
+    /// Whether this process's lease was lost: another process judged it dead (it was stopped or
+    /// its filesystem stalled for longer than the lease timeout) and may have taken over its
+    /// work and removed its temp files. A run that sees this stops (see [`Lease::lost`]).
+    pub fn lease_lost(&self) -> bool {
+        self.writer_lease.lost()
+    }
+
     /// This process, as its lease names it.
     pub fn holder(&self) -> Holder {
         Holder::me(&self.writer_id)
@@ -470,13 +508,16 @@ pub fn read_blob(path: &Path, digest: &Digest) -> Result<Vec<u8>, BlobError> {
 
 /// How long a read waits for a file that a record names but that is not there: on NFS, a
 /// client's cached view of a directory may not yet show a file another node just renamed into
-/// it. 1 s, or `DIST4D_READ_RETRY_MS`.
-fn read_retry() -> std::time::Duration {
-    static T: std::sync::OnceLock<std::time::Duration> = std::sync::OnceLock::new();
-    *T.get_or_init(|| {
-        let ms = std::env::var("DIST4D_READ_RETRY_MS").ok().and_then(|s| s.trim().parse().ok()).unwrap_or(1000);
-        std::time::Duration::from_millis(ms)
-    })
+/// it. `DIST4D_READ_RETRY_MS`, else 1 s on a local filesystem and half the lease timeout on a
+/// network one (NFS keeps directory attributes up to 30-60 s by default).
+fn read_retry(path: &Path) -> std::time::Duration {
+    static T: std::sync::OnceLock<Option<u64>> = std::sync::OnceLock::new();
+    let set = *T.get_or_init(|| std::env::var("DIST4D_READ_RETRY_MS").ok().and_then(|s| s.trim().parse().ok()));
+    match set {
+        Some(ms) => std::time::Duration::from_millis(ms),
+        None if path.parent().is_some_and(lease::network_filesystem) => lease::timeout() / 2,
+        None => std::time::Duration::from_secs(1),
+    }
 }
 
 /// Reads a file, retrying "not found" with backoff for [`read_retry`]: a blob that is still
@@ -484,11 +525,15 @@ fn read_retry() -> std::time::Duration {
 pub fn read_retrying(path: &Path) -> std::io::Result<Vec<u8>> {
     let started = std::time::Instant::now();
     let mut wait = std::time::Duration::from_millis(5);
+    let mut bound = None;
     loop {
         match fs::read(path) {
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound && started.elapsed() + wait <= read_retry() => {
+            Err(e)
+                if e.kind() == std::io::ErrorKind::NotFound
+                    && started.elapsed() + wait <= *bound.get_or_insert_with(|| read_retry(path)) =>
+            {
                 std::thread::sleep(wait);
-                wait *= 2;
+                wait = (wait * 2).min(std::time::Duration::from_secs(2));
             }
             other => return other,
         }
@@ -726,7 +771,7 @@ mod tests {
         let started = std::time::Instant::now();
         let e = read_retrying(&dir.path().join("never")).unwrap_err();
         assert_eq!(e.kind(), std::io::ErrorKind::NotFound);
-        assert!(started.elapsed() <= read_retry() + std::time::Duration::from_millis(500));
+        assert!(started.elapsed() <= read_retry(&dir.path().join("never")) + std::time::Duration::from_millis(500));
     }
 
     #[test]
