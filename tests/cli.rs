@@ -232,6 +232,41 @@ fn runs_shows_a_run_in_progress_as_running_and_a_killed_one_as_killed() {
 }
 
 #[test]
+fn a_run_whose_lease_others_removed_stops_and_a_rerun_finishes() {
+    // Another process judged this one dead (it was suspended, or its filesystem stalled, for
+    // longer than the lease timeout) and removed its lease: it may be redoing its scenes, so
+    // this one stops instead of racing it. A short timeout makes the heartbeat notice quickly.
+    let s = multi_frame(10);
+    let cache = s.base.join("cache");
+    let mut child = run_cmd(&s, "cache", "out", &["--jobs", "1"])
+        .env("DIST4D_LEASE_TIMEOUT", "0.2")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    let lease = loop {
+        let found = std::fs::read_dir(cache.join("leases")).ok().and_then(|d| {
+            d.filter_map(|e| e.ok()).map(|e| e.path()).find(|p| p.extension().is_some_and(|x| x == "lease"))
+        });
+        if let Some(l) = found {
+            break l;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(30), "no lease appeared");
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    std::fs::remove_file(&lease).unwrap();
+    let o = child.wait_with_output().unwrap();
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(1), "{t}");
+    assert!(t.contains("lease in the store was lost") && t.contains("rerun to finish"), "{t}");
+    assert!(!lease.exists(), "not recreated");
+    let done = run_ok(&s, "cache", "out", &[]);
+    assert_eq!(done["status"], "complete");
+    assert_no_partial_files(&s, "cache", "out");
+}
+
+#[test]
 fn killed_runs_resume_to_byte_identical_outputs() {
     let s = multi_frame(10);
     let t0 = Instant::now();
