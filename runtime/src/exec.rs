@@ -1295,6 +1295,14 @@ impl Coord {
                 self.complete(e, slot, t, outcome)?;
                 self.release(slot, &waiters);
             }
+            // Its item is not one this run executes (a merge): the lost output is missing.
+            Err(err) if err.downcast_ref::<NotExecuted>().is_some() => {
+                let run = self.active[slot as usize].as_mut().unwrap();
+                run.state[t] = State::Skipped;
+                let ci = self.counter_of[run.plan.tasks[t].node as usize];
+                self.count_skipped(ci, Skip::Missing);
+                self.skip_all(slot, waiters.into_iter().map(|w| w as usize).collect(), Skip::Missing);
+            }
             Err(err) => {
                 let run = self.active[slot as usize].as_mut().unwrap();
                 run.state[t] = State::Failed;

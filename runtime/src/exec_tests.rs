@@ -1197,6 +1197,49 @@ fn a_merge_executes_only_the_items_it_retries_and_takes_the_rest_from_the_cache(
     let lost = crate::item::ItemSpace::label(&grid, &ItemKey::new(&[1]));
     let r = merge(vec![lost]);
     assert_eq!((r.status, r.executed(), r.missing()), (RunStatus::Complete, shard.executed(), 0));
+    // Blobs damaged since (a failing disk), found corrupt when a merge exports them: the tasks
+    // that made them would be run again; a merge does not, for the items it does not execute,
+    // and reports them missing, not failed.
+    let p = testkit::load(
+        r#"Pipeline(
+            dataset: Grid(scenes: 2, frames: 2, cameras: 1),
+            stages: {
+                "b": Echo(inputs: {"x": "dataset.camera_value"}),
+                "file": ToFile(inputs: {"x": "b.y"}, params: (size: 5000)),
+                "reader": FromFile(inputs: {"file": "file.file"}),
+            },
+            export: {"file.file": "{scene}/{frame}_{camera}.bin"},
+        )"#,
+        &[],
+    );
+    let grid = testkit::grid_of(&p);
+    let dir = tempfile::tempdir().unwrap();
+    let out = |name: &str| RunOptions {
+        jobs: 2,
+        out_dir: Some(dir.path().join(name)),
+        execute_only: Some(vec![]),
+        ..Default::default()
+    };
+    let all = run_with(
+        &p,
+        &grid,
+        dir.path(),
+        &RunOptions { jobs: 2, out_dir: Some(dir.path().join("a")), ..Default::default() },
+    );
+    assert_eq!(all.status, RunStatus::Complete);
+    for sub in std::fs::read_dir(dir.path().join("cas")).unwrap() {
+        for blob in std::fs::read_dir(sub.unwrap().path()).unwrap() {
+            let path = blob.unwrap().path();
+            let bytes = std::fs::read(&path).unwrap();
+            std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+        }
+    }
+    let r = run_with(&p, &grid, dir.path(), &out("b"));
+    assert!(r.failures.is_empty(), "{:?}", r.failures);
+    assert!(r.status == RunStatus::Incomplete && r.missing() > 0 && r.executed() == 0, "{r:?}");
+    // And no damaged byte reached the folder: what is there is what the first run exported.
+    let (first, merged) = (files_under(&dir.path().join("a")), files_under(&dir.path().join("b")));
+    assert!(merged.iter().all(|(path, d)| first.get(path) == Some(d)), "{merged:?}");
 }
 
 #[test]
