@@ -2,9 +2,12 @@
 //!
 //! Reachable = the task keys listed by the newest `keep_runs` runs (all pipelines sharing the
 //! store; the shards and merge of one cluster submission count as one run); with a size
-//! budget, older runs among those are dropped until the blobs they reach fit. Records are compacted into one new segment (written and fsynced before the old ones are
-//! removed, so a crash leaves duplicates at worst), then unreachable blobs are deleted. Needs
-//! the store alone: it waits for no run and refuses while one holds the store.
+//! budget, older runs among those are dropped until the blobs they reach fit. Records are
+//! compacted into one new segment (written and fsynced before the old ones are removed, so a
+//! crash leaves duplicates at worst), and so is the file-fingerprint memo (one segment per
+//! process that hashed files: a cluster leaves thousands); then unreachable blobs are deleted.
+//! Needs the store alone: it gives way while another process's lease is live (see
+//! [`crate::lease`]).
 
 use crate::digest::{Digest, DigestMap};
 use crate::record::TaskRecord;
@@ -110,6 +113,7 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcRep
     for seg in old_segments {
         std::fs::remove_file(&seg).with_context(|| format!("removing {}", seg.display()))?;
     }
+    store.compact_fingerprints()?;
 
     // Delete unreachable blobs.
     let cas = root.join("cas");

@@ -470,6 +470,35 @@ impl Store {
         lease::fs_now(self.writer_lease.path())
     }
 
+    /// Packs the file-fingerprint memo into one segment (one entry per path: the last one read),
+    /// removing the segments it read. Every process that hashed a raw file left a segment of its
+    /// own, and every process opening the store reads them all. For `gc`, which holds the store
+    /// alone. Returns the number of entries kept.
+    pub fn compact_fingerprints(&self) -> Result<usize> {
+        let dir = self.root.join("fp");
+        let old = segment_paths(&dir)?;
+        if old.len() <= 1 {
+            return Ok(0);
+        }
+        let mut latest: HashMap<Vec<u8>, Vec<u8>> = HashMap::new();
+        for path in &old {
+            let seg = Segment::open(path)?;
+            for (_, payload) in seg.entries() {
+                let Ok(file) = (enc::Reader { buf: payload }).bytes() else { continue };
+                latest.insert(file.to_vec(), payload.to_vec());
+            }
+        }
+        let mut w = SegmentWriter::create(&dir, &format!("gc-{}", self.writer_id))?;
+        for payload in latest.values() {
+            w.append(payload)?;
+        }
+        w.sync()?;
+        for path in old {
+            fs::remove_file(&path).with_context(|| format!("removing {}", path.display()))?;
+        }
+        Ok(latest.len())
+    }
+
     /// Whether this process's lease was lost: another process judged it dead (it was stopped or
     /// its filesystem stalled for longer than the lease timeout) and may have taken over its
     /// work and removed its temp files. A run that sees this stops (see [`Lease::lost`]).
@@ -856,6 +885,28 @@ mod tests {
         fs::write(&f, b"two").unwrap();
         assert_eq!(s.file_digest(&f, false).unwrap(), None, "a changed file is hashed again");
         assert_eq!(s.file_digest(&f, true).unwrap(), Some(Digest::of(b"two")));
+    }
+
+    #[test]
+    fn the_fingerprint_memo_of_many_processes_packs_into_one_segment() {
+        let dir = tempfile::tempdir().unwrap();
+        let files: Vec<PathBuf> = (0..3).map(|i| dir.path().join(format!("raw{i}.bin"))).collect();
+        for (i, f) in files.iter().enumerate() {
+            fs::write(f, format!("raw {i}")).unwrap();
+            // Each file hashed by a process of its own: three memo segments.
+            let s = Store::open(&dir.path().join("store"), Access::Shared).unwrap();
+            s.file_digest(f, true).unwrap();
+        }
+        assert_eq!(segment_paths(&dir.path().join("store/fp")).unwrap().len(), 3);
+        let s = Store::open(&dir.path().join("store"), Access::Exclusive).unwrap();
+        assert_eq!(s.compact_fingerprints().unwrap(), 3);
+        drop(s);
+        assert_eq!(segment_paths(&dir.path().join("store/fp")).unwrap().len(), 1);
+        let s = Store::open(&dir.path().join("store"), Access::Shared).unwrap();
+        for (i, f) in files.iter().enumerate() {
+            let known = s.file_digest(f, false).unwrap();
+            assert_eq!(known, Some(Digest::of(format!("raw {i}").as_bytes())), "memo kept for {}", f.display());
+        }
     }
 
     #[test]
