@@ -238,7 +238,7 @@ fn a_run_whose_lease_others_removed_stops_and_a_rerun_finishes() {
     // this one stops instead of racing it. A short timeout makes the heartbeat notice quickly.
     let s = multi_frame(10);
     let cache = s.base.join("cache");
-    let mut child = run_cmd(&s, "cache", "out", &["--jobs", "1"])
+    let child = run_cmd(&s, "cache", "out", &["--jobs", "1"])
         .env("DIST4D_LEASE_TIMEOUT", "0.2")
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())

@@ -6,27 +6,6 @@ use common::*;
 use std::collections::BTreeMap;
 use std::path::Path;
 
-/// Every exported file under `dir` (not dist4d's own bookkeeping), by relative path, with its bytes.
-fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            let rel = p.strip_prefix(dir).unwrap().to_string_lossy().into_owned();
-            if rel.starts_with('.') || rel == "index.json" {
-                continue;
-            }
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                out.insert(rel, std::fs::read(&p).unwrap());
-            }
-        }
-    }
-    out
-}
-
 #[test]
 fn shards_run_at_once_on_one_store_give_the_bytes_of_one_process() {
     let tmp = tempfile::tempdir().unwrap();
@@ -80,8 +59,8 @@ fn shards_run_at_once_on_one_store_give_the_bytes_of_one_process() {
         let o = c.wait_with_output().unwrap();
         assert!(o.status.success(), "shard {k}: {}", text(&o));
     }
-    let whole = files(&one);
-    let union = files(&together);
+    let whole: BTreeMap<String, Vec<u8>> = tree(&one).into_iter().collect();
+    let union: BTreeMap<String, Vec<u8>> = tree(&together).into_iter().collect();
     assert_eq!(whole.keys().collect::<Vec<_>>(), union.keys().collect::<Vec<_>>());
     for (path, bytes) in &whole {
         assert!(union[path] == *bytes, "{path} differs between one process and the shards");
@@ -122,7 +101,7 @@ fn shards_run_at_once_on_one_store_give_the_bytes_of_one_process() {
     assert!(!together.join(".dist4d-index.d").exists());
     assert_eq!(std::fs::read_dir(together.join(".dist4d-manifest.d")).unwrap().count(), 0);
     assert!(index(&together) == index(&one));
-    assert_eq!(files(&together), whole);
+    assert!(tree(&together).into_iter().collect::<BTreeMap<_, _>>() == whole);
     // `explain` with the same --shard looks at that shard's scenes (all cached now); without it,
     // at every scene.
     let cached = |shard: Option<&str>| -> (u64, u64) {

@@ -68,27 +68,6 @@ impl Drop for Cluster {
     }
 }
 
-/// Every exported file under `dir` (not dist4d's bookkeeping), with its bytes.
-fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
-    let mut out = BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            let rel = p.strip_prefix(dir).unwrap().to_string_lossy().into_owned();
-            if rel.starts_with(".dist4d") {
-                continue;
-            }
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                out.insert(rel, std::fs::read(&p).unwrap());
-            }
-        }
-    }
-    out
-}
-
 /// The job ids `dist4d slurm` printed ("submitted array as job 12 (array 0-1)").
 fn submitted(out: &str) -> BTreeMap<String, String> {
     out.lines()
@@ -203,7 +182,8 @@ fn a_submission_with_a_cancelled_shard_resubmitted_gives_the_bytes_of_one_proces
         serde_json::from_slice(&std::fs::read(newest_group().join("report.json")).unwrap()).unwrap();
     assert_eq!((report["status"].as_str(), report["missing"].as_u64()), (Some("complete"), Some(0)), "{report}");
 
-    let (got, want) = (files(&out), files(&reference));
+    let (got, want): (BTreeMap<_, _>, BTreeMap<_, _>) =
+        (tree(&out).into_iter().collect(), tree(&reference).into_iter().collect());
     assert_eq!(got.keys().collect::<Vec<_>>(), want.keys().collect::<Vec<_>>());
     for (path, bytes) in &want {
         assert!(got[path] == *bytes, "{path} differs between the cluster and one process");

@@ -153,17 +153,21 @@ pub fn multi_frame_nuscenes(dest: &Path, frames: usize) -> PathBuf {
     dest.to_path_buf()
 }
 
-/// Every file under `dir` (relative path -> bytes) but the export manifest, which records each
-/// file's inode and ctime and so differs between two runs that wrote the same bytes.
+/// Every file under `dir` (relative path -> bytes) but dist4d's bookkeeping (`.dist4d-*`): the
+/// export manifest records each file's inode and ctime and so differs between two runs that
+/// wrote the same bytes, and shards leave manifest deltas and index parts that one process does not.
 pub fn tree(dir: &Path) -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
     fn walk(base: &Path, d: &Path, out: &mut Vec<(String, Vec<u8>)>) {
         let mut entries: Vec<_> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().path()).collect();
         entries.sort();
         for p in entries {
+            if p.file_name().is_some_and(|n| n.to_string_lossy().starts_with(".dist4d")) {
+                continue;
+            }
             if p.is_dir() {
                 walk(base, &p, out);
-            } else if !p.ends_with(".dist4d-manifest") {
+            } else {
                 out.push((p.strip_prefix(base).unwrap().display().to_string(), std::fs::read(&p).unwrap()));
             }
         }
