@@ -132,32 +132,8 @@ enum Command {
         /// Where exported files go [default: out/<pipeline name>/ beside the pipeline file].
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Array tasks (at most one per scene with work left).
-        #[arg(long, default_value_t = 8)]
-        shards: u32,
-        /// Array tasks running at once (--array=0-N%K), so the controller is not flooded.
-        #[arg(long, value_name = "K")]
-        array_limit: Option<u32>,
-        #[arg(long)]
-        partition: Option<String>,
-        /// CPUs per array task; each shard runs that many threads.
-        #[arg(long, default_value_t = 4)]
-        cpus_per_task: u32,
-        /// An extra sbatch option for every job (repeatable), e.g. --sbatch=--time=4:00:00 --sbatch=--account=ad.
-        #[arg(long, value_name = "OPTION", allow_hyphen_values = true)]
-        sbatch: Vec<String>,
-        /// Put the stages served by model workers in a second array with this --gres (e.g. gpu:1).
-        #[arg(long)]
-        gres: Option<String>,
-        /// Array tasks of the GPU array (each keeps one long-lived worker per model).
-        #[arg(long, default_value_t = 1)]
-        gpu_shards: u32,
-        /// Partition of the GPU array [default: --partition].
-        #[arg(long)]
-        gpu_partition: Option<String>,
-        /// Print the job scripts and sbatch commands instead of submitting.
-        #[arg(long)]
-        dry_run: bool,
+        #[command(flatten)]
+        submit: slurm::Submit,
     },
     /// The merge job of a `dist4d slurm` submission: reads what the group's shards recorded,
     /// retries the scenes with failed items, collects everything else from the cache (a lost
@@ -897,32 +873,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             Ok(run_pipeline(&registry, &p, |_| Ok(()), jobs, fail_fast, out, &progress, tweak)?
                 .map_or_else(|code| code, |(_, _, code)| code))
         }
-        Command::Slurm {
-            p,
-            out,
-            shards,
-            array_limit,
-            partition,
-            cpus_per_task,
-            sbatch,
-            gres,
-            gpu_shards,
-            gpu_partition,
-            dry_run,
-        } => {
-            let submit = slurm::Submit {
-                shards,
-                array_limit,
-                partition,
-                cpus_per_task,
-                sbatch,
-                gres,
-                gpu_shards,
-                gpu_partition,
-                dry_run,
-            };
-            slurm_submit(&registry, &p, out, &submit)
-        }
+        Command::Slurm { p, out, submit } => slurm_submit(&registry, &p, out, &submit),
         Command::Merge { p, out, group, shards, gpu_shards, no_retry, jobs, progress } => {
             slurm_merge(&registry, &p, out, &group, shards, gpu_shards, no_retry, jobs, &progress)
         }

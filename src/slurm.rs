@@ -43,21 +43,35 @@ impl Target {
     }
 }
 
-/// How to submit.
+/// How to submit (the options of `dist4d slurm`).
+#[derive(clap::Args)]
 pub struct Submit {
-    /// Array tasks of the CPU array (fewer when fewer scenes have work).
+    /// Array tasks (at most one per scene with work left).
+    #[arg(long, default_value_t = 8)]
     pub shards: u32,
-    /// How many array tasks run at once (`--array=0-N%K`), so the controller is not flooded.
+    /// Array tasks running at once (--array=0-N%K), so the controller is not flooded.
+    #[arg(long, value_name = "K")]
     pub array_limit: Option<u32>,
+    #[arg(long)]
     pub partition: Option<String>,
+    /// CPUs per array task; each shard runs that many threads.
+    #[arg(long, default_value_t = 4)]
     pub cpus_per_task: u32,
-    /// Extra `sbatch` options for every job (e.g. `--time=4:00:00`, `--account=...`).
+    /// An extra sbatch option for every job (repeatable), e.g. --sbatch=--time=4:00:00 --sbatch=--account=ad.
+    #[arg(long, value_name = "OPTION", allow_hyphen_values = true)]
     pub sbatch: Vec<String>,
-    /// When set (e.g. `gpu:1`), stages served by model workers go to a second array with this
-    /// `--gres`, after the CPU array; the CPU array leaves them.
+    /// Put the stages served by model workers in a second array with this --gres (e.g. gpu:1),
+    /// after the first; the first then leaves them (`--defer-workers`).
+    #[arg(long)]
     pub gres: Option<String>,
+    /// Array tasks of the GPU array (each keeps one long-lived worker per model).
+    #[arg(long, default_value_t = 1)]
     pub gpu_shards: u32,
+    /// Partition of the GPU array [default: --partition].
+    #[arg(long)]
     pub gpu_partition: Option<String>,
+    /// Print the job scripts and sbatch commands instead of submitting.
+    #[arg(long)]
     pub dry_run: bool,
 }
 
