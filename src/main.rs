@@ -717,7 +717,7 @@ fn slurm_merge(
     let arrays: Vec<u32> = std::iter::once(shards).chain(gpu_shards).collect();
     let report = slurm::shards_report(&runs, group, &arrays);
     println!("group {group}:");
-    for line in &report.lines {
+    for line in report.lines() {
         println!("  {line}");
     }
     let retry = if no_retry { Vec::new() } else { report.failed_scenes.clone() };
@@ -772,7 +772,7 @@ fn slurm_merge(
         println!(
             "{} tasks are missing ({} shard(s) did not finish): rerun the same `dist4d slurm` command; only the {}s with missing work become shards",
             rec.missing(),
-            report.unfinished,
+            report.unfinished(),
             pipeline.dims[0].name
         );
     }

@@ -323,77 +323,83 @@ impl ShardState {
             "cached": self.cached, "failed": self.failed, "seconds": self.seconds,
         })
     }
+
+    /// Its line in the merge's report.
+    pub fn line(&self) -> String {
+        let shard = &self.shard;
+        match (self.status.as_str(), &self.run) {
+            (_, None) => format!(
+                "shard {shard}: no run record: it never started (cancelled while pending, or its job failed \
+                 before dist4d ran: see its log)"
+            ),
+            ("killed", Some(run)) => format!(
+                "shard {shard}: killed (run {run} started and never recorded its end: SIGKILL, a lost node, out of \
+                 memory); its finished tasks are in the store"
+            ),
+            (status, Some(run)) => {
+                let mut status = status.to_string();
+                status[..1].make_ascii_uppercase();
+                format!(
+                    "shard {shard}: {status} in {:.1}s, {} executed, {} cached, {} failed (run {run})",
+                    self.seconds, self.executed, self.cached, self.failed
+                )
+            }
+        }
+    }
+
+    /// Whether it did not get to its end: never started, interrupted, or killed.
+    fn unfinished(&self) -> bool {
+        matches!(self.status.as_str(), "no record" | "interrupted" | "killed")
+    }
 }
 
 /// What the shards of a group recorded, as the merge job reads it from the store.
 pub struct ShardsReport {
-    /// One line per expected shard.
-    pub lines: Vec<String>,
     pub shards: Vec<ShardState>,
     /// Scenes with a failed item in a shard's last run: the merge job retries them.
     pub failed_scenes: Vec<String>,
-    /// Shards with no record of an ended run (killed hard, or their node lost).
-    pub unfinished: usize,
+}
+
+impl ShardsReport {
+    /// One line per expected shard.
+    pub fn lines(&self) -> Vec<String> {
+        self.shards.iter().map(ShardState::line).collect()
+    }
+
+    /// How many shards did not get to their end.
+    pub fn unfinished(&self) -> usize {
+        self.shards.iter().filter(|s| s.unfinished()).count()
+    }
 }
 
 /// Reads what the shards of `group` recorded: expected shards are `(i, n)` for each `n` of
 /// `arrays` (the CPU array's and the GPU array's shard counts).
 pub fn shards_report(runs: &[RunRecord], group: &str, arrays: &[u32]) -> ShardsReport {
-    let mut report = ShardsReport { lines: Vec::new(), shards: Vec::new(), failed_scenes: Vec::new(), unfinished: 0 };
+    let mut report = ShardsReport { shards: Vec::new(), failed_scenes: Vec::new() };
     for &n in arrays {
         for i in 0..n {
             let last = runs.iter().rev().find(|r| r.group.as_deref() == Some(group) && r.shard == Some((i, n)));
+            for f in last.iter().flat_map(|r| &r.failures) {
+                let scene = f.item.split('/').next().unwrap_or_default().to_string();
+                if !report.failed_scenes.contains(&scene) {
+                    report.failed_scenes.push(scene);
+                }
+            }
+            let status = match last.map(|r| r.status) {
+                None => "no record".to_string(),
+                // The merge runs after the array: a shard still recorded as running died.
+                Some(RunStatus::Running) => "killed".to_string(),
+                Some(s) => serde_json::to_value(s).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default(),
+            };
             report.shards.push(ShardState {
                 shard: format!("{i}/{n}"),
-                status: last.map_or("no record".into(), |r| {
-                    serde_json::to_value(r.status).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default()
-                }),
+                status,
                 run: last.map(|r| r.id.clone()),
                 executed: last.map_or(0, |r| r.executed()),
                 cached: last.map_or(0, |r| r.cached()),
                 failed: last.map_or(0, |r| r.failed()),
                 seconds: last.map_or(0.0, |r| r.seconds),
             });
-            let line = match last {
-                None => {
-                    report.unfinished += 1;
-                    format!(
-                        "shard {i}/{n}: no run record: it never started (cancelled while pending, or its job \
-                         failed before dist4d ran: see its log)"
-                    )
-                }
-                Some(r) => {
-                    for f in &r.failures {
-                        let scene = f.item.split('/').next().unwrap_or_default().to_string();
-                        if !report.failed_scenes.contains(&scene) {
-                            report.failed_scenes.push(scene);
-                        }
-                    }
-                    if matches!(r.status, RunStatus::Interrupted | RunStatus::Running) {
-                        report.unfinished += 1;
-                    }
-                    if r.status == RunStatus::Running {
-                        // The merge runs after the array: a shard still recorded as running died.
-                        report.shards.last_mut().expect("pushed above").status = "killed".into();
-                        format!(
-                            "shard {i}/{n}: killed (run {} started and never recorded its end: SIGKILL, a lost node, \
-                             out of memory); its finished tasks are in the store",
-                            r.id
-                        )
-                    } else {
-                        format!(
-                            "shard {i}/{n}: {:?} in {:.1}s, {} executed, {} cached, {} failed (run {})",
-                            r.status,
-                            r.seconds,
-                            r.executed(),
-                            r.cached(),
-                            r.failed(),
-                            r.id
-                        )
-                    }
-                }
-            };
-            report.lines.push(line);
         }
     }
     report.failed_scenes.sort();
@@ -560,13 +566,13 @@ mod tests {
         ];
         let r = shards_report(&runs, "g", &[3]);
         assert_eq!(r.failed_scenes, ["scene-b"], "the last record of shard 0 counts");
-        assert_eq!(r.unfinished, 2, "shard 1 never recorded, shard 2 was interrupted");
-        assert!(r.lines[1].starts_with("shard 1/3: no run record"), "{:?}", r.lines);
+        assert_eq!(r.unfinished(), 2, "shard 1 never recorded, shard 2 was interrupted");
+        assert!(r.lines()[1].starts_with("shard 1/3: no run record"), "{:?}", r.lines());
         assert!(shards_report(&runs, "other", &[3]).failed_scenes.is_empty());
         // A shard still recorded as running when the merge runs was killed.
         let killed = [rec(Some((0, 1)), RunStatus::Running, &[])];
         let r = shards_report(&killed, "g", &[1]);
-        assert_eq!((r.unfinished, r.shards[0].status.as_str()), (1, "killed"));
-        assert!(r.lines[0].starts_with("shard 0/1: killed"), "{:?}", r.lines);
+        assert_eq!((r.unfinished(), r.shards[0].status.as_str()), (1, "killed"));
+        assert!(r.lines()[0].starts_with("shard 0/1: killed"), "{:?}", r.lines());
     }
 }
