@@ -281,8 +281,6 @@ struct Claims<'e> {
     dim: String,
     said: std::collections::HashSet<u32>,
     last_poll: Instant,
-    others: bool,
-    last_others_check: Instant,
 }
 
 impl<'e> Claims<'e> {
@@ -294,8 +292,6 @@ impl<'e> Claims<'e> {
             dim: p.dims[0].name.clone(),
             said: Default::default(),
             last_poll: Instant::now(),
-            others: engine.store.other_writers_seen(),
-            last_others_check: Instant::now(),
         }
     }
 
@@ -319,17 +315,6 @@ impl<'e> Claims<'e> {
                 holder.describe()
             );
         }
-    }
-
-    /// Whether another process has used the store since this run started (it holds a lease
-    /// now, or has written segments): only then can records have appeared that this one did not
-    /// load. Checked at most every [`CLAIM_POLL`]; once true, it stays true.
-    fn others_active(&mut self) -> bool {
-        if !self.others && self.last_others_check.elapsed() >= CLAIM_POLL {
-            self.last_others_check = Instant::now();
-            self.others = self.store.other_writers_seen();
-        }
-        self.others
     }
 
     fn poll_due(&mut self) -> bool {
@@ -590,10 +575,9 @@ impl<'a> Engine<'a> {
                         match claims.take(o)? {
                             Ok(claim) => {
                                 // Another process may have run the item and let it go since this
-                                // one opened the store: its records are read first.
-                                if claims.others_active() {
-                                    self.store.refresh()?;
-                                }
+                                // one opened the store: its records are read first (a refresh
+                                // with nothing new costs a listing and a stat per segment).
+                                self.store.refresh()?;
                                 c.admit(p, &view, o, next_outer as u64, &stage_nodes, Some(claim), may_execute(o))
                             }
                             Err(holder) => {

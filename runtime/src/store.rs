@@ -280,29 +280,6 @@ impl Store {
         Ok(found)
     }
 
-    /// Whether another process may have appended records since this store was opened: another
-    /// writer holds a lease now, or a segment this process did not write has appeared or grown.
-    pub fn other_writers_seen(&self) -> bool {
-        if fs::read_dir(self.root.join("leases")).is_ok_and(|rd| {
-            rd.filter_map(|e| e.ok()).any(|e| {
-                let name = e.file_name();
-                let name = name.to_string_lossy();
-                name.ends_with(".lease") && name != format!("{}.lease", self.writer_id) && name != "gc.lease"
-            })
-        }) {
-            return true;
-        }
-        let own = self.records.lock().unwrap().as_ref().map(|w| w.path().to_path_buf());
-        let later = self.later.read().unwrap();
-        segment_paths(&self.root.join("ac")).is_ok_and(|paths| {
-            paths.iter().filter(|p| own.as_ref() != Some(*p)).any(|p| {
-                // Through the opened file: on NFS a path stat may answer from a stale cache.
-                let len = File::open(p).and_then(|f| f.metadata()).map(|m| m.len() as usize).unwrap_or(0);
-                later.read_to.get(p).is_none_or(|&read| len > read && len > 8)
-            })
-        })
-    }
-
     /// Makes the task records this process appended durable and visible to other nodes (on
     /// NFS, another client sees appended bytes once they reach the server).
     pub fn sync_records(&self) -> Result<()> {
