@@ -134,32 +134,39 @@ pub enum Liveness {
 
 /// Judges the lease at `path`; `now` is the filesystem's current time (see [`fs_now`]).
 pub fn judge(path: &Path, now: SystemTime) -> Liveness {
-    // Opened first, then stat'ed through the handle: on NFS, opening revalidates a file's
-    // attributes, where a path stat may answer from a cache up to a minute old, and a live
-    // heartbeat would look stale.
-    let mut file = match File::open(path) {
-        Ok(f) => f,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Liveness::Gone,
-        // Unreadable (permissions, an I/O error): nothing says its holder is gone.
-        Err(_) => return Liveness::Live(Holder::unknown()),
-    };
-    let Ok(meta) = file.metadata() else { return Liveness::Live(Holder::unknown()) };
-    let age = meta.modified().ok().and_then(|m| now.duration_since(m).ok()).unwrap_or_default();
-    let mut text = String::new();
-    let holder = std::io::Read::read_to_string(&mut file, &mut text).ok().and_then(|_| Holder::decode(&text));
-    match holder {
-        Some(h) if h.on_this_host() => {
+    match read_holder(path, now) {
+        Err(decided) => decided,
+        Ok((h, _)) if h.on_this_host() => {
             if h.process_alive() {
                 Liveness::Live(h)
             } else {
                 Liveness::Dead(Some(h))
             }
         }
-        Some(h) if age < h.timeout() => Liveness::Live(h),
-        Some(h) => Liveness::Dead(Some(h)),
-        // Unreadable: being written right now, or torn. Only old enough is it dead.
-        None if age < timeout() => Liveness::Live(Holder::unknown()),
-        None => Liveness::Dead(None),
+        Ok((h, age)) if age < h.timeout() => Liveness::Live(h),
+        Ok((h, _)) => Liveness::Dead(Some(h)),
+    }
+}
+
+/// The holder a lease or claim file names, with the file's age; `Err` with the verdict when the
+/// file alone decides: gone; unreadable (permissions, an I/O error: nothing says its holder is
+/// gone, so live); torn or being written (live while younger than the timeout, else dead).
+fn read_holder(path: &Path, now: SystemTime) -> std::result::Result<(Holder, Duration), Liveness> {
+    // Opened first, then stat'ed through the handle: on NFS, opening revalidates a file's
+    // attributes, where a path stat may answer from a cache up to a minute old, and a live
+    // heartbeat would look stale.
+    let mut file = match File::open(path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Err(Liveness::Gone),
+        Err(_) => return Err(Liveness::Live(Holder::unknown())),
+    };
+    let Ok(meta) = file.metadata() else { return Err(Liveness::Live(Holder::unknown())) };
+    let age = meta.modified().ok().and_then(|m| now.duration_since(m).ok()).unwrap_or_default();
+    let mut text = String::new();
+    match std::io::Read::read_to_string(&mut file, &mut text).ok().and_then(|_| Holder::decode(&text)) {
+        Some(h) => Ok((h, age)),
+        None if age < timeout() => Err(Liveness::Live(Holder::unknown())),
+        None => Err(Liveness::Dead(None)),
     }
 }
 
@@ -381,20 +388,12 @@ impl Claim {
 
     /// A claim is live while its holder's writer lease is.
     pub fn judge(path: &Path, leases: &Path, now: SystemTime) -> Liveness {
-        let Ok(meta) = fs::metadata(path) else { return Liveness::Gone };
-        match fs::read_to_string(path).ok().and_then(|t| Holder::decode(&t)) {
-            Some(h) => match judge(&leases.join(format!("{}.lease", h.writer)), now) {
+        match read_holder(path, now) {
+            Err(decided) => decided,
+            Ok((h, _)) => match judge(&leases.join(format!("{}.lease", h.writer)), now) {
                 Liveness::Live(_) => Liveness::Live(h),
                 _ => Liveness::Dead(Some(h)),
             },
-            None => {
-                let age = meta.modified().ok().and_then(|m| now.duration_since(m).ok()).unwrap_or_default();
-                if age < timeout() {
-                    Liveness::Live(Holder::unknown())
-                } else {
-                    Liveness::Dead(None)
-                }
-            }
         }
     }
 }
