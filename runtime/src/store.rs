@@ -421,11 +421,6 @@ impl Store {
         self.root.join("runs")
     }
 
-    /// Whether the writer with this id is still running (its lease is live).
-    pub fn writer_alive(&self, id: &str) -> bool {
-        id == self.writer_id || matches!(self.writer_lease_state(id, self.fs_now()), Liveness::Live(_))
-    }
-
     /// Whether a temp file that writer `writer` left (in the store or an output folder) may be
     /// removed: its writer is dead on this host, or not live and the file is older than the
     /// lease timeout (a temp file younger than that may belong to a writer whose lease we cannot
@@ -436,10 +431,6 @@ impl Store {
         }
         let now = self.fs_now();
         abandoned(&self.root.join("leases"), writer, path, now)
-    }
-
-    fn writer_lease_state(&self, id: &str, now: std::time::SystemTime) -> Liveness {
-        lease::judge(&self.root.join("leases").join(format!("{id}.lease")), now)
     }
 
     /// The time now on the store's filesystem clock (see [`lease::fs_now`]).
@@ -956,7 +947,8 @@ mod tests {
                         let lease = dir.path().join("leases").join(format!("{}.lease", s.writer_id()));
                         assert!(lease.exists(), "{} lost its lease", s.writer_id());
                         let other = Store::open(dir.path(), Access::Shared).unwrap();
-                        assert!(other.writer_alive(s.writer_id()), "{} judged dead while open", s.writer_id());
+                        let judged = lease::judge(&lease, other.fs_now());
+                        assert!(matches!(judged, Liveness::Live(_)), "{} judged dead while open", s.writer_id());
                     }
                 });
             }
