@@ -70,6 +70,18 @@ struct PipelineArgs {
     shard: Option<(u32, u32)>,
 }
 
+impl PipelineArgs {
+    /// `--cache`, or `.dist4d/` beside the pipeline file.
+    fn cache_dir(&self) -> PathBuf {
+        self.cache.clone().unwrap_or_else(|| beside(&self.pipeline, ".dist4d"))
+    }
+
+    /// `--out` when given, else `out/<pipeline name>/` beside the pipeline file.
+    fn out_dir(&self, out: Option<PathBuf>, pipeline: &Pipeline) -> PathBuf {
+        out.unwrap_or_else(|| beside(&self.pipeline, &format!("out/{}", pipeline.name)))
+    }
+}
+
 /// `I/N` with 0 <= I < N.
 fn parse_shard(s: &str) -> std::result::Result<(u32, u32), String> {
     let (i, n) = s.split_once('/').ok_or_else(|| format!("`{s}` is not I/N (e.g. 0/4)"))?;
@@ -579,8 +591,7 @@ fn run_pipeline(
         eprintln!("error: {e:#}");
         return Ok(Err(ExitCode::from(2)));
     }
-    let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
-    let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+    let (cache, out_dir) = (p.cache_dir(), p.out_dir(out, &pipeline));
     let mut opts = RunOptions {
         fail_fast,
         outer_items: p.scenes.clone(),
@@ -612,8 +623,7 @@ fn slurm_submit(
         Ok(x) => x,
         Err(code) => return Ok(code),
     };
-    let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
-    let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+    let (cache, out_dir) = (p.cache_dir(), p.out_dir(out, &pipeline));
     let pending = {
         let dataset = registry.open_dataset(&pipeline)?;
         let ops = registry.operators(&pipeline)?;
@@ -711,8 +721,7 @@ fn slurm_merge(
         Ok(x) => x,
         Err(code) => return Ok(code),
     };
-    let cache = p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d"));
-    let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+    let (cache, out_dir) = (p.cache_dir(), p.out_dir(out, &pipeline));
     let runs = dist4d_runtime::runs::list_runs(&cache.join("runs"))?;
     let arrays: Vec<u32> = std::iter::once(shards).chain(gpu_shards).collect();
     let report = slurm::shards_report(&runs, group, &arrays);
@@ -816,10 +825,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
             };
             let dataset = registry.open_dataset(&pipeline)?;
             let ops = registry.operators(&pipeline)?;
-            let store =
-                Store::open(&p.cache.clone().unwrap_or_else(|| beside(&p.pipeline, ".dist4d")), Access::Shared)?;
+            let store = Store::open(&p.cache_dir(), Access::Shared)?;
             let engine = Engine { pipeline: &pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
-            let out_dir = out.unwrap_or_else(|| beside(&p.pipeline, &format!("out/{}", pipeline.name)));
+            let out_dir = p.out_dir(out, &pipeline);
             // The scenes a run with the same --shard would take.
             let scenes = match p.shard {
                 Some(shard) => Some(dist4d_runtime::exec::shard_labels(
