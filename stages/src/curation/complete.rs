@@ -52,6 +52,12 @@ pub struct Params {
     pub smooth_edge: f32,
     /// Row-then-column passes of that average (Gastal and Oliveira use 3).
     pub smooth_iterations: u32,
+    /// Pixels the row and column passes filled by continuing a surface (linear between two
+    /// agreeing samples, a vertical surface above the highest sample of a column; not a gap split
+    /// at an image edge) keep that value where the 2D average agrees with it, and take the
+    /// average more the more it disagrees: wholly at this relative difference. 0 = always the
+    /// average.
+    pub keep_planes: f32,
     /// Conjugate-gradient iterations refining the result towards the colour-affinity least
     /// squares of Levin et al. 2004 (every pixel like its like-coloured neighbours, samples held);
     /// 0 = off.
@@ -82,6 +88,7 @@ impl Default for Params {
             smooth_sigma: 30.0,
             smooth_edge: 40.0,
             smooth_iterations: 3,
+            keep_planes: 0.5,
             refine_iterations: 50,
             refine_sigma: 5.0,
             refine_weight: 100.0,
@@ -108,6 +115,7 @@ impl Validate for Params {
             .above("smooth_edge", self.smooth_edge as f64, 0.0, 765.0)
             // Each pass costs a few ms; more than a handful changes nothing (the sigmas halve).
             .count("smooth_iterations", self.smooth_iterations as u64, 0, 8)
+            .within("keep_planes", self.keep_planes as f64, 0.0, 100.0)
             // Each iteration costs a few ms per megapixel.
             .count("refine_iterations", self.refine_iterations as u64, 0, 10_000)
             .above("refine_sigma", self.refine_sigma as f64, 0.0, 1e4)
@@ -178,9 +186,9 @@ fn fill_rows(p: &Params, w: usize, h: usize, inv: &mut [f32], lum: &[f32]) {
 }
 
 /// Fills `v[a+1..b]` (stride `s`) between the samples at `a` and `b`: linear when they agree,
-/// otherwise split at the strongest edge of `guide` between them.
+/// otherwise split at the strongest edge of `guide` between them. Returns whether they agreed.
 #[inline]
-fn bridge(v: &mut [f32], s: usize, a: usize, b: usize, tol: f32, guide: &[f32]) {
+fn bridge(v: &mut [f32], s: usize, a: usize, b: usize, tol: f32, guide: &[f32]) -> bool {
     let (ia, ib) = (v[a * s], v[b * s]);
     let agree = (ia - ib).abs() <= tol * ia.min(ib);
     if agree {
@@ -203,6 +211,7 @@ fn bridge(v: &mut [f32], s: usize, a: usize, b: usize, tol: f32, guide: &[f32]) 
             v[k * s] = if k < split { ia } else { ib };
         }
     }
+    agree
 }
 
 /// Whether the inverse-depth slope over samples `j..j+1` matches the slope of the interval
@@ -277,6 +286,13 @@ impl WindowMax for u8 {
     }
 }
 
+/// How a pixel was filled before the 2D average (`complete`): continuing its neighbours (a
+/// sample, a grown or bridged row, a plane along its column, a copied column), split at an image
+/// edge between two disagreeing samples of its column, or continuing the ground below the lowest.
+const CONTINUED: u8 = 0;
+const SPLIT: u8 = 1;
+const GROUND: u8 = 2;
+
 /// The rows holding a sample, column by column (compressed: column `x`'s rows are
 /// `rows[start[x]..start[x + 1]]`, top to bottom), found in one row-major scan.
 struct ColumnSamples {
@@ -318,6 +334,8 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
     // taken in order share cache lines, so this costs less than transposing there and back.)
     let samples = column_samples(&inv, w);
     let mut has = vec![false; w];
+    // How each pixel was filled (see `smooth_unsupported`).
+    let mut continued = vec![CONTINUED; w * h];
     for x in 0..w {
         let c = &mut inv[x..];
         let g = &lum[x..];
@@ -325,6 +343,11 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
         let (Some(&first), Some(&last)) = (samples.first(), samples.last()) else { continue };
         let (first, last) = (first as usize, last as usize);
         has[x] = true;
+        let mut mark = |from: usize, to: usize, how: u8| {
+            for y in from..to {
+                continued[y * w + x] = how;
+            }
+        };
         for (j, pair) in samples.windows(2).enumerate() {
             let (a, b) = (pair[0] as usize, pair[1] as usize);
             if b - a <= 1 {
@@ -337,11 +360,14 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
             } else {
                 p.tolerance
             };
-            bridge(c, w, a, b, tol, g);
+            if !bridge(c, w, a, b, tol, g) {
+                mark(a + 1, b, SPLIT);
+            }
         }
-        // Below the lowest sample: the ground continues.
+        // Below the lowest sample: the ground continues. Its slope is taken from a sample a few
+        // rows up: the rows just above belong to the same grown ring and would give no slope.
         let mut slope = 0.0;
-        if let Some(&prev) = samples.iter().rev().nth(1) {
+        if let Some(&prev) = samples.iter().rev().find(|&&s| last - s as usize >= 4) {
             let prev = prev as usize;
             let (ia, ib) = (c[prev * w], c[last * w]);
             if ib > ia && (ib - ia) <= p.tolerance * ia * (last - prev) as f32 {
@@ -351,6 +377,9 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
         let bottom = c[last * w];
         for y in last + 1..h {
             c[y * w] = (bottom + slope * (y - last) as f32).min(bottom * 5.0);
+        }
+        if slope > 0.0 {
+            mark(last + 1, h, GROUND);
         }
         // Above the highest sample: a vertical surface continues (sky is decided below).
         let up = c[first * w];
@@ -377,6 +406,7 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
             };
             for y in 0..h {
                 inv[y * w + x] = inv[y * w + near];
+                continued[y * w + x] = continued[y * w + near];
             }
         }
     }
@@ -390,7 +420,7 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
             &no_sky
         }
     };
-    smooth_unsupported(p, &mut inv, &image.rgb, &distance, sky_or_none, w, h);
+    smooth_unsupported(p, &mut inv, &image.rgb, &distance, &continued, sky_or_none, w, h);
     refine(p, &mut inv, &image.rgb, &sparse.data, sky_or_none, w, h);
     let mut depth = inv;
     for v in depth.iter_mut() {
@@ -472,7 +502,7 @@ fn support_distance(sparse: &[f32], w: usize, h: usize) -> Vec<f32> {
 /// `smooth_edge` in the summed RGB difference counts as `smooth_sigma` pixels); sky pixels
 /// neither give nor pass on depth. Only measured depths are spread, so the facade seen around a
 /// crown reaches the pixels above it while the crown's green stops it.
-fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32], sky: &[u8], w: usize, h: usize) {
+fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32], continued: &[u8], sky: &[u8], w: usize, h: usize) {
     if p.smooth_sigma <= 0.0 || p.smooth_iterations == 0 || w < 2 || h < 2 {
         return;
     }
@@ -481,8 +511,9 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
         .iter()
         .zip(distance)
         .zip(sky)
-        .map(|((&v, &d), &s)| {
-            let source = ((d <= p.smooth_from) & (s == 0) & (v > 0.0)) as u8 as f32;
+        .zip(continued)
+        .map(|(((&v, &d), &s), &c)| {
+            let source = (((d <= p.smooth_from) | (c == GROUND)) & (s == 0) & (v > 0.0)) as u8 as f32;
             [v * source, source]
         })
         .collect();
@@ -570,10 +601,20 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
             }
         }
     }
-    for (((v, a), &d), &s) in inv.iter_mut().zip(&acc).zip(distance).zip(sky) {
-        let source = d <= p.smooth_from && s == 0 && *v > 0.0;
+    let keep = p.keep_planes;
+    for (((v, a), &d), (&s, &c)) in inv.iter_mut().zip(&acc).zip(distance).zip(sky.iter().zip(continued)) {
+        let source = (d <= p.smooth_from || c == GROUND) && s == 0 && *v > 0.0;
         if !source && s == 0 && a[1] > 1e-8 {
-            *v = a[0] / a[1];
+            let smooth = a[0] / a[1];
+            // A plane's continuation is exact on that plane (the average is not: it only spreads
+            // measured values); the further the average disagrees, the likelier the pixel is on
+            // another surface (a facade above a crown), and the more it takes the average.
+            let trust = if c == CONTINUED && *v > 0.0 && keep > 0.0 {
+                (1.0 - (*v - smooth).abs() / (keep * smooth)).max(0.0)
+            } else {
+                0.0
+            };
+            *v = smooth + trust * (*v - smooth);
         }
     }
 }
@@ -825,7 +866,7 @@ pub struct CompleteDepth(Params, crate::model_worker::ModelWorker);
 
 impl Stage for CompleteDepth {
     const KIND: &'static str = "CompleteDepth";
-    const VERSION: u32 = 7;
+    const VERSION: u32 = 8;
     const SUMMARY: &'static str =
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)";
     const GRAINS: &'static [&'static str] = &["camera"];
@@ -956,6 +997,48 @@ mod tests {
                 assert!((z - truth(y)).abs() / truth(y) < 1e-4, "({x}, {y}): {z} vs {}", truth(y));
             }
         }
+    }
+
+    #[test]
+    fn surfaces_continue_beyond_their_samples_where_the_average_agrees() {
+        // A facade at a grazing angle (inverse depth linear along rows: 1/z = 0.05 + 0.0006 x,
+        // 20 m to 10 m) over rows 0..70, sampled on rows 45..70 only; below it a road sampled
+        // down to row 84 (inverse depth linear down the rows), its last rows unsampled. One
+        // colour on each, so the 2D average of measured depths reaches the unsampled pixels
+        // unhindered: it cannot extrapolate (its values lie between the samples'), the
+        // continuation of the column can.
+        let (w, h) = (80u32, 100u32);
+        let truth = |x: usize, y: usize| {
+            if y < 70 {
+                1.0 / (0.05 + 0.0006 * x as f32)
+            } else {
+                1.0 / (0.05 + 0.01 * (y as f32 - 69.0))
+            }
+        };
+        let mut sparse = DepthMap::new(w, h);
+        for y in (45..85).step_by(3) {
+            for x in (0..w as usize).step_by(2) {
+                sparse.data[y * w as usize + x] = truth(x, y);
+            }
+        }
+        let image = grey(w, h, |_, y| if y < 70 { [100, 100, 100] } else { [60, 60, 60] });
+        let worst = |keep_planes: f32, rows: std::ops::Range<usize>| {
+            let p = Params { keep_planes, refine_iterations: 0, ..Params::default() };
+            let d = complete(&p, &image, &sparse, None).depth;
+            let mut worst = 0f32;
+            for y in rows {
+                for x in 0..w as usize {
+                    worst = worst.max((d.data[y * w as usize + x] - truth(x, y)).abs() / truth(x, y));
+                }
+            }
+            worst
+        };
+        // The continuation is taken wholly only where the average agrees exactly (the weight
+        // falls linearly with their difference), so the facade's far end is not exact; but the
+        // error at least halves.
+        let (kept, averaged) = (worst(0.5, 0..40), worst(0.0, 0..40));
+        assert!(kept < 0.5 * averaged && averaged > 0.1, "facade above its samples: {kept} against {averaged}");
+        assert!(worst(0.5, 88..100) < 1e-4, "road below its samples: {}", worst(0.5, 88..100));
     }
 
     #[test]
