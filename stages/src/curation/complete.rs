@@ -186,7 +186,7 @@ fn fill_rows(p: &Params, w: usize, h: usize, inv: &mut [f32], lum: &[f32]) {
 }
 
 /// Fills `v[a+1..b]` (stride `s`) between the samples at `a` and `b`: linear when they agree,
-/// otherwise split at the strongest edge of `guide` between them. Returns whether they agreed.
+/// otherwise split at the strongest edge of `guide` between them. Returns whether it split.
 #[inline]
 fn bridge(v: &mut [f32], s: usize, a: usize, b: usize, tol: f32, guide: &[f32]) -> bool {
     let (ia, ib) = (v[a * s], v[b * s]);
@@ -211,7 +211,18 @@ fn bridge(v: &mut [f32], s: usize, a: usize, b: usize, tol: f32, guide: &[f32]) 
             v[k * s] = if k < split { ia } else { ib };
         }
     }
-    agree
+    !agree
+}
+
+/// Rows between the two samples that give a ground slope: the rows just next to a sample belong
+/// to the same grown ring and would give none.
+const SLOPE_ROWS: usize = 4;
+
+/// The gain in inverse depth per row down the image when a sample `rows` below one of inverse
+/// depth `upper` has `lower` and the two look like ground: the lower one nearer, by no more
+/// than `tol` (relative) per row.
+fn ground_slope(upper: f32, lower: f32, rows: usize, tol: f32) -> Option<f32> {
+    (lower > upper && lower - upper <= tol * upper * rows as f32).then(|| (lower - upper) / rows as f32)
 }
 
 /// Whether the inverse-depth slope over samples `j..j+1` matches the slope of the interval
@@ -360,20 +371,26 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
             } else {
                 p.tolerance
             };
-            if !bridge(c, w, a, b, tol, g) {
-                mark(a + 1, b, SPLIT);
+            if bridge(c, w, a, b, tol, g) {
+                // Two surfaces. When the lower one is the ground (its samples below say so) and
+                // the upper one is farther, the ground runs up to where it meets it (a street's
+                // far end under the buildings there), not to the image's strongest edge.
+                let (ia, ib) = (c[a * w], c[b * w]);
+                let below = samples[j + 2..].iter().find(|&&s| s as usize >= b + SLOPE_ROWS);
+                match below.and_then(|&n| ground_slope(ib, c[n as usize * w], n as usize - b, p.tolerance)) {
+                    Some(slope) if ia < ib => {
+                        for y in a + 1..b {
+                            c[y * w] = (ib - slope * (b - y) as f32).max(ia);
+                        }
+                    }
+                    _ => mark(a + 1, b, SPLIT),
+                }
             }
         }
-        // Below the lowest sample: the ground continues. Its slope is taken from a sample a few
-        // rows up: the rows just above belong to the same grown ring and would give no slope.
-        let mut slope = 0.0;
-        if let Some(&prev) = samples.iter().rev().find(|&&s| last - s as usize >= 4) {
-            let prev = prev as usize;
-            let (ia, ib) = (c[prev * w], c[last * w]);
-            if ib > ia && (ib - ia) <= p.tolerance * ia * (last - prev) as f32 {
-                slope = (ib - ia) / (last - prev) as f32;
-            }
-        }
+        // Below the lowest sample: the ground continues.
+        let above = samples.iter().rev().find(|&&s| last - s as usize >= SLOPE_ROWS);
+        let slope = above.and_then(|&s| ground_slope(c[s as usize * w], c[last * w], last - s as usize, p.tolerance));
+        let slope = slope.unwrap_or(0.0);
         let bottom = c[last * w];
         for y in last + 1..h {
             c[y * w] = (bottom + slope * (y - last) as f32).min(bottom * 5.0);
@@ -996,6 +1013,37 @@ mod tests {
                 let z = d.data[y * w as usize + x];
                 assert!((z - truth(y)).abs() / truth(y) < 1e-4, "({x}, {y}): {z} vs {}", truth(y));
             }
+        }
+    }
+
+    #[test]
+    fn the_ground_runs_up_to_the_farther_wall_it_meets() {
+        // A street's far end: a wall 30 m away over rows 0..=12, sampled on rows 2 and 6; the
+        // road below (horizon at row 8, camera 1.5 m up, f = 100: z = 150 / (v - 8)) meets it
+        // between rows 12 and 13 and is sampled from row 26 down. A painted line at rows 19-20
+        // is the image's strongest edge in the gap: the ground, not the wall, must fill rows
+        // 13-25, and the wall its own rows down to 12.
+        let (w, h) = (30u32, 60u32);
+        let road = |y: usize| 150.0 / (y as f32 + 0.5 - 8.0);
+        let mut sparse = DepthMap::new(w, h);
+        for x in 0..w as usize {
+            for y in [2, 6] {
+                sparse.data[y * w as usize + x] = 30.0;
+            }
+            for y in (26..h as usize).step_by(7) {
+                sparse.data[y * w as usize + x] = road(y);
+            }
+        }
+        let image = grey(w, h, |_, y| match y {
+            0..=12 => [120, 120, 120],
+            19 | 20 => [250, 250, 250],
+            _ => [90, 90, 90],
+        });
+        let p = Params { grow: 0.0, smooth_sigma: 0.0, refine_iterations: 0, ..Params::default() };
+        let d = complete(&p, &image, &sparse, None).depth;
+        for y in 0..26 {
+            let (z, truth) = (d.data[y * w as usize + 5], if y <= 12 { 30.0 } else { road(y) });
+            assert!((z - truth).abs() < 0.01 * truth, "row {y}: {z} vs {truth}");
         }
     }
 
