@@ -72,8 +72,9 @@ def stage_table(report):
     rows = {}
     for line in report.splitlines():
         f = line.split()
-        if len(f) == 8 and f[2].isdigit() and re.match(r"^[0-9.]+$", f[7]):
-            rows[f[0]] = (int(f[3]), float(f[7]))
+        # stage, kind, total, executed, cached, failed, skipped, [n/a,] seconds
+        if len(f) in (8, 9) and f[2].isdigit() and re.match(r"^[0-9.]+$", f[-1]):
+            rows[f[0]] = (int(f[3]), float(f[-1]))
     return rows
 
 
