@@ -215,12 +215,28 @@ fn the_12_hz_pipeline_curates_every_camera_image_and_moving_objects_follow_their
     } else {
         eprintln!("SKIPPED the clip loader: no peer venv (../shared/bench/peers/setup.sh)");
     }
-    // Without following the tracks (the ablation) only FollowTracks and what depends on it rerun,
-    // and moving objects are scored no better.
+    // Without following the tracks (the ablation) only FollowTracks and what depends on it rerun.
     let ablation = run("out_ablation", &["--set", "follow.moving_speed=1000"]);
     assert_eq!(executed(&ablation, "aggregate"), 0, "{ablation}");
-    let unmoved = mean_of(&ablation, "gt_moving (raw)", 0);
-    assert!(unmoved >= moving, "without FollowTracks {unmoved}, with {moving}");
+    // And moving objects are scored worse. Not on the 3 keyframes above: their few moving agents
+    // give the same error either way (0.139 / 0.139 at 320x180, 0.101 / 0.101 at 800x450), so
+    // the comparison there tested noise. On 8 keyframes every camera is better with the tracks
+    // (0.071 against 0.101 over cameras).
+    let longer = tmp.path().join("data8");
+    synth_camera_sweeps_of(&longer, 8, 320, 180);
+    let moving_of = |out: &str, extra: &[&str]| {
+        let root = format!("dataset.root={}", longer.display());
+        let (cache, out) = (tmp.path().join("cache8"), tmp.path().join(out));
+        let mut args = vec!["eval", pipeline.to_str().unwrap(), "--set", &root];
+        args.extend(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap(), "--progress", "off"]);
+        args.extend(extra);
+        let o = dist4d(&args);
+        assert!(o.status.success(), "{}", text(&o));
+        mean_of(&text(&o), "gt_moving (raw)", 0)
+    };
+    let (followed, unmoved) =
+        (moving_of("out8", &[]), moving_of("out8_ablation", &["--set", "follow.moving_speed=1000"]));
+    assert!(unmoved > 1.2 * followed, "without FollowTracks {unmoved}, with {followed}");
 }
 
 /// pipelines/video_12hz.ron from the CLI on the shared real data: DGP's 10 Hz samples are its

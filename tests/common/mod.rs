@@ -221,8 +221,13 @@ pub fn run_lidar_depth_with(root: &Path, cache: &Path, out: &Path, extra: &[&str
 /// `dist4d synth` of a small dataset with 12 Hz camera sweeps at `root` (3 keyframes: 13 images
 /// per camera).
 pub fn synth_camera_sweeps(root: &Path, width: u32, height: u32) {
-    let (w, h) = (width.to_string(), height.to_string());
-    let args = ["synth", "--out", root.to_str().unwrap(), "--keyframes", "3", "--width", &w, "--height", &h];
+    synth_camera_sweeps_of(root, 3, width, height)
+}
+
+/// The same with `keyframes` keyframes.
+pub fn synth_camera_sweeps_of(root: &Path, keyframes: u32, width: u32, height: u32) {
+    let (k, w, h) = (keyframes.to_string(), width.to_string(), height.to_string());
+    let args = ["synth", "--out", root.to_str().unwrap(), "--keyframes", &k, "--width", &w, "--height", &h];
     let o = dist4d(&[&args[..], &["--camera-sweeps"]].concat());
     assert!(o.status.success(), "{}", text(&o));
 }
