@@ -157,9 +157,10 @@ fn the_12_hz_pipeline_curates_every_camera_image_and_moving_objects_follow_their
     let data = tmp.path().join("data");
     synth_camera_sweeps(&data, 320, 180);
     let pipeline = repo().join("pipelines/video_12hz.ron");
-    let run = |out: &str, extra: &[&str]| {
+    // `dist4d eval` of the pipeline on `data` (its own store beside it), writing to `out`.
+    let run_on = |data: &Path, out: &str, extra: &[&str]| {
         let root = format!("dataset.root={}", data.display());
-        let (cache, out) = (tmp.path().join("cache"), tmp.path().join(out));
+        let (cache, out) = (data.with_extension("cache"), tmp.path().join(out));
         let mut args = vec!["eval", pipeline.to_str().unwrap(), "--set", &root];
         args.extend(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap(), "--progress", "off"]);
         args.extend(extra);
@@ -167,6 +168,7 @@ fn the_12_hz_pipeline_curates_every_camera_image_and_moving_objects_follow_their
         assert!(o.status.success(), "{}", text(&o));
         text(&o)
     };
+    let run = |out: &str, extra: &[&str]| run_on(&data, out, extra);
     let report = run("out", &["--set", "clips.frames=4", "--set", "clips.stride=2"]);
     // 13 rounds x 6 cameras, each curated once; scored on moving objects too.
     assert_eq!(executed(&report, "complete"), 78, "{report}");
@@ -224,16 +226,7 @@ fn the_12_hz_pipeline_curates_every_camera_image_and_moving_objects_follow_their
     // (0.071 against 0.101 over cameras).
     let longer = tmp.path().join("data8");
     synth_camera_sweeps_of(&longer, 8, 320, 180);
-    let moving_of = |out: &str, extra: &[&str]| {
-        let root = format!("dataset.root={}", longer.display());
-        let (cache, out) = (tmp.path().join("cache8"), tmp.path().join(out));
-        let mut args = vec!["eval", pipeline.to_str().unwrap(), "--set", &root];
-        args.extend(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap(), "--progress", "off"]);
-        args.extend(extra);
-        let o = dist4d(&args);
-        assert!(o.status.success(), "{}", text(&o));
-        mean_of(&text(&o), "gt_moving (raw)", 0)
-    };
+    let moving_of = |out: &str, extra: &[&str]| mean_of(&run_on(&longer, out, extra), "gt_moving (raw)", 0);
     let (followed, unmoved) =
         (moving_of("out8", &[]), moving_of("out8_ablation", &["--set", "follow.moving_speed=1000"]));
     assert!(unmoved > 1.2 * followed, "without FollowTracks {unmoved}, with {followed}");
