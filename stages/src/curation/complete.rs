@@ -541,14 +541,16 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
     if p.smooth_sigma <= 0.0 || p.smooth_iterations == 0 || w < 2 || h < 2 {
         return;
     }
+    // Sources: pixels beside a sample, or on the ground below a column's lowest one (inverse
+    // depth, distance to a sample, sky, how it was filled).
+    let source = |v: f32, d: f32, s: u8, c: u8| (d <= p.smooth_from || c == GROUND) && s == 0 && v > 0.0;
     // The filter's input: (inverse depth, 1) at sources, (0, 0) elsewhere, filtered together.
     let mut acc: Vec<[f32; 2]> = inv
         .iter()
         .zip(distance)
-        .zip(sky)
-        .zip(continued)
-        .map(|(((&v, &d), &s), &c)| {
-            let source = (((d <= p.smooth_from) | (c == GROUND)) & (s == 0) & (v > 0.0)) as u8 as f32;
+        .zip(sky.iter().zip(continued))
+        .map(|((&v, &d), (&s, &c))| {
+            let source = source(v, d, s, c) as u8 as f32;
             [v * source, source]
         })
         .collect();
@@ -643,7 +645,6 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
     // column its own correction, vertical streaks again, and average out (4 / 8 / 16 px: 2.11 /
     // 2.11 / 2.12% of seed 0's 8 keyframes off by more than 10%).
     const RADIUS: usize = 8;
-    let radius = RADIUS;
     let mut correction = vec![0f32; w];
     let mut replaced = vec![0u8; w];
     let mut sums = vec![(0f32, 0u32); w + 1];
@@ -651,8 +652,7 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
         let row = y * w..(y + 1) * w;
         for (x, i) in row.clone().enumerate() {
             let (v, a, s, c) = (inv[i], acc[i], sky[i], continued[i]);
-            let source = (distance[i] <= p.smooth_from || c == GROUND) && s == 0 && v > 0.0;
-            replaced[x] = (!source && s == 0 && a[1] > 1e-8) as u8;
+            replaced[x] = (!source(v, distance[i], s, c) && s == 0 && a[1] > 1e-8) as u8;
             correction[x] = 0.0;
             if replaced[x] != 0 {
                 let smooth = a[0] / a[1];
@@ -666,14 +666,14 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
             }
         }
         for x in 0..w {
-            let (c, n) = sums[x];
-            sums[x + 1] = (c + correction[x], n + replaced[x] as u32);
+            let (sum, n) = sums[x];
+            sums[x + 1] = (sum + correction[x], n + replaced[x] as u32);
         }
         for (x, i) in row.enumerate() {
             if replaced[x] != 0 {
-                let (lo, hi) = (x.saturating_sub(radius), (x + radius + 1).min(w));
-                let (c, n) = (sums[hi].0 - sums[lo].0, sums[hi].1 - sums[lo].1);
-                inv[i] += c / n.max(1) as f32;
+                let (lo, hi) = (x.saturating_sub(RADIUS), (x + RADIUS + 1).min(w));
+                let (sum, n) = (sums[hi].0 - sums[lo].0, sums[hi].1 - sums[lo].1);
+                inv[i] += sum / n.max(1) as f32;
             }
         }
     }
@@ -1345,16 +1345,17 @@ mod tests {
         }
         let image = grey(w, h, |_, _| [120, 110, 100]);
         let p = Params { grow: 0.0, ..Params::default() };
-        let d = complete(&p, &image, &sparse, None).depth;
-        let row: Vec<f32> = (8..56).map(|x| d.data[5 * w as usize + x]).collect();
-        let (lo, hi) = row.iter().fold((f32::MAX, 0f32), |(a, b), &v| (a.min(v), b.max(v)));
+        // The depths of row 5 between columns 8 and 56: (least, greatest).
+        let span = |p: &Params| {
+            let d = complete(p, &image, &sparse, None).depth;
+            (8..56).map(|x| d.data[5 * w as usize + x]).fold((f32::MAX, 0f32), |(a, b), v| (a.min(v), b.max(v)))
+        };
+        let (lo, hi) = span(&p);
         assert!(hi / lo < 1.02, "row 5 spans {lo}..{hi} m");
         // Kept continuations of noisy top samples would be streaks again: each column's
         // correction to the average is averaged along the row first (without the refinement,
         // which smooths steps over 5%, to see it).
-        let plain = complete(&Params { refine_iterations: 0, ..p.clone() }, &image, &sparse, None).depth;
-        let row: Vec<f32> = (8..56).map(|x| plain.data[5 * w as usize + x]).collect();
-        let (lo, hi) = row.iter().fold((f32::MAX, 0f32), |(a, b), &v| (a.min(v), b.max(v)));
+        let (lo, hi) = span(&Params { refine_iterations: 0, ..p.clone() });
         assert!(hi / lo < 1.02, "without the refinement, row 5 spans {lo}..{hi} m");
         let streaky = complete(&Params { smooth_sigma: 0.0, refine_iterations: 0, ..p }, &image, &sparse, None).depth;
         assert_eq!(streaky.data[5 * w as usize + 5], 12.0, "without the row average: a streak");
