@@ -462,9 +462,9 @@ mod tests {
 
     #[test]
     fn an_object_hides_its_own_far_side() {
-        // The car's box seen side-on: returns on its near face (y =
-        // 4, this sweep) and on its far face (y = 6, seen by another keyframe's sweep from the
-        // other side). The far face's returns are the object's own but behind its near face.
+        // The car's box seen side-on: returns on its near face (y = 4, this sweep) and on its far
+        // face (y = 6, seen by another keyframe's sweep from the other side). The far face's
+        // returns are the object's own but behind its near face.
         let boxes = car_box();
         let face = |y: f64| {
             // One return at the middle of each 5 cm cell along the face (a cell without one is not
