@@ -170,8 +170,8 @@ const OBJECT_CELL: f64 = 0.05;
 /// How far (m) an object's own return may lie inside the object along the camera's ray and still
 /// be seen. Other keyframes' sweeps saw a parked car's front, rear and far side; from a camera
 /// beside it those faces are behind its near side, and their returns, being the car's own, were
-/// kept: a tenth of the synthetic scene's wrong prompt samples (0.60% -> 0.48% of all samples
-/// with 0.5 m; 0.15 / 0.3 / 0.8 m: 0.48-0.52%). Less than a car's half width, more than the
+/// kept: a fifth of the synthetic scene's wrong prompt samples (0.60% -> 0.49% of all samples
+/// with 0.5 m; 0.15 / 0.8 m: 0.48 / 0.52%). Less than a car's half width, more than the
 /// 5 cm cells and the scan noise of a near face seen at a slant.
 const SELF_OCCLUSION: f64 = 0.5;
 
