@@ -358,7 +358,7 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
 }
 
 /// The same code compiled for AVX2: its element-wise loops and eight-lane sums run in 256-bit
-/// vectors instead of two 128-bit ones, ~13% less time per image (docs/BENCHMARKS.md). Without FMA,
+/// vectors instead of two 128-bit ones, ~8% less time per image (docs/BENCHMARKS.md). Without FMA,
 /// every operation rounds as in the portable build, so the outputs are bit-identical (a test
 /// checks it): which machine of a cluster computed a cached map does not change it.
 #[cfg(target_arch = "x86_64")]
@@ -514,8 +514,8 @@ const FAR: u32 = u32::MAX / 2;
 
 /// Distance (px) from every pixel to the nearest valid sample: the 3-4 chamfer distance
 /// (Borgefors 1986) divided by 3, within 8% of the Euclidean one; `f32::MAX` with no sample.
-/// (NearestFill's exact transform costs about 40 ms per 1600x900 image, twice this whole
-/// completion; a confidence needs no better than 8%.)
+/// (NearestFill's exact transform costs about 40 ms per 1600x900 image, nearly this whole
+/// completion's time; a confidence needs no better than 8%.)
 #[inline(always)]
 fn support_distance(sparse: &[f32], w: usize, h: usize) -> Vec<f32> {
     let mut d = map(sparse, |z| if z > 0.0 && z.is_finite() { 0 } else { FAR });
@@ -679,7 +679,7 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
     const RADIUS: usize = 8;
     // Per row: what each pixel becomes and its correction, then the correction's mean over the
     // window from running sums. The sums run in registers: read back from the previous entry,
-    // each addition waited on a store (3.9 of the completion's ~58 ms, now 0.7).
+    // each addition waited on a store (3.9 ms of the completion's then ~58, now 0.7).
     let mut correction = vec![0f32; w];
     let mut replaced = vec![0f32; w];
     let mut sums = vec![[0f32; 2]; w + 1];
@@ -782,7 +782,7 @@ fn filter_rows<const R: usize>(nums: &mut [f32], dens: &mut [f32], links: &[f32]
 /// `EDGE_STEP`, sum over 4-neighbour links of w_ij (x_i - x_j)^2 + `refine_weight` * sum over
 /// samples of (x_i - 1/z_i)^2, with w_ij = exp(-|rgb_i - rgb_j|^2 / 2 `refine_sigma`^2) + 1e-4;
 /// every other pixel keeps its value and holds its neighbours in the band (sky neither gives nor
-/// takes). Started from the filled map, tens of steps (Jacobi preconditioner) move depth edges
+/// takes). Started from the filled map, tens of steps (Jacobi-preconditioned) move depth edges
 /// onto colour edges; solved to the end over the whole image it takes thousands and blurs real
 /// images across like-coloured surfaces. Figures: docs/BENCHMARKS.md, "What the completion can
 /// reach".
@@ -971,8 +971,9 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: 
 struct Stencil<'a> {
     /// (first slot, length, first upper slot) of the runs of slots with active upper neighbours.
     up_runs: &'a [[u32; 3]],
-    /// Weight of each slot's link to its left (upper) neighbour, 0 where that one is not active.
+    /// Scaled weight of each slot's link to its left neighbour, 0 where that one is not active.
     left: &'a [f32],
+    /// Scaled weight of each slot's link to its upper neighbour, 0 where that one is not active.
     up: &'a [f32],
 }
 
