@@ -588,10 +588,10 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
     // two planes, so that the column passes are arithmetic on contiguous rows and vectorise).
     let n = w * h;
     let (mut num, mut den) = (vec![0f32; n], vec![0f32; n]);
-    for (i, ((&v, &d), (&s, &c))) in inv.iter().zip(distance).zip(sky.iter().zip(continued)).enumerate() {
+    for ((nu, de), ((&v, &d), (&s, &c))) in num.iter_mut().zip(den.iter_mut()).zip(inv.iter().zip(distance).zip(sky.iter().zip(continued))) {
         let source = source(v, d, s, c) as u8 as f32;
-        num[i] = v * source;
-        den[i] = source;
+        *nu = v * source;
+        *de = source;
     }
     if !den.iter().zip(sky).any(|(&a, &s)| a == 0.0 && s == 0) {
         return;
@@ -614,8 +614,9 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
     let sigma = p.smooth_sigma * 3f32.sqrt() * 2f32.powi(iterations - 1) / (4f32.powi(iterations) - 1.0).sqrt();
     // Colour steps (summed RGB difference, 0-765) -> weight; a link that sky or the border cuts
     // weighs 0, so the passes below need no branch.
-    let mut weight = [0f32; 766];
-    for (s, c) in weight.iter_mut().enumerate() {
+    // (The last entry, 0, is a cut link's.)
+    let mut weight = [0f32; CUT + 1];
+    for (s, c) in weight.iter_mut().enumerate().take(CUT) {
         *c = (-(2f32.sqrt() / sigma) * (1.0 + ratio * s as f32)).exp();
     }
     // Link weights to the left and to the upper neighbour.
@@ -716,7 +717,7 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
 /// them: `weight` of their summed RGB difference (`planes`: red, green, blue planes of one image),
 /// 0 where either pixel is sky.
 #[inline(always)]
-fn link_weights(out: &mut [f32], planes: &[u8], sky: &[u8], weight: &[f32; 766], from: usize, back: usize) {
+fn link_weights(out: &mut [f32], planes: &[u8], sky: &[u8], weight: &[f32; CUT + 1], from: usize, back: usize) {
     let (n, len) = (sky.len(), out.len());
     let plane = |c: usize, from: usize| &planes[c * n + from..c * n + from + len];
     let (r, g, b, s) = (plane(0, from), plane(1, from), plane(2, from), &sky[from..from + len]);
@@ -724,9 +725,14 @@ fn link_weights(out: &mut [f32], planes: &[u8], sky: &[u8], weight: &[f32; 766],
     let (r0, g0, b0, s0) = (plane(0, at), plane(1, at), plane(2, at), &sky[at..at + len]);
     for (i, o) in out.iter_mut().enumerate() {
         let d = r[i].abs_diff(r0[i]) as usize + g[i].abs_diff(g0[i]) as usize + b[i].abs_diff(b0[i]) as usize;
-        *o = if (s[i] | s0[i]) != 0 { 0.0 } else { weight[d] };
+        // A select, not a branch, so that the loop vectorises (with AVX2, the lookup too).
+        *o = weight[if (s[i] | s0[i]) != 0 { CUT } else { d }];
     }
 }
+
+/// The slot of a cut link (sky, or the image's border) in the 2D fill's weight table, after the
+/// 766 colour steps (summed RGB differences 0-765).
+const CUT: usize = 766;
 
 /// Each weight squared, in place: the next iteration's (see `smooth_unsupported`).
 #[inline(always)]
