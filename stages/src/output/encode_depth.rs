@@ -51,15 +51,17 @@ pub fn turbo(t: f32) -> [u8; 3] {
 pub fn depth_preview(d: &DepthMap, max_depth: f32) -> Result<Vec<u8>> {
     const STEPS: usize = 4096;
     static TABLE: std::sync::OnceLock<Vec<[u8; 3]>> = std::sync::OnceLock::new();
-    let table = TABLE.get_or_init(|| (0..STEPS).map(|i| turbo(i as f32 / (STEPS - 1) as f32)).collect());
+    // One entry more, black, for no depth: a select, not a branch, picks it.
+    let table = TABLE.get_or_init(|| {
+        (0..STEPS).map(|i| turbo(i as f32 / (STEPS - 1) as f32)).chain(std::iter::once([0; 3])).collect()
+    });
     let scale = (STEPS - 1) as f32 / max_depth;
     anyhow::ensure!(d.data.len() == d.width as usize * d.height as usize, "depth map size");
     let mut px = vec![0u8; 3 * d.data.len()];
     for (&z, rgb) in d.data.iter().zip(px.chunks_exact_mut(3)) {
-        if z > 0.0 && z.is_finite() {
-            // t = 1 - z / max, clamped to [0, 1], as a table index; no depth stays black.
-            rgb.copy_from_slice(&table[(STEPS - 1) - ((z * scale).round().min((STEPS - 1) as f32) as usize)]);
-        }
+        // t = 1 - z / max, clamped to [0, 1], as a table index; no depth stays black.
+        let near = (STEPS - 1) - ((z * scale).round().min((STEPS - 1) as f32) as usize);
+        rgb.copy_from_slice(&table[if z > 0.0 && z.is_finite() { near } else { STEPS }]);
     }
     png_bytes(d.width, d.height, &px, png::ColorType::Rgb, png::BitDepth::Eight)
 }
