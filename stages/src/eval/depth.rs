@@ -145,6 +145,13 @@ pub fn depth_metrics(
     mask: Option<&[bool]>,
     median_scaling: bool,
 ) -> Result<Option<DepthMetrics>> {
+    let pairs = scored_pairs(params, pred, reference, mask)?;
+    Ok(metrics_of(params, pairs, median_scaling))
+}
+
+/// (prediction, reference) of the pixels scored: reference in range and allowed by `mask`; a
+/// missing prediction counts as `max_depth`.
+fn scored_pairs(params: &Params, pred: &DepthMap, reference: &DepthMap, mask: Option<&[bool]>) -> Result<Vec<(f32, f32)>> {
     ensure_same_size(pred, reference)?;
     let (lo, hi) = (params.min_depth, params.max_depth);
     let mut pairs: Vec<(f32, f32)> = Vec::new();
@@ -153,8 +160,15 @@ pub fn depth_metrics(
             pairs.push((if p.is_finite() { p } else { hi }, r));
         }
     }
+    Ok(pairs)
+}
+
+/// The metrics of the scored pairs, the prediction first scaled by the ratio of the medians when
+/// `median_scaling`; `None` without a pair.
+fn metrics_of(params: &Params, mut pairs: Vec<(f32, f32)>, median_scaling: bool) -> Option<DepthMetrics> {
+    let (lo, hi) = (params.min_depth, params.max_depth);
     if pairs.is_empty() {
-        return Ok(None);
+        return None;
     }
     if median_scaling {
         let med = |mut v: Vec<f32>| {
@@ -193,7 +207,7 @@ pub fn depth_metrics(
     m.bad_10 = Some(bad_10 as f64 / n);
     m.bad_25 = Some(bad_25 as f64 / n);
     m.pixels = pairs.len() as u64;
-    Ok(Some(m))
+    Some(m)
 }
 
 fn ensure_same_size(pred: &DepthMap, reference: &DepthMap) -> Result<()> {
@@ -247,8 +261,10 @@ pub fn evaluate(
         let Some(r) = reference.filter(|r| r.width > 0 && r.height > 0) else { continue };
         let context = || format!("against `{name}`");
         ensure_same_size(pred, r).with_context(context)?;
+        // The pairs once for both (copied, not gathered again, for the scaled metrics).
+        let pairs = scored_pairs(params, pred, r, None)?;
         let (Some(raw), Some(median_scaled)) =
-            (depth_metrics(params, pred, r, None, false)?, depth_metrics(params, pred, r, None, true)?)
+            (metrics_of(params, pairs.clone(), false), metrics_of(params, pairs, true))
         else {
             continue;
         };
