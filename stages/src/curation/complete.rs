@@ -612,9 +612,8 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
     // iteration's squared: the weights are looked up once, for the first iteration, and squared
     // in place after each use.
     let sigma = p.smooth_sigma * 3f32.sqrt() * 2f32.powi(iterations - 1) / (4f32.powi(iterations) - 1.0).sqrt();
-    // Colour steps (summed RGB difference, 0-765) -> weight; a link that sky or the border cuts
-    // weighs 0, so the passes below need no branch.
-    // (The last entry, 0, is a cut link's.)
+    // Colour steps (summed RGB difference, 0-765) -> weight; the last entry, 0, is a link that
+    // sky or the border cuts, so the passes below need no branch.
     let mut weight = [0f32; CUT + 1];
     for (s, c) in weight.iter_mut().enumerate().take(CUT) {
         *c = (-(2f32.sqrt() / sigma) * (1.0 + ratio * s as f32)).exp();
@@ -689,9 +688,9 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
         let (inv, num, den, distance) = (&mut inv[row.clone()], &num[row.clone()], &den[row.clone()], &distance[row.clone()]);
         let (sky, continued) = (&sky[row.clone()], &continued[row]);
         for x in 0..w {
-            let (v, a, s, c) = (inv[x], [num[x], den[x]], sky[x], continued[x]);
-            let replace = !source(v, distance[x], s, c) & (s == 0) & (a[1] > 1e-8);
-            let smooth = a[0] / a[1].max(1e-8);
+            let (v, s, c) = (inv[x], sky[x], continued[x]);
+            let replace = !source(v, distance[x], s, c) & (s == 0) & (den[x] > 1e-8);
+            let smooth = num[x] / den[x].max(1e-8);
             // NaN (no average, keep = 0) falls to 0 in `max`.
             let trust = (1.0 - (v - smooth).abs() / (keep * smooth)).max(0.0);
             let trusted = replace & (c == CONTINUED) & (v > 0.0) & (keep > 0.0);
@@ -871,14 +870,16 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: 
     // active pixels whose upper neighbours are all active has those neighbours in consecutive
     // slots too, and A v along such a run is arithmetic on contiguous slices (it vectorises).
     let len = m + 2;
-    let [mut left, mut right, mut up, mut down] = [(); 4].map(|_| vec![0f32; len]);
+    let [mut left, mut up, mut down] = [(); 3].map(|_| vec![0f32; len]);
     let mut diag = vec![1f32; len];
     let mut rhs = vec![0f32; len];
     let mut u = vec![0f32; len];
     // Runs of consecutive slots whose upper neighbours are active and consecutive too: (first
     // slot, length, first upper slot).
     let mut up_runs: Vec<[u32; 3]> = Vec::new();
-    let mut previous = usize::MAX;
+    // The previous active pixel and its link to the right (this slot's left link when the two
+    // are neighbours).
+    let (mut previous, mut previous_right) = (usize::MAX, 0f32);
     let (mut y, mut row_end) = (0, w);
     for (k0, &i) in index.iter().enumerate() {
         let (k, i) = (k0 + 1, i as usize);
@@ -904,8 +905,8 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: 
             }
             0.0
         };
-        left[k] = link((c > 0).then(|| i - 1), (previous.wrapping_add(1) == i).then(|| right[k - 1]));
-        right[k] = link((c + 1 < w).then(|| i + 1), None);
+        left[k] = link((c > 0).then(|| i - 1), (previous.wrapping_add(1) == i).then_some(previous_right));
+        let right = link((c + 1 < w).then(|| i + 1), None);
         up[k] = link((y > 0).then(|| i - w), (up_slot != OUT).then(|| down[up_slot as usize]));
         down[k] = link((y + 1 < h).then(|| i + w), None);
         diag[k] = if d > 0.0 { d } else { 1.0 };
@@ -917,10 +918,10 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: 
                 _ => up_runs.push([k as u32, 1, up_slot]),
             }
         }
-        previous = i;
+        (previous, previous_right) = (i, right);
     }
     drop(at);
-    drop((right, down));
+    drop(down);
     // Conjugate gradients on the system scaled to a unit diagonal, S A S u' = S b with u = S u'
     // and S = diag^-1/2: the same iterates as the Jacobi-preconditioned system's, and no diagonal or
     // preconditioner to stream through every step. A link's weight in one direction is its

@@ -259,10 +259,8 @@ pub fn evaluate(
     for &(name, reference, coverage) in references {
         // An empty reference: the dataset has none.
         let Some(r) = reference.filter(|r| r.width > 0 && r.height > 0) else { continue };
-        let context = || format!("against `{name}`");
-        ensure_same_size(pred, r).with_context(context)?;
         // The pairs once for both (copied, not gathered again, for the scaled metrics).
-        let pairs = scored_pairs(params, pred, r, None)?;
+        let pairs = scored_pairs(params, pred, r, None).with_context(|| format!("against `{name}`"))?;
         let (Some(raw), Some(median_scaled)) =
             (metrics_of(params, pairs.clone(), false), metrics_of(params, pairs, true))
         else {
