@@ -482,8 +482,9 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
             &no_sky
         }
     };
-    smooth_unsupported(p, &mut inv, &image.rgb, &distance, &continued, sky_or_none, w, h);
-    refine(p, &mut inv, &image.rgb, &sparse.data, sky_or_none, w, h);
+    let planes = colour_planes(&image.rgb);
+    smooth_unsupported(p, &mut inv, &planes, &distance, &continued, sky_or_none, w, h);
+    refine(p, &mut inv, &planes, &sparse.data, sky_or_none, w, h);
     let mut depth = inv;
     for v in depth.iter_mut() {
         *v = if *v > 0.0 { 1.0 / *v } else { 0.0 };
@@ -530,9 +531,7 @@ fn support_distance(sparse: &[f32], w: usize, h: usize) -> Vec<f32> {
         if y > 0 {
             chamfer_from_row(row, &done[(y - 1) * w..]);
         }
-        for x in 1..w {
-            row[x] = row[x].min(row[x - 1] + 3);
-        }
+        chain_along(row);
     }
     for y in (0..h).rev() {
         let (head, below) = d.split_at_mut((y + 1) * w);
@@ -540,11 +539,47 @@ fn support_distance(sparse: &[f32], w: usize, h: usize) -> Vec<f32> {
         if y + 1 < h {
             chamfer_from_row(row, &below[..w]);
         }
-        for x in (0..w - 1).rev() {
-            row[x] = row[x].min(row[x + 1] + 3);
-        }
+        row.reverse();
+        chain_along(row);
+        row.reverse();
     }
     map(&d, |v| if v >= FAR { f32::MAX } else { v as f32 / 3.0 })
+}
+
+/// The chamfer's links along a row, left to right: row[x] = min(row[x], row[x - 1] + 3), that is
+/// the least row[j] + 3 (x - j) over j <= x. Done in one chain, each step waits on the one
+/// before; so the row's four quarters run as four chains side by side, and then each quarter
+/// takes the end of the one before it as one more candidate, up to where it stops winning (past
+/// there it never wins again: it grows by 3 per pixel and the chained row by at most 3).
+#[inline(always)]
+fn chain_along(row: &mut [u32]) {
+    let (w, q) = (row.len(), row.len() / 4);
+    if q < 2 {
+        for x in 1..w {
+            row[x] = row[x].min(row[x - 1] + 3);
+        }
+        return;
+    }
+    for x in 1..q {
+        for c in 0..4 {
+            let i = c * q + x;
+            row[i] = row[i].min(row[i - 1] + 3);
+        }
+    }
+    // The last quarter takes the pixels the division left over.
+    for x in 4 * q..w {
+        row[x] = row[x].min(row[x - 1] + 3);
+    }
+    for c in 1..4 {
+        let mut carried = row[c * q - 1];
+        for v in &mut row[c * q..] {
+            carried += 3;
+            if carried >= *v {
+                break;
+            }
+            *v = carried;
+        }
+    }
 }
 
 /// The 3-4 chamfer links from a row to its neighbour row `other` (element-wise, so they vectorise).
@@ -558,6 +593,20 @@ fn chamfer_from_row(row: &mut [u32], other: &[u32]) {
     for (v, o) in row[1..].iter_mut().zip(other.windows(3)) {
         *v = (*v).min(o[1] + 3).min(o[0] + 4).min(o[2] + 4);
     }
+}
+
+/// The red, green and blue planes of an RGB8 image, one after the other: the colour differences
+/// of the 2D fill and the refinement are then element-wise on contiguous slices, and vectorise.
+#[inline(always)]
+fn colour_planes(rgb: &[u8]) -> Vec<u8> {
+    let n = rgb.len() / 3;
+    let mut planes = vec![0u8; 3 * n];
+    let (red, rest) = planes.split_at_mut(n);
+    let (green, blue) = rest.split_at_mut(n);
+    for (((px, r), g), b) in rgb.chunks_exact(3).zip(red).zip(green).zip(blue) {
+        (*r, *g, *b) = (px[0], px[1], px[2]);
+    }
+    planes
 }
 
 /// Pixels farther than `smooth_from` px from every sample got their inverse depth from one
@@ -577,7 +626,7 @@ fn chamfer_from_row(row: &mut [u32], other: &[u32]) {
 /// correction, weighted by how well the two agree (`keep_planes`; split gaps get none) and
 /// averaged along the row (so that noisy top samples do not make streaks again).
 #[inline(always)]
-fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32], continued: &[u8], sky: &[u8], w: usize, h: usize) {
+fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], distance: &[f32], continued: &[u8], sky: &[u8], w: usize, h: usize) {
     if p.smooth_sigma <= 0.0 || p.smooth_iterations == 0 || w < 2 || h < 2 {
         return;
     }
@@ -595,15 +644,6 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
     }
     if !den.iter().zip(sky).any(|(&a, &s)| a == 0.0 && s == 0) {
         return;
-    }
-    // On the three colour planes, so that the differences vectorise.
-    let mut planes = vec![0u8; 3 * n];
-    {
-        let (red, rest) = planes.split_at_mut(n);
-        let (green, blue) = rest.split_at_mut(n);
-        for (((px, r), g), b) in rgb.chunks_exact(3).zip(red).zip(green).zip(blue) {
-            (*r, *g, *b) = (px[0], px[1], px[2]);
-        }
     }
     let iterations = p.smooth_iterations as i32;
     let ratio = p.smooth_sigma / p.smooth_edge.max(1e-3);
@@ -627,7 +667,6 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], rgb: &[u8], distance: &[f32],
             link_weights(&mut up[y * w..(y + 1) * w], &planes, sky, &weight, y * w, w);
         }
     }
-    drop(planes);
     for k in 0..iterations {
         let last = k + 1 == iterations;
         // Along rows: causal, then anti-causal over the causal result. Each row is a chain of
@@ -792,7 +831,7 @@ fn filter_rows<const R: usize>(nums: &mut [f32], dens: &mut [f32], links: &[f32]
 /// images across like-coloured surfaces. Figures: docs/BENCHMARKS.md, "What the completion can
 /// reach".
 #[inline(always)]
-fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: usize, h: usize) {
+fn refine(p: &Params, x: &mut [f32], planes: &[u8], sparse: &[f32], sky: &[u8], w: usize, h: usize) {
     /// A depth step (ratio) that marks a depth edge of the filled map.
     const EDGE_STEP: f32 = 1.05;
     if p.refine_iterations == 0 || w < 2 || h < 2 {
@@ -854,74 +893,112 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: 
     for (d, f) in factor.iter_mut().enumerate() {
         *f = (-((d * d) as f32) / (2.0 * p.refine_sigma * p.refine_sigma)).exp();
     }
-    let affinity = |i: usize, j: usize| -> f32 {
-        if (sky[i] | sky[j]) != 0 {
-            return 0.0;
-        }
-        let (a, b) = (&rgb[3 * i..3 * i + 3], &rgb[3 * j..3 * j + 3]);
-        factor[a[0].abs_diff(b[0]) as usize]
-            * factor[a[1].abs_diff(b[1]) as usize]
-            * factor[a[2].abs_diff(b[2]) as usize]
-            + 1e-4
-    };
     // The system A u = b over slots 1..=m, with a weight per link direction (0 where the
     // neighbour is outside the band: fixed, its value on the right-hand side). The diagonal holds
     // every link's weight and the sample's hold. Slots run in row-major order, so a run of
     // active pixels whose upper neighbours are all active has those neighbours in consecutive
     // slots too, and A v along such a run is arithmetic on contiguous slices (it vectorises).
     let len = m + 2;
-    let [mut left, mut up, mut down] = [(); 3].map(|_| vec![0f32; len]);
+    let [mut left, mut up] = [(); 2].map(|_| vec![0f32; len]);
     let mut diag = vec![1f32; len];
     let mut rhs = vec![0f32; len];
     let mut u = vec![0f32; len];
     // Runs of consecutive slots whose upper neighbours are active and consecutive too: (first
     // slot, length, first upper slot).
     let mut up_runs: Vec<[u32; 3]> = Vec::new();
-    // The previous active pixel and its link to the right (this slot's left link when the two
-    // are neighbours).
-    let (mut previous, mut previous_right) = (usize::MAX, 0f32);
-    let (mut y, mut row_end) = (0, w);
-    for (k0, &i) in index.iter().enumerate() {
-        let (k, i) = (k0 + 1, i as usize);
-        while i >= row_end {
-            y += 1;
-            row_end += w;
+    // The system is set up a segment at a time: a maximal run of active pixels along a row
+    // (consecutive pixels, consecutive slots), whose links are arrays over it, so that the loops
+    // are element-wise on contiguous slices and vectorise. `across[t]` joins its pixels t - 1 and
+    // t (at both ends, to the fixed pixels beside it), `above` and `below` join each to the rows
+    // above and below; 0 where there is no neighbour, which adds nothing to a sum.
+    let (mut across, mut above, mut below) = (vec![0f32; w + 1], vec![0f32; w], vec![0f32; w]);
+    let mut k = 1;
+    while k <= m {
+        let first = index[k - 1] as usize;
+        let (y, c) = (first / w, first % w);
+        let mut n = 1;
+        while k + n <= m && index[k + n - 1] as usize == first + n && c + n < w {
+            n += 1;
         }
-        let c = i + w - row_end;
-        let held = if sparse[i] > 0.0 && sparse[i].is_finite() { p.refine_weight } else { 0.0 };
-        let (mut d, mut b) = (held, if held > 0.0 { held / sparse[i] } else { 0.0 });
-        let up_slot = if y > 0 { at[i - w] } else { OUT };
-        // The link's weight if its neighbour is active; a fixed neighbour goes to the right-hand
-        // side. A link to an earlier active slot was weighed there.
-        let mut link = |j: Option<usize>, weighed: Option<f32>| -> f32 {
-            let Some(j) = j else { return 0.0 };
-            let a = weighed.unwrap_or_else(|| affinity(i, j));
-            d += a;
-            if at[j] != OUT {
-                return a;
+        let (pixels, slots) = (first..first + n, k..k + n);
+        // The weights of the links from the pixels `from..` to the pixels `to..` (0 where either
+        // is sky; a link's weight does not depend on its direction).
+        let weigh = |out: &mut [f32], from: usize, to: usize| {
+            let len = out.len();
+            let plane = |c: usize, at: usize| &planes[c * (w * h) + at..c * (w * h) + at + len];
+            let (r, g, b, s) = (plane(0, from), plane(1, from), plane(2, from), &sky[from..from + len]);
+            let (r1, g1, b1, s1) = (plane(0, to), plane(1, to), plane(2, to), &sky[to..to + len]);
+            for (t, o) in out.iter_mut().enumerate() {
+                let a = factor[r[t].abs_diff(r1[t]) as usize]
+                    * factor[g[t].abs_diff(g1[t]) as usize]
+                    * factor[b[t].abs_diff(b1[t]) as usize]
+                    + 1e-4;
+                *o = if (s[t] | s1[t]) != 0 { 0.0 } else { a };
             }
-            if sky[j] == 0 {
-                b += a * x[j];
-            }
-            0.0
         };
-        left[k] = link((c > 0).then(|| i - 1), (previous.wrapping_add(1) == i).then_some(previous_right));
-        let right = link((c + 1 < w).then(|| i + 1), None);
-        up[k] = link((y > 0).then(|| i - w), (up_slot != OUT).then(|| down[up_slot as usize]));
-        down[k] = link((y + 1 < h).then(|| i + w), None);
-        diag[k] = if d > 0.0 { d } else { 1.0 };
-        rhs[k] = b;
-        u[k] = x[i];
-        if up_slot != OUT {
-            match up_runs.last_mut() {
-                Some([first, n, above]) if *first + *n == k as u32 && *above + *n == up_slot => *n += 1,
-                _ => up_runs.push([k as u32, 1, up_slot]),
+        let across = &mut across[..n + 1];
+        across.fill(0.0);
+        let (from, to) = (first - (c > 0) as usize, first + n - (c + n == w) as usize);
+        weigh(&mut across[(c == 0) as usize..(to - from + (c == 0) as usize)], from, from + 1);
+        let (above, below) = (&mut above[..n], &mut below[..n]);
+        above.fill(0.0);
+        below.fill(0.0);
+        if y > 0 {
+            weigh(above, first, first - w);
+        }
+        if y + 1 < h {
+            weigh(below, first, first + w);
+        }
+        let (samples, start) = (&sparse[pixels.clone()], &x[pixels]);
+        let (diag, rhs) = (&mut diag[slots.clone()], &mut rhs[slots.clone()]);
+        u[slots.clone()].copy_from_slice(start);
+        for t in 0..n {
+            let z = samples[t];
+            let held = if z > 0.0 && z.is_finite() { p.refine_weight } else { 0.0 };
+            let d = held + across[t] + across[t + 1] + above[t] + below[t];
+            diag[t] = if d > 0.0 { d } else { 1.0 };
+            rhs[t] = if held > 0.0 { held / z } else { 0.0 };
+        }
+        // Fixed neighbours: a link's weight times their value goes to the right-hand side, in
+        // the order left, right, up, down. Along the row only the segment's ends have them (it is
+        // a maximal run of active pixels). A sky neighbour's weight is 0: it adds nothing.
+        if c > 0 && sky[first - 1] == 0 {
+            rhs[0] += across[0] * x[first - 1];
+        }
+        if c + n < w && sky[first + n] == 0 {
+            rhs[n - 1] += across[n] * x[first + n];
+        }
+        let fixed_times = |rhs: &mut [f32], weights: &[f32], neighbours: usize| {
+            let (ats, skies, values) = (&at[neighbours..neighbours + n], &sky[neighbours..neighbours + n], &x[neighbours..neighbours + n]);
+            for t in 0..n {
+                let fixed = (ats[t] == OUT) & (skies[t] == 0);
+                rhs[t] += if fixed { weights[t] * values[t] } else { 0.0 };
+            }
+        };
+        if y > 0 {
+            fixed_times(rhs, above, first - w);
+        }
+        if y + 1 < h {
+            fixed_times(rhs, below, first + w);
+        }
+        left[k] = 0.0;
+        left[k + 1..k + n].copy_from_slice(&across[1..n]);
+        if y > 0 {
+            let ats = &at[first - w..first - w + n];
+            for (t, (o, &up_slot)) in up[slots].iter_mut().zip(ats).enumerate() {
+                *o = if up_slot != OUT { above[t] } else { 0.0 };
+                if up_slot != OUT {
+                    let kt = (k + t) as u32;
+                    match up_runs.last_mut() {
+                        Some([first, n, above]) if *first + *n == kt && *above + *n == up_slot => *n += 1,
+                        _ => up_runs.push([kt, 1, up_slot]),
+                    }
+                }
             }
         }
-        (previous, previous_right) = (i, right);
+        k += n;
     }
     drop(at);
-    drop(down);
     // Conjugate gradients on the system scaled to a unit diagonal, S A S u' = S b with u = S u'
     // and S = diag^-1/2: the same iterates as the Jacobi-preconditioned system's, and no diagonal or
     // preconditioner to stream through every step. A link's weight in one direction is its
@@ -952,22 +1029,18 @@ fn refine(p: &Params, x: &mut [f32], rgb: &[u8], sparse: &[f32], sky: &[u8], w: 
     }
     r[0] = 0.0;
     r[m + 1] = 0.0;
-    let mut dir = r.clone();
-    let mut rr = dot3(&r, &r, &[]);
-    let mut q = vec![0f32; len];
+    let mut rr = dot(&r, &r);
+    let (mut dir, mut q) = (vec![0f32; len], vec![0f32; len]);
+    let mut beta = 0f32;
     for _ in 0..p.refine_iterations {
-        system.apply(&dir, &mut q);
-        let pq = dot3(&dir, &q, &[]);
+        let pq = system.next_direction(&mut dir, &r, beta, &mut q);
         if !(pq > 0.0) || rr <= 0.0 {
             break;
         }
         let alpha = (rr / pq) as f32;
         let next = cg_update(&mut u, &mut r, &dir, &q, alpha);
-        let beta = (next / rr) as f32;
+        beta = (next / rr) as f32;
         rr = next;
-        for (d, &r) in dir.iter_mut().zip(&r) {
-            *d = r + beta * *d;
-        }
     }
     for (k0, &i) in index.iter().enumerate() {
         x[i as usize] = u[k0 + 1] * scale[k0 + 1];
@@ -1009,8 +1082,58 @@ impl Stencil<'_> {
     }
 }
 
+impl Stencil<'_> {
+    /// A step's first pass over the slots, a block at a time so that each block is worked on
+    /// while it is in cache: the search direction dir = r + beta dir, q = A dir (as `apply`), and
+    /// returns dir . q, summed by `BlockSum` where q is final: a run of vertical links writes to
+    /// its own slots and to the row above's, so q is final below the next run's upper slots.
+    #[inline(always)]
+    fn next_direction(&self, dir: &mut [f32], r: &[f32], beta: f32, q: &mut [f32]) -> f64 {
+        const BLOCK: usize = 2048;
+        let m = q.len() - 2;
+        let (mut run, mut updated, mut sum) = (0, 1, BlockSum::default());
+        let mut start = 1;
+        while start <= m {
+            let end = (start + BLOCK).min(m + 1);
+            // The direction one slot ahead of the block, its east neighbour.
+            let ahead = (end + 1).min(m + 1);
+            for (d, &r) in dir[updated..ahead].iter_mut().zip(&r[updated..ahead]) {
+                *d = r + beta * *d;
+            }
+            updated = ahead;
+            let (centre, east, west) = (&dir[start..end], &dir[start + 1..end + 1], &dir[start - 1..end - 1]);
+            let (wl, wr) = (&self.left[start..end], &self.left[start + 1..end + 1]);
+            for (t, o) in q[start..end].iter_mut().enumerate() {
+                *o = centre[t] - wl[t] * west[t] - wr[t] * east[t];
+            }
+            while let Some(&[k, n, above]) = self.up_runs.get(run) {
+                let (k, n, above) = (k as usize, n as usize, above as usize);
+                if k + n > end {
+                    break;
+                }
+                let (links, here, up) = (&self.up[k..k + n], &dir[k..k + n], &dir[above..above + n]);
+                for (t, o) in q[k..k + n].iter_mut().enumerate() {
+                    *o -= links[t] * up[t];
+                }
+                for (t, o) in q[above..above + n].iter_mut().enumerate() {
+                    *o -= links[t] * here[t];
+                }
+                run += 1;
+            }
+            let done = match self.up_runs.get(run) {
+                _ if end == m + 1 => q.len(),
+                Some(&[_, _, above]) => (above as usize).min(end) / 8 * 8,
+                None => end / 8 * 8,
+            };
+            sum.add(dir, q, done);
+            start = end;
+        }
+        sum.total
+    }
+}
+
 /// One conjugate-gradient update, u += alpha dir and r -= alpha q, returning the new r . r (summed
-/// as `dot3` sums), in one pass over r.
+/// as `dot` sums), in one pass over r.
 #[inline(always)]
 fn cg_update(u: &mut [f32], r: &mut [f32], dir: &[f32], q: &[f32], alpha: f32) -> f64 {
     const BLOCK: usize = 4096;
@@ -1037,37 +1160,50 @@ fn cg_update(u: &mut [f32], r: &mut [f32], dir: &[f32], q: &[f32], alpha: f32) -
     total
 }
 
-/// sum a_k b_k c_k (c empty: sum a_k b_k), in eight f32 lanes per block of 4096, blocks summed in
-/// f64: it vectorises, and no lane sums more than 512 terms.
+/// sum a_k b_k, in eight f32 lanes per block of 4096, blocks summed in f64: it vectorises, and no
+/// lane sums more than 512 terms.
 #[inline(always)]
-fn dot3(a: &[f32], b: &[f32], c: &[f32]) -> f64 {
-    const BLOCK: usize = 4096;
-    let mut total = 0f64;
-    for (start, (a, b)) in (0..).step_by(BLOCK).zip(a.chunks(BLOCK).zip(b.chunks(BLOCK))) {
-        let mut lanes = [0f32; 8];
-        let mut tail = 0f32;
-        if c.is_empty() {
-            let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-            tail += ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum::<f32>();
+fn dot(a: &[f32], b: &[f32]) -> f64 {
+    let mut sum = BlockSum::default();
+    sum.add(a, b, a.len());
+    sum.total
+}
+
+/// `dot` taken a stretch at a time, in order: each lane and block sums the same terms in the
+/// same order as over the whole, so the total is the same to the bit (stretches end on
+/// multiples of 8, but the last).
+#[derive(Default)]
+struct BlockSum {
+    lanes: [f32; 8],
+    total: f64,
+    /// The next index to add.
+    next: usize,
+}
+
+impl BlockSum {
+    /// Adds a_k b_k over `self.next..to` (a multiple of 8, or the slices' end).
+    #[inline(always)]
+    fn add(&mut self, a: &[f32], b: &[f32], to: usize) {
+        const BLOCK: usize = 4096;
+        while self.next < to {
+            let block_end = (self.next / BLOCK + 1) * BLOCK;
+            let end = to.min(block_end);
+            let whole = self.next + (end - self.next) / 8 * 8;
+            let (ca, cb) = (a[self.next..whole].chunks_exact(8), b[self.next..whole].chunks_exact(8));
             for (x, y) in ca.zip(cb) {
                 for l in 0..8 {
-                    lanes[l] += x[l] * y[l];
+                    self.lanes[l] += x[l] * y[l];
                 }
             }
-        } else {
-            let c = &c[start..start + a.len()];
-            let (ca, cb, cc) = (a.chunks_exact(8), b.chunks_exact(8), c.chunks_exact(8));
-            tail +=
-                ca.remainder().iter().zip(cb.remainder()).zip(cc.remainder()).map(|((x, y), z)| x * y * z).sum::<f32>();
-            for ((x, y), z) in ca.zip(cb).zip(cc) {
-                for l in 0..8 {
-                    lanes[l] += x[l] * y[l] * z[l];
-                }
+            // What is left of the last block, summed on its own.
+            let tail = a[whole..end].iter().zip(&b[whole..end]).map(|(x, y)| x * y).sum::<f32>();
+            if end == block_end || end == a.len() {
+                self.total += self.lanes.iter().map(|&l| l as f64).sum::<f64>() + tail as f64;
+                self.lanes = [0.0; 8];
             }
+            self.next = end;
         }
-        total += lanes.iter().map(|&l| l as f64).sum::<f64>() + tail as f64;
     }
-    total
 }
 
 crate::ports! {
@@ -1456,6 +1592,62 @@ mod tests {
     }
 
     #[test]
+    fn chaining_a_row_in_quarters_gives_what_one_chain_gives() {
+        let mut rng = dist4d_types::rng::Rng::new(3);
+        for len in (0..40).chain([97, 1600, 1601, 1603]) {
+            for density in [0.0, 0.01, 0.2, 0.9] {
+                let row: Vec<u32> = (0..len)
+                    .map(|_| if rng.next_f64() < density { rng.below(12) as u32 } else { FAR })
+                    .collect();
+                let mut one = row.clone();
+                for x in 1..len {
+                    one[x] = one[x].min(one[x - 1] + 3);
+                }
+                let mut quarters = row;
+                chain_along(&mut quarters);
+                assert_eq!(quarters, one, "{len} px, density {density}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_fused_cg_pass_gives_the_direction_product_and_sum_to_the_bit() {
+        // A band of 9 000 slots (several blocks), rows of 300 slots; vertical runs only in the
+        // upper half, so that the product is final before the last block there.
+        let mut rng = dist4d_types::rng::Rng::new(5);
+        let (m, row) = (9_000usize, 300usize);
+        let len = m + 2;
+        let mut left: Vec<f32> = (0..len).map(|k| if k > 1 && k <= m && k % row != 1 { rng.range(0.0, 0.25) as f32 } else { 0.0 }).collect();
+        left[0] = 0.0;
+        let mut up = vec![0f32; len];
+        let mut up_runs = Vec::new();
+        let mut k = row + 1;
+        while k + 40 <= m / 2 {
+            let n = 1 + rng.below(40) as usize;
+            up_runs.push([k as u32, n as u32, (k - row) as u32]);
+            for t in 0..n {
+                up[k + t] = rng.range(0.0, 0.25) as f32;
+            }
+            k += n + rng.below(20) as usize;
+        }
+        let system = Stencil { up_runs: &up_runs, left: &left, up: &up };
+        let vector = |rng: &mut dist4d_types::rng::Rng| -> Vec<f32> {
+            (0..len).map(|k| if k == 0 || k == m + 1 { 0.0 } else { rng.range(-1.0, 1.0) as f32 }).collect()
+        };
+        let (r, old) = (vector(&mut rng), vector(&mut rng));
+        let beta = 0.37f32;
+        let mut dir = old.clone();
+        let mut q = vec![0f32; len];
+        let pq = system.next_direction(&mut dir, &r, beta, &mut q);
+        let expected: Vec<f32> = r.iter().zip(&old).map(|(&r, &d)| r + beta * d).collect();
+        let mut product = vec![0f32; len];
+        system.apply(&expected, &mut product);
+        assert_eq!(dir, expected);
+        assert_eq!(q, product);
+        assert_eq!(pq.to_bits(), dot(&expected, &product).to_bits());
+    }
+
+    #[test]
     fn a_facade_above_a_tree_crown_takes_the_facade_depth_seen_beside_the_crown() {
         // A facade 20 m away (grey-blue) behind a crown 8 m away (green) covering columns
         // 12..28, rows 12..30. The LiDAR sees the crown and the facade beside it and below it,
@@ -1521,7 +1713,8 @@ mod tests {
         }
         let start: Vec<f32> = (0..w * h).map(|i| 1.0 / if i % w < 17 { 10.0 } else { 20.0 }).collect();
         let mut inv = start.clone();
-        refine(&Params::default(), &mut inv, &image.rgb, &sparse, &vec![0; w * h], w, h);
+        let planes = colour_planes(&image.rgb);
+        refine(&Params::default(), &mut inv, &planes, &sparse, &vec![0; w * h], w, h);
         for y in 0..h {
             for x in 15..25 {
                 let z = 1.0 / inv[y * w + x];
@@ -1533,7 +1726,7 @@ mod tests {
         refine(
             &Params { refine_iterations: 0, ..Params::default() },
             &mut same,
-            &image.rgb,
+            &planes,
             &sparse,
             &vec![0; w * h],
             w,
