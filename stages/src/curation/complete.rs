@@ -549,8 +549,10 @@ fn support_distance(sparse: &[f32], w: usize, h: usize) -> Vec<f32> {
 /// The chamfer's links along a row, left to right: row[x] = min(row[x], row[x - 1] + 3), that is
 /// the least row[j] + 3 (x - j) over j <= x. Done in one chain, each step waits on the one
 /// before; so the row's four quarters run as four chains side by side, and then each quarter
-/// takes the end of the one before it as one more candidate, up to where it stops winning (past
-/// there it never wins again: it grows by 3 per pixel and the chained row by at most 3).
+/// takes the end of the one before it as one more candidate, up to where it stops winning: past
+/// there it never wins again, as it grows by 3 per pixel and the row, chained, by at most 3 (within
+/// a quarter; at the next quarter's start it may not be, so the candidate may run on into that
+/// quarter, and every quarter gets its own candidate after).
 #[inline(always)]
 fn chain_along(row: &mut [u32]) {
     let (w, q) = (row.len(), row.len() / 4);
@@ -961,7 +963,8 @@ fn refine(p: &Params, x: &mut [f32], planes: &[u8], sparse: &[f32], sky: &[u8], 
         }
         // Fixed neighbours: a link's weight times their value goes to the right-hand side, in
         // the order left, right, up, down. Along the row only the segment's ends have them (it is
-        // a maximal run of active pixels). A sky neighbour's weight is 0: it adds nothing.
+        // a maximal run of active pixels). A sky neighbour's weight is 0, but its value is not
+        // read: 0 times a value that is not finite would be NaN.
         if c > 0 && sky[first - 1] == 0 {
             rhs[0] += across[0] * x[first - 1];
         }
@@ -1086,7 +1089,8 @@ impl Stencil<'_> {
     /// A step's first pass over the slots, a block at a time so that each block is worked on
     /// while it is in cache: the search direction dir = r + beta dir, q = A dir (as `apply`), and
     /// returns dir . q, summed by `BlockSum` where q is final: a run of vertical links writes to
-    /// its own slots and to the row above's, so q is final below the next run's upper slots.
+    /// its own slots and to the row above's, so q is final before the next run's upper slots
+    /// (at lower slot numbers: rows above in the image).
     #[inline(always)]
     fn next_direction(&self, dir: &mut [f32], r: &[f32], beta: f32, q: &mut [f32]) -> f64 {
         const BLOCK: usize = 2048;
@@ -1184,6 +1188,7 @@ impl BlockSum {
     /// Adds a_k b_k over `self.next..to` (a multiple of 8, or the slices' end).
     #[inline(always)]
     fn add(&mut self, a: &[f32], b: &[f32], to: usize) {
+        debug_assert!(to % 8 == 0 || to == a.len(), "a stretch ends on a multiple of 8 or at the end");
         const BLOCK: usize = 4096;
         while self.next < to {
             let block_end = (self.next / BLOCK + 1) * BLOCK;
@@ -1612,23 +1617,30 @@ mod tests {
 
     #[test]
     fn the_fused_cg_pass_gives_the_direction_product_and_sum_to_the_bit() {
-        // A band of 9 000 slots (several blocks), rows of 300 slots; vertical runs only in the
-        // upper half, so that the product is final before the last block there.
+        // 9 000 slots (blocks of 2 048 from slot 1), rows of 300 slots. Vertical runs: short
+        // random ones, one across the first block boundary, and one longer than a block and than
+        // a row (a band over whole rows: it overlaps its own upper slots); none in the last third,
+        // where the product is final at each block's end.
         let mut rng = dist4d_types::rng::Rng::new(5);
         let (m, row) = (9_000usize, 300usize);
         let len = m + 2;
         let mut left: Vec<f32> = (0..len).map(|k| if k > 1 && k <= m && k % row != 1 { rng.range(0.0, 0.25) as f32 } else { 0.0 }).collect();
         left[0] = 0.0;
+        let mut starts = Vec::new();
+        let mut k = row + 1;
+        while k + 40 <= 2_000 {
+            let n = 1 + rng.below(40) as usize;
+            starts.push((k, n));
+            k += n + rng.below(20) as usize;
+        }
+        starts.extend([(2_040, 20), (2_100, 30), (4_000, 2_500)]);
         let mut up = vec![0f32; len];
         let mut up_runs = Vec::new();
-        let mut k = row + 1;
-        while k + 40 <= m / 2 {
-            let n = 1 + rng.below(40) as usize;
+        for (k, n) in starts {
             up_runs.push([k as u32, n as u32, (k - row) as u32]);
             for t in 0..n {
                 up[k + t] = rng.range(0.0, 0.25) as f32;
             }
-            k += n + rng.below(20) as usize;
         }
         let system = Stencil { up_runs: &up_runs, left: &left, up: &up };
         let vector = |rng: &mut dist4d_types::rng::Rng| -> Vec<f32> {
@@ -1645,6 +1657,21 @@ mod tests {
         assert_eq!(dir, expected);
         assert_eq!(q, product);
         assert_eq!(pq.to_bits(), dot(&expected, &product).to_bits());
+        // And `dot` sums as the per-block dot product it replaced: eight f32 lanes over each
+        // block of 4 096, the block's remainder on its own, blocks summed in f64.
+        let mut blocks = 0f64;
+        for (a, b) in expected.chunks(4096).zip(product.chunks(4096)) {
+            let mut lanes = [0f32; 8];
+            let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+            let tail: f32 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
+            for (x, y) in ca.zip(cb) {
+                for l in 0..8 {
+                    lanes[l] += x[l] * y[l];
+                }
+            }
+            blocks += lanes.iter().map(|&l| l as f64).sum::<f64>() + tail as f64;
+        }
+        assert_eq!(dot(&expected, &product).to_bits(), blocks.to_bits());
     }
 
     #[test]
