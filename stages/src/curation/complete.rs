@@ -664,9 +664,9 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], distance: &[f3
     let mut left = vec![0f32; n];
     let mut up = vec![0f32; n];
     for y in 0..h {
-        link_weights(&mut left[y * w + 1..(y + 1) * w], &planes, sky, &weight, y * w + 1, 1);
+        link_weights(&mut left[y * w + 1..(y + 1) * w], planes, sky, &weight, y * w + 1, 1);
         if y > 0 {
-            link_weights(&mut up[y * w..(y + 1) * w], &planes, sky, &weight, y * w, w);
+            link_weights(&mut up[y * w..(y + 1) * w], planes, sky, &weight, y * w, w);
         }
     }
     for k in 0..iterations {
@@ -1188,7 +1188,7 @@ impl BlockSum {
     /// Adds a_k b_k over `self.next..to` (a multiple of 8, or the slices' end).
     #[inline(always)]
     fn add(&mut self, a: &[f32], b: &[f32], to: usize) {
-        debug_assert!(to % 8 == 0 || to == a.len(), "a stretch ends on a multiple of 8 or at the end");
+        debug_assert!(to.is_multiple_of(8) || to == a.len(), "a stretch ends on a multiple of 8 or at the end");
         const BLOCK: usize = 4096;
         while self.next < to {
             let block_end = (self.next / BLOCK + 1) * BLOCK;
