@@ -51,7 +51,7 @@ impl Operator for SleepStage {
             out_dir: "/tmp".into(),
         };
         self.pool.call(&request)?;
-        Ok(vec![Output { ty: "Bytes", bytes: ctx.label.as_bytes().to_vec() }])
+        Ok(vec![Output::new("Bytes", ctx.label.as_bytes().to_vec())])
     }
     fn resource(&self) -> Option<Resource> {
         Some(Resource { name: "sleeper".into(), slots: self.slots })

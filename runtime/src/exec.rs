@@ -26,7 +26,7 @@ use crate::runs::{self, Failure, RunRecord, RunStatus, StageStats};
 use crate::store::{BlobError, Store};
 use anyhow::{anyhow, bail, ensure, Context, Result};
 use crossbeam_channel::{unbounded, Receiver, RecvTimeoutError, Sender};
-use dist4d_graph::{NodeKind, Pipeline};
+use dist4d_graph::{NodeId, NodeKind, Pipeline};
 use std::cmp::Reverse;
 use std::collections::{BinaryHeap, HashMap, VecDeque};
 use std::io::Write;
@@ -774,7 +774,8 @@ impl<'a> Engine<'a> {
             }
             artifacts.push(list);
         }
-        let ctx = TaskContext { item: job.item, seed: keys.seed(job.node, &job.item), label: &label };
+        let unread = self.unread_to_leave(keys, job.node, &key);
+        let ctx = TaskContext { item: job.item, seed: keys.seed(job.node, &job.item), label: &label, unread: &unread };
         let outs = match self.operators[job.node]
             .as_ref()
             .ok_or_else(|| anyhow!("no operator for stage `{}`", node.name))?
@@ -807,9 +808,23 @@ impl<'a> Engine<'a> {
                 );
             }
         }
+        if let Some(port) =
+            (0..outs.len()).find(|&p| outs[p].bytes.is_none() && !unread.contains(&node.outputs[p].name))
+        {
+            bail!(
+                "stage `{}` ({}) did not make output `{}`, which this run reads; nothing was stored",
+                node.name,
+                stage.kind,
+                node.outputs[port].name
+            );
+        }
         let micros = t0.elapsed().as_micros() as u64;
         let mut produced = Vec::with_capacity(outs.len());
         for (port, Output { bytes, .. }) in outs.into_iter().enumerate() {
+            let Some(bytes) = bytes else {
+                produced.push(Produced { r: OutputRef::unmade(), mem: None, only_in_folder: false });
+                continue;
+            };
             let digest = Digest::of(&bytes);
             let size = bytes.len() as u64;
             // Its bytes go to the output folder only (the exporter writes them from memory).
@@ -853,6 +868,25 @@ impl<'a> Engine<'a> {
         }
         self.store.append_record(&record)?;
         Ok(Outcome::Executed(key, produced, micros, None))
+    }
+
+    /// The output ports of `node` its task under `key` may leave unmade: those nothing of the run
+    /// reads, except those an earlier record of the key made and still has the bytes of. A record
+    /// replaces the one before it, so without this two pipelines (or two stages of one) reading
+    /// different ports of one task would each find the other's record short and run it again,
+    /// every run; this way a task's records only gain outputs.
+    fn unread_to_leave(&self, keys: &Keys, node: NodeId, key: &Digest) -> Vec<String> {
+        let unread = keys.unread(node);
+        let Some(old) = (!unread.is_empty()).then(|| self.store.lookup(key)).flatten() else {
+            return unread.to_vec();
+        };
+        let outputs = &self.pipeline.nodes[node].outputs;
+        let had = |name: &String| {
+            let port = outputs.iter().position(|o| &o.name == name);
+            port.and_then(|p| old.outputs.get(p))
+                .is_some_and(|o| !o.is_unmade() && (o.inline.is_some() || self.store.has_blob(&o.digest)))
+        };
+        unread.iter().filter(|name| !had(name)).cloned().collect()
     }
 
     /// Which inputs of a job still have no digest after hashing, for the error.

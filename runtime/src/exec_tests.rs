@@ -44,6 +44,14 @@ fn run(p: &Pipeline, grid: &Grid, store: &Path) -> RunRecord {
     run_with(p, grid, store, &RunOptions { jobs: 2, ..Default::default() })
 }
 
+/// What `explain` says of `p` against the store in `store`.
+fn explain(p: &Pipeline, grid: &Grid, store: &Path) -> Vec<crate::explain::StageExplain> {
+    let store = Store::open(store, Access::Shared).unwrap();
+    let ops = testkit::operators(p);
+    crate::explain::explain(&Engine { pipeline: p, dataset: grid, operators: &ops, store: &store }, None, None, None)
+        .unwrap()
+}
+
 fn executed(r: &RunRecord) -> BTreeMap<String, u64> {
     r.stages.iter().map(|s| (s.stage.clone(), s.executed)).collect()
 }
@@ -219,6 +227,107 @@ fn a_missing_blob_is_recomputed_not_trusted() {
     assert_eq!(r.stages.iter().find(|s| s.stage == "b").unwrap().executed, 24);
 }
 
+/// Files under the store's `cas/` (blobs).
+fn blobs(store: &Path) -> usize {
+    fn count(dir: &Path) -> usize {
+        std::fs::read_dir(dir)
+            .map_or(0, |d| d.flatten().map(|e| if e.path().is_dir() { count(&e.path()) } else { 1 }).sum())
+    }
+    count(&store.join("cas"))
+}
+
+/// `a` makes its 5 000-byte output only when the run reads it.
+const UNREAD: &str = r#"Pipeline(
+    dataset: Grid(scenes: 1, frames: 2, cameras: 2),
+    stages: {
+        "a": Echo(inputs: {"x": "dataset.camera_value"}, params: (size: 5000, on_demand: true)),
+        "b": Echo(inputs: {"x": "dataset.camera_value"}),
+    },
+)"#;
+
+#[test]
+fn an_output_nothing_reads_is_not_made_until_a_run_reads_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let alone = testkit::load(UNREAD, &[]);
+    let grid = testkit::grid_of(&alone);
+    let r = run(&alone, &grid, dir.path());
+    assert_eq!((r.status, executed(&r)), (RunStatus::Complete, counts(&[("a", 4), ("b", 4)])));
+    // Not made, not stored: the same run with `a` making its output stores 4 blobs more.
+    let unmade = blobs(dir.path());
+    let made = tempfile::tempdir().unwrap();
+    run(&testkit::load(UNREAD, &["a.on_demand=false"]), &grid, made.path());
+    assert_eq!(blobs(made.path()), unmade + 4);
+    assert_eq!(
+        executed(&run(&alone, &grid, dir.path())),
+        counts(&[("a", 0), ("b", 0)]),
+        "an unmade output nobody reads is a hit"
+    );
+    // A reader added later: the records of `a` did not make what it reads, so `a` runs again.
+    let read = UNREAD.replace(r#""b": Echo"#, r#""c": Echo(inputs: {"x": "a.y"}), "b": Echo"#);
+    let read = testkit::load(&read, &[]);
+    let e = explain(&read, &grid, dir.path());
+    let a = e.iter().find(|s| s.stage == "a").unwrap();
+    assert_eq!(a.will_run, 4);
+    assert!(
+        a.reasons.keys().any(|r| r.contains("output `y` is read now, and the cached task did not make it")),
+        "{:?}",
+        a.reasons
+    );
+    let r = run(&read, &grid, dir.path());
+    assert_eq!(executed(&r), counts(&[("a", 4), ("b", 0), ("c", 4)]));
+    assert_eq!(blobs(dir.path()), unmade + 4, "a's outputs (c's params are b's)");
+    assert!(executed(&run(&read, &grid, dir.path())).values().all(|&n| n == 0));
+    // The records now hold the made outputs: the first pipeline finds them too.
+    assert!(executed(&run(&alone, &grid, dir.path())).values().all(|&n| n == 0));
+}
+
+/// Two pipelines on one store read different outputs of the same tasks (`p` has the same key in
+/// both): each run makes what it reads and keeps what the record before it made, so the records
+/// only gain outputs and both pipelines settle.
+#[test]
+fn pipelines_reading_different_outputs_of_one_task_settle() {
+    let reading = |port: &str| {
+        format!(
+            r#"Pipeline(
+                dataset: Grid(scenes: 1, frames: 2, cameras: 2),
+                stages: {{
+                    "p": Pair(inputs: {{"x": "dataset.camera_value"}}, params: (size: 5000, on_demand: true)),
+                    "r": Echo(inputs: {{"x": "p.{port}"}}),
+                }},
+            )"#
+        )
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let (y, z) = (testkit::load(&reading("y"), &[]), testkit::load(&reading("z"), &[]));
+    let grid = testkit::grid_of(&y);
+    let p_ran = |p: &Pipeline| executed(&run(p, &grid, dir.path()))["p"];
+    assert_eq!(p_ran(&y), 4);
+    assert_eq!(p_ran(&z), 4, "the records did not make z");
+    assert_eq!(p_ran(&y), 0, "the rerun for z kept y");
+    assert_eq!(p_ran(&z), 0);
+}
+
+#[test]
+fn a_stage_that_does_not_make_an_output_the_run_reads_fails_and_stores_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = UNREAD
+        .replace("on_demand: true", "never_make: true")
+        .replace(r#""b": Echo(inputs: {"x": "dataset.camera_value"})"#, r#""b": Echo(inputs: {"x": "a.y"})"#);
+    let p = testkit::load(&text, &[]);
+    let grid = testkit::grid_of(&p);
+    let r = run(&p, &grid, dir.path());
+    assert_eq!(r.status, RunStatus::Failed);
+    let a = r.stages.iter().find(|s| s.stage == "a").unwrap();
+    assert_eq!((a.executed, a.failed), (0, 4));
+    let b = r.stages.iter().find(|s| s.stage == "b").unwrap();
+    assert_eq!(b.skipped, 4);
+    assert!(
+        r.failures.iter().any(|f| f.error.contains("did not make output `y`, which this run reads")),
+        "{:?}",
+        r.failures
+    );
+}
+
 #[test]
 fn scene_and_frame_filters_restrict_the_items() {
     let dir = tempfile::tempdir().unwrap();
@@ -276,16 +385,7 @@ fn explain_compares_with_what_the_last_run_used() {
     for sets in [&[][..], &["a.salt=9"][..], &[][..]] {
         run(&testkit::load(CHAIN, sets), &grid, dir.path());
     }
-    let changed = testkit::load(CHAIN, &["b.salt=3"]);
-    let s = Store::open(dir.path(), Access::Shared).unwrap();
-    let ops = testkit::operators(&changed);
-    let e = crate::explain::explain(
-        &Engine { pipeline: &changed, dataset: &grid, operators: &ops, store: &s },
-        None,
-        None,
-        None,
-    )
-    .unwrap();
+    let e = explain(&testkit::load(CHAIN, &["b.salt=3"]), &grid, dir.path());
     let b = e.iter().find(|s| s.stage == "b").unwrap();
     assert_eq!(b.reasons.keys().collect::<Vec<_>>(), vec!["param `salt` changed: 0 -> 3"], "{:?}", b.reasons);
 }

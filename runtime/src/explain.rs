@@ -242,6 +242,12 @@ pub fn explain_per_outer(
                         "output `{}` is kept only in the output folder, and its file there is missing or changed",
                         port(i)
                     ),
+                    Some(Lost::Unmade(i)) => {
+                        format!(
+                            "output `{}` is read now, and the cached task did not make it (nothing read it then)",
+                            port(i)
+                        )
+                    }
                     Some(Lost::Blob(i)) => {
                         format!("the cached bytes of output `{}` are missing from the store", port(i))
                     }

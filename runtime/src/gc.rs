@@ -54,7 +54,14 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcRep
     let blob_size = |d: &Digest| std::fs::metadata(store.blob_path(d)).map(|m| m.len()).unwrap_or(0);
     let refs = |payload: &[u8]| -> Vec<Digest> {
         TaskRecord::decode(payload)
-            .map(|r| r.outputs.iter().filter(|o| o.inline.is_none()).map(|o| o.digest).chain([r.params]).collect())
+            .map(|r| {
+                r.outputs
+                    .iter()
+                    .filter(|o| o.inline.is_none() && !o.is_unmade())
+                    .map(|o| o.digest)
+                    .chain([r.params])
+                    .collect()
+            })
             .unwrap_or_default()
     };
 

@@ -8,9 +8,11 @@
 //! hash which upstream task made an input: a rerun upstream task that yields the same bytes leaves
 //! downstream keys unchanged (early cutoff).
 //!
-//! A record is a hit only while the bytes of every output it names can be had: inside the record
-//! (small outputs), as a blob in the store, or — for an output the run exports and no stage reads,
-//! which the store does not keep (see [`Keys::exporting_to`]) — as its files in the output folder.
+//! A record is a hit only while the bytes of every output the run reads (a stage's input or an
+//! export) can be had: inside the record (small outputs), as a blob in the store, or — for an output
+//! the run exports and no stage reads, which the store does not keep (see [`Keys::exporting_to`]) —
+//! as its files in the output folder. An output nothing reads may be missing, or unmade: a stage
+//! may skip the work of outputs nothing of its run reads ([`crate::TaskContext::unread`]).
 
 use crate::digest::{Digest, DigestBuilder};
 use crate::export::OutputFolder;
@@ -128,6 +130,8 @@ pub enum Decision {
 pub enum Lost {
     /// Its blob is missing from the store (removed by hand, found corrupt, or a power loss).
     Blob(usize),
+    /// The task did not make it: no run that ran it read it.
+    Unmade(usize),
     /// It is kept only in the output folder, and a file of it there is missing or holds other bytes
     /// (deleted, edited, overwritten by a run with other params, or the run exports elsewhere).
     Exported(usize),
@@ -146,6 +150,10 @@ pub struct Keys<'a> {
     folder: Option<Arc<OutputFolder>>,
     /// Per node and output port: exported into `folder` and read by no stage (all false without a folder).
     only_exported: Vec<Vec<bool>>,
+    /// Per node and output port: read by a stage or exported by the pipeline.
+    read: Vec<Vec<bool>>,
+    /// Per node, the names of its output ports that are not (see `read`).
+    unread: Vec<Vec<String>>,
 }
 
 impl<'a> Keys<'a> {
@@ -160,7 +168,43 @@ impl<'a> Keys<'a> {
             })
             .collect();
         let only_exported = pipeline.nodes.iter().map(|n| vec![false; n.outputs.len()]).collect();
-        Keys { pipeline, dataset, store, params: params.collect(), variant_params, folder: None, only_exported }
+        let mut read: Vec<Vec<bool>> = pipeline.nodes.iter().map(|n| vec![false; n.outputs.len()]).collect();
+        for x in &pipeline.exports {
+            read[x.node][x.port] = true;
+        }
+        for input in pipeline.nodes.iter().filter_map(|n| n.stage()).flat_map(|s| &s.inputs) {
+            if let Some(r) = read[input.from].get_mut(input.from_port) {
+                *r = true;
+            }
+        }
+        let unread = pipeline
+            .nodes
+            .iter()
+            .zip(&read)
+            .map(|(n, read)| n.outputs.iter().zip(read).filter(|(_, &r)| !r).map(|(o, _)| o.name.clone()).collect())
+            .collect();
+        Keys {
+            pipeline,
+            dataset,
+            store,
+            params: params.collect(),
+            variant_params,
+            folder: None,
+            only_exported,
+            read,
+            unread,
+        }
+    }
+
+    /// The names of the output ports of `node` that nothing of the run reads (see
+    /// [`crate::TaskContext::unread`]).
+    pub fn unread(&self, node: NodeId) -> &[String] {
+        &self.unread[node]
+    }
+
+    /// Whether output `port` of `node` is read by a stage or exported.
+    pub fn is_read(&self, node: NodeId, port: usize) -> bool {
+        self.read[node].get(port).copied().unwrap_or(false)
     }
 
     /// Keys with each operator's identity ([`crate::Operator::identity`]) folded into its params
@@ -276,16 +320,23 @@ impl<'a> Keys<'a> {
     }
 
     /// Whether stage node `node` on `item` with these inputs is cached, must run, or cannot be
-    /// keyed yet. A record is a hit only when the bytes of each of its outputs are there: inside
-    /// the record, as a blob, or, for an output kept only in the output folder, as its files there
-    /// (see [`OutputFolder::holds`]; an exported file whose stat changed is hashed only when `hash`
-    /// is set, else the answer is `Unknown`). A record whose bytes are gone is not a hit.
+    /// keyed yet. A record is a hit only when the bytes of each output the run reads are there:
+    /// inside the record, as a blob, or, for an output kept only in the output folder, as its files
+    /// there (see [`OutputFolder::holds`]; an exported file whose stat changed is hashed only when
+    /// `hash` is set, else the answer is `Unknown`). A record whose bytes are gone, or that did not
+    /// make an output the run reads, is not a hit.
     pub fn decide(&self, node: NodeId, item: &ItemKey, inputs: &[Vec<Input>], hash: bool) -> Decision {
         let Some(digests) = known_digests(inputs) else { return Decision::Unknown };
         let key = task_key(self.stage(node), &self.task_params(node, item), item, &digests);
         let Some(rec) = self.store.lookup(&key) else { return Decision::Run { key, lost: None } };
         let mut unsure = false;
         for (port, o) in rec.outputs.iter().enumerate() {
+            if !self.is_read(node, port) {
+                continue;
+            }
+            if o.is_unmade() {
+                return Decision::Run { key, lost: Some(Lost::Unmade(port)) };
+            }
             if o.inline.is_some() {
                 continue;
             }

@@ -57,6 +57,17 @@ pub struct TaskContext<'a> {
     pub seed: u64,
     /// The item's path of labels (`s0/003/cam2`), for messages.
     pub label: &'a str,
+    /// The output ports that nothing of this run reads (no stage's input, no export): a stage may
+    /// leave them unmade ([`Output::unmade`]) and save their work. A later run that reads one
+    /// finds it unmade in the task's record and runs the task again.
+    pub unread: &'a [String],
+}
+
+impl TaskContext<'_> {
+    /// Whether anything of this run reads output port `port` (see [`TaskContext::unread`]).
+    pub fn wants(&self, port: &str) -> bool {
+        !self.unread.iter().any(|u| u == port)
+    }
 }
 
 /// What a stage returns (as its error) when its item has nothing to make: a training pair whose
@@ -81,7 +92,19 @@ impl std::error::Error for NotApplicable {}
 #[derive(Clone, Debug, PartialEq)]
 pub struct Output {
     pub ty: &'static str,
-    pub bytes: Vec<u8>,
+    /// `None`: not made, as the run does not read it (see [`TaskContext::unread`]).
+    pub bytes: Option<Vec<u8>>,
+}
+
+impl Output {
+    pub fn new(ty: &'static str, bytes: Vec<u8>) -> Output {
+        Output { ty, bytes: Some(bytes) }
+    }
+
+    /// An output the stage did not make because nothing of the run reads it.
+    pub fn unmade(ty: &'static str) -> Output {
+        Output { ty, bytes: None }
+    }
 }
 
 /// A stage's work on one item: input artifacts (per input port, in port order) to its outputs

@@ -18,6 +18,18 @@ pub struct OutputRef {
     pub inline: Option<Arc<[u8]>>,
 }
 
+impl OutputRef {
+    /// An output the task did not make (nothing of its run read it): the all-zero digest, which
+    /// no blake3 hash of any bytes is, with no size and no bytes.
+    pub fn unmade() -> OutputRef {
+        OutputRef { digest: Digest::default(), size: 0, inline: None }
+    }
+
+    pub fn is_unmade(&self) -> bool {
+        self.inline.is_none() && self.size == 0 && self.digest == Digest::default()
+    }
+}
+
 /// The digests an input port received, in selector order.
 #[derive(Clone, Debug, PartialEq)]
 pub struct RecordInput {

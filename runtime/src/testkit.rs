@@ -101,6 +101,10 @@ pub struct EchoParams {
     pub nothing_on: Vec<String>,
     /// For `Vary`: a salt per variant label (the stage runs once per variant).
     pub variants: std::collections::BTreeMap<String, u32>,
+    /// Leaves its output unmade when nothing of the run reads it ([`TaskContext::unread`]).
+    pub on_demand: bool,
+    /// Leaves its output unmade even when it is read (for the runtime's check).
+    pub never_make: bool,
 }
 
 // Test params: any value is usable.
@@ -155,7 +159,18 @@ impl Default for TestCatalog {
                     vec![PortSpec::one("file", "File", "")],
                     all.clone(),
                 ),
-                kind("FromFile", vec![PortSpec::one("file", "File", "")], vec![PortSpec::one("y", "Bytes", "")], all),
+                kind(
+                    "FromFile",
+                    vec![PortSpec::one("file", "File", "")],
+                    vec![PortSpec::one("y", "Bytes", "")],
+                    all.clone(),
+                ),
+                kind(
+                    "Pair",
+                    vec![PortSpec::one("x", "Bytes", "")],
+                    vec![PortSpec::one("y", "Bytes", ""), PortSpec::one("z", "Bytes", "")],
+                    all,
+                ),
                 StageSchema {
                     variants: Some(|p| {
                         p.get::<EchoParams>()
@@ -201,8 +216,9 @@ impl Catalog for TestCatalog {
 
 struct EchoOp {
     params: EchoParams,
-    /// The artifact type of its one output port.
-    ty: &'static str,
+    /// The names and artifact types of its output ports (one, or two for `Pair`: the same bytes
+    /// each, told apart by the port's index).
+    outputs: Vec<(&'static str, &'static str)>,
 }
 
 impl Operator for EchoOp {
@@ -228,10 +244,17 @@ impl Operator for EchoOp {
                 b.u64(a.pos as u64).bytes(&a.bytes);
             }
         }
-        let d = b.finish().0;
+        let d = b.finish();
         let n = if params.size == 0 { 32 } else { params.size };
-        let ty = if params.mistag { "Mistagged" } else { self.ty };
-        Ok(vec![Output { ty, bytes: d.iter().copied().cycle().take(n).collect() }])
+        let made = |(port, (name, ty)): (usize, &(&'static str, &'static str))| {
+            let ty = if params.mistag { "Mistagged" } else { *ty };
+            if params.never_make || (params.on_demand && !ctx.wants(name)) {
+                return Output::unmade(ty);
+            }
+            let d = if port == 0 { d } else { DigestBuilder::new("echo port").digest(&d).u64(port as u64).finish() };
+            Output::new(ty, d.0.iter().copied().cycle().take(n).collect())
+        };
+        Ok(self.outputs.iter().enumerate().map(made).collect())
     }
 }
 
@@ -248,8 +271,9 @@ pub fn operators(p: &Pipeline) -> Vec<Option<Box<dyn Operator>>> {
         .map(|n| {
             n.stage().map(|s| {
                 let params = s.params.get::<EchoParams>().expect("test stages take EchoParams").clone();
-                let ty = catalog.stage(&s.kind).expect("a test stage kind").outputs[0].ty;
-                Box::new(EchoOp { params, ty }) as Box<dyn Operator>
+                let outputs =
+                    catalog.stage(&s.kind).expect("a test stage kind").outputs.iter().map(|o| (o.name, o.ty)).collect();
+                Box::new(EchoOp { params, outputs }) as Box<dyn Operator>
             })
         })
         .collect()

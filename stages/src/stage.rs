@@ -131,6 +131,10 @@ pub struct Many<A>(PhantomData<A>);
 /// Several artifacts like [`Many`], or none when the input is not wired (an empty `Vec`): what a
 /// stage gathers only when the pipeline has it (e.g. ground truth for a sheet).
 pub struct OptionalMany<A>(PhantomData<A>);
+/// An output made only when the run reads it (the field is an `Option`: `None` when
+/// [`TaskContext::wants`] says nothing reads it, e.g. an encoding nobody exports). A later run
+/// that reads it runs the task again.
+pub struct OnDemand<A>(PhantomData<A>);
 /// The ports of another [`crate::ports!`] struct, under their own names (inputs several stages
 /// share, such as the four a camera view is made from): the field is that struct.
 pub struct Group<P>(PhantomData<P>);
@@ -165,7 +169,20 @@ impl<A: Artifact> Port for One<A> {
         }
     }
     fn encode(_: &str, value: A) -> Result<Vec<Encoded>> {
-        Ok(vec![Encoded { ty: A::TYPE, bytes: value.encode() }])
+        Ok(vec![Encoded::new(A::TYPE, value.encode())])
+    }
+}
+
+impl<A: Artifact> Port for OnDemand<A> {
+    type Value = Option<A>;
+    fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
+        port_spec::<A>(name, doc, false, false)
+    }
+    fn decode(port: &str, _: &InputSet) -> Result<Option<A>> {
+        bail!("input `{port}`: `OnDemand` is for outputs")
+    }
+    fn encode(_: &str, value: Option<A>) -> Result<Vec<Encoded>> {
+        Ok(vec![value.map_or_else(|| Encoded::unmade(A::TYPE), |v| Encoded::new(A::TYPE, v.encode()))])
     }
 }
 

@@ -114,7 +114,7 @@ mod tests {
     #[test]
     fn the_label_is_uint32_with_free_zero_and_the_bin_marks_the_seen_voxels() {
         let grid = OccupancyGrid { dims: [1, 1, 3], semantics: vec![17, 11, 4], mask_lidar: vec![1, 1, 1], mask_camera: vec![0, 1, 1] };
-        let out = EncodeCarlaSC(Params::default()).run(&TaskContext { item: Default::default(), seed: 0, label: "t" }, Inputs { grid }).unwrap();
+        let out = EncodeCarlaSC(Params::default()).run(&TaskContext { item: Default::default(), seed: 0, label: "t", unread: &[] }, Inputs { grid }).unwrap();
         let label: Vec<u32> = out.label.0.chunks(4).map(|c| u32::from_le_bytes(c.try_into().unwrap())).collect();
         assert_eq!(label, vec![0, 12, 5]);
         let bin: Vec<f32> = out.bin.0.chunks(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();

@@ -70,7 +70,7 @@ mod tests {
     #[test]
     fn poses_give_x_y_and_yaw_where_the_loader_reads_them() {
         let pose = |x: f64, yaw: f64| Pose { ego_to_world: Se3::from_yaw(yaw, DVec3::new(x, 2.0, 0.0)), timestamp_us: 0 };
-        let txt = PosesTxt.run(&TaskContext { item: Default::default(), seed: 0, label: "t" }, Inputs { poses: vec![(1, pose(5.0, 0.5)), (0, pose(3.0, 0.0))] }).unwrap();
+        let txt = PosesTxt.run(&TaskContext { item: Default::default(), seed: 0, label: "t", unread: &[] }, Inputs { poses: vec![(1, pose(5.0, 0.5)), (0, pose(3.0, 0.0))] }).unwrap();
         let text = String::from_utf8(txt.txt.0).unwrap();
         let rows: Vec<Vec<f64>> = text.lines().map(|l| l.split(' ').map(|v| v.parse().unwrap()).collect()).collect();
         assert_eq!(rows.len(), 2);

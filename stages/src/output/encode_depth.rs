@@ -73,16 +73,18 @@ crate::ports! {
     }
 }
 
+// Each made only when the run reads it: a pipeline that exports the NPY alone (the training
+// pairs) does not pay for the EXR's deflate, the PNGs or the preview's colours.
 crate::ports! {
     pub struct Outputs {
         /// OpenEXR, channel Y, float32 metres
-        exr: One<File>,
+        exr: OnDemand<File>,
         /// 16-bit PNG, depth x 256 (KITTI), 0 = none
-        png16: One<File>,
+        png16: OnDemand<File>,
         /// float32 H x W
-        npy: One<File>,
+        npy: OnDemand<File>,
         /// RGB PNG, turbo, near = warm
-        preview: One<File>,
+        preview: OnDemand<File>,
     }
 }
 
@@ -94,7 +96,8 @@ impl Stage for EncodeDepth {
     // 3: fast encoders: EXR blocks at deflate level 1, PNGs with fast deflate and the Paeth filter,
     //    the preview's colours from a table (same values, other bytes).
     const VERSION: u32 = 3;
-    const SUMMARY: &'static str = "DepthMap -> OpenEXR (float32 m), 16-bit PNG (x256), NPY and a turbo colour preview";
+    const SUMMARY: &'static str =
+        "DepthMap -> OpenEXR (float32 m), 16-bit PNG (x256), NPY and a turbo colour preview, each made only when the run reads it";
     const GRAINS: &'static [&'static str] = &["camera", "frame", "scene", "variant"];
     type Params = Params;
     type Inputs = Inputs;
@@ -102,21 +105,25 @@ impl Stage for EncodeDepth {
     fn new(params: Params) -> Result<Self> {
         Ok(EncodeDepth(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
         let d = i.depth;
         let exr = if self.0.exr_zip { ExrCompression::Zip } else { ExrCompression::None };
+        // Each encoding only if the run reads it (`None` otherwise).
+        let wanted = |port: &str, encode: &dyn Fn() -> Result<Vec<u8>>| -> Result<Option<File>> {
+            ctx.wants(port).then(encode).transpose().map(|b| b.map(File))
+        };
         // Four independent encodings: a worker that would otherwise idle (the end of a run, or
         // fewer ready tasks than threads) takes some.
         let ((exr, png16), (npy, preview)) = rayon::join(
-            || rayon::join(|| depth_exr_with(&d, exr), || depth_png16(&d)),
+            || rayon::join(|| wanted("exr", &|| depth_exr_with(&d, exr)), || wanted("png16", &|| depth_png16(&d))),
             || {
                 rayon::join(
-                    || npy_f32(&[d.height as usize, d.width as usize], &d.data),
-                    || depth_preview(&d, self.0.preview_max_depth),
+                    || wanted("npy", &|| Ok(npy_f32(&[d.height as usize, d.width as usize], &d.data))),
+                    || wanted("preview", &|| depth_preview(&d, self.0.preview_max_depth)),
                 )
             },
         );
-        Ok(Outputs { exr: File(exr?), png16: File(png16?), npy: File(npy), preview: File(preview?) })
+        Ok(Outputs { exr: exr?, png16: png16?, npy: npy?, preview: preview? })
     }
 }
 
@@ -157,5 +164,19 @@ mod tests {
         assert_eq!(prev.get_pixel(0, 0).0, [0, 0, 0]);
         let near = prev.get_pixel(1, 1).0;
         assert!(near[0] > near[2], "near is warm: {near:?}");
+    }
+
+    #[test]
+    fn only_the_encodings_the_run_reads_are_made() {
+        let d = DepthMap { width: 3, height: 2, data: vec![0.0, 1.5, 80.0, 300.0, 0.25, 10.0] };
+        let unread = ["exr".to_string(), "preview".to_string()];
+        let ctx = TaskContext { item: Default::default(), seed: 0, label: "t", unread: &unread };
+        let out = EncodeDepth(Params::default()).run(&ctx, Inputs { depth: d.clone() }).unwrap();
+        assert!(out.exr.is_none() && out.preview.is_none());
+        assert_eq!(out.npy.map(|f| f.0), Some(npy_f32(&[2, 3], &d.data)));
+        assert_eq!(out.png16.map(|f| f.0), Some(depth_png16(&d).unwrap()));
+        let all = TaskContext { unread: &[], ..ctx };
+        let out = EncodeDepth(Params::default()).run(&all, Inputs { depth: d }).unwrap();
+        assert!(out.exr.is_some() && out.png16.is_some() && out.npy.is_some() && out.preview.is_some());
     }
 }

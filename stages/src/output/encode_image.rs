@@ -70,7 +70,7 @@ mod tests {
 
     #[test]
     fn images_and_masks_read_back() {
-        let ctx = TaskContext { item: Default::default(), seed: 0, label: "t" };
+        let ctx = TaskContext { item: Default::default(), seed: 0, label: "t", unread: &[] };
         let img = Image { width: 2, height: 1, rgb: vec![1, 2, 3, 250, 251, 252] };
         let out = EncodeImage.run(&ctx, Inputs { image: Some(img.clone()), mask: None }).unwrap();
         assert_eq!(image::load_from_memory(&out.png.0).unwrap().into_rgb8().into_raw(), img.rgb);
