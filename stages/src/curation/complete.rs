@@ -1227,8 +1227,9 @@ crate::ports! {
         /// dense metric depth, sky at sky_depth
         depth: One<DepthMap>,
         /// per-pixel confidence: distance (px) to the nearest sample of the sparse input, 0 on a
-        /// sample (a training loader masks pixels above its own threshold)
-        support: One<DepthMap>,
+        /// sample (a training loader masks pixels above its own threshold); kept only when the
+        /// run reads it (the training-pair pipelines do not)
+        support: OnDemand<DepthMap>,
     }
 }
 
@@ -1262,7 +1263,7 @@ impl Stage for CompleteDepth {
             return worker_completion(ctx, &self.0, &self.1, &i);
         }
         let c = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, i.sky.as_ref())?;
-        Ok(Outputs { depth: c.depth, support: c.support })
+        Ok(Outputs { depth: c.depth, support: ctx.wants("support").then_some(c.support) })
     }
 }
 
@@ -1298,11 +1299,12 @@ fn worker_completion(
             }
         }
     }
-    let support = support_distance(&i.sparse.data, w as usize, h as usize);
-    Ok(Outputs {
-        depth: DepthMap { width: w, height: h, data },
-        support: DepthMap { width: w, height: h, data: support },
-    })
+    let support = ctx.wants("support").then(|| DepthMap {
+        width: w,
+        height: h,
+        data: support_distance(&i.sparse.data, w as usize, h as usize),
+    });
+    Ok(Outputs { depth: DepthMap { width: w, height: h, data }, support })
 }
 
 #[cfg(test)]

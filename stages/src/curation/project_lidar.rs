@@ -103,8 +103,8 @@ crate::ports! {
     pub struct Outputs {
         /// sparse depth, 0 = none
         depth: One<DepthMap>,
-        /// u, v, depth of every kept point
-        uvz: One<ProjectedPoints>,
+        /// u, v, depth of every kept point (kept only when the run reads it)
+        uvz: OnDemand<ProjectedPoints>,
     }
 }
 
@@ -121,9 +121,9 @@ impl Stage for ProjectLidar {
     fn new(params: Params) -> Result<Self> {
         Ok(ProjectLidar(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
         let (depth, uvz) = project(&self.0, &i.points, &i.lidar_calib, &i.lidar_pose, &i.camera_calib, &i.camera_pose)?;
-        Ok(Outputs { depth, uvz })
+        Ok(Outputs { depth, uvz: ctx.wants("uvz").then_some(uvz) })
     }
 }
 
