@@ -105,25 +105,31 @@ impl Validate for Params {
 /// The image smoothed by a 3x3 box (edges replicated), per channel.
 fn smoothed(image: &Image) -> Vec<[u8; 3]> {
     let (w, h) = (image.width as usize, image.height as usize);
-    let px = |x: usize, y: usize, c: usize| image.rgb[3 * (y * w + x) + c] as u32;
-    // Rows first into sums of three, then columns.
-    let mut across = vec![[0u32; 3]; w * h];
-    for y in 0..h {
-        for x in 0..w {
+    let row = 3 * w;
+    // Rows first into sums of three (at most 765: u16), then columns; on the interleaved
+    // channels, where a pixel's neighbour is 3 values away, so that the loops vectorise.
+    let mut across = vec![0u16; row * h];
+    for (src, dst) in image.rgb.chunks_exact(row).zip(across.chunks_exact_mut(row)) {
+        let at = |x: usize, c: usize| src[3 * x + c] as u16;
+        for x in [0, w - 1] {
             let (l, r) = (x.saturating_sub(1), (x + 1).min(w - 1));
             for c in 0..3 {
-                across[y * w + x][c] = px(l, y, c) + px(x, y, c) + px(r, y, c);
+                dst[3 * x + c] = at(l, c) + at(x, c) + at(r, c);
+            }
+        }
+        if w > 2 {
+            let (left, mid, right) = (&src[..row - 6], &src[3..row - 3], &src[6..]);
+            for (k, d) in dst[3..row - 3].iter_mut().enumerate() {
+                *d = left[k] as u16 + mid[k] as u16 + right[k] as u16;
             }
         }
     }
     let mut out = vec![[0u8; 3]; w * h];
-    for y in 0..h {
+    for (y, o) in out.as_flattened_mut().chunks_exact_mut(row).enumerate() {
         let (u, d) = (y.saturating_sub(1), (y + 1).min(h - 1));
-        for x in 0..w {
-            for c in 0..3 {
-                let s = across[u * w + x][c] + across[y * w + x][c] + across[d * w + x][c];
-                out[y * w + x][c] = ((s + 4) / 9) as u8;
-            }
+        let (up, here, down) = (&across[u * row..(u + 1) * row], &across[y * row..(y + 1) * row], &across[d * row..(d + 1) * row]);
+        for (k, o) in o.iter_mut().enumerate() {
+            *o = ((up[k] + here[k] + down[k] + 4) / 9) as u8;
         }
     }
     out
@@ -165,10 +171,14 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
     // A candidate is smooth towards its right and lower neighbours (so, with theirs, in all four
     // directions): pixels beside an edge take no part, and a region cannot creep through a
     // gradual transition into a neighbouring surface.
-    let candidate = |i: usize| {
-        let (x, y) = (i % w, i / w);
-        !sampled[i] && plausible(i) && (x + 1 == w || close(i, i + 1)) && (y + 1 == h || close(i, i + w))
-    };
+    // Decided once per pixel, a row at a time: the regions below ask up to four times a pixel.
+    let mut candidate = vec![false; w * h];
+    for (y, row) in candidate.chunks_exact_mut(w).enumerate() {
+        for (x, c) in row.iter_mut().enumerate() {
+            let i = y * w + x;
+            *c = !sampled[i] && plausible(i) && (x + 1 == w || close(i, i + 1)) && (y + 1 == h || close(i, i + w));
+        }
+    }
 
     // Luminance texture of the unsmoothed image: |dx| + |dy| (sky is smooth, walls are not).
     let lum = super::complete::luminance(image);
@@ -192,7 +202,7 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
     let mut regions = vec![Region::default()]; // label 0 = not a candidate
     let mut stack = Vec::new();
     for start in 0..w * h {
-        if label[start] != 0 || !candidate(start) {
+        if label[start] != 0 || !candidate[start] {
             continue;
         }
         let id = regions.len() as u32;
@@ -205,7 +215,7 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
             r.luminance += lum[i] as f64;
             r.texture += texture(i) as f64;
             for j in neighbours(i, w, h) {
-                if label[j] == 0 && candidate(j) {
+                if label[j] == 0 && candidate[j] {
                     label[j] = id;
                     stack.push(j);
                 }
@@ -447,6 +457,30 @@ mod tests {
             }
         }
         Image { width: w as u32, height: h as u32, rgb }
+    }
+
+    #[test]
+    fn smoothing_is_the_3x3_box_mean_with_replicated_edges() {
+        let mut rng = dist4d_types::rng::Rng::new(11);
+        for (w, h) in [(1usize, 1usize), (1, 4), (2, 3), (3, 1), (7, 5), (16, 9)] {
+            let rgb: Vec<u8> = (0..3 * w * h).map(|_| rng.below(256) as u8).collect();
+            let image = Image { width: w as u32, height: h as u32, rgb: rgb.clone() };
+            let got = smoothed(&image);
+            for y in 0..h {
+                for x in 0..w {
+                    for c in 0..3 {
+                        let mut sum = 0u32;
+                        for dy in [-1i64, 0, 1] {
+                            for dx in [-1i64, 0, 1] {
+                                let (xx, yy) = ((x as i64 + dx).clamp(0, w as i64 - 1), (y as i64 + dy).clamp(0, h as i64 - 1));
+                                sum += rgb[3 * (yy as usize * w + xx as usize) + c] as u32;
+                            }
+                        }
+                        assert_eq!(got[y * w + x][c] as u32, (sum + 4) / 9, "{w}x{h} at ({x}, {y}) channel {c}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]
