@@ -1075,30 +1075,40 @@ struct Stencil<'a> {
 
 impl Stencil<'_> {
     /// out = A v over the active slots (the pads stay 0): the links along rows over all slots at
-    /// once (a slot's right link is the next slot's left one, 0 where they are not neighbours),
-    /// then each vertical link, to both of its slots, a run at a time.
+    /// once, then each vertical link, to both of its slots, a run at a time.
     #[inline(always)]
     fn apply(&self, v: &[f32], out: &mut [f32]) {
-        let m = out.len() - 2;
-        let (centre, east, west) = (&v[1..=m], &v[2..m + 2], &v[..m]);
-        let (wl, wr) = (&self.left[1..=m], &self.left[2..m + 2]);
-        for (t, o) in out[1..=m].iter_mut().enumerate() {
-            *o = centre[t] - wl[t] * west[t] - wr[t] * east[t];
-        }
-        for &[k, n, above] in self.up_runs {
-            let (k, n, above) = (k as usize, n as usize, above as usize);
-            let (links, here, up) = (&self.up[k..k + n], &v[k..k + n], &v[above..above + n]);
-            for (t, o) in out[k..k + n].iter_mut().enumerate() {
-                *o -= links[t] * up[t];
-            }
-            for (t, o) in out[above..above + n].iter_mut().enumerate() {
-                *o -= links[t] * here[t];
-            }
+        self.along_rows(v, out, 1..out.len() - 1);
+        for &run in self.up_runs {
+            self.vertical(run, v, out);
         }
     }
-}
 
-impl Stencil<'_> {
+    /// out = v - the links along rows times v, over the slots `slots` (a slot's right link is the
+    /// next slot's left one, 0 where they are not neighbours).
+    #[inline(always)]
+    fn along_rows(&self, v: &[f32], out: &mut [f32], slots: std::ops::Range<usize>) {
+        let (start, end) = (slots.start, slots.end);
+        let (centre, east, west) = (&v[start..end], &v[start + 1..end + 1], &v[start - 1..end - 1]);
+        let (wl, wr) = (&self.left[start..end], &self.left[start + 1..end + 1]);
+        for (t, o) in out[slots].iter_mut().enumerate() {
+            *o = centre[t] - wl[t] * west[t] - wr[t] * east[t];
+        }
+    }
+
+    /// Takes one run's vertical links times v off both of their slots.
+    #[inline(always)]
+    fn vertical(&self, [k, n, above]: [u32; 3], v: &[f32], out: &mut [f32]) {
+        let (k, n, above) = (k as usize, n as usize, above as usize);
+        let (links, here, up) = (&self.up[k..k + n], &v[k..k + n], &v[above..above + n]);
+        for (t, o) in out[k..k + n].iter_mut().enumerate() {
+            *o -= links[t] * up[t];
+        }
+        for (t, o) in out[above..above + n].iter_mut().enumerate() {
+            *o -= links[t] * here[t];
+        }
+    }
+
     /// A step's first pass over the slots, a block at a time so that each block is worked on
     /// while it is in cache: the search direction dir = r + beta dir, q = A dir (as `apply`), and
     /// returns dir . q, summed by `BlockSum` where q is final: a run of vertical links writes to
@@ -1118,23 +1128,12 @@ impl Stencil<'_> {
                 *d = r + beta * *d;
             }
             updated = ahead;
-            let (centre, east, west) = (&dir[start..end], &dir[start + 1..end + 1], &dir[start - 1..end - 1]);
-            let (wl, wr) = (&self.left[start..end], &self.left[start + 1..end + 1]);
-            for (t, o) in q[start..end].iter_mut().enumerate() {
-                *o = centre[t] - wl[t] * west[t] - wr[t] * east[t];
-            }
+            self.along_rows(dir, q, start..end);
             while let Some(&[k, n, above]) = self.up_runs.get(run) {
-                let (k, n, above) = (k as usize, n as usize, above as usize);
-                if k + n > end {
+                if (k + n) as usize > end {
                     break;
                 }
-                let (links, here, up) = (&self.up[k..k + n], &dir[k..k + n], &dir[above..above + n]);
-                for (t, o) in q[k..k + n].iter_mut().enumerate() {
-                    *o -= links[t] * up[t];
-                }
-                for (t, o) in q[above..above + n].iter_mut().enumerate() {
-                    *o -= links[t] * here[t];
-                }
+                self.vertical([k, n, above], dir, q);
                 run += 1;
             }
             let done = match self.up_runs.get(run) {
