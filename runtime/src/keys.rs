@@ -73,6 +73,17 @@ pub fn task_key(stage: &StageNode, params: &Digest, item: &ItemKey, inputs: &[Ve
     b.finish()
 }
 
+/// Per node and output port: whether an input of some stage of `pipeline` reads it.
+fn read_by_stages(pipeline: &Pipeline) -> Vec<Vec<bool>> {
+    let mut read: Vec<Vec<bool>> = pipeline.nodes.iter().map(|n| vec![false; n.outputs.len()]).collect();
+    for input in pipeline.nodes.iter().filter_map(|n| n.stage()).flat_map(|s| &s.inputs) {
+        if let Some(r) = read[input.from].get_mut(input.from_port) {
+            *r = true;
+        }
+    }
+    read
+}
+
 /// The seed of a task: the first 8 bytes (little endian) of a blake3 hash, under [`SEED_DOMAIN`],
 /// of the stage kind, the params digest and the item key.
 ///
@@ -168,14 +179,9 @@ impl<'a> Keys<'a> {
             })
             .collect();
         let only_exported = pipeline.nodes.iter().map(|n| vec![false; n.outputs.len()]).collect();
-        let mut read: Vec<Vec<bool>> = pipeline.nodes.iter().map(|n| vec![false; n.outputs.len()]).collect();
+        let mut read = read_by_stages(pipeline);
         for x in &pipeline.exports {
             read[x.node][x.port] = true;
-        }
-        for input in pipeline.nodes.iter().filter_map(|n| n.stage()).flat_map(|s| &s.inputs) {
-            if let Some(r) = read[input.from].get_mut(input.from_port) {
-                *r = true;
-            }
         }
         let unread = pipeline
             .nodes
@@ -229,14 +235,9 @@ impl<'a> Keys<'a> {
     /// them; a later run that does not find them in place (deleted, edited, another folder) runs
     /// their task again.
     pub fn exporting_to(mut self, folder: Arc<OutputFolder>) -> Keys<'a> {
-        let p = self.pipeline;
-        for x in &p.exports {
-            self.only_exported[x.node][x.port] = true;
-        }
-        for input in p.nodes.iter().filter_map(|n| n.stage()).flat_map(|s| &s.inputs) {
-            if let Some(read) = self.only_exported[input.from].get_mut(input.from_port) {
-                *read = false;
-            }
+        let by_stages = read_by_stages(self.pipeline);
+        for x in &self.pipeline.exports {
+            self.only_exported[x.node][x.port] = !by_stages[x.node][x.port];
         }
         self.folder = Some(folder);
         self
