@@ -57,7 +57,7 @@ fn run(p: &Params, line: &str) -> Result<String> {
         let sparse = DepthMap { width: w as u32, height: h as u32, data: prompt };
         let sky = Mask { width: w as u32, height: h as u32, data: sky.iter().map(|&v| (v > 0.5) as u8).collect() };
         let t = std::time::Instant::now();
-        let c = complete(p, &image, &sparse, Some(&sky)).depth;
+        let c = complete(p, &image, &sparse, Some(&sky), false).depth;
         let ms = t.elapsed().as_secs_f64() * 1e3;
         std::fs::write(f[3], npy_f32(&[h, w], &c.data)).with_context(|| format!("writing {}", f[3]))?;
         (c.data, ms)

@@ -136,14 +136,15 @@ impl Validate for Params {
 
 /// A depth completer: image + sparse metric depth (0 = unknown) -> dense metric depth.
 pub trait DepthCompleter {
-    fn complete(&self, image: &Image, sparse: &DepthMap, sky: Option<&Mask>) -> Result<Completion>;
+    /// `support`: also make the support map (a confidence a caller may not need).
+    fn complete(&self, image: &Image, sparse: &DepthMap, sky: Option<&Mask>, support: bool) -> Result<Completion>;
 }
 
 /// The built-in, image-guided inverse-depth interpolation described in the module docs.
 pub struct ScanlineCompleter(pub Params);
 
 impl DepthCompleter for ScanlineCompleter {
-    fn complete(&self, image: &Image, sparse: &DepthMap, sky: Option<&Mask>) -> Result<Completion> {
+    fn complete(&self, image: &Image, sparse: &DepthMap, sky: Option<&Mask>, support: bool) -> Result<Completion> {
         ensure!(
             image.width == sparse.width && image.height == sparse.height,
             "the image is {}x{} but the sparse depth is {}x{}",
@@ -162,7 +163,7 @@ impl DepthCompleter for ScanlineCompleter {
                 image.height
             );
         }
-        Ok(complete(&self.0, image, sparse, sky))
+        Ok(complete(&self.0, image, sparse, sky, support))
     }
 }
 
@@ -348,18 +349,19 @@ fn column_samples(inv: &[f32], w: usize) -> ColumnSamples {
     ColumnSamples { start, rows }
 }
 
-pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>) -> Completion {
+/// The completion of `sparse` guided by `image`, with the support map when `support` asks for it.
+pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>, support: bool) -> Completion {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512bw") {
         // SAFETY: the CPU has AVX-512 F and BW, checked just above.
-        return unsafe { complete_avx512(p, image, sparse, sky) };
+        return unsafe { complete_avx512(p, image, sparse, sky, support) };
     }
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU has AVX2, checked just above.
-        return unsafe { complete_avx2(p, image, sparse, sky) };
+        return unsafe { complete_avx2(p, image, sparse, sky, support) };
     }
-    complete_portable(p, image, sparse, sky)
+    complete_portable(p, image, sparse, sky, support)
 }
 
 /// The same code compiled for AVX2: its element-wise loops and eight-lane sums run in 256-bit
@@ -368,22 +370,22 @@ pub fn complete(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>
 /// checks it): which machine of a cluster computed a cached map does not change it.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-unsafe fn complete_avx2(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>) -> Completion {
-    complete_portable(p, image, sparse, sky)
+unsafe fn complete_avx2(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>, support: bool) -> Completion {
+    complete_portable(p, image, sparse, sky, support)
 }
 
 /// The same code for AVX-512 (F, BW, VL): ~13% less time per image than the AVX2 build on this
 /// project's machine (docs/BENCHMARKS.md); bit-identical for the same reason (a test checks it).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx512bw,avx512vl,avx2")]
-unsafe fn complete_avx512(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>) -> Completion {
-    complete_portable(p, image, sparse, sky)
+unsafe fn complete_avx512(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>, support: bool) -> Completion {
+    complete_portable(p, image, sparse, sky, support)
 }
 
 /// The completion; its helpers are inlined into it, so that each build of it (portable, AVX2)
 /// compiles them for its own instruction set.
 #[inline(always)]
-fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>) -> Completion {
+fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>, support: bool) -> Completion {
     let (w, h) = (sparse.width as usize, sparse.height as usize);
     let lum = luminance(image);
     let mut inv = map(&sparse.data, |z| if z > 0.0 && z.is_finite() { 1.0 / z } else { 0.0 });
@@ -485,7 +487,8 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
             }
         }
     }
-    let distance = support_distance(&sparse.data, w, h);
+    let distance = support.then(|| support_distance(&sparse.data, w, h));
+    let near = near_samples(&sparse.data, distance.as_deref(), p.smooth_from, w, h);
     let sky = sky.map(|s| s.data.as_slice());
     let no_sky;
     let sky_or_none = match sky {
@@ -496,7 +499,7 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
         }
     };
     let planes = colour_planes(&image.rgb);
-    smooth_unsupported(p, &mut inv, &planes, &distance, &continued, sky_or_none, w, h);
+    smooth_unsupported(p, &mut inv, &planes, &near, &continued, sky_or_none, w, h);
     refine(p, &mut inv, &planes, &sparse.data, sky_or_none, w, h);
     let mut depth = inv;
     for v in depth.iter_mut() {
@@ -512,19 +515,66 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
     // Without any sample, only sky is known.
     Completion {
         depth: DepthMap { width: sparse.width, height: sparse.height, data: depth },
-        support: DepthMap { width: sparse.width, height: sparse.height, data: distance },
+        support: distance.map(|data| DepthMap { width: sparse.width, height: sparse.height, data }),
     }
 }
 
 /// A dense depth and how far each of its pixels is from a measurement.
 pub struct Completion {
     pub depth: DepthMap,
-    /// Distance (px) from each pixel to the nearest sample of the sparse input: 0 on a sample.
-    pub support: DepthMap,
+    /// Distance (px) from each pixel to the nearest sample of the sparse input: 0 on a sample;
+    /// made only when asked for.
+    pub support: Option<DepthMap>,
 }
 
 /// The chamfer distance of a pixel without a sample in reach (x3, as the transform counts).
 const FAR: u32 = u32::MAX / 2;
+
+/// 1 where a pixel is within `reach` px of a sample by the support distance (`distance`, or made
+/// here). The 2D fill asks only this of the support distance, and at its reach of 1 px (the
+/// default) that is a sample or a 4-neighbour of one: the chamfer's 3 / 3 = 1 for those, 4 / 3 and
+/// more for the rest. Without the support map wanted, that costs a pass over the samples instead
+/// of the chamfer's four.
+#[inline(always)]
+fn near_samples(sparse: &[f32], distance: Option<&[f32]>, reach: f32, w: usize, h: usize) -> Vec<u8> {
+    const DIAGONAL: f32 = 4.0 / 3.0;
+    if distance.is_some() || reach >= DIAGONAL {
+        let made;
+        let distance = match distance {
+            Some(d) => d,
+            None => {
+                made = support_distance(sparse, w, h);
+                &made
+            }
+        };
+        return map(distance, |d| (d <= reach) as u8);
+    }
+    let sample = map(sparse, |z| (z > 0.0 && z.is_finite()) as u8);
+    if reach < 1.0 || w == 0 {
+        return sample;
+    }
+    let mut near = sample.clone();
+    for (y, row) in near.chunks_exact_mut(w).enumerate() {
+        let here = &sample[y * w..(y + 1) * w];
+        for (n, s) in row[1..].iter_mut().zip(here) {
+            *n |= s;
+        }
+        for (n, s) in row.iter_mut().zip(&here[1..]) {
+            *n |= s;
+        }
+        if y > 0 {
+            for (n, s) in row.iter_mut().zip(&sample[(y - 1) * w..y * w]) {
+                *n |= s;
+            }
+        }
+        if y + 1 < h {
+            for (n, s) in row.iter_mut().zip(&sample[(y + 1) * w..(y + 2) * w]) {
+                *n |= s;
+            }
+        }
+    }
+    near
+}
 
 /// Distance (px) from every pixel to the nearest valid sample: the 3-4 chamfer distance
 /// (Borgefors 1986) divided by 3, within 8% of the Euclidean one; `f32::MAX` with no sample.
@@ -641,18 +691,18 @@ fn colour_planes(rgb: &[u8]) -> Vec<u8> {
 /// correction, weighted by how well the two agree (`keep_planes`; split gaps get none) and
 /// averaged along the row (so that noisy top samples do not make streaks again).
 #[inline(always)]
-fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], distance: &[f32], continued: &[u8], sky: &[u8], w: usize, h: usize) {
+fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], near: &[u8], continued: &[u8], sky: &[u8], w: usize, h: usize) {
     if p.smooth_sigma <= 0.0 || p.smooth_iterations == 0 || w < 2 || h < 2 {
         return;
     }
-    // Sources: pixels beside a sample, or on the ground below a column's lowest one (inverse
-    // depth, distance to a sample, sky, how it was filled).
-    let source = |v: f32, d: f32, s: u8, c: u8| ((d <= p.smooth_from) | (c == GROUND)) & (s == 0) & (v > 0.0);
+    // Sources: pixels beside a sample (within `smooth_from`), or on the ground below a column's
+    // lowest one (inverse depth, near a sample, sky, how it was filled).
+    let source = |v: f32, near: u8, s: u8, c: u8| ((near != 0) | (c == GROUND)) & (s == 0) & (v > 0.0);
     // The filter's input: (inverse depth, 1) at sources, (0, 0) elsewhere, filtered together (as
     // two planes, so that the column passes are arithmetic on contiguous rows and vectorise).
     let n = w * h;
     let (mut num, mut den) = (vec![0f32; n], vec![0f32; n]);
-    for ((nu, de), ((&v, &d), (&s, &c))) in num.iter_mut().zip(den.iter_mut()).zip(inv.iter().zip(distance).zip(sky.iter().zip(continued))) {
+    for ((nu, de), ((&v, &d), (&s, &c))) in num.iter_mut().zip(den.iter_mut()).zip(inv.iter().zip(near).zip(sky.iter().zip(continued))) {
         let source = source(v, d, s, c) as u8 as f32;
         *nu = v * source;
         *de = source;
@@ -739,11 +789,11 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], distance: &[f3
     let mut sums = vec![[0f32; 2]; w + 1];
     for y in 0..h {
         let row = y * w..(y + 1) * w;
-        let (inv, num, den, distance) = (&mut inv[row.clone()], &num[row.clone()], &den[row.clone()], &distance[row.clone()]);
+        let (inv, num, den, near) = (&mut inv[row.clone()], &num[row.clone()], &den[row.clone()], &near[row.clone()]);
         let (sky, continued) = (&sky[row.clone()], &continued[row]);
         for x in 0..w {
             let (v, s, c) = (inv[x], sky[x], continued[x]);
-            let replace = !source(v, distance[x], s, c) & (s == 0) & (den[x] > 1e-8);
+            let replace = !source(v, near[x], s, c) & (s == 0) & (den[x] > 1e-8);
             let smooth = num[x] / den[x].max(1e-8);
             // NaN (no average, keep = 0) falls to 0 in `max`.
             let trust = (1.0 - (v - smooth).abs() / (keep * smooth)).max(0.0);
@@ -1274,8 +1324,8 @@ impl Stage for CompleteDepth {
         if self.1.is_set() {
             return worker_completion(ctx, &self.0, &self.1, &i);
         }
-        let c = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, i.sky.as_ref())?;
-        Ok(Outputs { depth: c.depth, support: ctx.wants("support").then_some(c.support) })
+        let c = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, i.sky.as_ref(), ctx.wants("support"))?;
+        Ok(Outputs { depth: c.depth, support: c.support })
     }
 }
 
@@ -1378,7 +1428,7 @@ mod tests {
         // it is not exact on the ground: the price of no streaks), interpolation in inverse
         // depth is exact on a plane.
         let p = Params { grow: 0.0, smooth_sigma: 0.0, refine_iterations: 0, ..Params::default() };
-        let d = complete(&p, &image, &sparse, None).depth;
+        let d = complete(&p, &image, &sparse, None, false).depth;
         for y in 24..h as usize {
             for x in 0..w as usize {
                 let z = d.data[y * w as usize + x];
@@ -1412,7 +1462,7 @@ mod tests {
             _ => [60, 60, 60],
         });
         let p = Params { grow: 0.0, smooth_sigma: 0.0, refine_iterations: 0, ..Params::default() };
-        let d = complete(&p, &image, &sparse, None).depth;
+        let d = complete(&p, &image, &sparse, None, false).depth;
         for y in 0..26 {
             let (z, truth) = (d.data[y * w as usize + 5], if y <= 12 { 30.0 } else { road(y) });
             assert!((z - truth).abs() < 0.01 * truth, "row {y}: {z} vs {truth}");
@@ -1445,7 +1495,7 @@ mod tests {
         // The mean and the worst relative error over `rows`.
         let error = |keep_planes: f32, rows: std::ops::Range<usize>| {
             let p = Params { keep_planes, refine_iterations: 0, ..Params::default() };
-            let d = complete(&p, &image, &sparse, None).depth;
+            let d = complete(&p, &image, &sparse, None, false).depth;
             let (mut sum, mut worst, mut n) = (0f32, 0f32, 0);
             for y in rows {
                 for x in 0..w as usize {
@@ -1487,7 +1537,7 @@ mod tests {
         });
         let sky = estimate_sky(&SkyParams::default(), &image, Some(&sparse));
         let sky = Mask { width: w, height: h, data: sky.into_iter().map(u8::from).collect() };
-        let d = complete(&Params::default(), &image, &sparse, Some(&sky)).depth;
+        let d = complete(&Params::default(), &image, &sparse, Some(&sky), false).depth;
         let at = |x: usize, y: usize| d.data[y * w as usize + x];
         // Pixels between the rows take the edge-aware average of the sampled ones, which the
         // grown samples beside the wall's edges (one column of road-coloured pixels at 5 m)
@@ -1502,7 +1552,7 @@ mod tests {
         // little, so not exactly 20 m.)
         assert!(at(3, 15) > 15.0, "{}", at(3, 15));
         // Without a sky mask, nothing is sky.
-        let d = complete(&Params::default(), &image, &sparse, None).depth;
+        let d = complete(&Params::default(), &image, &sparse, None, false).depth;
         assert!(d.data[5 * w as usize + 3] < 25.0);
     }
 
@@ -1535,18 +1585,19 @@ mod tests {
             });
             let sky = Mask { width: w, height: h, data: (0..w * h).map(|i| u8::from(i < 20 * w)).collect() };
             let p = Params::default();
-            let portable = complete_portable(&p, &image, &sparse, Some(&sky));
+            let portable = complete_portable(&p, &image, &sparse, Some(&sky), true);
             // SAFETY: AVX2 is present, checked above.
-            let avx2 = unsafe { complete_avx2(&p, &image, &sparse, Some(&sky)) };
+            let avx2 = unsafe { complete_avx2(&p, &image, &sparse, Some(&sky), true) };
             let bits = |m: &DepthMap| m.data.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+            let support = |c: &Completion| bits(c.support.as_ref().expect("asked for"));
             assert_eq!(bits(&portable.depth), bits(&avx2.depth));
-            assert_eq!(bits(&portable.support), bits(&avx2.support));
+            assert_eq!(support(&portable), support(&avx2));
             assert!(portable.depth.data.iter().all(|z| z.is_finite() && *z > 0.0));
             if std::arch::is_x86_feature_detected!("avx512f") && std::arch::is_x86_feature_detected!("avx512bw") {
                 // SAFETY: AVX-512 F and BW are present, checked just above.
-                let avx512 = unsafe { complete_avx512(&p, &image, &sparse, Some(&sky)) };
+                let avx512 = unsafe { complete_avx512(&p, &image, &sparse, Some(&sky), true) };
                 assert_eq!(bits(&portable.depth), bits(&avx512.depth));
-                assert_eq!(bits(&portable.support), bits(&avx512.support));
+                assert_eq!(support(&portable), support(&avx512));
             } else {
                 eprintln!("AVX-512 part skipped: this CPU has no AVX-512");
             }
@@ -1616,6 +1667,42 @@ mod tests {
         assert_eq!(d[4 * w + 8], 3.0);
         assert_eq!(d[7 * w + 8], 4.0, "three diagonal steps: 3 x 4/3");
         assert!(support_distance(&[0.0; 4], 2, 2).iter().all(|&v| v == f32::MAX));
+    }
+
+    #[test]
+    fn pixels_near_a_sample_are_those_the_support_distance_puts_within_reach() {
+        let mut rng = dist4d_types::rng::Rng::new(17);
+        for (w, h) in [(1, 1), (1, 7), (9, 1), (2, 2), (31, 17), (64, 40)] {
+            for density in [0.0, 0.02, 0.3, 1.0] {
+                let sparse: Vec<f32> = (0..w * h)
+                    .map(|_| if rng.next_f64() < density { 1.0 + rng.next_f64() as f32 } else { 0.0 })
+                    .collect();
+                let distance = support_distance(&sparse, w, h);
+                for reach in [0.0, 0.5, 1.0, 1.2, 4.0 / 3.0, 2.5] {
+                    let from_distance = near_samples(&sparse, Some(&distance), reach, w, h);
+                    let expected: Vec<u8> = distance.iter().map(|&d| (d <= reach) as u8).collect();
+                    assert_eq!(from_distance, expected);
+                    assert_eq!(near_samples(&sparse, None, reach, w, h), expected, "{w}x{h}, density {density}, reach {reach}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_depth_is_the_same_with_and_without_the_support_map() {
+        let (w, h) = (80u32, 60u32);
+        let mut sparse = DepthMap::new(w, h);
+        for y in (20..h as usize).step_by(5) {
+            for x in (y % 2..w as usize).step_by(3) {
+                sparse.data[y * w as usize + x] = if x < 30 { 5.0 } else { 20.0 - 0.1 * y as f32 };
+            }
+        }
+        let image = grey(w, h, |x, y| if x < 30 { [200, 40, 40] } else { [90 + (y % 9) as u8, 100, 110] });
+        let with = complete(&Params::default(), &image, &sparse, None, true);
+        let without = complete(&Params::default(), &image, &sparse, None, false);
+        let bits = |m: &DepthMap| m.data.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&with.depth), bits(&without.depth));
+        assert!(with.support.is_some() && without.support.is_none());
     }
 
     #[test]
@@ -1716,7 +1803,7 @@ mod tests {
             }
         }
         let at = |d: &DepthMap, x: usize, y: usize| d.data[y * w as usize + x];
-        let d = complete(&Params::default(), &image, &sparse, None).depth;
+        let d = complete(&Params::default(), &image, &sparse, None, false).depth;
         for x in 14..26 {
             let z = at(&d, x, 4);
             assert!((z - 20.0).abs() < 0.05 * 20.0, "({x}, 4): {z}");
@@ -1724,7 +1811,7 @@ mod tests {
         assert!((at(&d, 20, 20) - 8.0).abs() < 0.05 * 8.0, "the crown keeps its depth: {}", at(&d, 20, 20));
         // The column alone (neither average nor refinement) would continue the crown up.
         let column = Params { smooth_sigma: 0.0, refine_iterations: 0, ..Params::default() };
-        let column = complete(&column, &image, &sparse, None).depth;
+        let column = complete(&column, &image, &sparse, None, false).depth;
         assert!((at(&column, 20, 4) - 8.0).abs() < 0.5, "{}", at(&column, 20, 4));
     }
 
@@ -1801,7 +1888,7 @@ mod tests {
         let p = Params { grow: 0.0, ..Params::default() };
         // The depths of row 5 between columns 8 and 56: (least, greatest).
         let span = |p: &Params| {
-            let d = complete(p, &image, &sparse, None).depth;
+            let d = complete(p, &image, &sparse, None, false).depth;
             (8..56).map(|x| d.data[5 * w as usize + x]).fold((f32::MAX, 0f32), |(a, b), v| (a.min(v), b.max(v)))
         };
         let (lo, hi) = span(&p);
@@ -1811,7 +1898,7 @@ mod tests {
         // which smooths steps over 5%, to see it).
         let (lo, hi) = span(&Params { refine_iterations: 0, ..p.clone() });
         assert!(hi / lo < 1.02, "without the refinement, row 5 spans {lo}..{hi} m");
-        let streaky = complete(&Params { smooth_sigma: 0.0, refine_iterations: 0, ..p }, &image, &sparse, None).depth;
+        let streaky = complete(&Params { smooth_sigma: 0.0, refine_iterations: 0, ..p }, &image, &sparse, None, false).depth;
         assert_eq!(streaky.data[5 * w as usize + 5], 12.0, "without the row average: a streak");
     }
 }
