@@ -55,7 +55,8 @@ pub struct Params {
     /// A colour step (sum of |dR| + |dG| + |dB|, 0-765) that cuts the average as much as
     /// `smooth_sigma` pixels of distance (the domain transform's sigma_r, in these units).
     pub smooth_edge: f32,
-    /// Row-then-column passes of that average (Gastal and Oliveira use 3).
+    /// Row-then-column passes of that average (Gastal and Oliveira use 3; over 2x2 blocks 2 gave
+    /// the same accuracy).
     pub smooth_iterations: u32,
     /// Pixels the row and column passes filled by continuing a surface (a bridged row gap,
     /// linear between two agreeing samples of a column, a vertical surface above the highest
@@ -93,12 +94,12 @@ impl Default for Params {
             smooth_from: 1.0,
             smooth_sigma: 30.0,
             smooth_edge: 40.0,
-            smooth_iterations: 3,
+            smooth_iterations: 2,
             keep_planes: 0.5,
-            refine_iterations: 50,
+            refine_iterations: 40,
             refine_sigma: 5.0,
             refine_weight: 100.0,
-            refine_band: 6,
+            refine_band: 5,
             worker: None,
         }
     }
@@ -695,28 +696,86 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], near: &[u8], c
     if p.smooth_sigma <= 0.0 || p.smooth_iterations == 0 || w < 2 || h < 2 {
         return;
     }
-    // Sources: pixels beside a sample (within `smooth_from`), or on the ground below a column's
-    // lowest one (inverse depth, near a sample, sky, how it was filled).
-    let source = |v: f32, near: u8, s: u8, c: u8| ((near != 0) | (c == GROUND)) & (s == 0) & (v > 0.0);
-    // The filter's input: (inverse depth, 1) at sources, (0, 0) elsewhere, filtered together (as
-    // two planes, so that the column passes are arithmetic on contiguous rows and vectorise).
-    let n = w * h;
-    let (mut num, mut den) = (vec![0f32; n], vec![0f32; n]);
-    for ((nu, de), ((&v, &d), (&s, &c))) in num.iter_mut().zip(den.iter_mut()).zip(inv.iter().zip(near).zip(sky.iter().zip(continued))) {
-        let source = source(v, d, s, c) as u8 as f32;
-        *nu = v * source;
-        *de = source;
-    }
-    if !den.iter().zip(sky).any(|(&a, &s)| a == 0.0 && s == 0) {
+    // Nothing to replace: every pixel is a source or sky.
+    if !inv.iter().zip(near).zip(sky.iter().zip(continued)).any(|((&v, &d), (&s, &c))| !is_source(v, d, s, c) & (s == 0)) {
         return;
     }
-    let iterations = p.smooth_iterations as i32;
+    // The average reaches tens of px and changes slowly, so it is taken over 2x2 blocks (a quarter
+    // of the pixels, the filter's passes being most of its time), then brought back to each pixel
+    // from the blocks around it, weighed by colour likeness so that it does not cross the edges the
+    // blocks blur.
     let ratio = p.smooth_sigma / p.smooth_edge.max(1e-3);
+    let mut blocks = Blocks::of(inv, near, continued, planes, sky, w, h);
+    // A block is 2 px, so the spatial sigma halves in its units; the colour ratio does not: a
+    // block straddling an edge splits its colour step in two, and the weights cut each half as a
+    // whole step (halving it too, as the units alone would, measured worse: 2.00% of seed 0's 8
+    // keyframes off by more than 10% against 1.95%).
+    domain_filter(p, &mut blocks.num, &mut blocks.den, &blocks.planes, &blocks.sky, blocks.w, blocks.h, p.smooth_sigma / 2.0, ratio);
+    let like = likeness(p, ratio);
+    let mut spread = Spread::new(w);
+    let keep = p.keep_planes;
+    // A pixel takes the average plus the continuation's correction to it (0 where not trusted)
+    // averaged over the replaced pixels within this many px along its row: a receding facade's
+    // correction changes smoothly along the row and survives; noisy top samples would give each
+    // column its own correction, vertical streaks again, and average out (4 / 8 / 16 px: 2.11 /
+    // 2.11 / 2.12% of seed 0's 8 keyframes off by more than 10%).
+    const RADIUS: usize = 8;
+    // Per row: what each pixel becomes and its correction, then the correction's mean over the
+    // window from running sums. The sums run in registers: read back from the previous entry,
+    // each addition waited on a store (3.9 ms of the completion's then ~58, now 0.7).
+    let mut correction = vec![0f32; w];
+    let mut replaced = vec![0f32; w];
+    let mut sums = vec![[0f32; 2]; w + 1];
+    for y in 0..h {
+        spread.row(&blocks, y, planes, w, h, &like);
+        let row = y * w..(y + 1) * w;
+        let (inv, num, den, near) = (&mut inv[row.clone()], &spread.num[..], &spread.den[..], &near[row.clone()]);
+        let (sky, continued) = (&sky[row.clone()], &continued[row]);
+        for x in 0..w {
+            let (v, s, c) = (inv[x], sky[x], continued[x]);
+            let replace = !is_source(v, near[x], s, c) & (s == 0) & (den[x] > 1e-8);
+            let smooth = num[x] / den[x].max(1e-8);
+            // NaN (no average, keep = 0) falls to 0 in `max`.
+            let trust = (1.0 - (v - smooth).abs() / (keep * smooth)).max(0.0);
+            let trusted = replace & (c == CONTINUED) & (v > 0.0) & (keep > 0.0);
+            correction[x] = if trusted { trust * (v - smooth) } else { 0.0 };
+            replaced[x] = replace as u8 as f32;
+            inv[x] = if replace { smooth } else { v };
+        }
+        let (mut sum, mut n) = (0f32, 0f32);
+        for (s, (&c, &r)) in sums[1..].iter_mut().zip(correction.iter().zip(&replaced)) {
+            sum += c;
+            n += r;
+            *s = [sum, n];
+        }
+        for (x, (v, &r)) in inv.iter_mut().zip(&replaced).enumerate() {
+            let (lo, hi) = (x.saturating_sub(RADIUS), (x + RADIUS + 1).min(w));
+            let (sum, n) = (sums[hi][0] - sums[lo][0], sums[hi][1] - sums[lo][1]);
+            *v += r * (sum / n.max(1.0));
+        }
+    }
+}
+
+/// The 2D fill's sources: pixels beside a sample (within `smooth_from`), or on the ground below a
+/// column's lowest one (inverse depth, near a sample, sky, how it was filled); not sky.
+#[inline(always)]
+fn is_source(v: f32, near: u8, sky: u8, continued: u8) -> bool {
+    ((near != 0) | (continued == GROUND)) & (sky == 0) & (v > 0.0)
+}
+
+/// The 2D fill's filter over (`num`, `den`) on a `w` x `h` grid whose colours are `planes` and sky
+/// `sky`: `smooth_iterations` passes along rows and then columns, the first with spatial sigma
+/// derived from `sigma_s` (px of this grid), a colour step of s counting as `ratio` s px.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn domain_filter(p: &Params, num: &mut [f32], den: &mut [f32], planes: &[u8], sky: &[u8], w: usize, h: usize, sigma_s: f32, ratio: f32) {
+    let n = w * h;
+    let iterations = p.smooth_iterations as i32;
     // The i-th iteration's spatial sigma (Gastal and Oliveira's eq. 14) halves from one iteration
     // to the next, so its link weights exp(-(sqrt 2 / sigma_i) (1 + ratio step)) are the previous
     // iteration's squared: the weights are looked up once, for the first iteration, and squared
     // in place after each use.
-    let sigma = p.smooth_sigma * 3f32.sqrt() * 2f32.powi(iterations - 1) / (4f32.powi(iterations) - 1.0).sqrt();
+    let sigma = first_sigma(sigma_s, iterations);
     // Colour steps (summed RGB difference, 0-765) -> weight; the last entry, 0, is a link that
     // sky or the border cuts, so the passes below need no branch.
     let mut weight = [0f32; CUT + 1];
@@ -774,46 +833,203 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], near: &[u8], c
             }
         }
     }
-    let keep = p.keep_planes;
-    // A pixel takes the average plus the continuation's correction to it (0 where not trusted)
-    // averaged over the replaced pixels within this many px along its row: a receding facade's
-    // correction changes smoothly along the row and survives; noisy top samples would give each
-    // column its own correction, vertical streaks again, and average out (4 / 8 / 16 px: 2.11 /
-    // 2.11 / 2.12% of seed 0's 8 keyframes off by more than 10%).
-    const RADIUS: usize = 8;
-    // Per row: what each pixel becomes and its correction, then the correction's mean over the
-    // window from running sums. The sums run in registers: read back from the previous entry,
-    // each addition waited on a store (3.9 ms of the completion's then ~58, now 0.7).
-    let mut correction = vec![0f32; w];
-    let mut replaced = vec![0f32; w];
-    let mut sums = vec![[0f32; 2]; w + 1];
-    for y in 0..h {
+}
+
+/// The spatial sigma of the first of `iterations` passes of a domain transform of sigma `sigma_s`
+/// (Gastal and Oliveira's eq. 14; each later one is half the one before).
+fn first_sigma(sigma_s: f32, iterations: i32) -> f32 {
+    sigma_s * 3f32.sqrt() * 2f32.powi(iterations - 1) / (4f32.powi(iterations) - 1.0).sqrt()
+}
+
+/// How much a pixel takes of a block's average by their summed RGB difference (0-765): the
+/// full-resolution filter's first link weight, with the colour counting twice as much (a pixel
+/// beside an edge, weighed against a block across it, should take nearly nothing; once as much
+/// measured 1.96% of seed 0's 8 keyframes off by more than 10% against 1.95%).
+fn likeness(p: &Params, ratio: f32) -> [f32; CUT] {
+    let sigma = first_sigma(p.smooth_sigma, p.smooth_iterations as i32);
+    let mut like = [0f32; CUT];
+    for (s, c) in like.iter_mut().enumerate() {
+        *c = (-(2f32.sqrt() / sigma) * (1.0 + 2.0 * ratio * s as f32)).exp();
+    }
+    like
+}
+
+/// The 2D fill's grid: blocks of 2x2 pixels (fewer at an odd image's last row or column).
+struct Blocks {
+    w: usize,
+    h: usize,
+    /// Sums of the pixels' (num, den).
+    num: Vec<f32>,
+    den: Vec<f32>,
+    /// Mean colours (red, green, blue planes, rounded).
+    planes: Vec<u8>,
+    /// 1 where every pixel of the block is sky.
+    sky: Vec<u8>,
+}
+
+impl Blocks {
+    /// The blocks of the filter's input: (inverse depth, 1) at sources, (0, 0) elsewhere.
+    #[inline(always)]
+    fn of(inv: &[f32], near: &[u8], continued: &[u8], planes: &[u8], sky: &[u8], w: usize, h: usize) -> Blocks {
+        let (bw, bh) = (w.div_ceil(2), h.div_ceil(2));
+        let (n, nb) = (w * h, bw * bh);
+        let mut b = Blocks { w: bw, h: bh, num: vec![0f32; nb], den: vec![0f32; nb], planes: vec![0u8; 3 * nb], sky: vec![0u8; nb] };
+        let pairs = w / 2;
+        // A row's (num, den) of the filter's input.
+        let (mut num, mut den) = ([vec![0f32; w], vec![0f32; w]], [vec![0f32; w], vec![0f32; w]]);
+        for by in 0..bh {
+            // The block's rows; an odd image's last block row has one, counted once.
+            let (ya, yb) = (2 * by, (2 * by + 1).min(h - 1));
+            let second = (yb != ya) as u8;
+            let (rows, pixels) = (1 + second as u16, (1 + second as u16) * 2);
+            let at = |y: usize| y * w..(y + 1) * w;
+            let out = by * bw..(by + 1) * bw;
+            // Sums of the two rows' pixel pairs (the second row weighed 0 when it is the first).
+            let pair_sums = |out: &mut [f32], v: &[Vec<f32>; 2]| {
+                let (a, c) = (&v[0][..], &v[1][..]);
+                let f = second as f32;
+                for (o, (p, q)) in out[..pairs].iter_mut().zip(a.chunks_exact(2).zip(c.chunks_exact(2))) {
+                    *o = (p[0] + p[1]) + f * (q[0] + q[1]);
+                }
+                if w % 2 == 1 {
+                    out[pairs] = a[w - 1] + f * c[w - 1];
+                }
+            };
+            for (k, y) in [ya, yb].into_iter().enumerate() {
+                let row = at(y);
+                let (v, d, s, c) = (&inv[row.clone()], &near[row.clone()], &sky[row.clone()], &continued[row]);
+                for (x, (nu, de)) in num[k].iter_mut().zip(den[k].iter_mut()).enumerate() {
+                    let source = is_source(v[x], d[x], s[x], c[x]) as u8 as f32;
+                    *nu = v[x] * source;
+                    *de = source;
+                }
+            }
+            pair_sums(&mut b.num[out.clone()], &num);
+            pair_sums(&mut b.den[out.clone()], &den);
+            for c in 0..3 {
+                let plane = &planes[c * n..(c + 1) * n];
+                let (a, d) = (&plane[at(ya)], &plane[at(yb)]);
+                let o = &mut b.planes[c * nb + out.start..c * nb + out.end];
+                let s = second as u16;
+                for (o, (p, q)) in o[..pairs].iter_mut().zip(a.chunks_exact(2).zip(d.chunks_exact(2))) {
+                    let sum = p[0] as u16 + p[1] as u16 + s * (q[0] as u16 + q[1] as u16);
+                    *o = ((sum + pixels / 2) / pixels) as u8;
+                }
+                if w % 2 == 1 {
+                    o[pairs] = ((a[w - 1] as u16 + s * d[w - 1] as u16 + rows / 2) / rows) as u8;
+                }
+            }
+            let (a, d) = (&sky[at(ya)], &sky[at(yb)]);
+            let o = &mut b.sky[out];
+            for (o, (p, q)) in o[..pairs].iter_mut().zip(a.chunks_exact(2).zip(d.chunks_exact(2))) {
+                *o = ((p[0] != 0) & (p[1] != 0) & (q[0] != 0) & (q[1] != 0)) as u8;
+            }
+            if w % 2 == 1 {
+                o[pairs] = ((a[w - 1] != 0) & (d[w - 1] != 0)) as u8;
+            }
+        }
+        b
+    }
+}
+
+/// The filtered blocks brought back to a row of pixels at a time: each pixel's (num, den) from
+/// the four blocks nearest it, bilinear weights between the blocks' centres (a pixel is a quarter
+/// of a block from the nearest centre: 3/4 and 1/4 each way) times the likeness of the pixel's
+/// colour and each block's.
+struct Spread {
+    /// Block rows spread to the image's width: block row j in slot j % 2 (a pixel row uses block
+    /// rows j and j + 1).
+    slots: [WideRow; 2],
+    held: [usize; 2],
+    /// The row's (num, den).
+    num: Vec<f32>,
+    den: Vec<f32>,
+}
+
+impl Spread {
+    fn new(w: usize) -> Spread {
+        Spread { slots: [WideRow::new(w), WideRow::new(w)], held: [usize::MAX; 2], num: vec![0f32; w], den: vec![0f32; w] }
+    }
+
+    /// (num, den) of pixel row `y`.
+    #[inline(always)]
+    fn row(&mut self, blocks: &Blocks, y: usize, planes: &[u8], w: usize, h: usize, like: &[f32; CUT]) {
+        let n = w * h;
+        // The block rows above and below the pixels' centres, and the first one's weight.
+        let (a, wa) = if y % 2 == 0 { (y as isize / 2 - 1, 0.25f32) } else { (y as isize / 2, 0.75) };
+        let last = blocks.h as isize - 1;
+        let (a, b) = (a.clamp(0, last) as usize, (a + 1).clamp(0, last) as usize);
+        for by in [a, b] {
+            if self.held[by % 2] != by {
+                self.slots[by % 2].fill(blocks, by);
+                self.held[by % 2] = by;
+            }
+        }
+        let (top, bottom) = (&self.slots[a % 2], &self.slots[b % 2]);
         let row = y * w..(y + 1) * w;
-        let (inv, num, den, near) = (&mut inv[row.clone()], &num[row.clone()], &den[row.clone()], &near[row.clone()]);
-        let (sky, continued) = (&sky[row.clone()], &continued[row]);
+        let (r, g, bl) = (&planes[row.clone()], &planes[n + row.start..n + row.end], &planes[2 * n + row.start..2 * n + row.end]);
+        // The four blocks' terms over slices of the row's length (no bounds checks and no
+        // closure, so that the loop vectorises, the likeness lookups as gathers).
+        let (r, g, bl) = (&r[..w], &g[..w], &bl[..w]);
+        let ([tr0, tg0, tb0], [tr2, tg2, tb2]) = (top.colour.each_ref().map(|c| &c[..w]), top.colour.each_ref().map(|c| &c[2..w + 2]));
+        let ([br0, bg0, bb0], [br2, bg2, bb2]) = (bottom.colour.each_ref().map(|c| &c[..w]), bottom.colour.each_ref().map(|c| &c[2..w + 2]));
+        let (tn0, tn2, td0, td2) = (&top.num[..w], &top.num[2..w + 2], &top.den[..w], &top.den[2..w + 2]);
+        let (bn0, bn2, bd0, bd2) = (&bottom.num[..w], &bottom.num[2..w + 2], &bottom.den[..w], &bottom.den[2..w + 2]);
+        let (num, den) = (&mut self.num[..w], &mut self.den[..w]);
         for x in 0..w {
-            let (v, s, c) = (inv[x], sky[x], continued[x]);
-            let replace = !source(v, near[x], s, c) & (s == 0) & (den[x] > 1e-8);
-            let smooth = num[x] / den[x].max(1e-8);
-            // NaN (no average, keep = 0) falls to 0 in `max`.
-            let trust = (1.0 - (v - smooth).abs() / (keep * smooth)).max(0.0);
-            let trusted = replace & (c == CONTINUED) & (v > 0.0) & (keep > 0.0);
-            correction[x] = if trusted { trust * (v - smooth) } else { 0.0 };
-            replaced[x] = replace as u8 as f32;
-            inv[x] = if replace { smooth } else { v };
-        }
-        let (mut sum, mut n) = (0f32, 0f32);
-        for (s, (&c, &r)) in sums[1..].iter_mut().zip(correction.iter().zip(&replaced)) {
-            sum += c;
-            n += r;
-            *s = [sum, n];
-        }
-        for (x, (v, &r)) in inv.iter_mut().zip(&replaced).enumerate() {
-            let (lo, hi) = (x.saturating_sub(RADIUS), (x + RADIUS + 1).min(w));
-            let (sum, n) = (sums[hi][0] - sums[lo][0], sums[hi][1] - sums[lo][1]);
-            *v += r * (sum / n.max(1.0));
+            // x even: its farther block column at x (1/4), the nearer at x + 2 (3/4); odd:
+            // the other way round.
+            let wx = 0.25 + 0.5 * (x & 1) as f32;
+            let s_tl = r[x].abs_diff(tr0[x]) as usize + g[x].abs_diff(tg0[x]) as usize + bl[x].abs_diff(tb0[x]) as usize;
+            let s_tr = r[x].abs_diff(tr2[x]) as usize + g[x].abs_diff(tg2[x]) as usize + bl[x].abs_diff(tb2[x]) as usize;
+            let s_bl = r[x].abs_diff(br0[x]) as usize + g[x].abs_diff(bg0[x]) as usize + bl[x].abs_diff(bb0[x]) as usize;
+            let s_br = r[x].abs_diff(br2[x]) as usize + g[x].abs_diff(bg2[x]) as usize + bl[x].abs_diff(bb2[x]) as usize;
+            let tl = (wa * wx) * like[s_tl];
+            let tr = (wa * (1.0 - wx)) * like[s_tr];
+            let bo = ((1.0 - wa) * wx) * like[s_bl];
+            let br = ((1.0 - wa) * (1.0 - wx)) * like[s_br];
+            num[x] = ((tl * tn0[x] + tr * tn2[x]) + bo * bn0[x]) + br * bn2[x];
+            den[x] = ((tl * td0[x] + tr * td2[x]) + bo * bd0[x]) + br * bd2[x];
         }
     }
+}
+
+/// A row of blocks spread to the image's width `w`, padded: block k at indices 2k + 1 and 2k + 2,
+/// block 0 at index 0 too and the last block to the end; a pixel x's two nearest block columns are
+/// then at x and x + 2.
+struct WideRow {
+    num: Vec<f32>,
+    den: Vec<f32>,
+    colour: [Vec<u8>; 3],
+}
+
+impl WideRow {
+    fn new(w: usize) -> WideRow {
+        WideRow { num: vec![0f32; w + 2], den: vec![0f32; w + 2], colour: std::array::from_fn(|_| vec![0u8; w + 2]) }
+    }
+
+    /// Block row `by` of `blocks`.
+    #[inline(always)]
+    fn fill(&mut self, blocks: &Blocks, by: usize) {
+        let (bw, at) = (blocks.w, by * blocks.w);
+        spread_pairs(&mut self.num, &blocks.num[at..at + bw]);
+        spread_pairs(&mut self.den, &blocks.den[at..at + bw]);
+        for (c, out) in self.colour.iter_mut().enumerate() {
+            let plane = c * blocks.w * blocks.h + at;
+            spread_pairs(out, &blocks.planes[plane..plane + bw]);
+        }
+    }
+}
+
+/// `out[0]` = v[0], v[k] at 2k + 1 and 2k + 2, the last of `v` to the end of `out`.
+#[inline(always)]
+fn spread_pairs<T: Copy>(out: &mut [T], v: &[T]) {
+    out[0] = v[0];
+    for (o, &x) in out[1..].chunks_mut(2).zip(v) {
+        o.fill(x);
+    }
+    let end = out.len() - 1;
+    out[end] = v[v.len() - 1];
 }
 
 /// The weights of the links from the pixels `from..from + out.len()` to the pixels `back` before
@@ -1303,7 +1519,9 @@ impl Stage for CompleteDepth {
     //    again (outputs within 1e-4, relative, of 8's).
     // 10: the refinement's CG on the system scaled to a unit diagonal (the same iterates as the
     //    Jacobi-preconditioned one; outputs within 3e-4 of 9's).
-    const VERSION: u32 = 10;
+    // 11: the 2D fill over 2x2 blocks, spread back by colour likeness, in 2 passes; the refinement
+    //    40 steps in a 5 px band (docs/BENCHMARKS.md, "The 2D fill over blocks (fifteenth session)").
+    const VERSION: u32 = 11;
     const SUMMARY: &'static str =
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)";
     const GRAINS: &'static [&'static str] = &["camera"];
@@ -1667,6 +1885,92 @@ mod tests {
         assert_eq!(d[4 * w + 8], 3.0);
         assert_eq!(d[7 * w + 8], 4.0, "three diagonal steps: 3 x 4/3");
         assert!(support_distance(&[0.0; 4], 2, 2).iter().all(|&v| v == f32::MAX));
+    }
+
+    /// Red, green and blue planes of a `w` x `h` image from a colour per pixel.
+    fn planes_of(w: usize, h: usize, f: impl Fn(usize, usize) -> [u8; 3]) -> Vec<u8> {
+        let mut planes = vec![0u8; 3 * w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let c = f(x, y);
+                for k in 0..3 {
+                    planes[k * w * h + y * w + x] = c[k];
+                }
+            }
+        }
+        planes
+    }
+
+    #[test]
+    fn blocks_sum_the_sources_and_average_the_colours_of_their_pixels() {
+        // Odd sizes: the last block row and column hold 2 or 1 pixels.
+        let (w, h) = (5usize, 3usize);
+        let inv: Vec<f32> = (0..w * h).map(|i| 0.1 * (i + 1) as f32).collect();
+        // Sources: near a sample (every other pixel), or ground (pixel 7); the last column is sky.
+        let near: Vec<u8> = (0..w * h).map(|i| (i % 2 == 0) as u8).collect();
+        let continued: Vec<u8> = (0..w * h).map(|i| if i == 7 { GROUND } else { CONTINUED }).collect();
+        let sky: Vec<u8> = (0..w * h).map(|i| (i == 4 || i == 9 || i == 14) as u8).collect();
+        let planes = planes_of(w, h, |x, y| [(10 * x + y) as u8, 7, (x * y) as u8]);
+        let b = Blocks::of(&inv, &near, &continued, &planes, &sky, w, h);
+        assert_eq!((b.w, b.h), (3, 2));
+        for (by, bx) in (0..2).flat_map(|by| (0..3).map(move |bx| (by, bx))) {
+            let pixels: Vec<usize> =
+                [(2 * by, 2 * bx), (2 * by, 2 * bx + 1), (2 * by + 1, 2 * bx), (2 * by + 1, 2 * bx + 1)]
+                    .into_iter()
+                    .filter(|&(y, x)| y < h && x < w)
+                    .map(|(y, x)| y * w + x)
+                    .collect();
+            let source = |i: usize| is_source(inv[i], near[i], sky[i], continued[i]);
+            let j = by * 3 + bx;
+            let num: f32 = pixels.iter().filter(|&&i| source(i)).map(|&i| inv[i]).sum();
+            let den = pixels.iter().filter(|&&i| source(i)).count() as f32;
+            assert!((b.num[j] - num).abs() < 1e-6 && b.den[j] == den, "block {j}: {} {} against {num} {den}", b.num[j], b.den[j]);
+            for k in 0..3 {
+                let sum: u32 = pixels.iter().map(|&i| planes[k * w * h + i] as u32).sum();
+                let n = pixels.len() as u32;
+                assert_eq!(b.planes[k * 6 + j] as u32, (sum + n / 2) / n, "block {j}, colour {k}");
+            }
+            assert_eq!(b.sky[j], pixels.iter().all(|&i| sky[i] != 0) as u8, "block {j}");
+        }
+    }
+
+    #[test]
+    fn spreading_blocks_keeps_their_value_on_each_side_of_a_colour_edge() {
+        // Blocks left of x = 10 red with inverse depth 0.5, right of it blue with 0.1; a pixel
+        // row spread from them takes its own side's value, up to the edge, and a uniform region
+        // exactly its value.
+        let (w, h) = (20usize, 8usize);
+        let planes = planes_of(w, h, |x, _| if x < 10 { [200, 30, 30] } else { [30, 30, 200] });
+        let (bw, bh) = (10usize, 4usize);
+        let mut blocks = Blocks { w: bw, h: bh, num: vec![0.0; bw * bh], den: vec![4.0; bw * bh], planes: vec![0; 3 * bw * bh], sky: vec![0; bw * bh] };
+        for by in 0..bh {
+            for bx in 0..bw {
+                let j = by * bw + bx;
+                blocks.num[j] = 4.0 * if bx < 5 { 0.5 } else { 0.1 };
+                let c: [u8; 3] = if bx < 5 { [200, 30, 30] } else { [30, 30, 200] };
+                for k in 0..3 {
+                    blocks.planes[k * bw * bh + j] = c[k];
+                }
+            }
+        }
+        let p = Params::default();
+        let like = likeness(&p, p.smooth_sigma / p.smooth_edge);
+        let mut spread = Spread::new(w);
+        for y in 0..h {
+            spread.row(&blocks, y, &planes, w, h, &like);
+            for x in 0..w {
+                let v = spread.num[x] / spread.den[x];
+                let expected = if x < 10 { 0.5 } else { 0.1 };
+                assert!((v - expected).abs() < 1e-4 * expected, "row {y}, pixel {x}: {v}");
+            }
+        }
+        // Without the colour likeness (a grey image), the pixels beside the edge mix both sides.
+        let grey = planes_of(w, h, |_, _| [100, 100, 100]);
+        let mut flat = Blocks { planes: vec![100; 3 * bw * bh], ..blocks };
+        flat.sky.fill(0);
+        spread.row(&flat, 3, &grey, w, h, &like);
+        let v = spread.num[9] / spread.den[9];
+        assert!(v < 0.45 && v > 0.15, "{v}");
     }
 
     #[test]
