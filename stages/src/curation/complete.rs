@@ -964,7 +964,7 @@ impl Spread {
     fn row(&mut self, blocks: &Blocks, y: usize, planes: &[u8], w: usize, h: usize, like: &[f32; CUT]) {
         let n = w * h;
         // The block rows above and below the pixels' centres, and the first one's weight.
-        let (a, wa) = if y % 2 == 0 { (y as isize / 2 - 1, 0.25f32) } else { (y as isize / 2, 0.75) };
+        let (a, wa) = if y.is_multiple_of(2) { (y as isize / 2 - 1, 0.25f32) } else { (y as isize / 2, 0.75) };
         let last = blocks.h as isize - 1;
         let (a, b) = (a.clamp(0, last) as usize, (a + 1).clamp(0, last) as usize);
         for by in [a, b] {
