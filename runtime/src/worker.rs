@@ -31,6 +31,9 @@ use std::time::{Duration, Instant};
 /// The protocol version this engine speaks.
 pub const PROTOCOL: u32 = 1;
 
+/// How long a dead worker's stderr is read on before its error is reported.
+const STDERR_GRACE: Duration = Duration::from_millis(500);
+
 /// Lines of a worker's stderr kept for error messages.
 const STDERR_TAIL: usize = 20;
 
@@ -162,6 +165,8 @@ pub struct Worker {
     stdin: ChildStdin,
     lines: Receiver<Line>,
     stderr: Arc<Mutex<VecDeque<String>>>,
+    /// Disconnected when the stderr reader has read to the end.
+    stderr_read: Receiver<()>,
     next_id: u64,
 }
 
@@ -200,7 +205,10 @@ impl Worker {
         });
         let stderr = Arc::new(Mutex::new(VecDeque::new()));
         let tail = stderr.clone();
+        let (read_to_end, stderr_read) = crossbeam_channel::bounded::<()>(0);
         std::thread::spawn(move || {
+            // Dropped at the end of the stream: a dead worker's last words are in the tail then.
+            let _read_to_end = read_to_end;
             for line in BufReader::new(stderr_pipe).lines() {
                 let Ok(line) = line else { break };
                 if let Ok(mut t) = tail.lock() {
@@ -225,6 +233,7 @@ impl Worker {
             stdin,
             lines,
             stderr,
+            stderr_read,
             next_id: 1,
         };
         let hello = match worker.next_line(Instant::now() + startup) {
@@ -255,7 +264,7 @@ impl Worker {
             Ok(Line::Bad(line)) => Err(CallError::Malformed(format!("not JSON: {line}"))),
             Ok(Line::Closed) | Err(RecvTimeoutError::Disconnected) => {
                 let status = self.child.wait().map(|s| s.to_string()).unwrap_or_else(|e| e.to_string());
-                Err(CallError::Died(status))
+                Err(self.died(status))
             }
             Err(RecvTimeoutError::Timeout) => Err(CallError::Timeout(wait)),
         }
@@ -264,10 +273,16 @@ impl Worker {
     fn send(&mut self, msg: &serde_json::Value) -> std::result::Result<(), CallError> {
         let mut line = serde_json::to_vec(msg).map_err(|e| CallError::Malformed(e.to_string()))?;
         line.push(b'\n');
-        self.stdin
-            .write_all(&line)
-            .and_then(|_| self.stdin.flush())
-            .map_err(|e| CallError::Died(format!("writing to it: {e}")))
+        let written = self.stdin.write_all(&line).and_then(|_| self.stdin.flush());
+        written.map_err(|e| self.died(format!("writing to it: {e}")))
+    }
+
+    /// The error of a worker found dead. What it wrote to stderr before dying (often why) may
+    /// still be in the pipe, and error messages are made from the tail: so the reader is first
+    /// let finish, for at most `STDERR_GRACE` (a process the worker started may hold the pipe).
+    fn died(&self, why: String) -> CallError {
+        let _ = self.stderr_read.recv_timeout(STDERR_GRACE);
+        CallError::Died(why)
     }
 
     /// Sends `request` and waits up to `deadline` for its reply. A timeout kills the worker (its
