@@ -374,6 +374,130 @@ mod portable {
     }
 }
 
+/// 32 lanes of u16 on a 64-byte boundary: the unit the vector kernels' path buffers are made of.
+#[cfg(target_arch = "x86_64")]
+#[derive(Clone, Copy)]
+#[repr(C, align(64))]
+struct Lanes([u16; 32]);
+
+/// Rows of path costs for the vector SGM kernels, one pixel every `stride` lanes. A pixel's costs
+/// start `PAD` lanes in (a vector's width), after a `u16::MAX` sentinel (plane -1) and before
+/// another (plane n): the neighbours d +- 1 of every plane are then plain loads, and a missing one
+/// never wins a minimum. Every pixel starts on a vector boundary.
+#[cfg(target_arch = "x86_64")]
+struct PathRows<const PAD: usize> {
+    lanes: Vec<Lanes>,
+    stride: usize,
+}
+
+#[cfg(target_arch = "x86_64")]
+impl<const PAD: usize> PathRows<PAD> {
+    fn new(pixels: usize, n: usize) -> PathRows<PAD> {
+        let stride = n.div_ceil(PAD) * PAD + 2 * PAD;
+        PathRows { lanes: vec![Lanes([u16::MAX; 32]); (pixels * stride).div_ceil(32)], stride }
+    }
+
+    #[inline(always)]
+    fn pixel(&self, x: usize) -> *const u16 {
+        (self.lanes.as_ptr() as *const u16).wrapping_add(x * self.stride)
+    }
+
+    #[inline(always)]
+    fn pixel_mut(&mut self, x: usize) -> *mut u16 {
+        (self.lanes.as_mut_ptr() as *mut u16).wrapping_add(x * self.stride)
+    }
+}
+
+/// The two scanline passes of the vector SGM kernels, their buffers and their order (the
+/// portable `aggregate`'s recurrence): `step(c, prev, prev_min, out, earlier, sums)` is the
+/// kernel's work for one pixel's four paths, as its `pixel_paths` documents, and returns their
+/// minima; `PAD` is its vector's width in lanes. The forward pass stores its four paths' sums per
+/// pixel; the backward pass adds its own into one pixel's scratch and hands that to `done`: the
+/// complete sums never go to memory.
+///
+/// # Safety
+/// `cost` and `forward` hold `w * h * n` values and `step` may be called with pointers into them
+/// and into buffers of `n` planes padded by `PAD` lanes each side.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+#[allow(clippy::too_many_arguments, clippy::type_complexity)]
+unsafe fn scanline_passes<const PAD: usize>(
+    cost: &[u8],
+    forward: &mut [u16],
+    w: usize,
+    h: usize,
+    n: usize,
+    mut done: impl FnMut(usize, &[u16]),
+    mut step: impl FnMut(*const u8, [*const u16; 4], [u16; 4], [*mut u16; 4], *const u16, *mut u16) -> [u16; 4],
+) {
+    use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+    /// How many pixels ahead the backward pass prefetches.
+    const AHEAD: usize = 2;
+    // Asks for the cache lines of `bytes` bytes from `p` into every cache level.
+    let prefetch = |p: *const u8, bytes: usize| {
+        for line in (0..bytes).step_by(64) {
+            // SAFETY: a prefetch never faults; SSE is in every x86-64 CPU.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.wrapping_add(line) as *const i8) };
+        }
+    };
+    let mut sums = vec![Lanes([0; 32]); n.div_ceil(32)];
+    for backward in [false, true] {
+        // Path costs of the previous and the current row for up-left, up, up-right, with their
+        // minima, and of the previous and the current pixel for the path from the left.
+        let rows = || [PathRows::<PAD>::new(w, n), PathRows::new(w, n), PathRows::new(w, n)];
+        let (mut prev_rows, mut cur_rows) = (rows(), rows());
+        let mut prev_mins = [vec![0u16; w], vec![0u16; w], vec![0u16; w]];
+        let mut cur_mins = [vec![0u16; w], vec![0u16; w], vec![0u16; w]];
+        let mut left = PathRows::<PAD>::new(1, n);
+        let mut here = PathRows::<PAD>::new(1, n);
+        for yi in 0..h {
+            let y = if backward { h - 1 - yi } else { yi };
+            let mut left_min = 0u16;
+            for xi in 0..w {
+                let x = if backward { w - 1 - xi } else { xi };
+                let pixel = y * w + x;
+                let mut prev = [std::ptr::null(); 4];
+                let mut prev_min = [0u16; 4];
+                if xi > 0 {
+                    prev[0] = left.pixel(0);
+                    prev_min[0] = left_min;
+                }
+                for dir in 0..3 {
+                    let nx = xi as i64 + dir as i64 - 1;
+                    if yi > 0 && nx >= 0 && nx < w as i64 {
+                        prev[dir + 1] = prev_rows[dir].pixel(nx as usize);
+                        prev_min[dir + 1] = prev_mins[dir][nx as usize];
+                    }
+                }
+                let [r0, r1, r2] = &mut cur_rows;
+                let out = [here.pixel_mut(0), r0.pixel_mut(xi), r1.pixel_mut(xi), r2.pixel_mut(xi)];
+                let (earlier, to) = if backward {
+                    (forward.as_ptr().add(pixel * n), sums.as_mut_ptr() as *mut u16)
+                } else {
+                    (std::ptr::null(), forward.as_mut_ptr().add(pixel * n))
+                };
+                if backward && pixel >= AHEAD {
+                    // The backward pass walks memory downwards, which the hardware prefetchers
+                    // follow poorly: ask for the pixel after next.
+                    prefetch(cost.as_ptr().add((pixel - AHEAD) * n), n);
+                    prefetch(forward.as_ptr().add((pixel - AHEAD) * n) as *const u8, 2 * n);
+                }
+                let m = step(cost.as_ptr().add(pixel * n), prev, prev_min, out, earlier, to);
+                if backward {
+                    done(pixel, std::slice::from_raw_parts(sums.as_ptr() as *const u16, n));
+                }
+                std::mem::swap(&mut left, &mut here);
+                left_min = m[0];
+                for (mins, &m) in cur_mins.iter_mut().zip(&m[1..]) {
+                    mins[xi] = m;
+                }
+            }
+            std::mem::swap(&mut prev_rows, &mut cur_rows);
+            std::mem::swap(&mut prev_mins, &mut cur_mins);
+        }
+    }
+}
+
 /// AVX2 versions. Every function requires AVX2 (the caller's `Isa::Avx2` proves it) and at least
 /// 16 planes. A plane count that is not a multiple of the vector width is handled by a last
 /// vector that overlaps the one before it: its lanes are recomputed to the same values.
@@ -488,37 +612,8 @@ mod avx2 {
         _mm_extract_epi16::<0>(_mm_minpos_epu16(m)) as u16
     }
 
-    /// 16 lanes of path costs, aligned for whole-vector loads and stores.
-    #[derive(Clone, Copy)]
-    #[repr(C, align(32))]
-    struct Block([u16; 16]);
-
-    /// Rows of path costs, one pixel every [`path_stride`] lanes. A pixel's costs start `PAD`
-    /// lanes in, after a `u16::MAX` sentinel (plane -1) and before another (plane n): the
-    /// neighbours d +- 1 of every plane are then plain loads, and a missing one never wins a
-    /// minimum. Every pixel starts on a vector boundary.
-    struct PathRows(Vec<Block>);
-
+    /// Lanes of a vector, and so a path buffer's padding each side of a pixel (see `PathRows`).
     const PAD: usize = 16;
-
-    /// Lanes one pixel takes in a path buffer: a multiple of 16.
-    fn path_stride(n: usize) -> usize {
-        n.div_ceil(16) * 16 + 2 * PAD
-    }
-
-    impl PathRows {
-        fn new(pixels: usize, n: usize) -> PathRows {
-            PathRows(vec![Block([u16::MAX; 16]); pixels * path_stride(n) / 16])
-        }
-
-        fn pixel(&self, x: usize, n: usize) -> *const u16 {
-            (self.0.as_ptr() as *const u16).wrapping_add(x * path_stride(n))
-        }
-
-        fn pixel_mut(&mut self, x: usize, n: usize) -> *mut u16 {
-            (self.0.as_mut_ptr() as *mut u16).wrapping_add(x * path_stride(n))
-        }
-    }
 
     /// A vector load, from a 32-byte aligned address if `ALIGNED` (the compiler splits
     /// unaligned 256-bit loads and stores in two for the x86-64-v2 baseline's tuning).
@@ -589,20 +684,7 @@ mod avx2 {
         [hmin(mins[0]), hmin(mins[1]), hmin(mins[2]), hmin(mins[3])]
     }
 
-    /// How many pixels ahead the backward pass prefetches.
-    const AHEAD: usize = 2;
-
-    /// Asks for the cache lines of `bytes` bytes from `p` into every cache level.
-    #[inline]
-    #[target_feature(enable = "avx2")]
-    unsafe fn prefetch(p: *const u8, bytes: usize) {
-        for line in (0..bytes).step_by(64) {
-            _mm_prefetch::<_MM_HINT_T0>(p.add(line) as *const i8);
-        }
-    }
-
-    /// The forward pass stores its four paths' sums per pixel; the backward pass adds its own
-    /// into one pixel's scratch and hands that to `done`: the complete sums never go to memory.
+    /// The scanline passes (`scanline_passes`), each pixel's paths by `pixel_paths`.
     #[target_feature(enable = "avx2")]
     #[allow(clippy::too_many_arguments)]
     pub(super) unsafe fn aggregate(
@@ -634,66 +716,14 @@ mod avx2 {
         n: usize,
         p1: u16,
         p2: u16,
-        mut done: impl FnMut(usize, &[u16]),
+        done: impl FnMut(usize, &[u16]),
     ) {
-        let mut sums = vec![Block([0; 16]); n.div_ceil(16)];
         let p1v = _mm256_set1_epi16(p1 as i16);
-        for backward in [false, true] {
-            // Path costs of the previous and the current row for up-left, up, up-right, with
-            // their minima, and of the previous and the current pixel for the path from the left.
-            let mut prev_rows = [PathRows::new(w, n), PathRows::new(w, n), PathRows::new(w, n)];
-            let mut cur_rows = [PathRows::new(w, n), PathRows::new(w, n), PathRows::new(w, n)];
-            let mut prev_mins = [vec![0u16; w], vec![0u16; w], vec![0u16; w]];
-            let mut cur_mins = [vec![0u16; w], vec![0u16; w], vec![0u16; w]];
-            let mut left = PathRows::new(1, n);
-            let mut here = PathRows::new(1, n);
-            for yi in 0..h {
-                let y = if backward { h - 1 - yi } else { yi };
-                let mut left_min = 0u16;
-                for xi in 0..w {
-                    let x = if backward { w - 1 - xi } else { xi };
-                    let pixel = y * w + x;
-                    let mut prev = [std::ptr::null(); 4];
-                    let mut prev_min = [0u16; 4];
-                    if xi > 0 {
-                        prev[0] = left.pixel(0, n);
-                        prev_min[0] = left_min;
-                    }
-                    for dir in 0..3 {
-                        let nx = xi as i64 + dir as i64 - 1;
-                        if yi > 0 && nx >= 0 && nx < w as i64 {
-                            prev[dir + 1] = prev_rows[dir].pixel(nx as usize, n);
-                            prev_min[dir + 1] = prev_mins[dir][nx as usize];
-                        }
-                    }
-                    let [r0, r1, r2] = &mut cur_rows;
-                    let out = [here.pixel_mut(0, n), r0.pixel_mut(xi, n), r1.pixel_mut(xi, n), r2.pixel_mut(xi, n)];
-                    let (earlier, to) = if backward {
-                        (forward.as_ptr().add(pixel * n), sums.as_mut_ptr() as *mut u16)
-                    } else {
-                        (std::ptr::null(), forward.as_mut_ptr().add(pixel * n))
-                    };
-                    let c = cost.as_ptr().add(pixel * n);
-                    if backward && pixel >= AHEAD {
-                        // The backward pass walks memory downwards, which the hardware
-                        // prefetchers follow poorly: ask for the pixel after next.
-                        prefetch(cost.as_ptr().add((pixel - AHEAD) * n), n);
-                        prefetch(forward.as_ptr().add((pixel - AHEAD) * n) as *const u8, 2 * n);
-                    }
-                    let m = pixel_paths::<ALIGNED>(c, n, prev, prev_min, out, earlier, to, p1v, p2);
-                    if backward {
-                        done(pixel, std::slice::from_raw_parts(sums.as_ptr() as *const u16, n));
-                    }
-                    std::mem::swap(&mut left, &mut here);
-                    left_min = m[0];
-                    for (mins, &m) in cur_mins.iter_mut().zip(&m[1..]) {
-                        mins[xi] = m;
-                    }
-                }
-                std::mem::swap(&mut prev_rows, &mut cur_rows);
-                std::mem::swap(&mut prev_mins, &mut cur_mins);
-            }
-        }
+        super::scanline_passes::<PAD>(cost, forward, w, h, n, done, |c, prev, prev_min, out, earlier, to| {
+            // SAFETY: AVX2 is present (this function's caller proves it); the pointers are the
+            // passes' buffers, each with room for n planes and the padding.
+            unsafe { pixel_paths::<ALIGNED>(c, n, prev, prev_min, out, earlier, to, p1v, p2) }
+        })
     }
 
     /// The portable row census, compiled for AVX2.
@@ -815,35 +845,9 @@ mod avx512 {
         }
     }
 
-    /// 32 lanes of u16, on a 64-byte boundary.
-    #[derive(Clone, Copy)]
-    #[repr(C, align(64))]
-    struct Block([u16; 32]);
-
-    /// Rows of path costs as the AVX2 kernel keeps them (sentinels at planes -1 and n), with
-    /// `PAD` lanes a side, so that each pixel's costs start on a 64-byte boundary.
-    struct PathRows(Vec<Block>);
-
+    /// Lanes of a vector, and so a path buffer's padding each side of a pixel (see `PathRows`):
+    /// each pixel's costs then start on a 64-byte boundary.
     const PAD: usize = 32;
-
-    /// Lanes one pixel takes in a path buffer: a multiple of 32.
-    fn path_stride(n: usize) -> usize {
-        n.div_ceil(32) * 32 + 2 * PAD
-    }
-
-    impl PathRows {
-        fn new(pixels: usize, n: usize) -> PathRows {
-            PathRows(vec![Block([u16::MAX; 32]); pixels * path_stride(n) / 32])
-        }
-
-        fn pixel(&self, x: usize, n: usize) -> *const u16 {
-            (self.0.as_ptr() as *const u16).wrapping_add(x * path_stride(n))
-        }
-
-        fn pixel_mut(&mut self, x: usize, n: usize) -> *mut u16 {
-            (self.0.as_mut_ptr() as *mut u16).wrapping_add(x * path_stride(n))
-        }
-    }
 
     #[inline]
     #[target_feature(enable = "avx2,avx512f,avx512bw,avx512vl")]
@@ -904,17 +908,6 @@ mod avx512 {
         [hmin32(mins[0]), hmin32(mins[1]), hmin32(mins[2]), hmin32(mins[3])]
     }
 
-    /// How many pixels ahead the backward pass prefetches.
-    const AHEAD: usize = 2;
-
-    #[inline]
-    #[target_feature(enable = "avx2,avx512f,avx512bw,avx512vl")]
-    unsafe fn prefetch(p: *const u8, bytes: usize) {
-        for line in (0..bytes).step_by(64) {
-            _mm_prefetch::<_MM_HINT_T0>(p.add(line) as *const i8);
-        }
-    }
-
     /// The AVX2 kernel's `aggregate` (the same passes, buffers and order), 32 planes a vector.
     #[target_feature(enable = "avx2,avx512f,avx512bw,avx512vl")]
     #[allow(clippy::too_many_arguments)]
@@ -926,62 +919,14 @@ mod avx512 {
         n: usize,
         p1: u16,
         p2: u16,
-        mut done: impl FnMut(usize, &[u16]),
+        done: impl FnMut(usize, &[u16]),
     ) {
-        let mut sums = vec![Block([0; 32]); n.div_ceil(32)];
         let p1v = _mm512_set1_epi16(p1 as i16);
-        for backward in [false, true] {
-            let mut prev_rows = [PathRows::new(w, n), PathRows::new(w, n), PathRows::new(w, n)];
-            let mut cur_rows = [PathRows::new(w, n), PathRows::new(w, n), PathRows::new(w, n)];
-            let mut prev_mins = [vec![0u16; w], vec![0u16; w], vec![0u16; w]];
-            let mut cur_mins = [vec![0u16; w], vec![0u16; w], vec![0u16; w]];
-            let mut left = PathRows::new(1, n);
-            let mut here = PathRows::new(1, n);
-            for yi in 0..h {
-                let y = if backward { h - 1 - yi } else { yi };
-                let mut left_min = 0u16;
-                for xi in 0..w {
-                    let x = if backward { w - 1 - xi } else { xi };
-                    let pixel = y * w + x;
-                    let mut prev = [std::ptr::null(); 4];
-                    let mut prev_min = [0u16; 4];
-                    if xi > 0 {
-                        prev[0] = left.pixel(0, n);
-                        prev_min[0] = left_min;
-                    }
-                    for dir in 0..3 {
-                        let nx = xi as i64 + dir as i64 - 1;
-                        if yi > 0 && nx >= 0 && nx < w as i64 {
-                            prev[dir + 1] = prev_rows[dir].pixel(nx as usize, n);
-                            prev_min[dir + 1] = prev_mins[dir][nx as usize];
-                        }
-                    }
-                    let [r0, r1, r2] = &mut cur_rows;
-                    let out = [here.pixel_mut(0, n), r0.pixel_mut(xi, n), r1.pixel_mut(xi, n), r2.pixel_mut(xi, n)];
-                    let (earlier, to) = if backward {
-                        (forward.as_ptr().add(pixel * n), sums.as_mut_ptr() as *mut u16)
-                    } else {
-                        (std::ptr::null(), forward.as_mut_ptr().add(pixel * n))
-                    };
-                    let c = cost.as_ptr().add(pixel * n);
-                    if backward && pixel >= AHEAD {
-                        prefetch(cost.as_ptr().add((pixel - AHEAD) * n), n);
-                        prefetch(forward.as_ptr().add((pixel - AHEAD) * n) as *const u8, 2 * n);
-                    }
-                    let m = pixel_paths(c, n, prev, prev_min, out, earlier, to, p1v, p2);
-                    if backward {
-                        done(pixel, std::slice::from_raw_parts(sums.as_ptr() as *const u16, n));
-                    }
-                    std::mem::swap(&mut left, &mut here);
-                    left_min = m[0];
-                    for (mins, &m) in cur_mins.iter_mut().zip(&m[1..]) {
-                        mins[xi] = m;
-                    }
-                }
-                std::mem::swap(&mut prev_rows, &mut cur_rows);
-                std::mem::swap(&mut prev_mins, &mut cur_mins);
-            }
-        }
+        super::scanline_passes::<PAD>(cost, forward, w, h, n, done, |c, prev, prev_min, out, earlier, to| {
+            // SAFETY: AVX-512 F, BW and VL are present (this function's caller proves it); the
+            // pointers are the passes' buffers, each with room for n planes and the padding.
+            unsafe { pixel_paths(c, n, prev, prev_min, out, earlier, to, p1v, p2) }
+        })
     }
 }
 
