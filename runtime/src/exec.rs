@@ -509,6 +509,15 @@ impl<'a> Engine<'a> {
             .num_threads(classes.slots.iter().sum::<usize>().clamp(1, 256))
             .thread_name(|i| format!("dist4d-wait-{i}"))
             .build()?;
+        // Exported files are written on threads of their own: a large file goes to the device
+        // directly (`direct_io`) and its thread waits for it, which must not idle a CPU thread.
+        let export_pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(opts.jobs.clamp(1, 8))
+            .thread_name(|i| format!("dist4d-export-{i}"))
+            .build()?;
+        // Files written or waiting to be: bounded so that a slow disk holds back the tasks whose
+        // outputs would queue in memory.
+        let max_exporting = opts.jobs.max(1) * 4;
         let (tx, rx): (Sender<Msg>, Receiver<Msg>) = unbounded();
         let max_inflight = opts.jobs.max(1) * 2;
         let task_budget = 4096usize.max(opts.jobs * 256);
@@ -536,6 +545,7 @@ impl<'a> Engine<'a> {
         let ctx = Ctx { engine: self, keys: &keys, deferred };
         let mut next_outer = 0usize;
         let mut inflight = 0usize;
+        let mut exporting = 0usize;
         let mut busy = vec![0usize; classes.slots.len()];
         let mut parked: Vec<VecDeque<Job>> = classes.slots.iter().map(|_| VecDeque::new()).collect();
         let mut waiting = 0usize;
@@ -549,149 +559,152 @@ impl<'a> Engine<'a> {
         let mut deferred: VecDeque<(u32, u64)> = VecDeque::new();
 
         // The scopes guarantee every spawned job has ended before they return, even on an error.
-        wait_pool.in_place_scope(|wait_scope| -> Result<()> {
-            pool.in_place_scope(|scope| -> Result<()> {
-                loop {
-                    if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
-                        stopping = Some(RunStatus::Interrupted);
-                    }
-                    if stopping.is_none() && self.store.lease_lost() {
-                        // Others judged this process dead and may be redoing its items: it
-                        // stops rather than race them. What it finished is in the store.
-                        c.failures.push(Failure {
-                            stage: "-".into(),
-                            item: "-".into(),
-                            error: "this process's lease in the store was lost (it was stopped or its filesystem \
+        export_pool.in_place_scope(|export_scope| -> Result<()> {
+            wait_pool.in_place_scope(|wait_scope| -> Result<()> {
+                pool.in_place_scope(|scope| -> Result<()> {
+                    loop {
+                        if stopping.is_none() && opts.cancel.load(Ordering::Relaxed) {
+                            stopping = Some(RunStatus::Interrupted);
+                        }
+                        if stopping.is_none() && self.store.lease_lost() {
+                            // Others judged this process dead and may be redoing its items: it
+                            // stops rather than race them. What it finished is in the store.
+                            c.failures.push(Failure {
+                                stage: "-".into(),
+                                item: "-".into(),
+                                error: "this process's lease in the store was lost (it was stopped or its filesystem \
                                     stalled for longer than the lease timeout, and other processes judged it dead): \
                                     it stopped; rerun to finish"
-                                .into(),
-                        });
-                        stopping = Some(RunStatus::Stopped);
-                    }
-                    // Admit outer items while there is room; one that another process is
-                    // running waits, and is admitted (its tasks then cached) when it lets go.
-                    while stopping.is_none() && next_outer < outers.len() && c.has_room(task_budget, outer_budget) {
-                        let o = outers[next_outer];
-                        match claims.take(o)? {
-                            Ok(claim) => {
-                                // Another process may have run the item and let it go since this
-                                // one opened the store: its records are read first (a refresh
-                                // with nothing new costs a listing and a stat per segment).
-                                self.store.refresh()?;
-                                c.admit(p, &view, o, next_outer as u64, &stage_nodes, Some(claim), may_execute(o))
-                            }
-                            Err(holder) => {
-                                claims.waiting_for(o, &holder);
-                                deferred.push_back((o, next_outer as u64));
-                            }
+                                    .into(),
+                            });
+                            stopping = Some(RunStatus::Stopped);
                         }
-                        next_outer += 1;
-                    }
-                    if stopping.is_none()
-                        && !deferred.is_empty()
-                        && c.has_room(task_budget, outer_budget)
-                        && claims.poll_due()
-                    {
-                        for _ in 0..deferred.len() {
-                            // All the claims of a process that just died free up at once.
-                            if !c.has_room(task_budget, outer_budget) {
-                                break;
-                            }
-                            let (o, seq) = deferred.pop_front().expect("counted");
+                        // Admit outer items while there is room; one that another process is
+                        // running waits, and is admitted (its tasks then cached) when it lets go.
+                        while stopping.is_none() && next_outer < outers.len() && c.has_room(task_budget, outer_budget) {
+                            let o = outers[next_outer];
                             match claims.take(o)? {
                                 Ok(claim) => {
+                                    // Another process may have run the item and let it go since this
+                                    // one opened the store: its records are read first (a refresh
+                                    // with nothing new costs a listing and a stat per segment).
                                     self.store.refresh()?;
-                                    c.admit(p, &view, o, seq, &stage_nodes, Some(claim), may_execute(o));
+                                    c.admit(p, &view, o, next_outer as u64, &stage_nodes, Some(claim), may_execute(o))
                                 }
-                                Err(_) => deferred.push_back((o, seq)),
+                                Err(holder) => {
+                                    claims.waiting_for(o, &holder);
+                                    deferred.push_back((o, next_outer as u64));
+                                }
+                            }
+                            next_outer += 1;
+                        }
+                        if stopping.is_none()
+                            && !deferred.is_empty()
+                            && c.has_room(task_budget, outer_budget)
+                            && claims.poll_due()
+                        {
+                            for _ in 0..deferred.len() {
+                                // All the claims of a process that just died free up at once.
+                                if !c.has_room(task_budget, outer_budget) {
+                                    break;
+                                }
+                                let (o, seq) = deferred.pop_front().expect("counted");
+                                match claims.take(o)? {
+                                    Ok(claim) => {
+                                        self.store.refresh()?;
+                                        c.admit(p, &view, o, seq, &stage_nodes, Some(claim), may_execute(o));
+                                    }
+                                    Err(_) => deferred.push_back((o, seq)),
+                                }
                             }
                         }
-                    }
-                    // Released claims: the records of their items go to the server first, so
-                    // that a process on another node that takes the item over finds them.
-                    if !c.released.is_empty() {
-                        self.store.sync_records()?;
-                        c.released.clear();
-                    }
+                        // Released claims: the records of their items go to the server first, so
+                        // that a process on another node that takes the item over finds them.
+                        if !c.released.is_empty() {
+                            self.store.sync_records()?;
+                            c.released.clear();
+                        }
 
-                    // Start ready tasks: cache hits complete here, the rest go to the pools.
-                    while stopping.is_none() && inflight < max_inflight {
-                        let Some(Reverse((_, _, _, slot, task))) = c.ready.pop() else { break };
-                        let run = c.active[slot as usize].as_ref().unwrap();
-                        let node = run.plan.tasks[task as usize].node as usize;
-                        if let Some(why) = &unavailable[node] {
-                            c.finish(self, slot, task, Err(anyhow!("{why}")))?;
+                        // Start ready tasks: cache hits complete here, the rest go to the pools.
+                        while stopping.is_none() && inflight < max_inflight && exporting < max_exporting {
+                            let Some(Reverse((_, _, _, slot, task))) = c.ready.pop() else { break };
+                            let run = c.active[slot as usize].as_ref().unwrap();
+                            let node = run.plan.tasks[task as usize].node as usize;
+                            if let Some(why) = &unavailable[node] {
+                                c.finish(self, slot, task, Err(anyhow!("{why}")))?;
+                                continue;
+                            }
+                            match ctx.prepare(run, slot, task) {
+                                Err(e) => c.finish(self, slot, task, Err(e))?,
+                                Ok(Prepared::Cached(key, outs)) => {
+                                    c.finish(self, slot, task, Ok(Outcome::Cached(key, outs)))?
+                                }
+                                Ok(Prepared::Job(job)) => {
+                                    c.active[slot as usize].as_mut().unwrap().state[task as usize] = State::Running;
+                                    match classes.of_node[job.node] {
+                                        None => {
+                                            inflight += 1;
+                                            spawn_task(scope, &ctx, &tx, job, None);
+                                        }
+                                        Some(k) if busy[k] < classes.slots[k] => {
+                                            busy[k] += 1;
+                                            waiting += 1;
+                                            spawn_task(wait_scope, &ctx, &tx, job, Some(k));
+                                        }
+                                        Some(k) => parked[k].push_back(job),
+                                    }
+                                }
+                            }
+                            if opts.fail_fast && !c.failures.is_empty() {
+                                stopping.get_or_insert(RunStatus::Stopped);
+                            }
+                            exporting += c.spawn_exports(export_scope, &tx);
+                        }
+
+                        let outers_left = stopping.is_none() && (next_outer < outers.len() || !deferred.is_empty());
+                        let ready_left = stopping.is_none() && !c.ready.is_empty();
+                        if inflight == 0 && waiting == 0 && exporting == 0 && !outers_left && !ready_left {
+                            return Ok(());
+                        }
+                        if inflight == 0 && waiting == 0 && exporting == 0 {
+                            if !ready_left && next_outer == outers.len() {
+                                // Only items other processes hold are left.
+                                std::thread::sleep(CLAIM_POLL);
+                            }
                             continue;
                         }
-                        match ctx.prepare(run, slot, task) {
-                            Err(e) => c.finish(self, slot, task, Err(e))?,
-                            Ok(Prepared::Cached(key, outs)) => {
-                                c.finish(self, slot, task, Ok(Outcome::Cached(key, outs)))?
-                            }
-                            Ok(Prepared::Job(job)) => {
-                                c.active[slot as usize].as_mut().unwrap().state[task as usize] = State::Running;
-                                match classes.of_node[job.node] {
-                                    None => {
-                                        inflight += 1;
-                                        spawn_task(scope, &ctx, &tx, job, None);
+                        match rx.recv_timeout(Duration::from_millis(200)) {
+                            Ok(Msg::Task { slot, task, waited, result }) => {
+                                match waited {
+                                    None => inflight -= 1,
+                                    Some(k) => {
+                                        waiting -= 1;
+                                        busy[k] -= 1;
+                                        if let Some(job) = parked[k].pop_front().filter(|_| stopping.is_none()) {
+                                            busy[k] += 1;
+                                            waiting += 1;
+                                            spawn_task(wait_scope, &ctx, &tx, job, Some(k));
+                                        }
                                     }
-                                    Some(k) if busy[k] < classes.slots[k] => {
-                                        busy[k] += 1;
-                                        waiting += 1;
-                                        spawn_task(wait_scope, &ctx, &tx, job, Some(k));
-                                    }
-                                    Some(k) => parked[k].push_back(job),
                                 }
+                                c.finish(self, slot, task, result)?;
+                                exporting += c.spawn_exports(export_scope, &tx);
                             }
+                            Ok(Msg::Exported { slot, task, rel, result, awaiting }) => {
+                                exporting -= 1;
+                                c.exported(self, slot, task, &rel, result, awaiting);
+                            }
+                            Err(RecvTimeoutError::Timeout) => {}
+                            Err(RecvTimeoutError::Disconnected) => bail!("the worker pool stopped unexpectedly"),
                         }
                         if opts.fail_fast && !c.failures.is_empty() {
                             stopping.get_or_insert(RunStatus::Stopped);
                         }
-                        inflight += c.spawn_exports(scope, &tx);
                     }
-
-                    let outers_left = stopping.is_none() && (next_outer < outers.len() || !deferred.is_empty());
-                    let ready_left = stopping.is_none() && !c.ready.is_empty();
-                    if inflight == 0 && waiting == 0 && !outers_left && !ready_left {
-                        return Ok(());
-                    }
-                    if inflight == 0 && waiting == 0 {
-                        if !ready_left && next_outer == outers.len() {
-                            // Only items other processes hold are left.
-                            std::thread::sleep(CLAIM_POLL);
-                        }
-                        continue;
-                    }
-                    match rx.recv_timeout(Duration::from_millis(200)) {
-                        Ok(Msg::Task { slot, task, waited, result }) => {
-                            match waited {
-                                None => inflight -= 1,
-                                Some(k) => {
-                                    waiting -= 1;
-                                    busy[k] -= 1;
-                                    if let Some(job) = parked[k].pop_front().filter(|_| stopping.is_none()) {
-                                        busy[k] += 1;
-                                        waiting += 1;
-                                        spawn_task(wait_scope, &ctx, &tx, job, Some(k));
-                                    }
-                                }
-                            }
-                            c.finish(self, slot, task, result)?;
-                            inflight += c.spawn_exports(scope, &tx);
-                        }
-                        Ok(Msg::Exported { slot, task, rel, result, awaiting }) => {
-                            inflight -= 1;
-                            c.exported(self, slot, task, &rel, result, awaiting);
-                        }
-                        Err(RecvTimeoutError::Timeout) => {}
-                        Err(RecvTimeoutError::Disconnected) => bail!("the worker pool stopped unexpectedly"),
-                    }
-                    if opts.fail_fast && !c.failures.is_empty() {
-                        stopping.get_or_insert(RunStatus::Stopped);
-                    }
-                }
+                })
             })
         })?;
+        drop(export_pool);
         drop(wait_pool);
         drop(pool);
         drop(reporter);

@@ -4,6 +4,7 @@
 
 pub mod blob;
 pub mod digest;
+pub mod direct_io;
 pub mod exec;
 pub mod explain;
 pub mod export;

@@ -29,7 +29,6 @@ use crate::segment::{enc, segment_paths, Segment, SegmentWriter};
 use anyhow::{bail, Context, Result};
 use std::collections::HashMap;
 use std::fs::{self, File};
-use std::io::Write;
 use std::os::unix::fs::MetadataExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -573,11 +572,11 @@ pub fn write_whole_via(tmp: &Path, dest: &Path, bytes: &[u8], durable: bool) -> 
         fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
     let result = (|| -> std::io::Result<()> {
-        let mut f = File::create(tmp)?;
-        f.write_all(bytes)?;
+        let f = File::create(tmp)?;
+        let direct = crate::direct_io::write_new(&f, bytes)?;
         if durable {
             f.sync_all()?;
-        } else {
+        } else if !direct {
             start_writeback(&f);
         }
         // Closed before the rename: on NFS, closing is what sends the bytes to the server, so
