@@ -151,27 +151,38 @@ fn optimal_lengths(freq: &[u32]) -> Vec<u8> {
         }
         _ => {}
     }
-    // Nodes: leaves 0..n, internal nodes after; a min-heap of (weight, node).
-    let n = used.len();
+    // Two queues instead of a heap (van Leeuwen): the leaves sorted by weight, and the internal
+    // nodes, which are made in order of weight. Nodes: leaves 0..n in that order, internal after.
+    let mut leaves: Vec<(u32, usize)> = used.iter().map(|&s| (freq[s], s)).collect();
+    leaves.sort_unstable();
+    let n = leaves.len();
+    let mut weight: Vec<u64> = leaves.iter().map(|&(f, _)| f as u64).chain(std::iter::repeat_n(0, n - 1)).collect();
     let mut parent = vec![0usize; 2 * n - 1];
-    let mut heap: std::collections::BinaryHeap<std::cmp::Reverse<(u64, usize)>> =
-        used.iter().enumerate().map(|(k, &s)| std::cmp::Reverse((freq[s] as u64, k))).collect();
-    let mut next = n;
-    while heap.len() > 1 {
-        let std::cmp::Reverse((wa, a)) = heap.pop().expect("two nodes");
-        let std::cmp::Reverse((wb, b)) = heap.pop().expect("two nodes");
+    let (mut leaf, mut inner) = (0, n);
+    for next in n..2 * n - 1 {
+        let mut take = || {
+            // The lighter of the two queues' heads; a leaf on a tie.
+            if leaf < n && (inner >= next || weight[leaf] <= weight[inner]) {
+                leaf += 1;
+                leaf - 1
+            } else {
+                inner += 1;
+                inner - 1
+            }
+        };
+        let (a, b) = (take(), take());
+        weight[next] = weight[a] + weight[b];
         parent[a] = next;
         parent[b] = next;
-        heap.push(std::cmp::Reverse((wa + wb, next)));
-        next += 1;
     }
+    let next = 2 * n - 1;
     // Depths from the root (the last node) down: a parent is always numbered after its children.
     let root = next - 1;
     let mut depth = vec![0u8; 2 * n - 1];
     for node in (0..root).rev() {
         depth[node] = depth[parent[node]] + 1;
     }
-    for (k, &s) in used.iter().enumerate() {
+    for (k, &(_, s)) in leaves.iter().enumerate() {
         lengths[s] = depth[k];
     }
     lengths
