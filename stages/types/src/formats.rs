@@ -401,6 +401,25 @@ mod tests {
         assert_eq!(f32::from_bits(float24(f32::MAX) << 8), f32::from_bits(0x7F7F_FF00));
     }
 
+    #[test]
+    fn png16_depths_are_rounded_half_away_from_zero_and_clamped() {
+        let mut rng = crate::rng::Rng::new(9);
+        let mut data: Vec<f32> = (0..5000).map(|_| rng.range(0.0, 300.0) as f32).collect();
+        // Exact halves (x.5 / 256 m), the clamp's ends, and what has no depth.
+        data.extend([1.001_953_1, 2.5 / 256.0, 0.001, 255.99, 256.0, 1e9, 0.0, -3.0, f32::INFINITY, f32::NAN]);
+        data.extend((0..1000).map(|i| (i as f32 + 0.5) / 256.0 + 1.0));
+        let (w, h) = (data.len() as u32, 1);
+        let bytes = depth_png16(&DepthMap { width: w, height: h, data: data.clone() }).unwrap();
+        let decoder = png::Decoder::new(std::io::Cursor::new(bytes));
+        let mut reader = decoder.read_info().unwrap();
+        let mut px = vec![0u8; reader.output_buffer_size().unwrap()];
+        reader.next_frame(&mut px).unwrap();
+        for (i, &z) in data.iter().enumerate() {
+            let want = if z > 0.0 && z.is_finite() { (z * 256.0).round().clamp(1.0, 65535.0) as u16 } else { 0 };
+            assert_eq!(u16::from_be_bytes([px[2 * i], px[2 * i + 1]]), want, "{z}");
+        }
+    }
+
     /// Encoder sizes and times on a real depth map: `DIST4D_DEPTH=path cargo test --release -p
     /// dist4d-types encoder_speed -- --ignored --nocapture` (sky, +inf, set to 100 m as curated).
     #[test]
