@@ -160,26 +160,27 @@ fn compress(bytes: &[u8]) -> Option<Vec<u8>> {
     with_compressor(LEVEL, |c| c.compress(bytes))
 }
 
-/// `f` with this thread's zstd context at `level`. The context is kept from one blob to the next:
-/// a new one allocates its tables (through the C allocator, fresh pages each time for sizes this
-/// large) for every one of the three to six compressions a blob takes.
+/// `f` with a zstd context at `level`. Contexts are kept from one compression to the next (a new
+/// one allocates its tables, through the C allocator, fresh pages each time for sizes this large,
+/// and a blob takes three to six compressions); a few are kept, not one per thread: a run may have
+/// hundreds of threads waiting on model workers.
 fn with_compressor<T>(
     level: i32,
     f: impl FnOnce(&mut zstd::bulk::Compressor<'static>) -> std::io::Result<T>,
 ) -> Option<T> {
-    thread_local! {
-        static CONTEXT: std::cell::RefCell<Option<zstd::bulk::Compressor<'static>>> =
-            const { std::cell::RefCell::new(None) };
-    }
-    CONTEXT.with(|context| {
-        let mut context = context.borrow_mut();
-        if context.is_none() {
-            *context = Some(zstd::bulk::Compressor::new(level).ok()?);
+    static KEPT: std::sync::Mutex<Vec<zstd::bulk::Compressor<'static>>> = std::sync::Mutex::new(Vec::new());
+    let kept = KEPT.lock().ok().and_then(|mut kept| kept.pop());
+    let mut c = match kept {
+        Some(c) => c,
+        None => zstd::bulk::Compressor::new(level).ok()?,
+    };
+    let result = c.set_compression_level(level).and_then(|()| f(&mut c)).ok();
+    if let Ok(mut kept) = KEPT.lock() {
+        if kept.len() < 4 {
+            kept.push(c);
         }
-        let c = context.as_mut()?;
-        c.set_compression_level(level).ok()?;
-        f(c).ok()
-    })
+    }
+    result
 }
 
 fn packed(codec: u8, len: usize, payload: &[u8]) -> Vec<u8> {

@@ -5,7 +5,9 @@
 //! measured that copy into fresh pages cost more than a fifth of a curation run's CPU (the
 //! 240-image chain of docs/BENCHMARKS.md: 7 of 31 CPU seconds in the kernel's
 //! `copy_folio_from_iter_atomic`). A direct write hands this process's buffer to the device
-//! instead, and leaves the page cache to the data that is read.
+//! instead (bytes that do not start on a page boundary are first copied into a page-aligned
+//! staging buffer, a copy into warm memory that costs a fraction of the kernel's), and leaves the
+//! page cache to the data that is read.
 //!
 //! Only on local block filesystems (ext4, XFS, btrfs), where direct I/O is the plain path the
 //! databases take; on network filesystems it turns each write into synchronous round trips, and
@@ -38,15 +40,15 @@ pub fn write_new(f: &File, bytes: &[u8]) -> io::Result<bool> {
     // The aligned head goes directly; the tail (under one page) buffered.
     let head = bytes.len() / ALIGN * ALIGN;
     let mut at = 0;
-    let written = STAGING.with(|staging| -> io::Result<bool> {
-        let mut staging = staging.borrow_mut();
+    let mut staging: Option<Staging> = None;
+    let written = (|| -> io::Result<bool> {
         while at < head {
             let n = (head - at).min(CHUNK);
             let src = &bytes[at..at + n];
             let aligned: &[u8] = if (src.as_ptr() as usize) % ALIGN == 0 {
                 src
             } else {
-                let buf = staging.get_or_insert_with(Staging::new).bytes();
+                let buf = staging.get_or_insert_with(Staging::take).bytes();
                 buf[..n].copy_from_slice(src);
                 &buf[..n]
             };
@@ -59,7 +61,11 @@ pub fn write_new(f: &File, bytes: &[u8]) -> io::Result<bool> {
             }
         }
         Ok(true)
-    })?;
+    })();
+    if let Some(staging) = staging {
+        staging.give_back();
+    }
+    let written = written?;
     set_direct(f, false);
     write_buffered(f, &bytes[at..], at as u64)?;
     Ok(written)
@@ -93,35 +99,47 @@ fn local_block_filesystem(f: &File) -> bool {
     if unsafe { libc::fstatfs(f.as_raw_fd(), &mut st) } != 0 {
         return false;
     }
-    const LOCAL: [i64; 3] = [
+    const LOCAL: [u32; 3] = [
         0xEF53,      // ext2/3/4
         0x5846_5342, // XFS
         0x9123_683E, // btrfs
     ];
-    LOCAL.contains(&(st.f_type as i64))
+    // The magic is 32 bits wide; `f_type` is signed and as wide as a C long.
+    LOCAL.contains(&(st.f_type as u32))
 }
 
-/// A page-aligned buffer of [`CHUNK`] bytes, kept per thread: the bytes to write rarely start on a
-/// page boundary, and direct I/O needs them to.
+/// A page-aligned buffer of [`CHUNK`] bytes: the bytes to write rarely start on a page boundary,
+/// and direct I/O needs them to. A few are kept for reuse across writes and threads ([`SPARE`]),
+/// not one per thread: a run may have hundreds of threads waiting on model workers.
 struct Staging(Vec<Page>);
+
+/// Staging buffers kept between writes; more writers at once allocate their own and drop them.
+static SPARE: std::sync::Mutex<Vec<Staging>> = std::sync::Mutex::new(Vec::new());
+const KEPT: usize = 4;
 
 #[repr(C, align(4096))]
 #[derive(Clone, Copy)]
 struct Page([u8; ALIGN]);
 
 impl Staging {
-    fn new() -> Staging {
-        Staging(vec![Page([0; ALIGN]); CHUNK / ALIGN])
+    /// A kept buffer, or a new one.
+    fn take() -> Staging {
+        let kept = SPARE.lock().ok().and_then(|mut spare| spare.pop());
+        kept.unwrap_or_else(|| Staging(vec![Page([0; ALIGN]); CHUNK / ALIGN]))
+    }
+
+    fn give_back(self) {
+        if let Ok(mut spare) = SPARE.lock() {
+            if spare.len() < KEPT {
+                spare.push(self);
+            }
+        }
     }
 
     fn bytes(&mut self) -> &mut [u8] {
         // SAFETY: the pages are contiguous, plain bytes, and borrowed mutably for the slice's life.
         unsafe { std::slice::from_raw_parts_mut(self.0.as_mut_ptr().cast::<u8>(), self.0.len() * ALIGN) }
     }
-}
-
-thread_local! {
-    static STAGING: std::cell::RefCell<Option<Staging>> = const { std::cell::RefCell::new(None) };
 }
 
 #[cfg(test)]

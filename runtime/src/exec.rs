@@ -510,13 +510,16 @@ impl<'a> Engine<'a> {
             .thread_name(|i| format!("dist4d-wait-{i}"))
             .build()?;
         // Exported files are written on threads of their own: a large file goes to the device
-        // directly (`direct_io`) and its thread waits for it, which must not idle a CPU thread.
+        // directly (`direct_io`) and its thread waits for it, which should not idle a CPU thread.
+        // (A task's blobs are still written by the task's thread: its record must not be
+        // appended before them. The largest, a compressed depth map, takes ~1 ms of the device.)
         let export_pool = rayon::ThreadPoolBuilder::new()
             .num_threads(opts.jobs.clamp(1, 8))
             .thread_name(|i| format!("dist4d-export-{i}"))
             .build()?;
-        // Files written or waiting to be: bounded so that a slow disk holds back the tasks whose
-        // outputs would queue in memory.
+        // Files written or waiting to be: past this, no task starts, so that a slow disk holds
+        // back the tasks whose outputs would queue in memory (the tasks already running may still
+        // add theirs: a soft bound).
         let max_exporting = opts.jobs.max(1) * 4;
         let (tx, rx): (Sender<Msg>, Receiver<Msg>) = unbounded();
         let max_inflight = opts.jobs.max(1) * 2;
@@ -1006,7 +1009,10 @@ impl Coord {
             let tx = tx.clone();
             scope.spawn(move |_| {
                 let rel = job.rel.clone();
-                let result = job.write();
+                // A panic is this file's failure, reported like an error: the loop counts every
+                // export job it spawned back in, and would wait forever for one that never is.
+                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| job.write()))
+                    .unwrap_or_else(|panic| Err(anyhow!("writing the file panicked: {}", panic_message(&panic))));
                 let _ = tx.send(Msg::Exported { slot, task, rel, result, awaiting });
             });
         }
