@@ -417,7 +417,7 @@ def main():
     ap.add_argument("--keyframes", type=int, default=40)
     ap.add_argument("--only", nargs="*", default=["accuracy", "completion", "chain", "holdout"])
     ap.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
-                    help="passed to dist4d in the chain section (e.g. encode.exr_zip=false)")
+                    help="passed to dist4d in the chain section (e.g. encode.exr_compression=Zip)")
     ap.add_argument("--dist4d", help="a dist4d binary to measure (e.g. a copy of an older build) instead of "
                     "building target/release/dist4d")
     a = ap.parse_args()

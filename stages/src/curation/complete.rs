@@ -37,7 +37,8 @@ pub struct Params {
     pub column_gap: u32,
     /// Two samples belong to one surface when their depths differ by less than this fraction.
     pub tolerance: f32,
-    /// Depth given to sky pixels (m); the paper uses 100 m.
+    /// Depth given to sky pixels (m), rounded to 16 significant bits as every output depth is; the
+    /// paper uses 100 m.
     pub sky_depth: f32,
     /// Empty pixels within this distance (square window) of samples first take the nearest
     /// depth among them, so that 1-px LiDAR rings become bands the row pass can follow. In mean
@@ -511,7 +512,7 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
     if let Some(sky) = sky {
         for (d, &s) in depth.iter_mut().zip(sky) {
             if s != 0 {
-                *d = p.sky_depth;
+                *d = to_16_significant_bits(p.sky_depth);
             }
         }
     }
@@ -527,8 +528,9 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
 /// The bits below are the solver's noise (its last conjugate-gradient step moves depths by far
 /// more), and they are what made a curated map's EXR incompressible: with them zeroed, its ZIP
 /// blocks take ~0.6 of the bytes and the time (docs/BENCHMARKS.md, sixteenth session), and the
-/// store's copy shrinks too. Positive finite `v` only (a carry into the exponent is the correct
-/// rounding).
+/// store's copy shrinks too. Every depth the stage outputs has them: the sky's `sky_depth` and a
+/// worker's completion are rounded too. Positive finite `v` only (a carry into the exponent is the
+/// correct rounding).
 fn to_16_significant_bits(v: f32) -> f32 {
     f32::from_bits((v.to_bits() + 0x80) & !0xFF)
 }
@@ -1540,7 +1542,8 @@ impl Stage for CompleteDepth {
     //    Jacobi-preconditioned one; outputs within 3e-4 of 9's).
     // 11: the 2D fill over 2x2 blocks, spread back by colour likeness, in 2 passes; the refinement
     //    40 steps in a 5 px band (docs/BENCHMARKS.md, "The 2D fill over blocks (fifteenth session)").
-    // 12: depths rounded to 16 significant bits (`to_16_significant_bits`; within 1.5e-5 of 11's).
+    // 12: depths rounded to 16 significant bits (`to_16_significant_bits`; within 1.5e-5 of 11's),
+    //    the sky's and a worker's too.
     const VERSION: u32 = 12;
     const SUMMARY: &'static str =
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)";
@@ -1591,11 +1594,15 @@ fn worker_completion(
     ];
     let outputs = worker.call(ctx, &ex, "complete_depth", inputs, serde_json::json!({}))?;
     let mut data = crate::model_worker::worker_depth(&ex, &outputs, "depth", w, h)?;
+    // 16 significant bits, as the built-in completer gives (`to_16_significant_bits`); 0 stays 0.
+    for z in data.iter_mut().filter(|z| **z > 0.0) {
+        *z = to_16_significant_bits(*z);
+    }
     if let Some(sky) = &i.sky {
         ensure!(sky.data.len() == data.len(), "the sky mask is not {w}x{h}");
         for (z, &s) in data.iter_mut().zip(&sky.data) {
             if s != 0 {
-                *z = p.sky_depth;
+                *z = to_16_significant_bits(p.sky_depth);
             }
         }
     }

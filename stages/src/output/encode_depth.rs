@@ -1,5 +1,5 @@
 //! `EncodeDepth`: a depth map as the files of the user-facing layout: OpenEXR (float32 metres,
-//! channel `Y`, which OpenCV reads; compressed losslessly, see `exr_zip`), 16-bit PNG (depth x 256, the KITTI convention; 0 = no depth, clamped at 255.99
+//! channel `Y`, which OpenCV reads; compressed losslessly, see [`ExrCodec`]), 16-bit PNG (depth x 256, the KITTI convention; 0 = no depth, clamped at 255.99
 //! m), NPY (float32 H x W) and a colour preview (turbo, near = warm, black = no depth).
 
 use crate::stage::Stage;
@@ -16,17 +16,40 @@ use serde::{Deserialize, Serialize};
 pub struct Params {
     /// Depth (m) at the cold end of the preview colormap.
     pub preview_max_depth: f32,
-    /// Compress the EXR, losslessly: PXR24 when every value has 16 significant bits, which it
-    /// stores exactly (CompleteDepth's output: a curated 1600x900 map in ~2.0 MB, ~11 ms), ZIP
-    /// otherwise (what OpenCV writes by default: 0.75-0.9 of the raw size for full float bits,
-    /// ~20 ms), both in blocks of 16 scanlines at deflate level 1. False writes the floats
-    /// uncompressed: 5.8 MB, ~1 ms.
-    pub exr_zip: bool,
+    /// How the EXR is compressed (see [`ExrCodec`]).
+    pub exr_compression: ExrCodec,
+}
+
+/// How EncodeDepth compresses its EXR; every choice is lossless for CompleteDepth's depths.
+#[derive(Serialize, Deserialize, Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum ExrCodec {
+    /// PXR24 when every value has 16 significant bits, which it then stores exactly (CompleteDepth's
+    /// depths: a curated 1600x900 map in ~2.0 MB, ~10 ms), ZIP otherwise. OpenCV, the OpenEXR
+    /// library and its Python bindings, OpenImageIO, exrs and three.js read PXR24; tinyexr (Godot,
+    /// pbrt) and py-minexr do not: choose `Zip` for them.
+    #[default]
+    Pxr24,
+    /// ZIP, blocks of 16 scanlines at deflate level 1, what OpenCV writes and every EXR reader
+    /// reads: ~3.1 MB and ~23 ms for a curated map (0.75-0.9 of raw, ~20 ms, for full float bits).
+    Zip,
+    /// The floats as they are: 5.8 MB for 1600x900, ~1 ms.
+    Uncompressed,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { preview_max_depth: 80.0, exr_zip: true }
+        Params { preview_max_depth: 80.0, exr_compression: ExrCodec::Pxr24 }
+    }
+}
+
+impl ExrCodec {
+    /// The compression the EXR of `values` gets: PXR24 only where it is exact.
+    fn for_values(self, values: &[f32]) -> ExrCompression {
+        match self {
+            ExrCodec::Uncompressed => ExrCompression::None,
+            ExrCodec::Pxr24 if has_16_significant_bits(values) => ExrCompression::Pxr24,
+            ExrCodec::Pxr24 | ExrCodec::Zip => ExrCompression::Zip,
+        }
     }
 }
 
@@ -99,7 +122,8 @@ impl Stage for EncodeDepth {
     //    the preview's colours from a table (same values, other bytes).
     // 4: PXR24 for maps with 16 significant bits (the same values, a third of the bytes).
     // 5: PXR24's deflate by `deflate_rle` (runs and literals, one Huffman block): other bytes,
-    //    the same values, ~10 ms instead of ~15 for a 1600x900 map.
+    //    the same values, ~10 ms instead of ~15 for a 1600x900 map. `exr_zip: bool` became
+    //    `exr_compression` (Pxr24, Zip, Uncompressed).
     const VERSION: u32 = 5;
     const SUMMARY: &'static str =
         "DepthMap -> OpenEXR (float32 m), 16-bit PNG (x256), NPY and a turbo colour preview, each made only when the run reads it";
@@ -112,11 +136,7 @@ impl Stage for EncodeDepth {
     }
     fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
         let d = i.depth;
-        let exr = match self.0.exr_zip {
-            false => ExrCompression::None,
-            true if has_16_significant_bits(&d.data) => ExrCompression::Pxr24,
-            true => ExrCompression::Zip,
-        };
+        let exr = self.0.exr_compression.for_values(&d.data);
         // Each encoding only if the run reads it (`None` otherwise).
         let wanted = |port: &str, encode: &dyn Fn() -> Result<Vec<u8>>| -> Result<Option<File>> {
             ctx.wants(port).then(encode).transpose().map(|b| b.map(File))
@@ -139,6 +159,16 @@ impl Stage for EncodeDepth {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn pxr24_is_chosen_only_where_it_is_exact() {
+        let curated = [0.0, 2.5, 100.0, f32::from_bits(0x4120_1300)];
+        let full = [0.0, 2.5, 100.0, f32::from_bits(0x4120_1301)];
+        assert_eq!(ExrCodec::default().for_values(&curated), ExrCompression::Pxr24);
+        assert_eq!(ExrCodec::Pxr24.for_values(&full), ExrCompression::Zip);
+        assert_eq!(ExrCodec::Zip.for_values(&curated), ExrCompression::Zip);
+        assert_eq!(ExrCodec::Uncompressed.for_values(&curated), ExrCompression::None);
+    }
 
     #[test]
     fn npy_header_is_aligned_and_numpy_shaped() {

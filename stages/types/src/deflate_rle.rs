@@ -300,7 +300,7 @@ impl BitWriter {
     }
 
     /// Appends each token's bits from `bits_of` (code | count << 24): a whole word is stored after
-    /// every token and the position moves on by the bytes it completed, without branches.
+    /// every two tokens and the position moves on by the bytes they completed, without branches.
     fn put_tokens(&mut self, tokens: &[u16], bits_of: &[u32]) {
         // Whole bytes first, so that the buffer holds fewer than 8 bits.
         while self.count >= 8 {

@@ -28,7 +28,8 @@ pub enum ExrCompression {
     /// differences along the row split into byte planes, deflated by runs and literals
     /// ([`crate::deflate_rle`]). Exact for values that already have 16 significant bits
     /// ([`has_16_significant_bits`], what CompleteDepth makes): ~0.35 of the raw size for a
-    /// curated map, ~11 ms. Other values lose their low 8 bits.
+    /// curated map, ~10 ms. Other values lose their low 8 bits (except in a block that does not
+    /// compress, which is stored as its floats).
     Pxr24,
     /// NO_COMPRESSION, one scanline per block: the floats as they are (~1 ms; 5.8 MB at 1600x900).
     None,
