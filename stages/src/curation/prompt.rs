@@ -104,12 +104,14 @@ pub fn drop_occluded(map: &mut DepthMap, window: [f64; 2], tolerance: f64) {
     let nearer_in = |x: isize, y: isize, limit: f32, (dx0, dx1): (isize, isize), (dy0, dy1): (isize, isize)| {
         let (x0, x1) = ((x + dx0).max(0), (x + dx1).min(w as isize - 1));
         let (y0, y1) = ((y + dy0).max(0), (y + dy1).min(h as isize - 1));
+        if x0 > x1 {
+            return false;
+        }
+        // Row by row, each row's span without branches (a few pixels: the test, not the exit,
+        // is the cost).
         (y0..=y1).any(|yy| {
-            let row = &data[yy as usize * w..][..w];
-            (x0..=x1).any(|xx| {
-                let z = row[xx as usize];
-                z > 0.0 && z < limit
-            })
+            let row = yy as usize * w;
+            data[row + x0 as usize..=row + x1 as usize].iter().fold(false, |hit, &z| hit | (z > 0.0 && z < limit))
         })
     };
     let occluded: Vec<usize> = (0..w * h)
