@@ -34,15 +34,18 @@ pub fn zlib_rle(input: &[u8]) -> Vec<u8> {
     let length_code = length_codes();
     let mut i = 0;
     while i < input.len() {
-        // Most bytes of a noisy plane differ from the one before: one compare decides.
-        let run = if i > 0 && input[i] == input[i - 1] { run_length(input, i, input[i - 1]) } else { 0 };
+        // Most bytes of a noisy plane differ from the one before, and most pairs that do not are
+        // not runs of 3: three compares decide before the run is measured.
+        let b = input[i];
+        let starts_run = i > 0 && i + 2 < input.len() && b == input[i - 1] && input[i + 1] == b && input[i + 2] == b;
+        let run = if starts_run { run_length(input, i, b) } else { 0 };
         if run >= 3 {
             tokens[n] = 256 + run as u16;
             freq[257 + length_code[run] as usize] += 1;
             i += run;
         } else {
-            tokens[n] = input[i] as u16;
-            freq[input[i] as usize] += 1;
+            tokens[n] = b as u16;
+            freq[b as usize] += 1;
             i += 1;
         }
         n += 1;

@@ -160,13 +160,23 @@ fn exr_pxr24_block(values: &[f32], w: usize) -> Vec<u8> {
 
 /// The byte planes of a PXR24 block before its deflate (see [`exr_pxr24_block`]).
 fn pxr24_planes(values: &[f32], w: usize) -> Vec<u8> {
+    // Values with 16 significant bits convert by a shift (no rounding, no overflow, and an
+    // infinity or a NaN keeps its bits), which vectorises; others take OpenEXR's conversion.
+    if has_16_significant_bits(values) {
+        planes_of(values, w, |v| v.to_bits() >> 8)
+    } else {
+        planes_of(values, w, float24)
+    }
+}
+
+fn planes_of(values: &[f32], w: usize, to24: impl Fn(f32) -> u32) -> Vec<u8> {
     let mut t = vec![0u8; 3 * values.len()];
     for (row, planes) in values.chunks(w).zip(t.chunks_mut(3 * w)) {
         let (hi, rest) = planes.split_at_mut(w);
         let (mid, lo) = rest.split_at_mut(w);
         let mut prev = 0u32;
         for (((&v, h), m), l) in row.iter().zip(hi).zip(mid).zip(lo) {
-            let p = float24(v);
+            let p = to24(v);
             let d = p.wrapping_sub(prev);
             prev = p;
             (*h, *m, *l) = ((d >> 16) as u8, (d >> 8) as u8, d as u8);
