@@ -45,7 +45,7 @@ pub fn write_new(f: &File, bytes: &[u8]) -> io::Result<bool> {
         while at < head {
             let n = (head - at).min(CHUNK);
             let src = &bytes[at..at + n];
-            let aligned: &[u8] = if (src.as_ptr() as usize) % ALIGN == 0 {
+            let aligned: &[u8] = if (src.as_ptr() as usize) & (ALIGN - 1) == 0 {
                 src
             } else {
                 let buf = staging.get_or_insert_with(Staging::take).bytes();
