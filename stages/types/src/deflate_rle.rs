@@ -278,6 +278,21 @@ fn write_code_lengths(out: &mut BitWriter, lit: &[u8], dist: &[u8]) {
     }
 }
 
+/// Adds two tokens' bits (entries of `put_tokens`'s table; 0 adds none) to `buf` and stores the
+/// word at `pos`, which moves on by the bytes completed.
+#[inline(always)]
+fn put_two(out: &mut [u8], pos: &mut usize, buf: &mut u64, count: &mut u32, a: u32, b: u32) {
+    *buf |= ((a & 0xFF_FFFF) as u64) << *count;
+    *count += a >> 24;
+    *buf |= ((b & 0xFF_FFFF) as u64) << *count;
+    *count += b >> 24;
+    out[*pos..*pos + 8].copy_from_slice(&buf.to_le_bytes());
+    let done = (*count / 8) as usize;
+    *pos += done;
+    *buf >>= 8 * done;
+    *count &= 7;
+}
+
 /// Bits packed from the low end of each byte, as deflate wants them.
 struct BitWriter {
     bytes: Vec<u8>,
@@ -321,25 +336,11 @@ impl BitWriter {
         let mut pairs = tokens.chunks_exact(2);
         for pair in &mut pairs {
             let (a, b) = (bits_of[pair[0] as usize], bits_of[pair[1] as usize]);
-            buf |= ((a & 0xFF_FFFF) as u64) << count;
-            count += a >> 24;
-            buf |= ((b & 0xFF_FFFF) as u64) << count;
-            count += b >> 24;
-            out[pos..pos + 8].copy_from_slice(&buf.to_le_bytes());
-            let done = (count / 8) as usize;
-            pos += done;
-            buf >>= 8 * done;
-            count &= 7;
+            put_two(out, &mut pos, &mut buf, &mut count, a, b);
         }
+        // A last odd token, with an entry of no bits beside it.
         for &t in pairs.remainder() {
-            let e = bits_of[t as usize];
-            buf |= ((e & 0xFF_FFFF) as u64) << count;
-            count += e >> 24;
-            out[pos..pos + 8].copy_from_slice(&buf.to_le_bytes());
-            let done = (count / 8) as usize;
-            pos += done;
-            buf >>= 8 * done;
-            count &= 7;
+            put_two(out, &mut pos, &mut buf, &mut count, bits_of[t as usize], 0);
         }
         self.bytes.truncate(pos);
         (self.buf, self.count) = (buf, count);
