@@ -34,48 +34,37 @@ const CHUNK: usize = 4 << 20;
 /// kernel's writeback early need not for a file written directly.
 pub fn write_new(f: &File, bytes: &[u8]) -> io::Result<bool> {
     if bytes.len() < DIRECT_MIN || !local_block_filesystem(f) || !set_direct(f, true) {
-        write_buffered(f, bytes, 0)?;
+        f.write_all_at(bytes, 0)?;
         return Ok(false);
     }
     // The aligned head goes directly; the tail (under one page) buffered.
     let head = bytes.len() / ALIGN * ALIGN;
-    let mut at = 0;
+    let (mut at, mut direct) = (0, true);
     let mut staging: Option<Staging> = None;
-    let written = (|| -> io::Result<bool> {
-        while at < head {
-            let n = (head - at).min(CHUNK);
-            let src = &bytes[at..at + n];
-            let aligned: &[u8] = if (src.as_ptr() as usize) & (ALIGN - 1) == 0 {
-                src
-            } else {
-                let buf = staging.get_or_insert_with(Staging::take).bytes();
-                buf[..n].copy_from_slice(src);
-                &buf[..n]
-            };
-            match f.write_all_at(aligned, at as u64) {
-                Ok(()) => at += n,
-                // A filesystem that took the flag but not this write (alignment rules of its own):
-                // the rest goes buffered.
-                Err(e) if e.raw_os_error() == Some(libc::EINVAL) => return Ok(false),
-                Err(e) => return Err(e),
+    while at < head {
+        let n = (head - at).min(CHUNK);
+        let src = &bytes[at..at + n];
+        let aligned: &[u8] = if (src.as_ptr() as usize) & (ALIGN - 1) == 0 {
+            src
+        } else {
+            let buf = staging.get_or_insert_with(Staging::take).bytes();
+            buf[..n].copy_from_slice(src);
+            &buf[..n]
+        };
+        match f.write_all_at(aligned, at as u64) {
+            Ok(()) => at += n,
+            // A filesystem that took the flag but not this write (alignment rules of its own):
+            // the rest goes buffered.
+            Err(e) if e.raw_os_error() == Some(libc::EINVAL) => {
+                direct = false;
+                break;
             }
+            Err(e) => return Err(e),
         }
-        Ok(true)
-    })();
-    if let Some(staging) = staging {
-        staging.give_back();
     }
-    let written = written?;
     set_direct(f, false);
-    write_buffered(f, &bytes[at..], at as u64)?;
-    Ok(written)
-}
-
-fn write_buffered(f: &File, bytes: &[u8], offset: u64) -> io::Result<()> {
-    if bytes.is_empty() {
-        return Ok(());
-    }
-    f.write_all_at(bytes, offset)
+    f.write_all_at(&bytes[at..], at as u64)?;
+    Ok(direct)
 }
 
 /// Turns `O_DIRECT` on or off for an open file; false when the kernel refuses.
@@ -114,7 +103,7 @@ fn local_block_filesystem(f: &File) -> bool {
 struct Staging(Vec<Page>);
 
 /// Staging buffers kept between writes; more writers at once allocate their own and drop them.
-static SPARE: std::sync::Mutex<Vec<Staging>> = std::sync::Mutex::new(Vec::new());
+static SPARE: std::sync::Mutex<Vec<Vec<Page>>> = std::sync::Mutex::new(Vec::new());
 const KEPT: usize = 4;
 
 #[repr(C, align(4096))]
@@ -122,23 +111,25 @@ const KEPT: usize = 4;
 struct Page([u8; ALIGN]);
 
 impl Staging {
-    /// A kept buffer, or a new one.
+    /// A kept buffer, or a new one; it goes back to [`SPARE`] when dropped.
     fn take() -> Staging {
         let kept = SPARE.lock().ok().and_then(|mut spare| spare.pop());
-        kept.unwrap_or_else(|| Staging(vec![Page([0; ALIGN]); CHUNK / ALIGN]))
-    }
-
-    fn give_back(self) {
-        if let Ok(mut spare) = SPARE.lock() {
-            if spare.len() < KEPT {
-                spare.push(self);
-            }
-        }
+        Staging(kept.unwrap_or_else(|| vec![Page([0; ALIGN]); CHUNK / ALIGN]))
     }
 
     fn bytes(&mut self) -> &mut [u8] {
         // SAFETY: the pages are contiguous, plain bytes, and borrowed mutably for the slice's life.
         unsafe { std::slice::from_raw_parts_mut(self.0.as_mut_ptr().cast::<u8>(), self.0.len() * ALIGN) }
+    }
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if let Ok(mut spare) = SPARE.lock() {
+            if spare.len() < KEPT {
+                spare.push(std::mem::take(&mut self.0));
+            }
+        }
     }
 }
 
