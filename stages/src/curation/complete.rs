@@ -174,11 +174,8 @@ impl DepthCompleter for ScanlineCompleter {
 /// Luma (ITU-R BT.601 weights, 0-255) of every pixel.
 #[inline(always)]
 pub(crate) fn luminance(image: &Image) -> Vec<f32> {
-    let mut lum = vec![0f32; image.rgb.len() / 3];
-    for (l, p) in lum.iter_mut().zip(image.rgb.chunks_exact(3)) {
-        *l = 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32;
-    }
-    lum
+    // Collected, not written into a zeroed map: the zeroing was a pass of its own.
+    image.rgb.chunks_exact(3).map(|p| 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32).collect()
 }
 
 /// Row pass: bridge short gaps between samples of each row, in inverse depth.
@@ -267,9 +264,8 @@ fn grow_samples<T: WindowMax>(inv: &mut [T], w: usize, h: usize, r: usize) {
     if r == 0 || w == 0 {
         return;
     }
-    let mut across = vec![T::default(); w * h];
+    let mut across = inv.to_vec();
     for (src, dst) in inv.chunks_exact(w).zip(across.chunks_exact_mut(w)) {
-        dst.copy_from_slice(src);
         for d in 1..=r.min(w - 1) {
             for (o, &v) in dst[..w - d].iter_mut().zip(&src[d..]) {
                 *o = o.max(v);
@@ -1046,8 +1042,11 @@ impl WideRow {
 #[inline(always)]
 fn spread_pairs<T: Copy>(out: &mut [T], v: &[T]) {
     out[0] = v[0];
-    for (o, &x) in out[1..].chunks_mut(2).zip(v) {
-        o.fill(x);
+    // Whole pairs written as two stores: `fill` on a chunk of unknown length called memset once
+    // per pair (1% of the chain's CPU). An odd last slot is the end's, set below.
+    for (o, &x) in out[1..].chunks_exact_mut(2).zip(v) {
+        o[0] = x;
+        o[1] = x;
     }
     let end = out.len() - 1;
     out[end] = v[v.len() - 1];

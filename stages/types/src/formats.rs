@@ -215,8 +215,11 @@ fn zlib(mut input: &[u8], level: u8, strategy: miniz_oxide::deflate::core::Compr
 pub fn depth_png16(d: &DepthMap) -> Result<Vec<u8>> {
     let mut px = vec![0u8; 2 * d.data.len()];
     for (&z, be) in d.data.iter().zip(px.chunks_exact_mut(2)) {
-        let v = if z > 0.0 && z.is_finite() { (z * 256.0).round().clamp(1.0, 65535.0) as u16 } else { 0 };
-        be.copy_from_slice(&v.to_be_bytes());
+        // Clamped first, then rounded half up by truncation: in [1, 65535] adding 0.5 is exact, so
+        // this is `round().clamp()`, and it vectorises (a float-to-int cast per lane; `round` then a
+        // cast to u16 went lane by lane, 2% of the chain's CPU).
+        let v = if z > 0.0 && z.is_finite() { ((z * 256.0).clamp(1.0, 65535.0) + 0.5) as i32 } else { 0 };
+        be.copy_from_slice(&(v as u16).to_be_bytes());
     }
     png_bytes(d.width, d.height, &px, png::ColorType::Grayscale, png::BitDepth::Sixteen)
 }
