@@ -105,11 +105,19 @@ def lean(text):
     return text[:at] + '    export: {\n        "eval.json": "{scene}/{camera}/{frame}_metrics.json",\n    },\n)\n'
 
 
-def variant(base, name, tmp, prompt_points=None, visible_points=None, sky=True, slim=True):
+def variant(base, name, tmp, prompt_points=None, follow_points=None, visible_points=None, sky=True, slim=True):
+    """`follow_points`: what FollowTracks moves (the fused points in the shipped file);
+    `visible_points`: what hidden point removal reads instead of FollowTracks' output, with the boxes
+    at the cloud's time (FollowTracks then unused)."""
     t = lean(base) if slim else base
+    if follow_points:
+        t = edit(t, '"follow": FollowTracks(\n            inputs: {\n                "points": "fuse.points",',
+                 f'"follow": FollowTracks(\n            inputs: {{\n                "points": "{follow_points}",')
     if visible_points:
-        t = edit(t, '"visible": HiddenPointRemoval(\n            inputs: {\n                "points": "fuse.points",',
+        t = edit(t, '"visible": HiddenPointRemoval(\n            inputs: {\n                "points": "follow.points",',
                  f'"visible": HiddenPointRemoval(\n            inputs: {{\n                "points": "{visible_points}",')
+        t = edit(t, '"boxes": "dataset.camera_boxes",\n            },\n        ),\n        "prompt"',
+                 '"boxes": "dataset.boxes",\n            },\n        ),\n        "prompt"')
     if prompt_points:
         t = edit(t, '"prompt": DepthPrompt(\n            inputs: {\n                "points": "visible.points",',
                  f'"prompt": DepthPrompt(\n            inputs: {{\n                "points": "{prompt_points}",')
@@ -161,7 +169,9 @@ def section_accuracy(data, tmp, base):
         ("+ HPR (no sky)", dict(sky=False), []),
         ("+ sky, built-in estimate (the shipped pipeline on data without segmentations)", dict(), []),
         ("+ sky from the ground-truth segmentation", dict(), ["--set", 'dataset.semantics="groundtruth/semantic"']),
-        ("shipped pipeline without MVS (HPR + built-in sky)", dict(visible_points="aggregate.points"), []),
+        ("shipped pipeline without MVS (HPR + built-in sky)", dict(follow_points="aggregate.points"), []),
+        ("shipped pipeline without FollowTracks (moving objects where the LiDAR saw them)",
+         dict(visible_points="fuse.points"), []),
     ]
     results = {}
     for i, (label, edits, extra) in enumerate(rows):
