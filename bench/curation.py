@@ -334,7 +334,7 @@ def section_shipped(data, tmp, base):
 def section_chain(data, tmp, base):
     """Curation without MVS, depth files written: dist4d vs curation_chain.py (equal work)."""
     print("## End to end vs the peer chain (curation without MVS, EXR + PNG16 + NPY written)\n")
-    # dist4d: the shipped pipeline without MVS, sky estimation, evaluation or sheets (the peer
+    # dist4d: the shipped pipeline without MVS, FollowTracks, sky estimation, evaluation or sheets (the peer
     # estimates no sky: IP-Basic leaves it as it fills it); EncodeDepth's EXR, PNG16 and NPY
     # exported (it also makes the preview, which the peer does not: not exported).
     t = variant(base, "chain", tmp, visible_points="aggregate.points", sky=False, slim=False).read_text()

@@ -121,8 +121,8 @@ pub fn hidden_point_removal(points: &[DVec3], camera: DVec3, radius: f64) -> Vec
 }
 
 /// The visible points of `points` (in the frame `view` maps from), in their original order;
-/// `boxes` (world frame, at the cloud's time), when given, hide what lies behind them in the image
-/// taken at `camera_us`.
+/// `boxes` (world frame, at their own `timestamp_us`: the cloud's, or the image's after
+/// FollowTracks), when given, hide what lies behind them in the image taken at `camera_us`.
 pub fn visible_points(params: &Params, points: &PointCloud, view: &CameraView, boxes: Option<(&Boxes3D, &Se3, i64)>) -> PointCloud {
     let (w, h) = (view.width as f64, view.height as f64);
     let (mu, mv) = (w * params.frustum_margin, h * params.frustum_margin);
@@ -378,7 +378,8 @@ crate::ports! {
         points: One<PointCloud>,
         /// the cloud's sensor and pose, the camera's calibration and pose
         view: Group<ViewPorts>,
-        /// the cloud frame's annotated boxes: what lies behind one is hidden
+        /// annotated boxes (the frame's, or at the image's time after FollowTracks): what lies
+        /// behind one is hidden
         boxes: Optional<Boxes3D>,
     }
 }
