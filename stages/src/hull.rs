@@ -421,8 +421,6 @@ mod tests {
         assert_eq!(hull_vertices(&flat[..2]), vec![true, true]);
     }
 
-    /// Brute force: a point is a vertex when some plane through it has all others strictly on
-    /// one side; checked via the hull's faces instead: every point must lie inside every face.
     #[test]
     fn nearly_flat_clouds_fold_no_face_over_the_apex() {
         // A slab 1e-10 thin under an apex: taken in stack order, the slab's nearly coplanar faces
@@ -444,6 +442,8 @@ mod tests {
         }
     }
 
+    /// Brute force: a point is a vertex when some plane through it has all others strictly on
+    /// one side; checked via the hull's faces instead: every point must lie inside every face.
     #[test]
     fn random_clouds_give_hulls_that_contain_every_point() {
         let mut rng = Rng::new(3);

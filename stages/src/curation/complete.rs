@@ -25,6 +25,7 @@ use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::{DepthMap, Image, Mask};
+use dist4d_types::formats::to_16_significant_bits;
 use serde::{Deserialize, Serialize};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
@@ -517,18 +518,6 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
         depth: DepthMap { width: sparse.width, height: sparse.height, data: depth },
         support: distance.map(|data| DepthMap { width: sparse.width, height: sparse.height, data }),
     }
-}
-
-/// `v` rounded to the nearest float with 16 significant bits (the low 8 of its 24 zero): at most
-/// 2^-16 = 1.5e-5 off, relative (1 mm at 80 m), finer than the PNG16 export's 1/256 m below 128 m.
-/// The bits below are the solver's noise (its last conjugate-gradient step moves depths by far
-/// more), and they are what made a curated map's EXR incompressible: with them zeroed, EncodeDepth
-/// stores the map exactly as PXR24 in ~0.4 of the bytes of a ZIP of the full floats, in half the
-/// time (docs/BENCHMARKS.md, sixteenth session), and the store's copy shrinks too. Every depth the stage outputs has them: the sky's `sky_depth` and a
-/// worker's completion are rounded too. Positive finite `v` only (a carry into the exponent is the
-/// correct rounding).
-fn to_16_significant_bits(v: f32) -> f32 {
-    f32::from_bits((v.to_bits() + 0x80) & !0xFF)
 }
 
 /// A dense depth and how far each of its pixels is from a measurement.

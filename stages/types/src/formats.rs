@@ -118,6 +118,18 @@ fn exr_zip_block(values: &[f32]) -> Vec<u8> {
     }
 }
 
+/// `v` rounded to the nearest float with 16 significant bits (the low 8 of its 24 zero), which
+/// PXR24 stores exactly: at most 2^-16 = 1.5e-5 off, relative (1 mm at 80 m), finer than the
+/// PNG16's 1/256 m below 128 m. CompleteDepth rounds every depth it outputs so: the bits below are
+/// its solver's noise (its last conjugate-gradient step moves depths by far more), and they made a
+/// curated map's EXR incompressible; without them EncodeDepth writes it as PXR24 in ~0.4 of the
+/// bytes of a ZIP of the full floats, in half the time (docs/BENCHMARKS.md, sixteenth session), and
+/// the store's copy shrinks too. Positive finite `v` only (a carry into the exponent is the correct
+/// rounding).
+pub fn to_16_significant_bits(v: f32) -> f32 {
+    f32::from_bits((v.to_bits() + 0x80) & !0xFF)
+}
+
 /// Whether every value is a float with 16 significant bits (its low 8 bits zero), which PXR24
 /// stores exactly.
 pub fn has_16_significant_bits(values: &[f32]) -> bool {
@@ -380,12 +392,11 @@ mod tests {
     fn pxr24_exrs_read_back_exactly_when_values_have_16_significant_bits() {
         use exr::prelude::*;
         let (w, h) = (173usize, 37usize);
-        let exact = |v: f32| f32::from_bits((v.to_bits() + 0x80) & !0xFF);
         let smooth: Vec<f32> = (0..w * h)
             .map(|i| match i % 97 {
                 0 => f32::INFINITY,
                 1 => 0.0,
-                _ => exact(1.0 + (i as f32 * 0.37).sin().abs() * 80.0),
+                _ => to_16_significant_bits(1.0 + (i as f32 * 0.37).sin().abs() * 80.0),
             })
             .collect();
         let noise: Vec<f32> = (0..w * h)
@@ -513,7 +524,7 @@ mod tests {
         let rounded = DepthMap {
             width: d.width,
             height: d.height,
-            data: d.data.iter().map(|v| f32::from_bits((v.to_bits() + 0x80) & !0xFF)).collect(),
+            data: d.data.iter().map(|&v| to_16_significant_bits(v)).collect(),
         };
         time("depth_exr PXR24, 16-bit values (1 thread)", &|| {
             pool.install(|| depth_exr_with(&rounded, ExrCompression::Pxr24).unwrap().len())
