@@ -502,9 +502,15 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
     let planes = colour_planes(&image.rgb);
     smooth_unsupported(p, &mut inv, &planes, &near, &continued, sky_or_none, w, h);
     refine(p, &mut inv, &planes, &sparse.data, sky_or_none, w, h);
+    // No depth farther than the farthest sample: where the far end of a road meets the sky between
+    // tree crowns, the 2D fill and the refinement could bring an inverse depth down to nearly 0
+    // (26-53 km on three pixels of the shared DGP scene's CAMERA_09). Nearer is left alone: a
+    // surface continued past its samples (a road below its last ring) rightly comes nearer.
+    let far_inv = sparse.data.iter().filter(|&&z| z > 0.0).fold(f32::MAX, |m, &z| m.min(1.0 / z));
     let mut depth = inv;
     for v in depth.iter_mut() {
-        *v = if *v > 0.0 { to_16_significant_bits(1.0 / *v) } else { 0.0 };
+        let inv = if far_inv < f32::MAX { v.max(far_inv) } else { *v };
+        *v = if *v > 0.0 { to_16_significant_bits(1.0 / inv) } else { 0.0 };
     }
     if let Some(sky) = sky {
         for (d, &s) in depth.iter_mut().zip(sky) {
@@ -1532,7 +1538,9 @@ impl Stage for CompleteDepth {
     //    40 steps in a 5 px band (docs/BENCHMARKS.md, "The 2D fill over blocks (fifteenth session)").
     // 12: depths rounded to 16 significant bits (`to_16_significant_bits`; within 1.5e-5 of 11's),
     //    the sky's and a worker's too.
-    const VERSION: u32 = 12;
+    // 13: no depth farther than the farthest sample (a few pixels of 26-53 km on the shared DGP
+    //    scene).
+    const VERSION: u32 = 13;
     const SUMMARY: &'static str =
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)";
     const GRAINS: &'static [&'static str] = &["camera"];
