@@ -104,13 +104,20 @@ def levin(base, sigma=5.0, weight=100.0, iterations=3000):
     np.save(f"{base}_out_levin.npy", z)
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def arguments(doc):
+    """The arguments this script and bench/prompt_errors.py share: DATA OUT WORK, the harness and
+    CompleteDepth's parameters."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("data")
     ap.add_argument("out")
     ap.add_argument("work")
     ap.add_argument("--harness", default=str(ROOT / "target" / "release" / "examples" / "complete_npy"))
     ap.add_argument("--set", nargs="*", default=[], help="CompleteDepth parameters, field=value")
+    return ap
+
+
+def main():
+    ap = arguments(__doc__)
     ap.add_argument("--levin", type=int, default=0, help="also the Levin fill for the first N images")
     a = ap.parse_args()
     Path(a.work).mkdir(parents=True, exist_ok=True)
