@@ -50,9 +50,9 @@ pub struct Params {
     /// A sample is dropped as seen through a nearer object when, within this many mean sample
     /// spacings straight up and straight down (give or take 0.3 spacings sideways), the nearest
     /// sample of its own image region is nearer than it by more than `tolerance` on both sides;
-    /// a region ends at a colour step of `enclosed_edge` between two rows. 0 = off (the default:
-    /// 16 takes 0.02-0.05 points off the pixels off by more than 10% on the synthetic seeds, for
-    /// ~3-5 ms more per 1600x900 image; docs/stages.md).
+    /// a region ends at a colour step of `enclosed_edge` between two rows. 0 = off (16 takes
+    /// 0.02-0.05 points off the pixels off by more than 10% on the synthetic seeds, for ~2 ms per
+    /// 1600x900 image; docs/stages.md).
     pub enclosed_reach: f32,
     /// The colour step (sum of |dR| + |dG| + |dB| between 3x3 means of two neighbouring rows,
     /// 0-765) that ends an image region for `enclosed_reach`.
@@ -105,7 +105,7 @@ impl Default for Params {
             tolerance: 0.1,
             sky_depth: 100.0,
             grow: 0.13,
-            enclosed_reach: 0.0,
+            enclosed_reach: 16.0,
             enclosed_edge: 20.0,
             smooth_from: 1.0,
             smooth_sigma: 30.0,
@@ -341,53 +341,85 @@ fn drop_enclosed(p: &Params, inv: &mut [f32], planes: &[u8], w: usize, h: usize)
     let rows: Vec<usize> = (0..=h).map(|y| at.partition_point(|&i| (i as usize) < y * w)).collect();
     let spacing = ((w * h) as f32 / at.len() as f32).sqrt();
     let reach = ((p.enclosed_reach * spacing).round() as usize).max(1);
-    let side = (ENCLOSED_SIDE * spacing).round() as usize;
+    // At most 31 columns to each side: one bit each in a u64.
+    let side = ((ENCLOSED_SIDE * spacing).round() as usize).min(31);
     let keep = 1.0 - p.tolerance.min(1.0);
+    let limit = (9.0 * p.enclosed_edge).min(u16::MAX as f32) as i32;
     let n = w * h;
-    // Whether pixels i and j have alike colours: beside a crown's outline, the crown's columns do
-    // not count.
-    let like = |i: usize, j: usize| {
-        let d: u32 = (0..3).map(|c| (planes[c * n + i] as i32 - planes[c * n + j] as i32).unsigned_abs()).sum();
-        d as f32 <= p.enclosed_edge
+    let px = |c: usize, y: usize, x: usize| planes[c * n + y * w + x] as i32;
+    // Whether pixels (x, y) and (c, y) have alike colours: beside a crown's outline, the crown's
+    // columns do not count.
+    let like = |y: usize, x: usize, c: usize| {
+        c == x || (0..3).map(|k| (px(k, y, x) - px(k, y, c)).abs()).sum::<i32>() as f32 <= p.enclosed_edge
     };
-    // One pass down, one up: per column, the nearest sample passed in the current region (its row
-    // and inverse depth); at each sample, the nearest (largest inverse depth) within reach of its
-    // columns +- side whose pixel on its row is like its own. The region edges, found on the way
-    // down, are kept as bits for the way up (a few hundred KB: they stay in cache).
-    let words = w.div_ceil(64);
-    let mut ends = vec![0u64; words * h];
-    let mut edges = RegionEdges::new(planes, w, h, p.enclosed_edge);
+    // Whether rows a..=b of column x lie in one region: no colour step of `enclosed_edge` between
+    // the 3x3 means of two neighbouring rows. (Row r's mean less row r - 1's is, 9x, the sum of 3
+    // pixels of row r + 1 less that of row r - 2, rows clamped to the image.)
+    let across = |c: usize, y: usize, x: usize| px(c, y, x.saturating_sub(1)) + px(c, y, x) + px(c, y, (x + 1).min(w - 1));
+    let one_region = |x: usize, a: usize, b: usize| {
+        (a + 1..=b).all(|r| {
+            let (lo, hi) = (r.saturating_sub(2), (r + 1).min(h - 1));
+            (0..3).map(|c| (across(c, hi, x) - across(c, lo, x)).abs()).sum::<i32>() <= limit
+        })
+    };
+    // Per column, the last sample passed (its row and inverse depth). At a sample, the columns
+    // x +- side (bit c - x + side) whose last sample is nearer by more than `tolerance`, within
+    // reach and of a pixel like the sample's on its row: candidates, before the region is asked.
     let none = usize::MAX;
-    let mut last = vec![(none, 0f32); w];
-    let nearest = |last: &[(usize, f32)], y: usize, i: usize| {
-        let x = i - y * w;
+    let candidates = |last: &[(usize, f32)], y: usize, x: usize, v: f32| {
         let (a, b) = (x.saturating_sub(side), (x + side).min(w - 1));
-        (a..=b)
-            .filter(|&c| last[c].0 != none && last[c].0.abs_diff(y) <= reach && (c == x || like(i, y * w + c)))
-            .fold(0f32, |m, c| m.max(last[c].1))
+        (a..=b).fold(0u64, |m, c| {
+            let (r, u) = last[c];
+            let hit = r != none && r.abs_diff(y) <= reach && v < u * keep && like(y, x, c);
+            m | ((hit as u64) << (c + side - x))
+        })
     };
-    let mut above = vec![0f32; at.len()];
-    for y in 0..h {
-        let row_ends = &mut ends[y * words..(y + 1) * words];
-        edges.row(y, row_ends);
-        forget(&mut last, row_ends, none);
+    // Up first: each sample's candidates below, and the rows of their samples.
+    let width = 2 * side + 1;
+    let mut below = vec![0u64; at.len()];
+    let mut below_rows = vec![0u32; at.len() * width];
+    let mut last = vec![(none, 0f32); w];
+    for y in (0..h).rev() {
         for k in rows[y]..rows[y + 1] {
-            above[k] = nearest(&last, y, at[k] as usize);
+            let x = at[k] as usize - y * w;
+            below[k] = candidates(&last, y, x, inv[at[k] as usize]);
+            let mut bits = below[k];
+            while bits != 0 {
+                let j = bits.trailing_zeros() as usize;
+                below_rows[k * width + j] = last[x + j - side].0 as u32;
+                bits &= bits - 1;
+            }
         }
         for &i in &at[rows[y]..rows[y + 1]] {
             last[i as usize - y * w] = (y, inv[i as usize]);
         }
     }
+    // Then down: a sample with candidates on both sides is dropped when one of each is in its
+    // region.
     last.fill((none, 0.0));
     let mut dropped = Vec::new();
-    for y in (0..h).rev() {
-        if y + 1 < h {
-            forget(&mut last, &ends[(y + 1) * words..(y + 2) * words], none);
-        }
+    for y in 0..h {
         for k in rows[y]..rows[y + 1] {
+            if below[k] == 0 {
+                continue;
+            }
             let i = at[k] as usize;
-            if inv[i] < above[k] * keep && inv[i] < nearest(&last, y, i) * keep {
-                dropped.push(i);
+            let x = i - y * w;
+            let mut up = candidates(&last, y, x, inv[i]);
+            let mut seen_above = false;
+            while up != 0 && !seen_above {
+                let c = x + up.trailing_zeros() as usize - side;
+                seen_above = one_region(c, last[c].0, y);
+                up &= up - 1;
+            }
+            let mut down = if seen_above { below[k] } else { 0 };
+            while down != 0 {
+                let j = down.trailing_zeros() as usize;
+                if one_region(x + j - side, y, below_rows[k * width + j] as usize) {
+                    dropped.push(i);
+                    break;
+                }
+                down &= down - 1;
             }
         }
         for &i in &at[rows[y]..rows[y + 1]] {
@@ -399,90 +431,6 @@ fn drop_enclosed(p: &Params, inv: &mut [f32], planes: &[u8], w: usize, h: usize)
         inv[i] = 0.0;
     }
     dropped
-}
-
-/// The columns whose bit is set in `ends` forget their sample.
-#[inline(always)]
-fn forget(last: &mut [(usize, f32)], ends: &[u64], none: usize) {
-    for (word, &bits) in ends.iter().enumerate() {
-        let mut bits = bits;
-        while bits != 0 {
-            last[word * 64 + bits.trailing_zeros() as usize] = (none, 0.0);
-            bits &= bits - 1;
-        }
-    }
-}
-
-/// Plane c's row y as sums of 3 pixels along it (the ends repeat their pixel).
-#[inline(always)]
-fn across_into(planes: &[u8], w: usize, h: usize, c: usize, y: usize, out: &mut [u16]) {
-    let n = w * h;
-    let row = &planes[c * n + y * w..c * n + (y + 1) * w];
-    for ((o, (&l, &m)), &r) in out[1..w - 1].iter_mut().zip(row.iter().zip(&row[1..])).zip(&row[2..]) {
-        *o = l as u16 + m as u16 + r as u16;
-    }
-    out[0] = 2 * row[0] as u16 + row[1] as u16;
-    out[w - 1] = 2 * row[w - 1] as u16 + row[w - 2] as u16;
-}
-
-/// Where a colour region ends between two rows: the 3x3 mean colour of a pixel differs from that
-/// of the pixel above by more than `edge` (sum over R, G, B). Rows are taken in order; per plane
-/// it keeps the sums of 3 pixels along the last three rows (the ends repeat their pixel) and the
-/// sums of 3 such rows (9x the mean) of the last two.
-struct RegionEdges<'a> {
-    planes: &'a [u8],
-    w: usize,
-    h: usize,
-    limit: u16,
-    sums: Vec<[Vec<u16>; 3]>,
-    boxed: Vec<[Vec<u16>; 2]>,
-    step: Vec<u16>,
-}
-
-impl<'a> RegionEdges<'a> {
-    fn new(planes: &'a [u8], w: usize, h: usize, edge: f32) -> Self {
-        let mut e = RegionEdges {
-            planes,
-            w,
-            h,
-            limit: (9.0 * edge).min(u16::MAX as f32) as u16,
-            sums: vec![[vec![0u16; w], vec![0u16; w], vec![0u16; w]]; 3],
-            boxed: vec![[vec![0u16; w], vec![0u16; w]]; 3],
-            step: vec![0u16; w],
-        };
-        for c in 0..3 {
-            let [r0, r1, _] = &mut e.sums[c];
-            across_into(planes, w, h, c, 0, r0);
-            across_into(planes, w, h, c, 0, r1);
-        }
-        e
-    }
-
-    /// Row y's bits (one per column, set where a region ends between rows y - 1 and y; none on
-    /// row 0). Rows must come in order, from 0.
-    #[inline(always)]
-    fn row(&mut self, y: usize, bits: &mut [u64]) {
-        self.step.fill(0);
-        let next = (y + 1).min(self.h - 1);
-        for c in 0..3 {
-            across_into(self.planes, self.w, self.h, c, next, &mut self.sums[c][(y + 2) % 3]);
-            let [prev, cur] = &mut self.boxed[c];
-            std::mem::swap(prev, cur);
-            let [r0, r1, r2] = &self.sums[c];
-            for (((b, &a0), &a1), &a2) in cur.iter_mut().zip(r0).zip(r1).zip(r2) {
-                *b = a0 + a1 + a2;
-            }
-            for ((s, &a), &b) in self.step.iter_mut().zip(cur.iter()).zip(prev.iter()) {
-                *s = s.saturating_add(a.max(b) - a.min(b));
-            }
-        }
-        bits.fill(0);
-        if y > 0 {
-            for (word, chunk) in bits.iter_mut().zip(self.step.chunks(64)) {
-                *word = chunk.iter().enumerate().fold(0u64, |m, (k, &s)| m | (((s > self.limit) as u64) << k));
-            }
-        }
-    }
 }
 
 /// What `grow_samples` grows: inverse depths, and the refinement's edge mask (0 = empty).
@@ -1742,7 +1690,7 @@ impl Stage for CompleteDepth {
     //    the sky's and a worker's too.
     // 13: no depth farther than the farthest sample (a few pixels of 26-53 km on the shared DGP
     //    scene).
-    const VERSION: u32 = 13;
+    const VERSION: u32 = 14;
     const SUMMARY: &'static str =
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)";
     const GRAINS: &'static [&'static str] = &["camera"];
@@ -2451,19 +2399,18 @@ mod tests {
         }
         let planes = colour_planes(&image.rgb);
         let before = inv.clone();
-        let on = Params { enclosed_reach: 16.0, ..Params::default() };
-        let mut dropped = drop_enclosed(&on, &mut inv, &planes, w, h);
+        let mut dropped = drop_enclosed(&Params::default(), &mut inv, &planes, w, h);
         dropped.sort();
         assert_eq!(dropped, leaks);
         assert!((0..w * h).all(|i| inv[i] == if leaks.contains(&i) { 0.0 } else { before[i] }));
         // Without the colour step, the facade between the crown and the car is dropped too.
         let mut flat = before.clone();
-        let no_edges = Params { enclosed_edge: 765.0, ..on.clone() };
+        let no_edges = Params { enclosed_edge: 765.0, ..Params::default() };
         let dropped = drop_enclosed(&no_edges, &mut flat, &planes, w, h);
         assert!(dropped.contains(&(27 * w + 48)), "{dropped:?}");
-        // Off (the default), nothing is dropped.
+        // Off, nothing is dropped.
         let mut off = before.clone();
-        assert!(drop_enclosed(&Params::default(), &mut off, &planes, w, h).is_empty());
+        assert!(drop_enclosed(&Params { enclosed_reach: 0.0, ..Params::default() }, &mut off, &planes, w, h).is_empty());
     }
 
     #[test]
