@@ -344,7 +344,8 @@ fn drop_enclosed(p: &Params, inv: &mut [f32], planes: &[u8], w: usize, h: usize)
     // At most 31 columns to each side: one bit each in a u64.
     let side = ((ENCLOSED_SIDE * spacing).round() as usize).min(31);
     let keep = 1.0 - p.tolerance.min(1.0);
-    let limit = (9.0 * p.enclosed_edge).min(u16::MAX as f32) as i32;
+    // 9x: the steps are compared between sums of 3x3 pixels.
+    let limit = (9.0 * p.enclosed_edge) as i32;
     let n = w * h;
     let px = |c: usize, y: usize, x: usize| planes[c * n + y * w + x] as i32;
     // Whether pixels (x, y) and (c, y) have alike colours: beside a crown's outline, the crown's
@@ -1690,6 +1691,8 @@ impl Stage for CompleteDepth {
     //    the sky's and a worker's too.
     // 13: no depth farther than the farthest sample (a few pixels of 26-53 km on the shared DGP
     //    scene).
+    // 14: samples seen through a nearer object dropped first (`enclosed_reach`; facade returns on a
+    //    tree crown between its rings).
     const VERSION: u32 = 14;
     const SUMMARY: &'static str =
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)";
