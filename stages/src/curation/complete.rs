@@ -534,13 +534,17 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
     let planes = colour_planes(&image.rgb);
     // From here on the prompt is the one without the samples seen through nearer objects.
     let dropped = drop_enclosed(p, &mut inv, &planes, w, h);
-    let kept = (!dropped.is_empty()).then(|| {
+    // (No closures here, `then(|| ...)` or otherwise, around work: a closure is compiled apart,
+    // for the portable build only, and would run without AVX-512 inside its build.)
+    let kept = if dropped.is_empty() {
+        None
+    } else {
         let mut kept = sparse.data.clone();
         for i in dropped {
             kept[i] = 0.0;
         }
-        kept
-    });
+        Some(kept)
+    };
     let sparse_data: &[f32] = kept.as_deref().unwrap_or(&sparse.data);
     let samples = inv.iter().filter(|&&v| v > 0.0).count();
     let grow = grow_radius(p.grow, w, h, samples);
@@ -640,7 +644,7 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
             }
         }
     }
-    let distance = support.then(|| support_distance(sparse_data, w, h));
+    let distance = if support { Some(support_distance(sparse_data, w, h)) } else { None };
     let near = near_samples(sparse_data, distance.as_deref(), p.smooth_from, w, h);
     let sky = sky.map(|s| s.data.as_slice());
     let no_sky;
@@ -1088,16 +1092,6 @@ impl Blocks {
             let at = |y: usize| y * w..(y + 1) * w;
             let out = by * bw..(by + 1) * bw;
             // Sums of the two rows' pixel pairs (the second row weighed 0 when it is the first).
-            let pair_sums = |out: &mut [f32], v: &[Vec<f32>; 2]| {
-                let (a, c) = (&v[0][..], &v[1][..]);
-                let f = second as f32;
-                for (o, (p, q)) in out[..pairs].iter_mut().zip(a.chunks_exact(2).zip(c.chunks_exact(2))) {
-                    *o = (p[0] + p[1]) + f * (q[0] + q[1]);
-                }
-                if w % 2 == 1 {
-                    out[pairs] = a[w - 1] + f * c[w - 1];
-                }
-            };
             for (k, y) in [ya, yb].into_iter().enumerate() {
                 let row = at(y);
                 let (v, d, s, c) = (&inv[row.clone()], &near[row.clone()], &sky[row.clone()], &continued[row]);
@@ -1107,8 +1101,8 @@ impl Blocks {
                     *de = source;
                 }
             }
-            pair_sums(&mut b.num[out.clone()], &num);
-            pair_sums(&mut b.den[out.clone()], &den);
+            pair_sums(&mut b.num[out.clone()], &num, second);
+            pair_sums(&mut b.den[out.clone()], &den, second);
             for c in 0..3 {
                 let plane = &planes[c * n..(c + 1) * n];
                 let (a, d) = (&plane[at(ya)], &plane[at(yb)]);
@@ -1132,6 +1126,22 @@ impl Blocks {
             }
         }
         b
+    }
+}
+
+/// Sums of the pixel pairs of two rows `v` into `out` (an odd row's last pixel alone), the second
+/// row weighed 0 when `second` is 0 (an odd image's last block row is its first row counted once).
+/// A function inlined into the completion: a closure was compiled apart, for the portable build.
+#[inline(always)]
+fn pair_sums(out: &mut [f32], v: &[Vec<f32>; 2], second: u8) {
+    let (a, c) = (&v[0][..], &v[1][..]);
+    let (w, pairs) = (a.len(), a.len() / 2);
+    let f = second as f32;
+    for (o, (p, q)) in out[..pairs].iter_mut().zip(a.chunks_exact(2).zip(c.chunks_exact(2))) {
+        *o = (p[0] + p[1]) + f * (q[0] + q[1]);
+    }
+    if w % 2 == 1 {
+        out[pairs] = a[w - 1] + f * c[w - 1];
     }
 }
 
@@ -1419,33 +1429,18 @@ fn refine(p: &Params, x: &mut [f32], planes: &[u8], sparse: &[f32], sky: &[u8], 
             n += 1;
         }
         let (pixels, slots) = (first..first + n, k..k + n);
-        // The weights of the links from the pixels `from..` to the pixels `to..` (0 where either
-        // is sky; a link's weight does not depend on its direction).
-        let weigh = |out: &mut [f32], from: usize, to: usize| {
-            let len = out.len();
-            let plane = |c: usize, at: usize| &planes[c * (w * h) + at..c * (w * h) + at + len];
-            let (r, g, b, s) = (plane(0, from), plane(1, from), plane(2, from), &sky[from..from + len]);
-            let (r1, g1, b1, s1) = (plane(0, to), plane(1, to), plane(2, to), &sky[to..to + len]);
-            for (t, o) in out.iter_mut().enumerate() {
-                let a = factor[r[t].abs_diff(r1[t]) as usize]
-                    * factor[g[t].abs_diff(g1[t]) as usize]
-                    * factor[b[t].abs_diff(b1[t]) as usize]
-                    + 1e-4;
-                *o = if (s[t] | s1[t]) != 0 { 0.0 } else { a };
-            }
-        };
         let across = &mut across[..n + 1];
         across.fill(0.0);
         let (from, to) = (first - (c > 0) as usize, first + n - (c + n == w) as usize);
-        weigh(&mut across[(c == 0) as usize..(to - from + (c == 0) as usize)], from, from + 1);
+        link_affinities(&mut across[(c == 0) as usize..(to - from + (c == 0) as usize)], planes, sky, &factor, from, from + 1);
         let (above, below) = (&mut above[..n], &mut below[..n]);
         above.fill(0.0);
         below.fill(0.0);
         if y > 0 {
-            weigh(above, first, first - w);
+            link_affinities(above, planes, sky, &factor, first, first - w);
         }
         if y + 1 < h {
-            weigh(below, first, first + w);
+            link_affinities(below, planes, sky, &factor, first, first + w);
         }
         let (samples, start) = (&sparse[pixels.clone()], &x[pixels]);
         let (diag, rhs) = (&mut diag[slots.clone()], &mut rhs[slots.clone()]);
@@ -1467,18 +1462,11 @@ fn refine(p: &Params, x: &mut [f32], planes: &[u8], sparse: &[f32], sky: &[u8], 
         if c + n < w && sky[first + n] == 0 {
             rhs[n - 1] += across[n] * x[first + n];
         }
-        let fixed_times = |rhs: &mut [f32], weights: &[f32], neighbours: usize| {
-            let (ats, skies, values) = (&at[neighbours..neighbours + n], &sky[neighbours..neighbours + n], &x[neighbours..neighbours + n]);
-            for t in 0..n {
-                let fixed = (ats[t] == OUT) & (skies[t] == 0);
-                rhs[t] += if fixed { weights[t] * values[t] } else { 0.0 };
-            }
-        };
         if y > 0 {
-            fixed_times(rhs, above, first - w);
+            add_fixed(rhs, above, &at, sky, x, first - w);
         }
         if y + 1 < h {
-            fixed_times(rhs, below, first + w);
+            add_fixed(rhs, below, &at, sky, x, first + w);
         }
         left[k] = 0.0;
         left[k + 1..k + n].copy_from_slice(&across[1..n]);
@@ -1551,6 +1539,37 @@ fn refine(p: &Params, x: &mut [f32], planes: &[u8], sparse: &[f32], sky: &[u8], 
     }
     for (k0, &i) in index.iter().enumerate() {
         x[i as usize] = u[k0 + 1] * scale[k0 + 1];
+    }
+}
+
+/// The refinement's weights of the links from the pixels `from..from + out.len()` to the pixels
+/// `to..` (`planes`: red, green, blue planes of one image): the product of `factor` of each
+/// plane's difference, + 1e-4; 0 where either pixel is sky (a link's weight does not depend on its
+/// direction). A function inlined into the completion, not a closure: a closure was compiled
+/// apart, for the portable build only, and ran without AVX-512 inside its build.
+#[inline(always)]
+fn link_affinities(out: &mut [f32], planes: &[u8], sky: &[u8], factor: &[f32; 256], from: usize, to: usize) {
+    let (n, len) = (sky.len(), out.len());
+    let plane = |c: usize, at: usize| &planes[c * n + at..c * n + at + len];
+    let (r, g, b, s) = (plane(0, from), plane(1, from), plane(2, from), &sky[from..from + len]);
+    let (r1, g1, b1, s1) = (plane(0, to), plane(1, to), plane(2, to), &sky[to..to + len]);
+    for (t, o) in out.iter_mut().enumerate() {
+        let a = factor[r[t].abs_diff(r1[t]) as usize] * factor[g[t].abs_diff(g1[t]) as usize] * factor[b[t].abs_diff(b1[t]) as usize]
+            + 1e-4;
+        *o = if (s[t] | s1[t]) != 0 { 0.0 } else { a };
+    }
+}
+
+/// Adds to `rhs` each link's weight (`weights`) times the value in `x` of its neighbour, the pixels
+/// `neighbours..neighbours + rhs.len()`, where that neighbour is fixed: outside the refinement's
+/// band (`at` 0) and not sky. (Inlined, as `link_affinities`.)
+#[inline(always)]
+fn add_fixed(rhs: &mut [f32], weights: &[f32], at: &[u32], sky: &[u8], x: &[f32], neighbours: usize) {
+    let n = rhs.len();
+    let (ats, skies, values) = (&at[neighbours..neighbours + n], &sky[neighbours..neighbours + n], &x[neighbours..neighbours + n]);
+    for t in 0..n {
+        let fixed = (ats[t] == 0) & (skies[t] == 0);
+        rhs[t] += if fixed { weights[t] * values[t] } else { 0.0 };
     }
 }
 
