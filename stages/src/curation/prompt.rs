@@ -114,20 +114,30 @@ pub fn drop_occluded(map: &mut DepthMap, window: [f64; 2], tolerance: f64) {
             data[row + x0 as usize..=row + x1 as usize].iter().fold(false, |hit, &z| hit | (z > 0.0 && z < limit))
         })
     };
-    let occluded: Vec<usize> = (0..w * h)
-        .filter(|&i| {
-            let z = data[i];
+    // Only the samples are tested, found a stretch of the map at a time: most of it is empty, and
+    // a test per pixel cost about as much as all the windows' scans.
+    const STRETCH: usize = 64;
+    let mut occluded = Vec::new();
+    for (c, stretch) in data.chunks(STRETCH).enumerate() {
+        if !stretch.iter().fold(false, |any, &z| any | (z > 0.0)) {
+            continue;
+        }
+        for (t, &z) in stretch.iter().enumerate() {
             if z <= 0.0 {
-                return false;
+                continue;
             }
+            let i = c * STRETCH + t;
             let (x, y, limit) = ((i % w) as isize, (i / w) as isize, z * scale);
             let vertical = nearer_in(x, y, limit, (-side, side), (-reach, -1))
                 && nearer_in(x, y, limit, (-side, side), (1, reach));
-            vertical
+            if vertical
                 || nearer_in(x, y, limit, (-reach, -1), (-side, side))
                     && nearer_in(x, y, limit, (1, reach), (-side, side))
-        })
-        .collect();
+            {
+                occluded.push(i);
+            }
+        }
+    }
     for i in occluded {
         map.data[i] = 0.0;
     }
