@@ -529,9 +529,9 @@ unsafe fn complete_avx512(p: &Params, image: &Image, sparse: &DepthMap, sky: Opt
 #[inline(always)]
 fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&Mask>, support: bool) -> Completion {
     let (w, h) = (sparse.width as usize, sparse.height as usize);
-    let lum = luminance(image);
     let mut inv = map(&sparse.data, |z| if z > 0.0 && z.is_finite() { 1.0 / z } else { 0.0 });
     let planes = colour_planes(&image.rgb);
+    let lum = luma_of_planes(&planes);
     // From here on the prompt is the one without the samples seen through nearer objects.
     let dropped = drop_enclosed(p, &mut inv, &planes, w, h);
     // (No closures here, `then(|| ...)` or otherwise, around work: a closure is compiled apart,
@@ -862,6 +862,20 @@ fn colour_planes(rgb: &[u8]) -> Vec<u8> {
         (*r, *g, *b) = (px[0], px[1], px[2]);
     }
     planes
+}
+
+/// Luma (ITU-R BT.601 weights, 0-255) of every pixel of `planes` (as `colour_planes` makes them):
+/// what `luminance` gives, to the bit, from contiguous planes (a loop inlined into each build; the
+/// iterator `luminance` collects is compiled once, for the portable build).
+#[inline(always)]
+fn luma_of_planes(planes: &[u8]) -> Vec<f32> {
+    let n = planes.len() / 3;
+    let (red, green, blue) = (&planes[..n], &planes[n..2 * n], &planes[2 * n..]);
+    let mut luma = vec![0f32; n];
+    for (l, ((&r, &g), &b)) in luma.iter_mut().zip(red.iter().zip(green).zip(blue)) {
+        *l = 0.299 * r as f32 + 0.587 * g as f32 + 0.114 * b as f32;
+    }
+    luma
 }
 
 /// Pixels farther than `smooth_from` px from every sample got their inverse depth from one
