@@ -534,8 +534,9 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
     let lum = luma_of_planes(&planes);
     // From here on the prompt is the one without the samples seen through nearer objects.
     let dropped = drop_enclosed(p, &mut inv, &planes, w, h);
-    // (No closures here, `then(|| ...)` or otherwise, around work: a closure is compiled apart,
-    // for the portable build only, and would run without AVX-512 inside its build.)
+    // (No closure around work here, `then(|| ...)` or otherwise: a closure the compiler does not
+    // inline is compiled apart, for the portable build only, and runs without AVX-512 inside its
+    // build. `nm` on the binary lists no closure of this module.)
     let kept = if dropped.is_empty() {
         None
     } else {
@@ -662,7 +663,8 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
     // (26-53 km on three pixels of the shared DGP scene's CAMERA_09). Nearer is left alone: a
     // surface continued past its samples (a road below its last ring) rightly comes nearer.
     let farthest = farthest_sample(sparse_data);
-    let far_inv = if farthest > 0.0 { 1.0 / farthest } else { f32::MAX };
+    // (A subnormal farthest sample has 1 / z = inf; the least of f32::MAX and 1 / z was MAX.)
+    let far_inv = if farthest > 0.0 { (1.0 / farthest).min(f32::MAX) } else { f32::MAX };
     let mut depth = inv;
     for v in depth.iter_mut() {
         let inv = if far_inv < f32::MAX { v.max(far_inv) } else { *v };
@@ -686,7 +688,8 @@ fn complete_portable(p: &Params, image: &Image, sparse: &DepthMap, sky: Option<&
 /// the largest bit pattern, positive floats ordering as their bits do, in sixteen lanes: an integer
 /// maximum that vectorises, where a division per sample into a chained `min` of 1 / z took 7% of
 /// the completion's time (1 / the farthest is that least 1 / z to the bit, division being
-/// correctly rounded and so monotonic).
+/// correctly rounded and so monotonic; overflowing to inf where the least was f32::MAX, for a
+/// subnormal farthest sample, hence the caller's `min`).
 #[inline(always)]
 fn farthest_sample(depth: &[f32]) -> f32 {
     // Bits of a positive float, subnormal to +inf: 1..=0x7f80_0000; 0 for the rest.
@@ -1535,21 +1538,25 @@ fn refine(p: &Params, x: &mut [f32], planes: &[u8], sparse: &[f32], sky: &[u8], 
     let mut beta = 0f32;
     // A step's u += alpha dir is made in the next step's pass over dir, before dir is replaced
     // (one pass over dir fewer per step); `moved` is the alpha of the step not yet added to u.
-    let mut moved = 0f32;
+    // After a break there is none: the direction made in the pass that broke may hold NaN or inf
+    // (a subnormal sample's 1 / z), and 0 times it is NaN.
+    let mut moved = None;
     for _ in 0..p.refine_iterations {
-        let pq = system.next_direction(&mut dir, &r, beta, &mut q, (&mut u, moved));
-        moved = 0.0;
+        let pq = system.next_direction(&mut dir, &r, beta, &mut q, (&mut u, moved.unwrap_or(0.0)));
+        moved = None;
         if !(pq > 0.0) || rr <= 0.0 {
             break;
         }
         let alpha = (rr / pq) as f32;
         let next = cg_residual(&mut r, &q, alpha);
-        moved = alpha;
+        moved = Some(alpha);
         beta = (next / rr) as f32;
         rr = next;
     }
-    for (u, &d) in u.iter_mut().zip(&dir) {
-        *u += moved * d;
+    if let Some(alpha) = moved {
+        for (u, &d) in u.iter_mut().zip(&dir) {
+            *u += alpha * d;
+        }
     }
     for (k0, &i) in index.iter().enumerate() {
         x[i as usize] = u[k0 + 1] * scale[k0 + 1];
@@ -1635,9 +1642,10 @@ impl Stencil<'_> {
 
     /// A step's first pass over the slots, a block at a time so that each block is worked on
     /// while it is in cache: the last step's move u += alpha dir (`moved`: (u, alpha)), the search
-    /// direction dir = r + beta dir, q = A dir (as `apply`), and returns dir . q, summed by `BlockSum` where q is final: a run of vertical links writes to
-    /// its own slots and to the row above's, so q is final before the next run's upper slots
-    /// (at lower slot numbers: rows above in the image).
+    /// direction dir = r + beta dir, q = A dir (as `apply`), and returns dir . q, summed by
+    /// `BlockSum` where q is final: a run of vertical links writes to its own slots and to the row
+    /// above's, so q is final before the next run's upper slots (at lower slot numbers: rows above
+    /// in the image).
     #[inline(always)]
     fn next_direction(&self, dir: &mut [f32], r: &[f32], beta: f32, q: &mut [f32], moved: (&mut [f32], f32)) -> f64 {
         let (u, alpha) = moved;
@@ -1880,10 +1888,11 @@ mod tests {
     fn the_farthest_sample_gives_the_least_inverse_depth_to_the_bit() {
         // What it replaced: the least 1 / z over the positive depths (f32::MAX without any).
         let least_inverse = |depth: &[f32]| depth.iter().filter(|&&z| z > 0.0).fold(f32::MAX, |m, &z| m.min(1.0 / z));
+        // As `complete_portable` takes it.
         let of = |depth: &[f32]| {
             let z = farthest_sample(depth);
             if z > 0.0 {
-                1.0 / z
+                (1.0 / z).min(f32::MAX)
             } else {
                 f32::MAX
             }
@@ -1905,6 +1914,10 @@ mod tests {
             }
         }
         assert_eq!(farthest_sample(&[0.0, -1.0, f32::NAN]), 0.0);
+        // Only subnormal samples: 1 / z overflows; the old least was f32::MAX.
+        for depth in [&[1e-42f32][..], &[1e-42, 0.0, 3e-39][..]] {
+            assert_eq!(of(depth).to_bits(), least_inverse(depth).to_bits(), "{depth:?}");
+        }
     }
 
     #[test]
@@ -2597,6 +2610,32 @@ mod tests {
             h,
         );
         assert_eq!(same, start);
+    }
+
+    #[test]
+    fn a_refinement_that_stops_at_once_leaves_its_band_as_it_was() {
+        // One sample of a subnormal depth: its inverse depth is +inf, the residuals beside it
+        // NaN, and the first step stops the refinement. The map stays as filled (a pending move
+        // made after the stop, 0 times a direction holding NaN, made its neighbours NaN).
+        let (w, h) = (40usize, 30usize);
+        let image = grey(w as u32, h as u32, |x, _| if x < 20 { [40, 40, 40] } else { [200, 190, 180] });
+        let mut sparse = vec![0f32; w * h];
+        for y in (1..h).step_by(6) {
+            for x in (1..w).step_by(6) {
+                sparse[y * w + x] = if x < 20 { 10.0 } else { 20.0 };
+            }
+        }
+        let odd = 13 * w + 19;
+        sparse[odd] = 1e-42;
+        let mut start: Vec<f32> = (0..w * h).map(|i| 1.0 / if i % w < 17 { 10.0 } else { 20.0 }).collect();
+        start[odd] = 1.0 / sparse[odd];
+        assert_eq!(start[odd], f32::INFINITY);
+        let mut inv = start.clone();
+        refine(&Params::default(), &mut inv, &colour_planes(&image.rgb), &sparse, &vec![0; w * h], w, h);
+        // (To the rounding of the system's scaling, x / s * s.)
+        for (i, (&v, &s)) in inv.iter().zip(&start).enumerate() {
+            assert!((v - s).abs() <= 1e-6 * s || (i == odd && !v.is_finite()), "pixel {i}: {s} became {v}");
+        }
     }
 
     #[test]

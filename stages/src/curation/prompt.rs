@@ -98,7 +98,8 @@ pub fn drop_occluded(map: &mut DepthMap, window: [f64; 2], tolerance: f64) {
     let spacing = ((w * h) as f64 / samples as f64).sqrt();
     let side = (window[0] * spacing).round() as isize;
     let reach = ((window[1] * spacing).round() as isize).max(1);
-    let data = &map.data;
+    // The map's w x h pixels (the test below takes a pixel's place from its index).
+    let data = &map.data[..(w * h).min(map.data.len())];
     let scale = (1.0 - tolerance) as f32;
     // Whether a sample nearer than `limit` lies in rows y+dy0..=y+dy1, columns x+dx0..=x+dx1.
     let nearer_in = |x: isize, y: isize, limit: f32, (dx0, dx1): (isize, isize), (dy0, dy1): (isize, isize)| {
