@@ -21,7 +21,7 @@
 //! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
 
 use crate::stage::Stage;
-use anyhow::{ensure, Result};
+use anyhow::{bail, ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::{DepthMap, Image, Mask};
@@ -183,9 +183,26 @@ impl DepthCompleter for ScanlineCompleter {
                 image.height
             );
         }
+        // A sample nearer than a millimetre is no depth a sensor gives, and its inverse (up to +inf
+        // for a subnormal one) spreads through the fill: one such sample left 80% of a map
+        // without depth. (A fold, not `position`: it vectorises; the pixel is looked for only then.)
+        if sparse.data.iter().fold(false, |any, &z| any | ((z > 0.0) & (z < MIN_SAMPLE_DEPTH))) {
+            let i = sparse.data.iter().position(|&z| z > 0.0 && z < MIN_SAMPLE_DEPTH).unwrap_or(0);
+            let w = sparse.width.max(1) as usize;
+            bail!(
+                "the sparse depth has a sample of {:e} m at pixel ({}, {}): nearer than {} m, not a depth in metres (0 = no sample)",
+                sparse.data[i],
+                i % w,
+                i / w,
+                MIN_SAMPLE_DEPTH
+            );
+        }
         Ok(complete(&self.0, image, sparse, sky, support))
     }
 }
+
+/// The nearest depth (m) a sparse sample may have.
+pub const MIN_SAMPLE_DEPTH: f32 = 1e-3;
 
 /// Luma (ITU-R BT.601 weights, 0-255) of every pixel.
 #[inline(always)]
@@ -2610,6 +2627,32 @@ mod tests {
             h,
         );
         assert_eq!(same, start);
+    }
+
+    #[test]
+    fn a_sample_nearer_than_a_millimetre_is_an_error_naming_its_pixel() {
+        let (w, h) = (30u32, 20u32);
+        let image = grey(w, h, |_, _| [90, 90, 90]);
+        let mut sparse = DepthMap::new(w, h);
+        for y in (1..h as usize).step_by(3) {
+            for x in (0..w as usize).step_by(2) {
+                sparse.data[y * w as usize + x] = 12.0;
+            }
+        }
+        let completer = ScanlineCompleter(Params::default());
+        let fine = completer.complete(&image, &sparse, None, false).unwrap();
+        assert!(fine.depth.data.iter().all(|&d| d > 0.0));
+        for bad in [1e-42f32, 1e-30, 5e-4] {
+            let mut odd = sparse.clone();
+            odd.data[7 * w as usize + 11] = bad;
+            let err = completer.complete(&image, &odd, None, false).err().expect("an error").to_string();
+            assert!(err.contains("pixel (11, 7)") && err.contains("nearer than"), "{err}");
+        }
+        // Negative, NaN and infinite values are no samples, as before.
+        let mut odd = sparse.clone();
+        odd.data[7 * w as usize + 11] = -3.0;
+        odd.data[8 * w as usize + 11] = f32::NAN;
+        assert!(completer.complete(&image, &odd, None, false).is_ok());
     }
 
     #[test]
