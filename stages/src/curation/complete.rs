@@ -64,11 +64,22 @@ pub struct Params {
     pub smooth_from: f32,
     /// Spatial reach (px) of that average (the domain transform's sigma_s); 0 = off.
     pub smooth_sigma: f32,
-    /// A colour step (sum of |dR| + |dG| + |dB|, 0-765) that cuts the average as much as
-    /// `smooth_sigma` pixels of distance (the domain transform's sigma_r, in these units) at full
-    /// resolution; the average is taken over 2x2 blocks, where it cuts as much as 2 `smooth_sigma`
-    /// (see `smooth_unsupported`).
+    /// A colour step (sum of |dR| + |dG| + |dB|, 0-765) between the texture-evened colours of two
+    /// neighbouring blocks (`smooth_texture`) that cuts the average as much as `smooth_sigma`
+    /// pixels of distance (the domain transform's sigma_r, in these units) at full resolution; the
+    /// average is taken over 2x2 blocks, where it cuts as much as 2 `smooth_sigma` (see
+    /// `smooth_unsupported`).
     pub smooth_edge: f32,
+    /// The average's links compare the blocks' colours averaged over a square of this radius, in
+    /// blocks (2: 5 x 5 blocks, 10 x 10 px; 0: each block's own colour). A facade's or a crown's
+    /// texture then counts as one colour and their outlines still as steps: with the blocks' own
+    /// colours the texture's steps added up along every path, so that a facade's samples 200 px
+    /// away reached the pixels above a tree crown less than the crown's samples across its outline.
+    pub smooth_texture: u32,
+    /// A colour step (as `smooth_edge`, between a pixel's own colour and a block's mean) that
+    /// weighs a block as much as `smooth_sigma` px of distance when the average is brought back
+    /// from the blocks to the pixels (see `likeness`).
+    pub spread_edge: f32,
     /// Row-then-column passes of that average (Gastal and Oliveira use 3; over 2x2 blocks 2 gave
     /// the same accuracy).
     pub smooth_iterations: u32,
@@ -109,7 +120,9 @@ impl Default for Params {
             enclosed_edge: 20.0,
             smooth_from: 1.0,
             smooth_sigma: 30.0,
-            smooth_edge: 40.0,
+            smooth_edge: 15.0,
+            smooth_texture: 2,
+            spread_edge: 40.0,
             smooth_iterations: 2,
             keep_planes: 0.5,
             refine_iterations: 40,
@@ -139,6 +152,9 @@ impl Validate for Params {
             .within("smooth_from", self.smooth_from as f64, 0.0, MAX_GAP_PX as f64)
             .within("smooth_sigma", self.smooth_sigma as f64, 0.0, MAX_GAP_PX as f64)
             .above("smooth_edge", self.smooth_edge as f64, 0.0, 765.0)
+            // Its cost grows with the radius; 16 blocks is a 66 px square, past any texture.
+            .count("smooth_texture", self.smooth_texture as u64, 0, 16)
+            .above("spread_edge", self.spread_edge as f64, 0.0, 765.0)
             // Each pass costs a few ms; more than a handful changes nothing (the sigmas halve).
             .count("smooth_iterations", self.smooth_iterations as u64, 0, 8)
             .within("keep_planes", self.keep_planes as f64, 0.0, 100.0)
@@ -934,8 +950,12 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], near: &[u8], c
     // it too, and that measured worse (2.00% of seed 0's 8 keyframes off by more than 10% against
     // 1.95%; likely because the blocks' mean colours have lost the pixels' texture, so what steps
     // remain between blocks are mostly real edges).
-    domain_filter(p, &mut blocks.num, &mut blocks.den, &blocks.planes, &blocks.sky, blocks.w, blocks.h, p.smooth_sigma / 2.0, ratio);
-    let like = likeness(p, ratio);
+    // The links compare texture-evened colours (`smooth_texture`); on seed 0's 40 keyframes this
+    // took the pixels off by more than 10% from 1.74% to 1.48% (docs/BENCHMARKS.md, twentieth
+    // session). The spread back to the pixels keeps the blocks' own colours.
+    let evened = box_mean(&blocks.planes, blocks.w, blocks.h, p.smooth_texture as usize);
+    domain_filter(p, &mut blocks.num, &mut blocks.den, &evened, &blocks.sky, blocks.w, blocks.h, p.smooth_sigma / 2.0, ratio);
+    let like = likeness(p, p.smooth_sigma / p.spread_edge.max(1e-3));
     let mut spread = Spread::new(w);
     let keep = p.keep_planes;
     // A pixel takes the average plus the continuation's correction to it (0 where not trusted)
@@ -989,6 +1009,66 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], near: &[u8], c
             let (lo, hi) = (x.saturating_sub(RADIUS), (x + RADIUS + 1).min(w));
             inv[x] += replaced[x] * ((sums[hi] - sums[lo]) / (counts[hi] - counts[lo]).max(1.0));
         }
+    }
+}
+
+/// Each of the three `w` x `h` planes of `planes` averaged over the square of radius `r` around
+/// each cell (cut at the borders), rounded to the nearest (as f32: sum x (1 / cells) + 0.5,
+/// truncated; every build rounds it alike). Separable integer sums: a running sum down the
+/// columns (a row added, a row taken off), then along each row the sum of the 2r + 1 shifted
+/// copies of it; every loop is element-wise and vectorises.
+#[inline(always)]
+fn box_mean(planes: &[u8], w: usize, h: usize, r: usize) -> Vec<u8> {
+    let n = w * h;
+    if r == 0 || n == 0 {
+        return planes.to_vec();
+    }
+    let mut out = vec![0u8; 3 * n];
+    let (mut column, mut sum) = (vec![0u32; w], vec![0u32; w]);
+    for (plane, out) in planes.chunks_exact(n).zip(out.chunks_exact_mut(n)) {
+        column.fill(0);
+        for row in plane[..(r + 1).min(h) * w].chunks_exact(w) {
+            add_row(&mut column, row);
+        }
+        for y in 0..h {
+            // `column` holds rows y - r ..= y + r (cut at the borders).
+            sum.copy_from_slice(&column);
+            for d in 1..=r.min(w - 1) {
+                for (s, &c) in sum[..w - d].iter_mut().zip(&column[d..]) {
+                    *s += c;
+                }
+                for (s, &c) in sum[d..].iter_mut().zip(&column[..w - d]) {
+                    *s += c;
+                }
+            }
+            let rows = ((y + r + 1).min(h) - y.saturating_sub(r)) as f32;
+            let out = &mut out[y * w..(y + 1) * w];
+            let inner = if w > 2 * r { r..w - r } else { 0..0 };
+            let whole = 1.0 / (rows * (2 * r + 1) as f32);
+            for (o, &s) in out[inner.clone()].iter_mut().zip(&sum[inner.clone()]) {
+                *o = (s as f32 * whole + 0.5) as u8;
+            }
+            for x in (0..inner.start).chain(inner.end..w) {
+                let cells = rows * ((x + r + 1).min(w) - x.saturating_sub(r)) as f32;
+                out[x] = (sum[x] as f32 * (1.0 / cells) + 0.5) as u8;
+            }
+            if y + r + 1 < h {
+                add_row(&mut column, &plane[(y + r + 1) * w..(y + r + 2) * w]);
+            }
+            if y >= r {
+                for (c, &v) in column.iter_mut().zip(&plane[(y - r) * w..(y - r + 1) * w]) {
+                    *c -= v as u32;
+                }
+            }
+        }
+    }
+    out
+}
+
+#[inline(always)]
+fn add_row(sums: &mut [u32], row: &[u8]) {
+    for (s, &v) in sums.iter_mut().zip(row) {
+        *s += v as u32;
     }
 }
 
@@ -1077,10 +1157,11 @@ fn first_sigma(sigma_s: f32, iterations: i32) -> f32 {
     sigma_s * 3f32.sqrt() * 2f32.powi(iterations - 1) / (4f32.powi(iterations) - 1.0).sqrt()
 }
 
-/// How much a pixel takes of a block's average by their summed RGB difference (0-765): the
-/// full-resolution filter's first link weight, with the colour counting twice as much (a pixel
-/// beside an edge, weighed against a block across it, should take nearly nothing; once as much
-/// measured 1.96% of seed 0's 8 keyframes off by more than 10% against 1.95%). A pixel unlike
+/// How much a pixel takes of a block's average by their summed RGB difference (0-765; the pixel's
+/// own colour against the block's own mean, not the texture-evened one, with `ratio` from
+/// `spread_edge`): the full-resolution filter's first link weight, with the colour counting twice
+/// as much (a pixel beside an edge, weighed against a block across it, should take nearly nothing;
+/// once as much measured 1.96% of seed 0's 8 keyframes off by more than 10% against 1.95%). A pixel unlike
 /// all four of its blocks (a 1 px pole or wire, which the blocks' means average away; a summed
 /// difference over ~300) gets weights below the replacement's threshold and keeps its column's
 /// value, which its own samples gave. Giving it the blocks' plain average instead (a floor of 1e-6
@@ -1809,7 +1890,9 @@ impl Stage for CompleteDepth {
     //    scene).
     // 14: samples seen through a nearer object dropped first (`enclosed_reach`; facade returns on a
     //    tree crown between its rings).
-    const VERSION: u32 = 14;
+    // 15: the 2D fill's links compare colours averaged over 10 x 10 px (`smooth_texture`), its
+    //    colour step 40 -> 15 (`smooth_edge`); the spread back keeps 40 (`spread_edge`).
+    const VERSION: u32 = 15;
     const SUMMARY: &'static str =
         "Image + sparse depth -> dense metric depth (image-guided inverse-depth interpolation; sky = 100 m)";
     const GRAINS: &'static [&'static str] = &["camera"];
@@ -2079,6 +2162,82 @@ mod tests {
     }
 
     #[test]
+    fn the_facade_above_a_crown_takes_the_facade_s_depth_through_its_texture() {
+        // A textured facade 20 m away (grey, each pixel +-30 per channel) behind a smooth green
+        // crown 8 m away (a disc of radius 40 px centred at (120, 110)); LiDAR rings every 4 rows
+        // from row 100 down, none above (the crown's top, row 70, is above the LiDAR), and two
+        // patches of stereo depth on the facade beside the crown. A column through the crown
+        // continues the crown's depth up to the image's top; only the 2D fill can give the
+        // facade above the crown the facade's depth, from the patches 35-50 px away through the
+        // facade's texture, while the crown's samples are as near across its outline.
+        let (w, h) = (240u32, 160u32);
+        let crown = |x: usize, y: usize| (x as f32 - 120.0).powi(2) + (y as f32 - 110.0).powi(2) < 40.0 * 40.0;
+        let mut rng = dist4d_types::rng::Rng::new(23);
+        let noise: Vec<i32> = (0..w * h * 3).map(|_| rng.below(61) as i32 - 30).collect();
+        let image = grey(w, h, |x, y| {
+            if crown(x, y) {
+                [40, 90, 40]
+            } else {
+                let i = 3 * (y * w as usize + x);
+                [0, 1, 2].map(|k| (120 + noise[i + k]) as u8)
+            }
+        });
+        let mut sparse = DepthMap::new(w, h);
+        for y in (100..h as usize).step_by(4) {
+            for x in (0..w as usize).step_by(2) {
+                sparse.data[y * w as usize + x] = if crown(x, y) { 8.0 } else { 20.0 };
+            }
+        }
+        // Stereo found the facade in two patches beside the crown, 35-50 px from it.
+        for y in (10..60).step_by(3) {
+            for x in (66..72).chain(168..174).step_by(2) {
+                sparse.data[y * w as usize + x] = 20.0;
+            }
+        }
+        // The mean relative error above the crown (rows 5..60, columns 105..135).
+        let above = |p: &Params| {
+            let d = complete(p, &image, &sparse, None, false).depth;
+            let (mut sum, mut n) = (0f32, 0);
+            for y in 5..60 {
+                for x in 105..135 {
+                    sum += (d.data[y * w as usize + x] - 20.0).abs() / 20.0;
+                    n += 1;
+                }
+            }
+            sum / n as f32
+        };
+        let evened = above(&Params::default());
+        // CompleteDepth 14's fill: the blocks' own colours, a step of 40.
+        let raw = above(&Params { smooth_texture: 0, smooth_edge: 40.0, ..Params::default() });
+        assert!(evened < 0.05, "the facade above the crown is off by {evened} on average");
+        assert!(raw > 0.3, "the test no longer tells: the fill without evened colours is off by {raw} only");
+    }
+
+    #[test]
+    fn a_box_mean_is_the_mean_of_the_square_cut_at_the_borders() {
+        let mut rng = dist4d_types::rng::Rng::new(29);
+        for (w, h, r) in [(9usize, 7usize, 2usize), (1, 5, 1), (6, 1, 3), (4, 4, 0), (5, 6, 9)] {
+            let planes: Vec<u8> = (0..3 * w * h).map(|_| rng.below(256) as u8).collect();
+            let got = box_mean(&planes, w, h, r);
+            for k in 0..3 {
+                for y in 0..h {
+                    for x in 0..w {
+                        let (mut sum, mut cells) = (0u32, 0u32);
+                        for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+                            for xx in x.saturating_sub(r)..(x + r + 1).min(w) {
+                                sum += planes[k * w * h + yy * w + xx] as u32;
+                                cells += 1;
+                            }
+                        }
+                        let expected = (sum as f32 * (1.0 / cells as f32) + 0.5) as u8;
+                        assert_eq!(got[k * w * h + y * w + x], expected, "{w}x{h}, r {r}, plane {k}, ({x}, {y})");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
     fn a_depth_edge_follows_the_image_edge_and_sky_gets_its_depth() {
         // A wall 5 m away covers rows 0..30 of columns 10..20 and sits on a road 20 m away;
         // LiDAR samples rows 25 and 40 only. The image is dark on the wall, mid-grey elsewhere;
@@ -2300,7 +2459,7 @@ mod tests {
             }
         }
         let p = Params::default();
-        let like = likeness(&p, p.smooth_sigma / p.smooth_edge);
+        let like = likeness(&p, p.smooth_sigma / p.spread_edge);
         let mut spread = Spread::new(w);
         for y in 0..h {
             spread.row(&blocks, y, &planes, w, h, &like);
@@ -2337,7 +2496,7 @@ mod tests {
             };
             let planes = planes_of(w, h, |_, _| [90, 90, 90]);
             let p = Params::default();
-            let like = likeness(&p, p.smooth_sigma / p.smooth_edge);
+            let like = likeness(&p, p.smooth_sigma / p.spread_edge);
             let mut spread = Spread::new(w);
             // A pixel's centre in block units is (x - 0.5) / 2, clamped to the first and last
             // block centres.
