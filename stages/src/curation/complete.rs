@@ -76,9 +76,9 @@ pub struct Params {
     /// colours the texture's steps added up along every path, so that a facade's samples 200 px
     /// away reached the pixels above a tree crown less than the crown's samples across its outline.
     pub smooth_texture: u32,
-    /// A colour step (as `smooth_edge`, between a pixel's own colour and a block's mean) that
-    /// weighs a block as much as `smooth_sigma` px of distance when the average is brought back
-    /// from the blocks to the pixels (see `likeness`).
+    /// A colour step (as `smooth_edge`, between a pixel's own colour and a block's own mean) that
+    /// weighs a block as much as 2 `smooth_sigma` px of distance when the average is brought back
+    /// from the blocks to the pixels (`likeness` counts the colour twice).
     pub spread_edge: f32,
     /// Row-then-column passes of that average (Gastal and Oliveira use 3; over 2x2 blocks 2 gave
     /// the same accuracy).
@@ -922,7 +922,8 @@ fn luma_of_planes(planes: &[u8]) -> Vec<f32> {
 /// transform (Gastal and Oliveira 2011, section 4 and its iterations: rows then columns,
 /// `smooth_iterations` times, the i-th with a spatial sigma falling as in their eq. 14). Weights
 /// fall by exp(-sqrt 2 / sigma_i) per pixel and faster across colour steps (a step of
-/// `smooth_edge` in the summed RGB difference counts as `smooth_sigma` pixels); sky pixels
+/// `smooth_edge` in the summed RGB difference of colours averaged over `smooth_texture` blocks
+/// counts as `smooth_sigma` pixels, so that texture is not taken for edges); sky pixels
 /// neither give nor pass on depth. Only measured depths are spread (and the ground below a
 /// column's lowest sample, exact on flat ground), so the facade seen around a crown reaches the
 /// pixels above it while the crown's green stops it. But an average cannot extrapolate: a
@@ -948,11 +949,11 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], near: &[u8], c
     // A block is 2 px, so the spatial sigma halves in its units. The colour ratio is kept, which
     // makes each colour step cut twice as hard as at full resolution: the units alone would halve
     // it too, and that measured worse (2.00% of seed 0's 8 keyframes off by more than 10% against
-    // 1.95%; likely because the blocks' mean colours have lost the pixels' texture, so what steps
-    // remain between blocks are mostly real edges).
-    // The links compare texture-evened colours (`smooth_texture`); on seed 0's 40 keyframes this
-    // took the pixels off by more than 10% from 1.74% to 1.48% (docs/BENCHMARKS.md, twentieth
-    // session). The spread back to the pixels keeps the blocks' own colours.
+    // 1.95%, with the blocks' own colours).
+    // The links compare texture-evened colours (`smooth_texture`): a 2x2 block's mean keeps most
+    // of a facade's or a crown's texture, whose steps added up along every path. On seed 0's 40
+    // keyframes this took the pixels off by more than 10% from 1.74% to 1.48% (docs/BENCHMARKS.md,
+    // twentieth session). The spread back to the pixels keeps the blocks' own colours.
     let evened = box_mean(&blocks.planes, blocks.w, blocks.h, p.smooth_texture as usize);
     domain_filter(p, &mut blocks.num, &mut blocks.den, &evened, &blocks.sky, blocks.w, blocks.h, p.smooth_sigma / 2.0, ratio);
     let like = likeness(p, p.smooth_sigma / p.spread_edge.max(1e-3));
@@ -2169,7 +2170,9 @@ mod tests {
         // patches of stereo depth on the facade beside the crown. A column through the crown
         // continues the crown's depth up to the image's top; only the 2D fill can give the
         // facade above the crown the facade's depth, from the patches 35-50 px away through the
-        // facade's texture, while the crown's samples are as near across its outline.
+        // facade's texture. Comparing raw block colours, the texture's steps along the way bring
+        // the patches' weight under the fill's cut-off, and the crown's continuation stays (with
+        // a flat grey facade, or without the patches, the two settings agree: a reviewer checked).
         let (w, h) = (240u32, 160u32);
         let crown = |x: usize, y: usize| (x as f32 - 120.0).powi(2) + (y as f32 - 110.0).powi(2) < 40.0 * 40.0;
         let mut rng = dist4d_types::rng::Rng::new(23);
