@@ -28,7 +28,6 @@ Part 3 takes the prompt's own MVS samples (those where the aggregated LiDAR's pr
 truth to the right ones only (within 10%: their precision) and then to all of them (the wrong
 ones too: what a perfect MVS at the pipeline's sample positions would give).
 """
-import subprocess
 import sys
 from collections import Counter
 from pathlib import Path
@@ -36,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from completion_oracle import arguments  # noqa: E402
+from completion_oracle import arguments, harness_score  # noqa: E402
 
 # Cityscapes ids (the synthetic world's semantic PNGs) -> names.
 CLASSES = {7: "road", 8: "sidewalk", 11: "building", 12: "wall", 13: "fence", 17: "pole", 19: "traffic light",
@@ -70,14 +69,6 @@ def semantic(data, cam, frame):
     return labels
 
 
-def harness_score(harness, lines, work, name, settings):
-    path = Path(work) / f"above_{name}.txt"
-    path.write_text("\n".join(lines) + "\n")
-    out = subprocess.run([harness, path] + settings, capture_output=True, text=True, check=True).stdout
-    rows = [line.split() for line in out.splitlines()]
-    return 100 * sum(int(r[2]) for r in rows) / sum(int(r[1]) for r in rows)
-
-
 def main():
     ap = arguments(__doc__)
     ap.add_argument("--every", type=int, default=1, help="every Nth image (in camera, then frame order)")
@@ -102,7 +93,8 @@ def main():
         labels = semantic(a.data, cam, frame)
         for variant in ["real", "clean"]:
             prompt = np.load(f"{base}_{variant}.npy")
-            scored, bad = bad_pixels(np.load(f"{base}_out_{variant}.npy"), gt)
+            completed = np.load(f"{base}_out_{variant}.npy")
+            scored, bad = bad_pixels(completed, gt)
             if variant == "real":
                 scored_total += int(scored.sum())
             above = above_highest(prompt)
@@ -110,7 +102,7 @@ def main():
             split[(variant, "below")] += int((bad & ~above).sum())
             split[(variant, "scored above")] += int((scored & above).sum())
             if variant == "clean":
-                nearer = np.load(f"{base}_out_{variant}.npy") < gt
+                nearer = completed < gt
                 for c in np.unique(labels[bad & above]):
                     m = bad & above & (labels == c)
                     by_class[(CLASSES.get(int(c), str(c)), "nearer")] += int((m & nearer).sum())
@@ -172,7 +164,7 @@ def main():
     for c in names[:8]:
         print(f"| {c} | {pts(by_class[(c, 'nearer')]):.3f} | {pts(by_class[(c, 'farther')]):.3f} |")
     real_lines = [" ".join([f[0], f[1], f[2], f"{f[0][:-8]}_out_above.npy", f[4]]) for f in images]
-    base_score = harness_score(a.harness, real_lines, work, "real", a.set)
+    base_score = harness_score(a.harness, real_lines, work, "above_real", a.set)
     print("\n| prompt | samples added above | of them off by > 10% | bad > 10% |")
     print("| --- | ---: | ---: | ---: |")
     print(f"| real | - | - | {base_score:.3f}% |")
@@ -180,7 +172,7 @@ def main():
               "confident, exact": "real + the truth at the MVS pixels of confidence >= 0.4",
               "exact": "real + the truth at every MVS pixel"}
     for name, lines in variants.items():
-        s = harness_score(a.harness, lines, work, name.replace(", ", "_"), a.set)
+        s = harness_score(a.harness, lines, work, "above_" + name.replace(", ", "_"), a.set)
         wrong = added[name + " wrong"] if name in ("confident", "right") else "-"
         print(f"| {labels[name]} | {added[name]} | {wrong} | {s:.3f}% |")
     print(f"\nThe prompt's {mvs_samples['all']} MVS samples ({mvs_samples['wrong']} off by > 10%):\n")
@@ -188,7 +180,7 @@ def main():
     print("| --- | ---: |")
     print(f"| real | {base_score:.3f}% |")
     for name, lines in own.items():
-        s = harness_score(a.harness, lines, work, name.split()[0], a.set)
+        s = harness_score(a.harness, lines, work, "above_own_" + name.split()[0], a.set)
         print(f"| real, {name} | {s:.3f}% |")
 
 

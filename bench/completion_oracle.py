@@ -104,6 +104,16 @@ def levin(base, sigma=5.0, weight=100.0, iterations=3000):
     np.save(f"{base}_out_levin.npy", z)
 
 
+def harness_score(harness, lines, work, name, settings):
+    """Runs the harness on `lines` (written to WORK/NAME.txt) and returns the share (%) of scored
+    pixels off by more than 10% over all of them."""
+    path = Path(work) / f"{name}.txt"
+    path.write_text("\n".join(lines) + "\n")
+    out = subprocess.run([harness, path] + settings, capture_output=True, text=True, check=True).stdout
+    rows = [line.split() for line in out.splitlines()]
+    return 100 * sum(int(r[2]) for r in rows) / sum(int(r[1]) for r in rows)
+
+
 def arguments(doc):
     """The arguments this script and bench/prompt_errors.py share: DATA OUT WORK, the harness and
     CompleteDepth's parameters."""

@@ -13,7 +13,6 @@ than 10% is printed beside the real prompt's. Kinds: nearer or farther than the 
 LiDAR projection has that depth, within 1%, at that pixel) or not (MVS); within 2 px of a true depth
 edge (a log-depth step of more than 10% between neighbours) or inside a surface.
 """
-import subprocess
 import sys
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import numpy as np
 from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from completion_oracle import CAMERAS, arguments, prepare  # noqa: E402
+from completion_oracle import CAMERAS, arguments, harness_score, prepare  # noqa: E402
 
 KINDS = ["nearer, LiDAR, at an edge", "nearer, LiDAR, inside a surface", "nearer, MVS",
          "farther, LiDAR, at an edge", "farther, LiDAR, inside a surface", "farther, MVS", "on sky"]
@@ -43,14 +42,6 @@ def kinds(real, gt, lidar):
     return [solid & nearer & from_lidar & edge, solid & nearer & from_lidar & ~edge, solid & nearer & ~from_lidar,
             solid & ~nearer & from_lidar & edge, solid & ~nearer & from_lidar & ~edge, solid & ~nearer & ~from_lidar,
             wrong & sky]
-
-
-def score(harness, lines, work, name, settings):
-    path = Path(work) / f"errors_{name}.txt"
-    path.write_text("\n".join(lines) + "\n")
-    out = subprocess.run([harness, path] + settings, capture_output=True, text=True, check=True).stdout
-    rows = [line.split() for line in out.splitlines()]
-    return 100 * sum(int(r[2]) for r in rows) / sum(int(r[1]) for r in rows)
 
 
 def main():
@@ -80,14 +71,14 @@ def main():
             without = f"{base}_without_{k}.npy"
             np.save(without, np.where(mask, 0, real).astype(np.float32))
             lines[k].append(f"{rgb} {without} {sky} {base}_out_errors.npy {gt_path}")
-    real = score(a.harness, [" ".join([f[0], f[1], f[2], f"{f[0][:-8]}_out_errors.npy", f[4]]) for f in images],
-                 work, "real", a.set)
+    real = harness_score(a.harness, [" ".join([f[0], f[1], f[2], f"{f[0][:-8]}_out_errors.npy", f[4]]) for f in images],
+                         work, "errors_real", a.set)
     print(f"{len(images)} images, {total} prompt samples, {counts.sum()} wrong ({100 * counts.sum() / total:.2f}%)\n")
     print("| wrong samples removed | samples | bad > 10% | points |")
     print("| --- | ---: | ---: | ---: |")
     print(f"| none | - | {real:.3f}% | |")
     for k, name in enumerate(KINDS):
-        bad = score(a.harness, lines[k], work, str(k), a.set)
+        bad = harness_score(a.harness, lines[k], work, f"errors_{k}", a.set)
         print(f"| {name} | {counts[k]} | {bad:.3f}% | {bad - real:+.3f} |")
 
 

@@ -954,8 +954,15 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], near: &[u8], c
     // of a facade's or a crown's texture, whose steps added up along every path. On seed 0's 40
     // keyframes this took the pixels off by more than 10% from 1.74% to 1.48% (docs/BENCHMARKS.md,
     // twentieth session). The spread back to the pixels keeps the blocks' own colours.
-    let evened = box_mean(&blocks.planes, blocks.w, blocks.h, p.smooth_texture as usize);
-    domain_filter(p, &mut blocks.num, &mut blocks.den, &evened, &blocks.sky, blocks.w, blocks.h, p.smooth_sigma / 2.0, ratio);
+    // (An `if`, not `then(|| ...)`: a closure is compiled apart, without this build's instructions.)
+    let evened;
+    let link_planes = if p.smooth_texture > 0 {
+        evened = box_mean(&blocks.planes, blocks.w, blocks.h, p.smooth_texture as usize);
+        &evened
+    } else {
+        &blocks.planes
+    };
+    domain_filter(p, &mut blocks.num, &mut blocks.den, link_planes, &blocks.sky, blocks.w, blocks.h, p.smooth_sigma / 2.0, ratio);
     let like = likeness(p, p.smooth_sigma / p.spread_edge.max(1e-3));
     let mut spread = Spread::new(w);
     let keep = p.keep_planes;
