@@ -378,6 +378,11 @@ impl Store {
     /// is not in the memo. With `allow_hash` false, returns `None` instead of hashing.
     pub fn file_digest(&self, path: &Path, allow_hash: bool) -> Result<Option<Digest>> {
         let meta = fs::metadata(path).with_context(|| format!("reading {}", path.display()))?;
+        // A FIFO would block the hashing thread until a writer comes, /dev/zero would never end:
+        // a dataset's files are regular files (a symlink to one is followed).
+        if !meta.is_file() {
+            anyhow::bail!("{} is not a regular file; dist4d reads only regular files", path.display());
+        }
         let stamp = FileStamp {
             dev: 0,
             ino: meta.ino(),

@@ -29,6 +29,45 @@ pub const QUATERNION_NORM_TOLERANCE: f64 = 1e-2;
 /// Norm errors up to this size are float printing and are normalised without a warning.
 const QUATERNION_NORM_ROUNDING: f64 = 1e-6;
 
+/// Largest width or height of a camera image (px). Driving cameras are 1-4 k px wide; 16384
+/// leaves room for panoramas while bounding every buffer a stage sizes from the metadata.
+pub const MAX_IMAGE_SIDE: u32 = 16_384;
+
+/// Largest number of pixels of a camera image: 64 Mpx (an 8K frame is 33 Mpx). A depth map of
+/// it is 256 MB of f32, which a stage may hold a few of per task.
+pub const MAX_IMAGE_PIXELS: u64 = 64 << 20;
+
+/// Largest image file read (bytes): a JPEG or PNG of [`MAX_IMAGE_PIXELS`] stays well below it.
+pub const MAX_IMAGE_FILE_BYTES: u64 = 512 << 20;
+
+/// Largest sensor file read (bytes): a LiDAR sweep (nuScenes `.pcd.bin`, DGP `.npz`), its
+/// lidarseg labels, a ground-truth sidecar, a map mask. 1 GiB is 50 M points of 20 bytes, 200
+/// times a 128-beam sweep.
+pub const MAX_SENSOR_FILE_BYTES: u64 = 1 << 30;
+
+/// Largest array inflated from an `.npz` member (bytes), whatever its zip header claims.
+pub const MAX_NPZ_MEMBER_BYTES: u64 = 1 << 30;
+
+/// Largest metadata file read (bytes): a nuScenes table or a DGP scene JSON. The largest real
+/// one, nuScenes v1.0-trainval's `sample_data.json`, is about 1.3 GB.
+pub const MAX_TABLE_FILE_BYTES: u64 = 16 << 30;
+
+/// Checks an image size read from metadata or a file header: both sides positive, each at most
+/// [`MAX_IMAGE_SIDE`], the area at most [`MAX_IMAGE_PIXELS`]. `at` names where it was read and
+/// `field` the field(s).
+pub fn image_size(at: &str, field: &str, width: u32, height: u32) -> Result<(), String> {
+    let why = if width == 0 || height == 0 {
+        "has a zero side".to_string()
+    } else if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
+        format!("has a side over MAX_IMAGE_SIDE ({MAX_IMAGE_SIDE} px)")
+    } else if width as u64 * height as u64 > MAX_IMAGE_PIXELS {
+        format!("has more than MAX_IMAGE_PIXELS ({MAX_IMAGE_PIXELS}) pixels")
+    } else {
+        return Ok(());
+    };
+    Err(format!("{at}: {field} {width}x{height} {why}"))
+}
+
 /// Where a value was read: a metadata file and the row or object in it, e.g.
 /// `v1.0-mini/ego_pose.json row 3 (token X)`.
 #[derive(Clone, Debug)]
@@ -187,6 +226,77 @@ pub fn rigid(
     Ok(Se3::from_wxyz_t(q.map(|v| v / norm), t))
 }
 
+/// Largest distance (m) of a LiDAR return from its sensor: automotive LiDARs reach 200-300 m; a
+/// coordinate beyond 2 km is a unit error or garbage (1e30), which would spread through voxel
+/// grids and hulls.
+pub const MAX_LIDAR_RANGE_M: f32 = 2000.0;
+
+/// Checks a sweep's points `[x, y, z, intensity]` (sensor frame): every value finite, each
+/// coordinate within [`MAX_LIDAR_RANGE_M`]. The error names the file, its metadata (`what`), the
+/// first bad point and field, and how many points are bad.
+pub fn lidar_points(file: &Path, what: &str, points: &[[f32; 4]]) -> Result<(), String> {
+    const FIELDS: [&str; 4] = ["x", "y", "z", "intensity"];
+    let bad = |p: &[f32; 4]| -> Option<usize> {
+        (0..4).find(|&f| !p[f].is_finite() || (f < 3 && p[f].abs() > MAX_LIDAR_RANGE_M))
+    };
+    let Some((first, field)) = points.iter().enumerate().find_map(|(i, p)| bad(p).map(|f| (i, f))) else {
+        return Ok(());
+    };
+    let count = points.iter().filter(|p| bad(p).is_some()).count();
+    let value = points[first][field];
+    let why = if value.is_finite() {
+        format!("beyond MAX_LIDAR_RANGE_M ({MAX_LIDAR_RANGE_M} m)")
+    } else {
+        "not finite".into()
+    };
+    Err(format!(
+        "{} ({what}): point {first}, field {}, is {value} ({why}); {count} of its {} points are bad",
+        file.display(),
+        FIELDS[field],
+        points.len()
+    ))
+}
+
+/// Largest side of a 3D box (m): a road train is 50 m; a side beyond this is a unit error.
+pub const MAX_BOX_SIZE_M: f64 = 1000.0;
+
+/// A 3D box annotation's centre, size and rotation `[w, x, y, z]` checked: every value finite,
+/// every side positive and at most [`MAX_BOX_SIZE_M`], the centre within
+/// [`MAX_EGO_TRANSLATION_M`] of the origin, the quaternion of unit norm (normalised as [`rigid`]
+/// does). Returns the normalised rotation. A zero quaternion would become NaN in every stage that
+/// rotates by it.
+pub fn box_values(
+    at: &Place,
+    center: [f64; 3],
+    size: [f64; 3],
+    rotation: [f64; 4],
+    notes: &mut Renormalised,
+) -> Result<[f64; 4], String> {
+    if size.iter().any(|v| !v.is_finite()) {
+        return Err(format!("{at}: field size {} is not finite", list(&size)));
+    }
+    if size.iter().any(|v| *v <= 0.0) {
+        return Err(format!("{at}: field size {} has a side that is not positive", list(&size)));
+    }
+    if size.iter().any(|v| *v > MAX_BOX_SIZE_M) {
+        return Err(format!("{at}: field size {} has a side over MAX_BOX_SIZE_M ({MAX_BOX_SIZE_M} m)", list(&size)));
+    }
+    let fields = Fields { rotation: "rotation", translation: "translation" };
+    let se3 = rigid(at, fields, rotation, center, Transform::Pose, notes)?;
+    // Within float printing of unit norm the row is kept to the bit (its boxes' bytes unchanged).
+    let norm = rotation.iter().fold(0.0, |n: f64, v| n.hypot(*v));
+    if (norm - 1.0).abs() <= QUATERNION_NORM_ROUNDING {
+        return Ok(rotation);
+    }
+    let q = se3.rotation;
+    Ok([q.w, q.x, q.y, q.z])
+}
+
+/// Focal lengths (px) a pinhole camera may have: 1 px is a field of view near 180 degrees for any
+/// image, 1e7 px a telescope's fraction of a degree at [`MAX_IMAGE_SIDE`]. Outside it (1e-300,
+/// 1e300) every projection overflows or collapses to one pixel.
+pub const FOCAL_PX: std::ops::RangeInclusive<f64> = 1.0..=1e7;
+
 /// A pinhole matrix `[[fx, s, cx], [0, fy, cy], [0, 0, 1]]` checked: finite, positive focal
 /// lengths, and the shape every projection in dist4d assumes.
 pub fn pinhole(at: &Place, field: &str, k: [[f64; 3]; 3]) -> Result<[[f64; 3]; 3], String> {
@@ -197,6 +307,15 @@ pub fn pinhole(at: &Place, field: &str, k: [[f64; 3]; 3]) -> Result<[[f64; 3]; 3
     }
     if k[0][0] <= 0.0 || k[1][1] <= 0.0 {
         return bad(format!("has focal lengths fx {} and fy {}; both must be positive", num(k[0][0]), num(k[1][1])));
+    }
+    if !(FOCAL_PX.contains(&k[0][0]) && FOCAL_PX.contains(&k[1][1])) {
+        return bad(format!(
+            "has focal lengths fx {} and fy {}; both must be within {} to {} px (FOCAL_PX)",
+            num(k[0][0]),
+            num(k[1][1]),
+            num(*FOCAL_PX.start()),
+            num(*FOCAL_PX.end())
+        ));
     }
     if k[1][0] != 0.0 || k[2] != [0.0, 0.0, 1.0] {
         return bad("is not a pinhole matrix [[fx, s, cx], [0, fy, cy], [0, 0, 1]]".into());

@@ -6,10 +6,12 @@
 //! file names (100 ns units; the ISO fields of the test data are not meaningful). Boxes are
 //! annotated in the LiDAR frame and returned in the world frame.
 
+use crate::checks::MAX_TABLE_FILE_BYTES;
 use crate::checks::{
-    check_reference, join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform,
+    box_values, check_reference, image_size, join_inside, pinhole, principal_point_inside, rigid, Fields, Place,
+    Renormalised, Transform,
 };
-use crate::files::read_npz;
+use crate::files::{read_input, read_npz};
 use crate::sidecar::Sidecars;
 use crate::surround::{Frame, Reading, Scene, SurroundReader, Tree};
 use anyhow::{anyhow, bail, ensure, Context, Result};
@@ -60,7 +62,7 @@ pub struct Dgp {
 }
 
 fn read_json(path: &Path) -> Result<Value> {
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let bytes = read_input(path, "the DGP file", MAX_TABLE_FILE_BYTES)?;
     serde_json::from_slice(&bytes).with_context(|| format!("{} is not valid JSON", path.display()))
 }
 
@@ -90,12 +92,6 @@ fn pose_values(v: &Value, file: &Path, what: &str) -> Result<([f64; 4], [f64; 3]
         ],
         [num(t, "x", file, &what_t)?, num(t, "y", file, &what_t)?, num(t, "z", file, &what_t)?],
     ))
-}
-
-/// A DGP pose as a transform, unchecked (box poses).
-fn pose(v: &Value, file: &Path, what: &str) -> Result<Se3> {
-    let (q, t) = pose_values(v, file, what)?;
-    Ok(Se3::from_wxyz_t(q, t))
 }
 
 /// A DGP pose checked as a `kind` transform; `fields` prefixes the field names (`pose`,
@@ -285,8 +281,12 @@ fn datum(d: &Value, sensor: &str, src: &Sources, notes: &mut Renormalised) -> Re
         .pointer(&format!("/extrinsics/{idx}"))
         .ok_or_else(|| anyhow!("{}: {sensor} calibration has no extrinsics", src.calib_file.display()))?;
     let sensor_to_ego = checked_pose(ext, &cat, &format!("extrinsics[{idx}]"), Transform::Mount, notes)?;
-    let dim = |n: &str| body.get(n).and_then(|v| v.as_u64()).unwrap_or(0) as u32;
+    // Saturated, not truncated: 2^32 + 5 must not pass as 5 (the bound check below refuses it).
+    let dim = |n: &str| body.get(n).and_then(|v| v.as_u64()).map_or(0, |v| u32::try_from(v).unwrap_or(u32::MAX));
     let (width, height) = (dim("width"), dim("height"));
+    if is_image {
+        image_size(&at.to_string(), "fields width, height", width, height).map_err(anyhow::Error::msg)?;
+    }
     // Point clouds have no intrinsics (DGP writes zeros for them); an image must have good ones.
     let intrinsics = if is_image { Some(intrinsics(src.calib, idx, &cat, width, height, &at)?) } else { None };
     let reading = Reading {
@@ -324,12 +324,17 @@ fn read_boxes(file: &Path, sensor_to_world: &Se3, ontology: &HashMap<i64, String
         .map(|(i, a)| {
             let what = format!("annotation {i}");
             let b = field(a, "box", file, &what)?;
-            let local = pose(field(b, "pose", file, &what)?, file, &what)?;
-            let world = sensor_to_world.then_from(&local);
+            // Checked in the sensor frame, as written: a zero quaternion or a negative size would
+            // become NaN or an inside-out box in every stage that uses it.
+            let (q, t) = pose_values(field(b, "pose", file, &what)?, file, &what)?;
+            let size = [num(b, "width", file, &what)?, num(b, "length", file, &what)?, num(b, "height", file, &what)?];
+            let at = Place::new(file, format!("{what} (box.pose, box.width/length/height)"));
+            let q = box_values(&at, t, size, q, &mut Renormalised::default()).map_err(anyhow::Error::msg)?;
+            let world = sensor_to_world.then_from(&Se3::from_wxyz_t(q, t));
             let class = field(a, "class_id", file, &what)?.as_i64().unwrap_or(-1);
             Ok(Box3D {
                 center: world.translation.to_array(),
-                size: [num(b, "width", file, &what)?, num(b, "length", file, &what)?, num(b, "height", file, &what)?],
+                size,
                 rotation: world.wxyz(),
                 velocity: [f64::NAN; 3],
                 instance: field(a, "instance_id", file, &what)?.to_string(),

@@ -1,35 +1,164 @@
-//! Sensor file formats shared by the dataset readers: JPEG images and NumPy `.npy` / `.npz`.
+//! Sensor file formats shared by the dataset readers: JPEG images and NumPy `.npy` / `.npz`,
+//! and the one way they read a file of a dataset ([`read_input`]): regular files only, and never
+//! more bytes than the format allows.
 
+use crate::checks::{MAX_IMAGE_FILE_BYTES, MAX_NPZ_MEMBER_BYTES};
 use anyhow::{bail, ensure, Context, Result};
 use dist4d_types::artifact::Image;
+use std::io::Read;
+use std::os::unix::fs::OpenOptionsExt;
 use std::path::Path;
+
+/// Reads a file of a dataset whole: `what` says what it is (`a LiDAR sweep`) for the errors, and
+/// `max_bytes` is the most such a file may hold (the bounds are in [`crate::checks`]).
+///
+/// Only a regular file is read (a symlink to one is followed). A FIFO would block the reading
+/// thread until some writer opens it, `/dev/zero` or a socket would never end: so the file is
+/// opened without blocking (`O_NONBLOCK` changes nothing for a regular file and makes opening a
+/// FIFO return at once), its type checked on the opened descriptor (no race with a rename), and at
+/// most `max_bytes` + 1 bytes read, so a file that grows while it is read cannot exhaust memory.
+pub fn read_input(path: &Path, what: &str, max_bytes: u64) -> Result<Vec<u8>> {
+    let file = open_regular(path, what, max_bytes)?;
+    let len = file.metadata().map(|m| m.len()).unwrap_or(0);
+    let mut bytes = Vec::with_capacity(len.min(max_bytes) as usize);
+    file.take(max_bytes + 1).read_to_end(&mut bytes).with_context(|| format!("reading {what} {}", path.display()))?;
+    ensure!(
+        bytes.len() as u64 <= max_bytes,
+        "{what} {} grew past the {max_bytes} bytes such a file may have while it was read",
+        path.display()
+    );
+    Ok(bytes)
+}
+
+/// Opens a regular file of at most `max_bytes` without blocking (see [`read_input`]).
+fn open_regular(path: &Path, what: &str, max_bytes: u64) -> Result<std::fs::File> {
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .custom_flags(libc::O_NONBLOCK)
+        .open(path)
+        .with_context(|| format!("reading {what} {}", path.display()))?;
+    let meta = file.metadata().with_context(|| format!("reading {what} {}", path.display()))?;
+    if !meta.is_file() {
+        bail!("{what} {} is not a regular file (a {}); dist4d reads only regular files", path.display(), kind(&meta));
+    }
+    ensure!(
+        meta.len() <= max_bytes,
+        "{what} {} is {} bytes, more than the {max_bytes} bytes such a file may have",
+        path.display(),
+        meta.len()
+    );
+    Ok(file)
+}
+
+/// What kind of file a non-regular one is, for messages.
+fn kind(meta: &std::fs::Metadata) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    let t = meta.file_type();
+    if t.is_dir() {
+        "folder"
+    } else if t.is_fifo() {
+        "FIFO"
+    } else if t.is_char_device() {
+        "character device"
+    } else if t.is_block_device() {
+        "block device"
+    } else if t.is_socket() {
+        "socket"
+    } else {
+        "special file"
+    }
+}
 
 /// Decodes a JPEG (or any image the `image` crate reads) to RGB8.
 ///
 /// A JPEG must end with its end-of-image marker: the decoder fills a truncated file's missing
 /// rows with grey without an error, which would reach the pipeline as plausible-looking pixels.
 pub fn read_jpeg(path: &Path) -> Result<Image> {
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    check_jpeg_end(&bytes).with_context(|| format!("{} is truncated", path.display()))?;
-    let img = image::load_from_memory(&bytes).with_context(|| format!("{} is not a readable image", path.display()))?;
-    let rgb = img.into_rgb8();
-    Ok(Image { width: rgb.width(), height: rgb.height(), rgb: rgb.into_raw() })
+    let (bytes, w, h) = read_image_header(path)?;
+    decode_image(path, &bytes, w, h)
 }
 
 /// A camera image whose size must be the one its metadata gives (`width` x `height`, skipped when
 /// 0): `source` names that metadata, e.g. `sample_data <token>`. Checked here, where the file is
-/// known, rather than in a stage that only sees two sizes disagree.
+/// known, rather than in a stage that only sees two sizes disagree; and checked on the header,
+/// before a single pixel is decoded, so a header that says 65535 x 65535 cannot make the decoder
+/// allocate 12 GB.
 pub fn read_camera_image(path: &Path, width: u32, height: u32, source: &str) -> Result<Image> {
-    let img = read_jpeg(path).with_context(|| source.to_string())?;
-    if width > 0 && height > 0 && (img.width, img.height) != (width, height) {
-        bail!(
-            "{} is {}x{} but {source} (fields width, height) says {width}x{height}",
-            path.display(),
-            img.width,
-            img.height
-        );
+    let (bytes, w, h) = read_image_header(path).with_context(|| source.to_string())?;
+    if width > 0 && height > 0 && (w, h) != (width, height) {
+        bail!("{} is {w}x{h} but {source} (fields width, height) says {width}x{height}", path.display());
     }
-    Ok(img)
+    decode_image(path, &bytes, w, h).with_context(|| source.to_string())
+}
+
+/// A whole image file and the size its header declares (within the bounds of
+/// [`crate::checks::image_size`]).
+fn read_image_header(path: &Path) -> Result<(Vec<u8>, u32, u32)> {
+    let bytes = read_input(path, "the image", MAX_IMAGE_FILE_BYTES)?;
+    check_jpeg_end(&bytes).with_context(|| format!("{} is truncated", path.display()))?;
+    let (w, h) = image::ImageReader::new(std::io::Cursor::new(&bytes))
+        .with_guessed_format()
+        .map_err(anyhow::Error::from)
+        .and_then(|r| Ok(r.into_dimensions()?))
+        .with_context(|| format!("{} is not a readable image (its header)", path.display()))?;
+    crate::checks::image_size(&path.display().to_string(), "its header", w, h).map_err(anyhow::Error::msg)?;
+    Ok((bytes, w, h))
+}
+
+/// Decodes an image whose header said `w` x `h`. A decoder that cannot read the scan data (a
+/// corrupt JPEG) is an error, never grey or partial pixels.
+fn decode_image(path: &Path, bytes: &[u8], w: u32, h: u32) -> Result<Image> {
+    let rgb = if bytes.starts_with(&[0xFF, 0xD8]) {
+        decode_jpeg_strictly(bytes).with_context(|| format!("{} is not a readable JPEG", path.display()))?
+    } else {
+        let img =
+            image::load_from_memory(bytes).with_context(|| format!("{} is not a readable image", path.display()))?;
+        img.into_rgb8().into_raw()
+    };
+    ensure!(
+        rgb.len() as u64 == w as u64 * h as u64 * 3,
+        "{} decoded to {} bytes though its header says {w}x{h} RGB",
+        path.display(),
+        rgb.len()
+    );
+    Ok(Image { width: w, height: h, rgb })
+}
+
+/// A JPEG decoded to RGB8 in zune-jpeg's strict mode. The `image` crate decodes leniently: corrupt
+/// scan data (a flipped bit in the entropy-coded segment, a bad Huffman code) becomes grey or
+/// smeared blocks without an error, which would reach the pipeline as plausible pixels.
+fn decode_jpeg_strictly(bytes: &[u8]) -> Result<Vec<u8>> {
+    use zune_core::{bytestream::ZCursor, colorspace::ColorSpace, options::DecoderOptions};
+    let options = DecoderOptions::default()
+        .set_strict_mode(true)
+        .jpeg_set_out_colorspace(ColorSpace::RGB)
+        .set_max_width(crate::checks::MAX_IMAGE_SIDE as usize)
+        .set_max_height(crate::checks::MAX_IMAGE_SIDE as usize);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
+    decoder.decode().map_err(|e| anyhow::anyhow!("{e:?}"))
+}
+
+/// The width and height an image file's header declares, without decoding it: how a camera's
+/// calibration learns that the metadata's size is the file's, for stages that never decode it.
+pub fn image_dimensions(path: &Path) -> Result<(u32, u32)> {
+    let bytes = read_input_prefix(path, "the image", MAX_IMAGE_FILE_BYTES, IMAGE_HEADER_BYTES)?;
+    image::ImageReader::new(std::io::Cursor::new(&bytes))
+        .with_guessed_format()
+        .map_err(anyhow::Error::from)
+        .and_then(|r| Ok(r.into_dimensions()?))
+        .with_context(|| format!("{} is not a readable image (its header)", path.display()))
+}
+
+/// How much of an image file is read for its size: JPEG EXIF blocks (thumbnails included) stay
+/// under 64 KiB; 1 MiB leaves room for PNG ancillary chunks before IHDR's neighbours.
+const IMAGE_HEADER_BYTES: u64 = 1 << 20;
+
+/// The first `prefix` bytes of a regular file of at most `max_bytes` (see [`read_input`]).
+fn read_input_prefix(path: &Path, what: &str, max_bytes: u64, prefix: u64) -> Result<Vec<u8>> {
+    let file = open_regular(path, what, max_bytes)?;
+    let mut bytes = Vec::new();
+    file.take(prefix).read_to_end(&mut bytes).with_context(|| format!("reading {what} {}", path.display()))?;
+    Ok(bytes)
 }
 
 /// A JPEG (it starts with the SOI marker FF D8) must end with the EOI marker FF D9. Zero bytes
@@ -94,9 +223,11 @@ pub fn parse_npy(bytes: &[u8]) -> Result<NpyArray> {
         .filter(|s| !s.is_empty())
         .map(|s| s.parse::<usize>().with_context(|| format!("NPY shape entry `{s}`")))
         .collect::<Result<_>>()?;
-    let n: usize = shape.iter().product();
+    // Checked products: a header may claim any shape, and the body is what bounds it.
+    let n = shape.iter().try_fold(1usize, |n, d| n.checked_mul(*d)).context("NPY shape overflows")?;
     let body = &bytes[start + hlen..];
-    ensure!(body.len() >= n * width, "NPY data is truncated: {} bytes for {n} values", body.len());
+    let need = n.checked_mul(width).context("NPY shape overflows")?;
+    ensure!(body.len() >= need, "NPY data is truncated: {} bytes for {n} values", body.len());
     let data = if width == 8 {
         body.chunks_exact(8).take(n).map(|c| f64::from_le_bytes(c.try_into().unwrap())).collect()
     } else {
@@ -107,7 +238,7 @@ pub fn parse_npy(bytes: &[u8]) -> Result<NpyArray> {
 
 /// Reads array `key` (e.g. `data`) from an `.npz` (a zip of `.npy` files, stored or deflated).
 pub fn read_npz(path: &Path, key: &str) -> Result<NpyArray> {
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let bytes = read_input(path, "the .npz", crate::checks::MAX_SENSOR_FILE_BYTES)?;
     let member = zip_member(&bytes, &format!("{key}.npy"))
         .with_context(|| format!("{} is not a readable .npz", path.display()))?;
     parse_npy(&member).with_context(|| format!("{}: array `{key}`", path.display()))
@@ -140,6 +271,10 @@ fn zip_member(zip: &[u8], name: &str) -> Result<Vec<u8>> {
             return match method {
                 0 => Ok(raw.to_vec()),
                 8 => {
+                    ensure!(
+                        size as u64 <= MAX_NPZ_MEMBER_BYTES,
+                        "{name} inflates to {size} bytes, more than the {MAX_NPZ_MEMBER_BYTES} an array may have"
+                    );
                     let out = miniz_oxide::inflate::decompress_to_vec_with_limit(raw, size.max(1))
                         .map_err(|e| anyhow::anyhow!("inflating {name}: {e:?}"))?;
                     ensure!(out.len() == size, "{name}: inflated {} bytes, expected {size}", out.len());

@@ -7,7 +7,11 @@
 //! nuScenes' own: `.pcd.bin` sweeps with their lidarseg labels, and boxes from
 //! `sample_annotation` with the devkit's velocities, interpolated between keyframes for sweeps.
 
-use crate::checks::{join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform};
+use crate::checks::{
+    box_values, image_size, join_inside, pinhole, principal_point_inside, rigid, Fields, Place, Renormalised, Transform,
+};
+use crate::checks::{MAX_SENSOR_FILE_BYTES, MAX_TABLE_FILE_BYTES};
+use crate::files::read_input;
 use crate::sidecar::Sidecars;
 use crate::surround::{Frame, Reading, Scene, SurroundReader, Tree, DIMS, PORTS};
 use anyhow::{anyhow, bail, ensure, Context, Result};
@@ -101,6 +105,9 @@ struct MapRow {
 
 #[derive(Deserialize)]
 struct SampleRow {
+    /// Index in the table file, for errors.
+    #[serde(skip)]
+    row: usize,
     token: String,
     #[serde(default)]
     scene_token: String,
@@ -163,6 +170,9 @@ struct EgoPoseRow {
 
 #[derive(Deserialize, Clone)]
 struct AnnotationRow {
+    /// Index in the table file, for errors.
+    #[serde(skip)]
+    row: usize,
     token: String,
     sample_token: String,
     instance_token: String,
@@ -234,6 +244,9 @@ type Keyframes = Vec<(i64, Vec<usize>)>;
 /// One box annotation with what its frame needs.
 struct Annotation {
     row: AnnotationRow,
+    /// Why the row is not a box (a zero quaternion, a negative size, a NaN): the frames whose
+    /// boxes need it fail with this, and no NaN ever reaches a `Boxes3D` artifact.
+    problem: Option<String>,
     category: String,
     attributes: Vec<String>,
 }
@@ -262,17 +275,17 @@ trait TableRow: for<'de> Deserialize<'de> {
 macro_rules! rows_without_index {
     ($($t:ty),*) => { $(impl TableRow for $t {})* };
 }
-rows_without_index!(SceneRow, SampleRow, SensorRow, AnnotationRow, InstanceRow, NamedRow, MapRow);
+rows_without_index!(SceneRow, SensorRow, InstanceRow, NamedRow, MapRow);
 
 macro_rules! rows_with_index {
     ($($t:ty),*) => { $(impl TableRow for $t { fn set_row(&mut self, row: usize) { self.row = row; } })* };
 }
-rows_with_index!(SampleDataRow, CalibratedSensorRow, EgoPoseRow, LidarsegRow);
+rows_with_index!(SampleDataRow, CalibratedSensorRow, EgoPoseRow, LidarsegRow, SampleRow, AnnotationRow);
 
 /// Reads a table; a malformed row is reported with its index, token and the field at fault.
 fn read_table<T: TableRow>(dir: &Path, name: &str, warnings: &mut Vec<String>) -> Result<Vec<T>> {
     let path = dir.join(format!("{name}.json"));
-    let bytes = std::fs::read(&path).with_context(|| format!("reading nuScenes table {}", path.display()))?;
+    let bytes = read_input(&path, "the nuScenes table", MAX_TABLE_FILE_BYTES)?;
     let rows: Vec<serde_json::Value> = serde_json::from_slice(&bytes)
         .with_context(|| format!("malformed nuScenes table {}: not a JSON list", path.display()))?;
     unique_rows(&path, rows, warnings)?
@@ -544,6 +557,12 @@ impl NuScenes {
             let at = Place::row(&sd_file, sd.row, &sd.token);
             let file = join_inside(&root, &at, "filename", &sd.filename)?;
             let mount = mount_of(sd)?.1.as_ref().map_err(String::clone)?;
+            if camera {
+                image_size(&at.to_string(), "fields width, height", sd.width, sd.height)?;
+            }
+            if sd.timestamp < 0 {
+                return Err(format!("{at}: field timestamp {} is negative", sd.timestamp));
+            }
             match &mount.intrinsics {
                 Some(k) => principal_point_inside(&mount.at, "camera_intrinsic", k, sd.width, sd.height)
                     .map_err(|e| format!("{e} of {at}"))?,
@@ -620,9 +639,23 @@ impl NuScenes {
             .iter()
             .map(|i| (i.token.as_str(), cat_name.get(i.category_token.as_str()).copied().unwrap_or("")))
             .collect();
+        let ann_file = tables.join("sample_annotation.json");
+        let mut box_rotations = Renormalised::default();
         let annotations: Vec<Annotation> = anns
             .into_iter()
-            .map(|row| Annotation {
+            .map(|mut row| {
+                let at = Place::row(&ann_file, row.row, &row.token);
+                let problem = match box_values(&at, row.translation, row.size, row.rotation, &mut box_rotations) {
+                    Ok(rotation) => {
+                        row.rotation = rotation;
+                        None
+                    }
+                    Err(e) => Some(e),
+                };
+                (row, problem)
+            })
+            .map(|(row, problem)| Annotation {
+                problem,
                 category: inst_cat.get(row.instance_token.as_str()).copied().unwrap_or("").to_string(),
                 attributes: row
                     .attribute_tokens
@@ -632,6 +665,7 @@ impl NuScenes {
                 row,
             })
             .collect();
+        warnings.extend(box_rotations.warnings());
         let mut anns_of_sample: HashMap<&str, Vec<usize>> = HashMap::new();
         for (i, a) in annotations.iter().enumerate() {
             anns_of_sample.entry(a.row.sample_token.as_str()).or_default().push(i);
@@ -672,7 +706,7 @@ impl NuScenes {
                 .iter()
                 .map(|k| (k.timestamp, anns_of_sample.get(k.token.as_str()).cloned().unwrap_or_default()))
                 .collect();
-            let frames: Vec<Frame<Sweep>> = match config.frames {
+            let mut frames: Vec<Frame<Sweep>> = match config.frames {
                 FrameMode::Keyframes => keys
                     .iter()
                     .enumerate()
@@ -794,6 +828,16 @@ impl NuScenes {
                         .collect()
                 }
             };
+            // Keyframes out of time order (swapped, reversed, repeated) or before 1970 would give
+            // wrong windows, box interpolation and velocities: their frames fail, naming the row.
+            let sample_file = tables.join("sample.json");
+            let bad_times = keyframe_time_problems(&keys, &sample_file);
+            for f in frames.iter_mut() {
+                if let Some(why) = f.extra.sample.and_then(|k| bad_times.get(&k)) {
+                    f.lidar = Err(why.clone());
+                    f.cameras.iter_mut().for_each(|c| *c = Err(why.clone()));
+                }
+            }
             out.push(Scene { name: scene.name.clone(), frames, extra: samples_of_scene });
             scene_tokens.push(scene.token.clone());
             maps.push(map_of_log.get(scene.log_token.as_str()).cloned());
@@ -980,6 +1024,28 @@ fn incomplete_rounds(scene: &str, cameras: &[String], rounds: &[CameraRound], ha
     ))
 }
 
+/// Why keyframe `i` of a scene (its samples in `next` order) has a timestamp that cannot be
+/// used: negative, or not after the previous keyframe's.
+fn keyframe_time_problems(keys: &[&SampleRow], file: &Path) -> HashMap<usize, String> {
+    let mut out = HashMap::new();
+    for (i, k) in keys.iter().enumerate() {
+        let at = Place::row(file, k.row, &k.token);
+        if k.timestamp < 0 {
+            out.insert(i, format!("{at}: field timestamp {} is negative", k.timestamp));
+        } else if let Some(p) = i.checked_sub(1).map(|j| keys[j]).filter(|p| k.timestamp <= p.timestamp) {
+            out.insert(
+                i,
+                format!(
+                    "{at}: field timestamp {} is not after that of the keyframe before it in the scene (row {}, token \
+                     {}: {}); keyframes must be in time order",
+                    k.timestamp, p.row, p.token, p.timestamp
+                ),
+            );
+        }
+    }
+    out
+}
+
 /// A frame from its LiDAR reading with that reading's lidarseg labels (none when it failed), and
 /// per camera its image's token (when known) and reading.
 fn frame(
@@ -1036,8 +1102,8 @@ impl SurroundReader for NuScenes {
     fn read_lidar(&self, lidar: &Reading, frame: &Sweep) -> Result<PointCloud> {
         let mut pc = read_pcd_bin(&lidar.file).with_context(|| lidar.what.clone())?;
         if let Some(path) = &frame.labels {
-            let labels = std::fs::read(path)
-                .with_context(|| format!("reading the lidarseg labels of {}: {}", lidar.what, path.display()))?;
+            let labels = read_input(path, "the lidarseg labels", MAX_SENSOR_FILE_BYTES)
+                .with_context(|| format!("the lidarseg labels of {}", lidar.what))?;
             if labels.len() != pc.points.len() {
                 bail!(
                     "{} has {} labels but {} has {} points",
@@ -1060,7 +1126,7 @@ impl SurroundReader for NuScenes {
         let (scene, frame) = self.tree.scene_frame(item)?;
         let t = frame.lidar.as_ref().map_or(frame.extra.timestamp, |l| l.pose.timestamp_us);
         let key = frame.extra.sample.filter(|&k| frame.extra.key && scene.extra.get(k).is_some_and(|s| s.0 == t));
-        Ok(Boxes3D { timestamp_us: t, boxes: self.boxes_at(scene, t, key) })
+        Ok(Boxes3D { timestamp_us: t, boxes: self.boxes_at(scene, t, key)? })
     }
 
     /// Boxes at the image's own time (cameras fire up to ~50 ms apart within a round, and a
@@ -1068,7 +1134,7 @@ impl SurroundReader for NuScenes {
     fn camera_boxes(&self, item: &ItemKey) -> Result<Boxes3D> {
         let (scene, _) = self.tree.scene_frame(item)?;
         let t = self.tree.reading("image", item)?.pose.timestamp_us;
-        Ok(Boxes3D { timestamp_us: t, boxes: self.boxes_at(scene, t, None) })
+        Ok(Boxes3D { timestamp_us: t, boxes: self.boxes_at(scene, t, None)? })
     }
 }
 
@@ -1081,9 +1147,24 @@ impl NuScenes {
     /// a track of one annotation has no velocity and stays where it was annotated), or dropped
     /// with `lone_tracks: Drop`. Before the first and after the last keyframe only extrapolation
     /// applies.
-    fn boxes_at(&self, scene: &Scene<Keyframes, Sweep>, t: i64, key: Option<usize>) -> Vec<Box3D> {
+    ///
+    /// An annotation refused when the dataset was opened (a zero quaternion, a negative size)
+    /// among those used fails the call with its row and field.
+    fn boxes_at(&self, scene: &Scene<Keyframes, Sweep>, t: i64, key: Option<usize>) -> Result<Vec<Box3D>> {
         let keys = &scene.extra;
-        let own = |k: usize| -> Vec<Box3D> { keys[k].1.iter().map(|&i| self.box_of(&self.annotations[i])).collect() };
+        let own = |k: usize| -> Result<Vec<Box3D>> {
+            keys[k]
+                .1
+                .iter()
+                .map(|&i| {
+                    let a = &self.annotations[i];
+                    match &a.problem {
+                        Some(why) => Err(anyhow!("{why}")),
+                        None => Ok(self.box_of(a)),
+                    }
+                })
+                .collect()
+        };
         if let Some(k) = key.filter(|&k| k < keys.len()) {
             return own(k);
         }
@@ -1105,8 +1186,8 @@ impl NuScenes {
             }
             Some(Box3D { center: b.advanced(dt as f64 * 1e-6), num_lidar_pts: 0, extrapolated: true, ..b })
         };
-        let early: Vec<Box3D> = before.map(own).unwrap_or_default();
-        let late: Vec<Box3D> = if after < keys.len() { own(after) } else { Vec::new() };
+        let early: Vec<Box3D> = before.map(own).transpose()?.unwrap_or_default();
+        let late: Vec<Box3D> = if after < keys.len() { own(after)? } else { Vec::new() };
         let (t0, t1) = (before.map(|k| keys[k].0), keys.get(after).map(|k| k.0));
         let mut out = Vec::new();
         for a in &early {
@@ -1123,7 +1204,7 @@ impl NuScenes {
         for b in late.into_iter().filter(|b| !early.iter().any(|a| a.instance == b.instance)) {
             out.extend(extrapolate(b, t1.unwrap_or(t)));
         }
-        out
+        Ok(out)
     }
 }
 
@@ -1147,7 +1228,7 @@ fn interpolate(a: &Box3D, b: &Box3D, w: f64) -> Box3D {
 
 /// Reads a nuScenes `.pcd.bin`: float32 x, y, z, intensity, ring per point.
 pub fn read_pcd_bin(path: &Path) -> Result<PointCloud> {
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let bytes = read_input(path, "the LiDAR sweep", MAX_SENSOR_FILE_BYTES)?;
     if bytes.len() % 20 != 0 {
         bail!("{} is truncated: {} bytes is not a whole number of 20-byte points", path.display(), bytes.len());
     }

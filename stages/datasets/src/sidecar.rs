@@ -49,8 +49,23 @@ impl Sidecars {
 /// The first float32 channel of an EXR as depth (+inf stays: "no surface").
 pub fn read_depth_exr(path: &Path) -> Result<DepthMap> {
     use exr::prelude::*;
-    let img = read_first_flat_layer_from_file(path).with_context(|| format!("reading {}", path.display()))?;
-    let (w, h) = img.layer_data.size.into();
+    let bytes = crate::files::read_input(path, "the depth EXR", crate::checks::MAX_SENSOR_FILE_BYTES)?;
+    let img = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(bytes))
+        .with_context(|| format!("reading {}", path.display()))?;
+    let (w, h): (usize, usize) = img.layer_data.size.into();
+    crate::checks::image_size(
+        &path.display().to_string(),
+        "its size",
+        w.min(u32::MAX as usize) as u32,
+        h.min(u32::MAX as usize) as u32,
+    )
+    .map_err(anyhow::Error::msg)?;
     let Some(ch) = img.layer_data.channel_data.list.first() else { bail!("{} has no channel", path.display()) };
     let data = match &ch.sample_data {
         FlatSamples::F32(v) => v.clone(),
@@ -62,7 +77,8 @@ pub fn read_depth_exr(path: &Path) -> Result<DepthMap> {
 
 /// An 8-bit single-channel PNG of class ids.
 pub fn read_segmentation(path: &Path) -> Result<Segmentation> {
-    let img = image::open(path).with_context(|| format!("reading {}", path.display()))?;
+    let bytes = crate::files::read_input(path, "the segmentation", crate::checks::MAX_IMAGE_FILE_BYTES)?;
+    let img = image::load_from_memory(&bytes).with_context(|| format!("reading {}", path.display()))?;
     if img.color() != image::ColorType::L8 {
         bail!("{}: a segmentation must be an 8-bit grey PNG of class ids, not {:?}", path.display(), img.color());
     }

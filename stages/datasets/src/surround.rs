@@ -7,7 +7,7 @@
 //! boxes come from. [`Surround`] turns such a reader into the runtime's dataset. (The orphan rule
 //! forbids implementing the runtime's traits for every `SurroundReader` directly, hence the wrapper.)
 
-use crate::files::read_camera_image;
+use crate::files::{image_dimensions, read_camera_image};
 use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{DimSpec, SourcePortSpec};
@@ -259,6 +259,9 @@ impl<R: SurroundReader> Dataset for Surround<R> {
                 }
                 Some(b.finish())
             }
+            // The metadata's values, not the file check `load_source` adds: planning stays free
+            // of image reads.
+            "lidar_calib" | "camera_calib" => Some(Digest::of(&tree.reading(port, item)?.calib.encode())),
             _ => Some(Digest::of(&self.load_source(port, item)?)),
         })
     }
@@ -271,7 +274,7 @@ impl<R: SurroundReader> Dataset for Surround<R> {
             "frame_token" => return Ok(self.token(item).unwrap_or_default().into_bytes()),
             "map" => {
                 return match self.0.map_file(item.idx[0] as usize) {
-                    Some(path) => std::fs::read(path).with_context(|| format!("reading the map {}", path.display())),
+                    Some(path) => crate::files::read_input(path, "the map", crate::checks::MAX_SENSOR_FILE_BYTES),
                     None => Ok(Vec::new()),
                 }
             }
@@ -280,9 +283,9 @@ impl<R: SurroundReader> Dataset for Surround<R> {
                 if !path.is_file() {
                     return Ok(Vec::new());
                 }
-                let text = std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+                let text = crate::files::read_input(&path, "the synthetic world", crate::checks::MAX_TABLE_FILE_BYTES)?;
                 let synth: serde_json::Value =
-                    serde_json::from_str(&text).with_context(|| format!("{} is not JSON", path.display()))?;
+                    serde_json::from_slice(&text).with_context(|| format!("{} is not JSON", path.display()))?;
                 return Ok(serde_json::to_vec(
                     &serde_json::json!({ "scene": self.label(&item.prefix(1)), "synth": synth }),
                 )?);
@@ -317,11 +320,30 @@ impl<R: SurroundReader> Dataset for Surround<R> {
         }
         let r = tree.reading(port, item)?;
         Ok(match port {
-            "lidar" => self.0.read_lidar(r, &tree.scene_frame(item)?.1.extra)?.encode(),
+            "lidar" => {
+                let cloud = self.0.read_lidar(r, &tree.scene_frame(item)?.1.extra)?;
+                crate::checks::lidar_points(&r.file, &r.what, &cloud.points).map_err(anyhow::Error::msg)?;
+                cloud.encode()
+            }
             "image" => read_camera_image(&r.file, r.calib.width, r.calib.height, &r.what)?.encode(),
             "gt_depth" => tree.sidecars.gt_depth(tree.camera(item), &r.file)?.encode(),
             "semantic" => tree.sidecars.semantic(tree.camera(item), &r.file)?.encode(),
-            "lidar_calib" | "camera_calib" => r.calib.encode(),
+            "lidar_calib" => r.calib.encode(),
+            "camera_calib" => {
+                // A stage that sizes its maps by the calibration (LiDAR projection) never decodes
+                // the image: so the metadata's size is checked against the file's header here.
+                let (w, h) = image_dimensions(&r.file).with_context(|| r.what.clone())?;
+                if (w, h) != (r.calib.width, r.calib.height) {
+                    bail!(
+                        "{} is {w}x{h} but {} (fields width, height) says {}x{}",
+                        r.file.display(),
+                        r.what,
+                        r.calib.width,
+                        r.calib.height
+                    );
+                }
+                r.calib.encode()
+            }
             "lidar_pose" | "camera_pose" => r.pose.encode(),
             other => bail!("{} has no source port `{other}`", R::FORMAT),
         })

@@ -71,7 +71,7 @@ impl Table {
         if !required && !path.exists() {
             return Ok(Table { rows: Vec::new(), by_token: HashMap::new() });
         }
-        let bytes = std::fs::read(&path).with_context(|| format!("reading nuScenes table {}", path.display()))?;
+        let bytes = crate::files::read_input(&path, "the nuScenes table", crate::checks::MAX_TABLE_FILE_BYTES)?;
         let all: Vec<Value> = serde_json::from_slice(&bytes)
             .with_context(|| format!("malformed nuScenes table {}: not a JSON list", path.display()))?;
         let mut rows = Vec::with_capacity(all.len());
@@ -231,8 +231,10 @@ pub fn write_interp_12hz(config: &NuScenesConfig, out: &Path) -> Result<Export12
 
         // Annotations of the new samples; their boxes' points counted in parallel (a trainval
         // export reads ~170k sweeps).
-        let boxes: Vec<Vec<Box3D>> =
-            list.iter().map(|s| if s.key.is_some() { Vec::new() } else { ds.boxes_at(scene, s.time, None) }).collect();
+        let boxes: Vec<Vec<Box3D>> = list
+            .iter()
+            .map(|s| if s.key.is_some() { Ok(Vec::new()) } else { ds.boxes_at(scene, s.time, None) })
+            .collect::<Result<_>>()?;
         let counts: Vec<Option<Result<Vec<u32>>>> = (0..list.len())
             .into_par_iter()
             .map(|i| sweeps.get(&i).map(|reading| points_in_boxes(reading, &boxes[i])))
@@ -672,8 +674,10 @@ mod tests {
             assert_eq!(fb.lidar.as_ref().unwrap().token, lidar.token);
             assert_eq!(fb.extra.timestamp, lidar.pose.timestamp_us);
             // Its boxes are the reader's own boxes at that time.
-            let (theirs, ours) =
-                (rounds.boxes_at(a, fb.extra.timestamp, None), twelve.boxes_at(b, fb.extra.timestamp, None));
+            let (theirs, ours) = (
+                rounds.boxes_at(a, fb.extra.timestamp, None).unwrap(),
+                twelve.boxes_at(b, fb.extra.timestamp, None).unwrap(),
+            );
             assert_eq!(theirs.len(), ours.len());
             for (x, y) in theirs.iter().zip(&ours) {
                 assert_eq!(x.instance, y.instance);
@@ -1034,7 +1038,7 @@ mod tests {
             assert!(f.cameras.iter().all(Result::is_ok) && f.lidar.is_ok());
         }
         // A new sample's boxes are its own interpolated annotations.
-        let boxes = ds.boxes_at(scene, times[3], Some(3));
+        let boxes = ds.boxes_at(scene, times[3], Some(3)).unwrap();
         assert!(!boxes.is_empty());
         assert!(boxes.iter().all(|b| b.velocity.iter().all(|v| v.is_finite())), "velocities from the 12 Hz track");
     }
