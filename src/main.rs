@@ -451,7 +451,12 @@ fn execute(
     if rec.stages.iter().any(|s| s.not_applicable > 0) {
         println!("(n/a: tasks with nothing to make, e.g. the exact view of a dataset that is not synthetic, and the tasks that needed them)");
     }
-    if rec.missing() > 0 {
+    if rec.missing() > 0 && rec.status == RunStatus::Interrupted {
+        println!(
+            "stopped: {} tasks were cut short or not started; rerun the same command to finish (nothing of them was stored)",
+            rec.missing()
+        );
+    } else if rec.missing() > 0 {
         println!(
             "missing: {} tasks neither cached nor executed (a merge collects what the shards made; the next `dist4d slurm` submits the rest)",
             rec.missing()
@@ -501,7 +506,8 @@ fn printable(s: &str) -> String {
 }
 
 /// Stops a run cleanly on SIGINT (Ctrl-C), SIGTERM (what Slurm, systemd and `kill` send before
-/// SIGKILL) and SIGHUP (its terminal closed): running tasks finish, nothing new starts, the run record is written. A second
+/// SIGKILL) and SIGHUP (its terminal closed): nothing new starts, running tasks stop at their next
+/// cancellation point (`dist4d_types::cancel`) or finish, the run record is written. A second
 /// signal leaves at once, which is safe too (every file is written whole or not at all). Returns
 /// the number of the signal that stopped the run (SIGINT until one arrives).
 fn stop_on_signals(cancel: Arc<AtomicBool>) -> Result<Arc<AtomicI32>> {
@@ -516,6 +522,8 @@ fn stop_on_signals(cancel: Arc<AtomicBool>) -> Result<Arc<AtomicI32>> {
                 std::process::exit(128 + signal);
             }
             by.store(signal, Ordering::SeqCst);
+            // Long tasks stop at their next cancellation point instead of running to their end.
+            dist4d_types::cancel::request();
             let name = if signal == SIGTERM {
                 "SIGTERM"
             } else if signal == SIGHUP {
@@ -523,7 +531,10 @@ fn stop_on_signals(cancel: Arc<AtomicBool>) -> Result<Arc<AtomicI32>> {
             } else {
                 "Ctrl-C"
             };
-            eprintln!("\nstopping on {name}: running tasks finish, nothing new starts (signal again to quit at once)");
+            eprintln!(
+                "\nstopping on {name}: running tasks stop at their next cancellation point, nothing new starts (signal \
+                 again to quit at once)"
+            );
         }
     })?;
     Ok(stopped_by)

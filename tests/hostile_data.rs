@@ -290,3 +290,41 @@ fn a_jpeg_with_corrupt_scan_data_fails_its_item() {
     assert!(t.contains(&format!("{} is not a readable JPEG", path.display())), "{t}");
     assert!(t.contains("synth-0000/001/CAM_FRONT"), "{t}");
 }
+
+#[test]
+fn sigterm_stops_a_run_inside_a_long_task_within_seconds() {
+    // The exact occupancy at 0.1 m with 16^3 samples per voxel runs for many minutes per frame;
+    // a run used to wait for it (60 s and more) before it stopped.
+    let (tmp, root) = synthetic();
+    let p = repo().join("pipelines/occupancy.ron");
+    let set_root = format!("dataset.root={}", root.display());
+    let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
+    let grid = "exact.grid=(range: [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], voxel: 0.1, lift: 0.0)";
+    let mut child = Command::new(bin())
+        .args(["run", p.to_str().unwrap(), "--progress", "off", "--jobs", "1", "--set", &set_root])
+        .args(["--set", "exact.samples=16", "--set", grid])
+        .args(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_secs(6));
+    assert!(child.try_wait().unwrap().is_none(), "the run is still in its long task");
+    let term = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    assert!(term.success());
+    let sent = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if sent.elapsed() > Duration::from_secs(20) {
+            child.kill().unwrap();
+            panic!("still running 20 s after SIGTERM:\n{}", text(&child.wait_with_output().unwrap()));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = child.wait_with_output().unwrap();
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(143), "{t}");
+    assert!(t.contains("Interrupted") && t.contains("rerun the same command to finish"), "{t}");
+    assert!(!t.contains("failed: exact"), "a task cut short is not a failure: {t}");
+    let run = last_run(&cache);
+    assert_eq!(run["status"], "interrupted", "{run}");
+}

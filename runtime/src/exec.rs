@@ -543,6 +543,7 @@ impl<'a> Engine<'a> {
             awaiting: HashMap::new(),
             next_awaiting: 0,
             released: Vec::new(),
+            stop: opts.cancel.clone(),
         };
         let deferred = self.operators.iter().map(|op| op.as_deref().is_some_and(deferred_node)).collect();
         let ctx = Ctx { engine: self, keys: &keys, deferred };
@@ -942,6 +943,10 @@ struct Coord {
     next_awaiting: u64,
     /// Claims of outer items that closed, to be let go once their records are synced.
     released: Vec<Claim>,
+    /// Set when the run is asked to stop ([`RunOptions::cancel`]): a task that ends in an error
+    /// then was most likely cut short at one of its cancellation points, so it is counted as not
+    /// executed, not as a failure (a rerun runs it again either way: failures are not cached).
+    stop: Arc<AtomicBool>,
 }
 
 impl Coord {
@@ -1057,7 +1062,7 @@ impl Coord {
                     self.release(slot, &dependents);
                 }
             }
-            Err(err) if err.downcast_ref::<NotExecuted>().is_some() => {
+            Err(err) if err.downcast_ref::<NotExecuted>().is_some() || self.stop.load(Ordering::Relaxed) => {
                 let how = match err.downcast_ref::<NotExecuted>() {
                     Some(NotExecuted { deferred: true }) => Skip::Deferred,
                     _ => Skip::Missing,

@@ -20,6 +20,7 @@
 
 mod kernels;
 
+use dist4d_types::cancel;
 use dist4d_types::geometry::Se3;
 use glam::{DMat3, DVec3};
 use kernels::{Isa, SourceCensus};
@@ -286,6 +287,9 @@ pub fn sweep_depth(
 }
 
 /// [`sweep_depth`] in `buffers` that earlier sweeps may have grown.
+///
+/// A cancellation point (`dist4d_types::cancel`): once a stop is requested it returns early with
+/// a partial result, which a caller must discard (check `cancel::check()` after it).
 pub fn sweep_depth_with(
     buffers: &mut SweepBuffers,
     reference: &StereoView,
@@ -317,7 +321,13 @@ pub fn sweep_depth_with(
     };
     let views: Vec<SourceCensus> =
         sources.iter().map(|s| SourceCensus { census: &s.census, width: s.width, height: s.height }).collect();
+    // A requested stop (see `dist4d_types::cancel`) leaves the rest of the work undone: rows are
+    // skipped, the aggregation returns at its next row, and the caller, which checks for the stop
+    // after the sweep, throws the partial result away.
     cost.par_chunks_mut(w * planes).enumerate().for_each(|(y, row)| {
+        if cancel::requested() {
+            return;
+        }
         let mut pixel_rays = Vec::with_capacity(sources.len());
         for (x, cost_px) in row.chunks_exact_mut(planes).enumerate() {
             pixel_rays.clear();
@@ -325,6 +335,9 @@ pub fn sweep_depth_with(
             kernels::pixel_costs(isa, ref_census[y * w + x], &pixel_rays, &views, &rhos32, COST_MAX, cost_px);
         }
     });
+    if cancel::requested() {
+        return Ok(out);
+    }
     let step = rhos[1] - rhos[0];
     // Each pixel's summed costs are complete when the backward pass leaves it: the winner is
     // chosen there, so the sums are never written back and read again.

@@ -1648,6 +1648,10 @@ fn refine(p: &Params, x: &mut [f32], planes: &[u8], sparse: &[f32], sky: &[u8], 
     // (a subnormal sample's 1 / z), and 0 times it is NaN.
     let mut moved = None;
     for _ in 0..p.refine_iterations {
+        // A cancellation point: the caller turns the stop into an error (see `dist4d_types::cancel`).
+        if dist4d_types::cancel::requested() {
+            break;
+        }
         let pq = system.next_direction(&mut dir, &r, beta, &mut q, (&mut u, moved.unwrap_or(0.0)));
         moved = None;
         if !(pq > 0.0) || rr <= 0.0 {
@@ -1922,6 +1926,8 @@ impl Stage for CompleteDepth {
             return worker_completion(ctx, &self.0, &self.1, &i);
         }
         let c = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, i.sky.as_ref(), ctx.wants("support"))?;
+        // The refinement stops early on a stop request: its partial result is not kept.
+        dist4d_types::cancel::check()?;
         Ok(Outputs { depth: c.depth, support: c.support })
     }
 }

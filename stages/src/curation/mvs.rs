@@ -190,12 +190,17 @@ pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap,
     let refs: Vec<&StereoView> = sources.iter().collect();
     let mut buffers = SweepBuffers::default();
     let mut depth = sweep_depth_with(&mut buffers, &reference, &refs, &sweep).map_err(|e| params.too_large(e))?;
+    dist4d_types::cancel::check()?;
     // Each neighbour, matched back against the target alone, checks the depths it sees; one
     // confirmation keeps a depth. (Checking only the longest baseline lost what that neighbour
     // does not see: the side of a side camera's image that the other frame has left behind.)
     let backs: Vec<StereoDepth> = sources
         .iter()
-        .map(|s| sweep_depth_with(&mut buffers, s, &[&reference], &sweep).map_err(|e| params.too_large(e)))
+        .map(|s| {
+            let back = sweep_depth_with(&mut buffers, s, &[&reference], &sweep).map_err(|e| params.too_large(e))?;
+            dist4d_types::cancel::check()?;
+            Ok(back)
+        })
         .collect::<Result<_>>()?;
     let checks: Vec<(&StereoView, &StereoDepth)> = sources.iter().zip(&backs).collect();
     keep_consistent(&reference, &mut depth, &checks, params.consistency_px, params.consistency_depth);

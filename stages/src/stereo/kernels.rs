@@ -292,6 +292,10 @@ mod portable {
             let mut left = vec![0u16; n];
             let mut here = vec![0u16; n];
             for yi in 0..h {
+                // A cancellation point (see `sweep_depth_with`): one relaxed load per row.
+                if dist4d_types::cancel::requested() {
+                    return;
+                }
                 let y = if backward { h - 1 - yi } else { yi };
                 let mut left_min = 0u16;
                 for xi in 0..w {
@@ -451,6 +455,10 @@ unsafe fn scanline_passes<const PAD: usize>(
         let mut left = PathRows::<PAD>::new(1, n);
         let mut here = PathRows::<PAD>::new(1, n);
         for yi in 0..h {
+            // A cancellation point (see `sweep_depth_with`): one relaxed load per row.
+            if dist4d_types::cancel::requested() {
+                return;
+            }
             let y = if backward { h - 1 - yi } else { yi };
             let mut left_min = 0u16;
             for xi in 0..w {

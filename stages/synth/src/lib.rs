@@ -224,7 +224,9 @@ impl Renderer {
     ) -> Result<Vec<u8>> {
         let w = self.worlds.get(scene as usize).with_context(|| format!("no scene {scene}"))?;
         let t = (timestamp_us - writer::scene_start_us(scene)) as f64 * 1e-6;
-        Ok(Snapshot::new(w, t).occupancy(ego_to_world, min, voxel, dims, samples))
+        let grid = Snapshot::new(w, t).occupancy(ego_to_world, min, voxel, dims, samples);
+        dist4d_types::cancel::check()?;
+        Ok(grid)
     }
 
     /// Like [`Renderer::render`] with a nuScenes timestamp (microseconds).

@@ -112,6 +112,11 @@ impl<'w> Snapshot<'w> {
         let columns: Vec<Vec<u8>> = (0..nx * ny)
             .into_par_iter()
             .map(|c| {
+                // A cancellation point per column: the caller turns a stop into an error and
+                // discards the grid (see `dist4d_types::cancel`).
+                if dist4d_types::cancel::requested() {
+                    return vec![0u8; nz];
+                }
                 let (i, j) = (c / ny, c % ny);
                 let corner = min + DVec3::new(i as f64 * voxel, j as f64 * voxel, 0.0);
                 // The primitives that may reach the column: those binned where its corners are.

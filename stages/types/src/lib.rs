@@ -3,6 +3,7 @@
 //! as, and the deterministic random numbers every module draws from.
 
 pub mod artifact;
+pub mod cancel;
 pub mod deflate_rle;
 pub mod formats;
 pub mod geometry;
