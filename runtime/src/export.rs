@@ -506,6 +506,41 @@ impl ExportJob {
     }
 }
 
+/// The error of a run of `pipeline` into a folder that pipeline `owner` owns.
+fn owned_by_another(dir: &Path, owner: &str, pipeline: &str) -> anyhow::Error {
+    anyhow::anyhow!(
+        "{} holds the exports of pipeline `{owner}` (see {}); pipeline `{pipeline}` will not overwrite them: give it \
+         its own --out (by default each pipeline exports to out/<its name>/ beside its file), or remove that folder",
+        dir.display(),
+        dir.join(MANIFEST).display()
+    )
+}
+
+/// Writes `manifest` as the first manifest of the new folder `dir`, unless another process wrote
+/// one first: then that one is returned. Written whole to `tmp`, then hard-linked to its name
+/// (link(2) never replaces a file, on NFS too), so exactly one of several racing runs claims it.
+fn claim_new(manifest: &Manifest, dir: &Path, tmp: &Path) -> Result<Option<Manifest>> {
+    let whole = std::fs::File::create(tmp).and_then(|mut f| {
+        use std::io::Write;
+        f.write_all(manifest.text(&[]).as_bytes())?;
+        f.sync_all()
+    });
+    whole.with_context(|| format!("writing {}", tmp.display()))?;
+    let linked = std::fs::hard_link(tmp, dir.join(MANIFEST));
+    let _ = std::fs::remove_file(tmp);
+    match linked {
+        Ok(()) => {
+            std::fs::File::open(dir).and_then(|d| d.sync_all()).ok();
+            Ok(None)
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+            let theirs = Manifest::read(dir)?.with_context(|| format!("{} vanished", dir.join(MANIFEST).display()))?;
+            Ok(Some(theirs))
+        }
+        Err(e) => Err(e).with_context(|| format!("claiming {} with {}", dir.display(), dir.join(MANIFEST).display())),
+    }
+}
+
 impl Exporter {
     /// Opens `dir` for the exports of pipeline `pipeline`. Refuses a folder that another pipeline
     /// owns, or one that holds files but no manifest (it was not made by dist4d), before anything
@@ -521,19 +556,15 @@ impl Exporter {
         dims: &[Dim],
         shard: Option<(u32, u32)>,
     ) -> Result<Exporter> {
-        let mut manifest = match Manifest::read(dir)? {
+        let found = Manifest::read(dir)?;
+        let new_folder = found.is_none();
+        let mut manifest = match found {
             Some(m) => match &m.owner {
                 None => {
                     adopt_legacy(dir, pipeline, stages)?;
                     m
                 }
-                Some(owner) if owner != pipeline => bail!(
-                    "{} holds the exports of pipeline `{owner}` (see {}); pipeline `{pipeline}` will not \
-                     overwrite them: give it its own --out (by default each pipeline exports to out/<its name>/ \
-                     beside its file), or remove that folder",
-                    dir.display(),
-                    dir.join(MANIFEST).display()
-                ),
+                Some(owner) if owner != pipeline => return Err(owned_by_another(dir, owner, pipeline)),
                 _ => m,
             },
             None => {
@@ -566,7 +597,22 @@ impl Exporter {
         if manifest.owner.as_deref() != Some(pipeline) {
             manifest.owner = Some(pipeline.to_string());
             counter += 1;
-            manifest.write(dir, &dir.join(TMP).join(format!("{writer}-manifest{counter}")))?;
+            let tmp = dir.join(TMP).join(format!("{writer}-manifest{counter}"));
+            if new_folder {
+                // Two runs that both found no manifest must not both take the folder: the claim
+                // is a hard link, which fails when the manifest exists, where a rename replaces
+                // it. The loser reads the winner's manifest: a run of the same pipeline (a shard)
+                // goes on, another pipeline is refused before it exports anything.
+                match claim_new(&manifest, dir, &tmp)? {
+                    None => {}
+                    Some(theirs) => match theirs.owner {
+                        Some(owner) if owner != pipeline => return Err(owned_by_another(dir, &owner, pipeline)),
+                        _ => manifest = Manifest { owner: Some(pipeline.to_string()), ..theirs },
+                    },
+                }
+            } else {
+                manifest.write(dir, &tmp)?;
+            }
         }
         Ok(Exporter {
             folder: Arc::new(OutputFolder::new(dir, dims, manifest)),
@@ -920,6 +966,51 @@ pub fn verify(dir: &Path) -> Result<VerifyReport> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn of_runs_racing_for_a_new_folder_exactly_one_pipeline_claims_it() {
+        // Two pipelines started together on a new --out used to both go on in 11 of 20 tries (the
+        // later manifest rename won; both exported). Racing 8 at once, 20 times: one pipeline wins
+        // each time; runs of the winning pipeline (shards) may all go on.
+        for round in 0..20 {
+            let dir = tempfile::tempdir().unwrap();
+            let (out, store) = (dir.path().join("out"), dir.path().join("store"));
+            let barrier = std::sync::Barrier::new(8);
+            let results: Vec<(String, Result<Exporter>)> = std::thread::scope(|scope| {
+                let handles: Vec<_> = (0..8)
+                    .map(|i| {
+                        let (out, store, barrier) = (&out, &store, &barrier);
+                        scope.spawn(move || {
+                            let s = Store::open(store, crate::Access::Shared).unwrap();
+                            // Runs 0-3 are four pipelines, 4-7 shards of pipeline p0.
+                            let name = format!("p{}", if i < 4 { i } else { 0 });
+                            barrier.wait();
+                            let opened = Exporter::open(out, &s, &name, &[], &[], None);
+                            (name, opened)
+                        })
+                    })
+                    .collect();
+                handles.into_iter().map(|h| h.join().unwrap()).collect()
+            });
+            let won: std::collections::BTreeSet<&str> =
+                results.iter().filter(|(_, r)| r.is_ok()).map(|(n, _)| n.as_str()).collect();
+            assert_eq!(won.len(), 1, "round {round}: {won:?}");
+            let owner = Manifest::read(&out).unwrap().unwrap().owner.unwrap();
+            assert_eq!(won.iter().next().unwrap(), &owner.as_str(), "round {round}");
+            for (name, r) in &results {
+                match r {
+                    Ok(_) => assert_eq!(name, &owner),
+                    Err(e) => {
+                        let e = format!("{e:#}");
+                        assert!(e.contains(&format!("holds the exports of pipeline `{owner}`")), "round {round}: {e}");
+                    }
+                }
+            }
+            // Every run of the owner went on, shards included.
+            let owners = results.iter().filter(|(n, _)| n == &owner).count();
+            assert_eq!(results.iter().filter(|(_, r)| r.is_ok()).count(), owners, "round {round}");
+        }
+    }
 
     #[test]
     fn only_plain_names_are_path_components() {
