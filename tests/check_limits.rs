@@ -267,3 +267,31 @@ fn a_pipeline_name_and_export_paths_are_plain_path_names() {
     let o = dist4d(&["check", bom.to_str().unwrap()]);
     assert!(o.status.success(), "{}", text(&o));
 }
+
+#[test]
+fn inputs_a_stage_pairs_by_position_must_select_the_same_items() {
+    // MultiViewStereo pairs each image with the calibration and pose at its position: images
+    // over -1..999999 beside calibrations over -1..1 passed check and failed every task.
+    let dir = tempfile::tempdir().unwrap();
+    let from = r#""images": Window("dataset.image", frame, -1, 1),"#;
+    let to = r#""images": Window("dataset.image", frame, -1, 999999),"#;
+    let path = curation_with(dir.path(), "mvs.ron", from, to);
+    let o = dist4d(&["check", path.to_str().unwrap()]);
+    let out = assert_refused(&o);
+    assert!(
+        out.contains(
+            "input `calibs` of stage `mvs` selects Window(frame, -1, 1) but `images` selects Window(frame, -1, 999999): \
+             MultiViewStereo pairs `images`, `calibs`, `poses` up by position"
+        ),
+        "{out}"
+    );
+    assert!(out.contains("input `poses` of stage `mvs`"), "every mismatch is reported: {out}");
+    // The line of the first mismatched input.
+    assert!(out.contains(&position(&path, r#"Window("dataset.camera_calib", frame, -1, 1)"#)), "{out}");
+    // The shipped pipelines pass.
+    for p in std::fs::read_dir(repo().join("pipelines")).unwrap() {
+        let p = p.unwrap().path();
+        let o = dist4d(&["check", p.to_str().unwrap()]);
+        assert!(o.status.success(), "{}: {}", p.display(), text(&o));
+    }
+}

@@ -69,6 +69,11 @@ pub struct StageSchema {
     /// at it (an index of training clips): each must be the path template of one of the
     /// pipeline's exports, so the two cannot drift apart.
     pub export_template_params: Vec<&'static str>,
+    /// Groups of `Many` input ports the stage pairs up by position (images with their
+    /// calibrations and poses): every wired port of a group must have the same selector, or some
+    /// positions of one have no partner in the others and the task fails at run time. Checked when
+    /// the pipeline is loaded.
+    pub aligned_inputs: Vec<&'static [&'static str]>,
     /// For a stage that runs once per variant of its params (e.g. a training pair per frame
     /// offset), how to split checked params into the variants: such a stage runs per `variant`,
     /// the dimension [`VARIANT_DIM`] the pipeline then gets under the dataset's innermost one.

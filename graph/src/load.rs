@@ -461,6 +461,7 @@ impl<'c> Checker<'c> {
         }
 
         self.variant_inputs(&nodes, &declared);
+        self.aligned_inputs(&nodes, &declared, dims.as_deref());
 
         let order = self.order(&nodes, &declared)?;
         let exports = match (root.field("export"), dims.as_deref()) {
@@ -470,6 +471,42 @@ impl<'c> Checker<'c> {
         self.export_template_params(root, &nodes, &exports);
         let (decl, _, _) = dataset?;
         Some(Pipeline { name, path, dataset: decl?, dims: dims?, nodes, order, exports, variants })
+    }
+
+    /// Inputs a stage pairs up by position must select the same items: `images` over frames
+    /// -1..999999 beside `calibs` over -1..1 passes every other check and fails each task at run
+    /// time.
+    fn aligned_inputs(&mut self, nodes: &[Node], declared: &[Declared], dims: Option<&[Dim]>) {
+        for d in declared {
+            let Some(stage) = nodes[d.node].stage() else { continue };
+            let Some(schema) = self.catalog.stage(&stage.kind) else { continue };
+            let Some(ValueKind::Map(entries)) = d.inputs.map(|v| &v.kind) else { continue };
+            for group in &schema.aligned_inputs {
+                let wired: Vec<(&Input, Span)> = group
+                    .iter()
+                    .filter_map(|port| {
+                        let input = stage.inputs.iter().find(|i| i.port == *port)?;
+                        let span = entries.iter().find(|(k, _)| k.as_str() == Some(port))?.1.span;
+                        Some((input, span))
+                    })
+                    .collect();
+                let Some((first, _)) = wired.first() else { continue };
+                for (other, span) in wired.iter().skip(1).filter(|(i, _)| i.selector != first.selector) {
+                    let message = format!(
+                        "input `{}` of stage `{}` selects {} but `{}` selects {}: {} pairs {} up by position, so they \
+                         must select the same items",
+                        other.port,
+                        nodes[d.node].name,
+                        describe_selector(other.selector, dims),
+                        first.port,
+                        describe_selector(first.selector, dims),
+                        stage.kind,
+                        group.iter().map(|p| format!("`{p}`")).collect::<Vec<_>>().join(", ")
+                    );
+                    self.err(Diagnostic::error(message, *span).with_label("not the same items"));
+                }
+            }
+        }
     }
 
     /// Params that say where an export writes (a clip index's paths) must be one of the
@@ -1409,4 +1446,19 @@ fn describe_ports(ports: &[crate::catalog::PortSpec]) -> String {
         })
         .collect::<Vec<_>>()
         .join(", ")
+}
+
+/// A selector as a pipeline file writes it (`Window(frame, -1, 1)`).
+fn describe_selector(s: Selector, dims: Option<&[Dim]>) -> String {
+    let name =
+        |dim: usize| dims.and_then(|d| d.get(dim)).map_or_else(|| format!("dimension {dim}"), |d| d.name.clone());
+    match s {
+        Selector::Same => "the same item".into(),
+        Selector::Window { dim, before, after } => format!("Window({}, {before}, {after})", name(dim)),
+        Selector::Offset { dim, by } => format!("Offset({}, {by})", name(dim)),
+        Selector::Gather { dim } => format!("Gather({})", name(dim)),
+        Selector::All => "the whole scene".into(),
+        Selector::VariantOffset { dim } => format!("the variant's offset along {}", name(dim)),
+        Selector::Across { dim } => format!("Across({})", name(dim)),
+    }
 }

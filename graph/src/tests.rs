@@ -120,6 +120,7 @@ fn stage(
         params,
         seeded: false,
         export_template_params: vec![],
+        aligned_inputs: vec![],
         variants: None,
     }
 }

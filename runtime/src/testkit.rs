@@ -137,6 +137,7 @@ fn kind(kind: &'static str, inputs: Vec<PortSpec>, outputs: Vec<PortSpec>, grain
         params: ParamsSpec::of::<EchoParams>(),
         seeded: false,
         export_template_params: vec![],
+        aligned_inputs: vec![],
         variants: None,
     }
 }

@@ -43,6 +43,10 @@ pub trait Stage: Sized + Send + Sync + 'static {
     /// Params that must be the path template of one of the pipeline's exports (see
     /// [`dist4d_graph::StageSchema::export_template_params`]).
     const EXPORT_TEMPLATE_PARAMS: &'static [&'static str] = &[];
+    /// Groups of `Many` inputs the stage pairs up by position (see
+    /// [`dist4d_graph::StageSchema::aligned_inputs`]): a pipeline that selects them differently
+    /// is refused by `check`.
+    const ALIGNED_INPUTS: &'static [&'static [&'static str]] = &[];
     /// Stages that run once per variant of their params (a pair per frame offset, a novel view
     /// per lateral shift) say so, and split their params in [`Stage::variants`]: they run per
     /// `variant`, and [`Stage::run`] finds its variant with [`variant_of`].
@@ -312,6 +316,7 @@ impl StageDef {
                 params: ParamsSpec::of::<S::Params>(),
                 seeded: S::SEEDED,
                 export_template_params: S::EXPORT_TEMPLATE_PARAMS.to_vec(),
+                aligned_inputs: S::ALIGNED_INPUTS.to_vec(),
                 variants: S::VARIANTS.then_some(|p: &ParamsValue| p.get::<S::Params>().and_then(S::variants)),
             },
             build: Box::new(|checked, wired| {

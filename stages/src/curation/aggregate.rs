@@ -197,6 +197,7 @@ impl Stage for AggregateLidar {
     const SUMMARY: &'static str =
         "LiDAR sweeps of a window of frames -> one static-scene cloud in the target frame's LiDAR frame";
     const GRAINS: &'static [&'static str] = &["frame"];
+    const ALIGNED_INPUTS: &'static [&'static [&'static str]] = &[&["sweeps", "calibs", "poses", "boxes"]];
     const SEEDED: bool = true;
     type Params = Params;
     type Inputs = Inputs;

@@ -236,6 +236,7 @@ impl Stage for MultiViewStereo {
     const SUMMARY: &'static str =
         "Camera images of a window of frames -> depth of the target image by plane-sweep stereo + SGM";
     const GRAINS: &'static [&'static str] = &["camera"];
+    const ALIGNED_INPUTS: &'static [&'static [&'static str]] = &[&["images", "calibs", "poses"]];
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;

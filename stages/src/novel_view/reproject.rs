@@ -73,6 +73,7 @@ impl Stage for Reproject {
     const SUMMARY: &'static str =
         "RGB-D of one or more cameras/frames drawn into a target camera with footprint splats and a soft z-buffer";
     const GRAINS: &'static [&'static str] = &["camera", "variant", "frame", "scene"];
+    const ALIGNED_INPUTS: &'static [&'static [&'static str]] = &[&["images", "depths", "calibs", "poses"]];
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;

@@ -69,6 +69,7 @@ impl Stage for Occ3dAnnotations {
     const VERSION: u32 = 1;
     const SUMMARY: &'static str = "a scene's part of Occ3D's annotations.json: frames, cameras, poses, gt paths, prev/next";
     const GRAINS: &'static [&'static str] = &["scene"];
+    const ALIGNED_INPUTS: &'static [&'static [&'static str]] = &[&["tokens", "poses"]];
     const EXPORT_TEMPLATE_PARAMS: &'static [&'static str] = &["gt_path"];
     type Params = Params;
     type Inputs = Inputs;

@@ -87,6 +87,7 @@ impl Stage for ExactOccupancy {
     const VERSION: u32 = 2;
     const SUMMARY: &'static str = "a synthetic world's exact semantic occupancy of a frame (the occupancy reference)";
     const GRAINS: &'static [&'static str] = &["frame"];
+    const ALIGNED_INPUTS: &'static [&'static [&'static str]] = &[&["camera_calibs", "camera_poses"]];
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;

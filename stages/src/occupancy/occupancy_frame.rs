@@ -102,6 +102,7 @@ impl Stage for Occupancy {
     const SUMMARY: &'static str =
         "a frame's semantic occupancy (Occ3D): the scene's static points and tracks voxelized, LiDAR and camera visibility";
     const GRAINS: &'static [&'static str] = &["frame"];
+    const ALIGNED_INPUTS: &'static [&'static [&'static str]] = &[&["camera_calibs", "camera_poses"]];
     type Params = Params;
     type Inputs = Inputs;
     type Outputs = Outputs;
