@@ -434,6 +434,9 @@ fn execute(
 ) -> Result<(ExitCode, dist4d_runtime::RunRecord)> {
     let dataset = registry.open_dataset(pipeline)?;
     let ops = registry.operators(pipeline)?;
+    if let Some(warning) = memory_warning(pipeline, &ops, opts.jobs, machine_memory()) {
+        eprintln!("{warning}");
+    }
     let store = Store::open(cache, Access::Shared).with_context(|| format!("opening the store {}", cache.display()))?;
     let stopped_by = stop_on_signals(opts.cancel.clone())?;
     let engine = Engine { pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
@@ -503,6 +506,41 @@ fn printable(s: &str) -> String {
     s.chars()
         .map(|c| if c.is_control() && c != '\n' { c.escape_default().to_string() } else { c.to_string() })
         .collect()
+}
+
+/// A warning when `jobs` tasks of the stage with the largest bounded peak (see
+/// `Operator::peak_memory`) could together need more than `memory` bytes: each task keeps to its
+/// budget, but `--jobs` of them run at once.
+fn memory_warning(
+    pipeline: &Pipeline,
+    ops: &[Option<Box<dyn dist4d_runtime::Operator>>],
+    jobs: usize,
+    memory: Option<u64>,
+) -> Option<String> {
+    let memory = memory?;
+    let (node, peak) =
+        ops.iter().enumerate().filter_map(|(n, op)| Some((n, op.as_ref()?.peak_memory()?))).max_by_key(|(_, p)| *p)?;
+    let need = peak.saturating_mul(jobs as u64);
+    let gib = |b: u64| format!("{:.1} GiB", b as f64 / (1u64 << 30) as f64);
+    (need > memory).then(|| {
+        format!(
+            "warning: --jobs {jobs} x {} per task of stage `{}` = {}, more than this machine's {} of memory: a run \
+             whose tasks of that stage meet at their peak would be killed by the kernel; lower --jobs to {}",
+            gib(peak),
+            pipeline.nodes[node].name,
+            gib(need),
+            gib(memory),
+            (memory / peak).max(1)
+        )
+    })
+}
+
+/// The machine's memory (MemTotal of /proc/meminfo), if it can be read.
+fn machine_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    let kib: u64 =
+        text.lines().find_map(|l| l.strip_prefix("MemTotal:"))?.trim().trim_end_matches("kB").trim().parse().ok()?;
+    Some(kib * 1024)
 }
 
 /// Stops a run cleanly on SIGINT (Ctrl-C), SIGTERM (what Slurm, systemd and `kill` send before

@@ -328,3 +328,46 @@ fn sigterm_stops_a_run_inside_a_long_task_within_seconds() {
     let run = last_run(&cache);
     assert_eq!(run["status"], "interrupted", "{run}");
 }
+
+#[test]
+fn jobs_times_the_mvs_budget_beyond_the_machine_s_memory_is_warned_about() {
+    let (tmp, root) = synthetic();
+    let meminfo = std::fs::read_to_string("/proc/meminfo").unwrap();
+    let kib: u64 = meminfo
+        .lines()
+        .find_map(|l| l.strip_prefix("MemTotal:"))
+        .unwrap()
+        .trim()
+        .trim_end_matches("kB")
+        .trim()
+        .parse()
+        .unwrap();
+    let over = (kib * 1024 / (4 << 30) + 1).min(1024);
+    let p = repo().join("pipelines/curation.ron");
+    let set_root = format!("dataset.root={}", root.display());
+    for (jobs, warned) in [(over, true), (1, false)] {
+        let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
+        let jobs = jobs.to_string();
+        let o = dist4d_within(
+            &[
+                "run",
+                p.to_str().unwrap(),
+                "--progress",
+                "off",
+                "--jobs",
+                &jobs,
+                "--set",
+                &set_root,
+                "--cache",
+                cache.to_str().unwrap(),
+                "--out",
+                out.to_str().unwrap(),
+            ],
+            Duration::from_secs(120),
+        );
+        let t = text(&o);
+        assert!(o.status.success(), "{t}");
+        let expected = format!("warning: --jobs {jobs} x 4.0 GiB per task of stage `mvs`");
+        assert_eq!(t.contains(&expected), warned, "{t}");
+    }
+}

@@ -124,6 +124,11 @@ pub trait Operator: Send + Sync {
     fn resource(&self) -> Option<Resource> {
         None
     }
+    /// The most memory (bytes) one task of this operator holds at once, when the operator bounds
+    /// it (a task refuses work that would need more): what a run checks `--jobs` against.
+    fn peak_memory(&self) -> Option<u64> {
+        None
+    }
 }
 
 /// An external resource tasks wait on: its name (operators naming the same one share its

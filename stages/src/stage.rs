@@ -64,6 +64,11 @@ pub trait Stage: Sized + Send + Sync + 'static {
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         None
     }
+    /// The most memory one task holds, when the stage bounds it (see
+    /// [`dist4d_runtime::Operator::peak_memory`]).
+    fn peak_memory(&self) -> Option<u64> {
+        None
+    }
     /// The params split into the shared part and the variants, in label order (see
     /// [`dist4d_graph::Variants::split`]); only called when [`Stage::VARIANTS`] is set.
     fn variants(_params: &Self::Params) -> Option<dist4d_graph::Variants> {
@@ -369,6 +374,9 @@ impl<S: Stage> Operator for StageOp<S> {
     }
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         self.stage.resource()
+    }
+    fn peak_memory(&self) -> Option<u64> {
+        self.stage.peak_memory()
     }
 }
 

@@ -133,9 +133,12 @@ pub struct SweepParams {
 
 /// Bytes a sweep of `width` x `height` pixels over `planes` planes holds at its peak: the
 /// census cost volume (1 byte per pixel and plane) and the aggregated costs (2 bytes), alive
-/// together during the aggregation. Rows, census images and maps are small beside them.
+/// together during the aggregation, and the aggregation's path rows (3 directions x 2 rows of
+/// u16 per plane and pixel of a row, with up to 32 planes of vector padding).
 pub fn volume_bytes(width: usize, height: usize, planes: usize) -> u64 {
-    (width as u64).saturating_mul(height as u64).saturating_mul(planes as u64).saturating_mul(3)
+    let (w, h, n) = (width as u64, height as u64, planes as u64);
+    let volume = w.saturating_mul(h).saturating_mul(n).saturating_mul(3);
+    volume.saturating_add(w.saturating_mul(n + 32).saturating_mul(12))
 }
 
 /// A sweep refused because its cost volume exceeds [`SweepParams::max_volume_bytes`].
@@ -152,7 +155,8 @@ impl std::fmt::Display for VolumeTooLarge {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(
             f,
-            "the stereo cost volume would need {} ({} x {} pixels x {} planes x 3 bytes), over the budget of {}",
+            "the stereo cost volume would need {} ({} x {} pixels x {} planes x 3 bytes, and its aggregation's \
+             rows), over the budget of {}",
             gib(self.bytes),
             self.width,
             self.height,
@@ -618,7 +622,7 @@ pub(crate) mod tests {
         // A plane every 0.01 px: the plane count reaches max_planes.
         let dense = SweepParams { plane_step_px: 0.01, max_planes: 1024, ..params() };
         let need = volume_bytes(w, h, 1024);
-        assert_eq!(need, 160 * 120 * 1024 * 3);
+        assert_eq!(need, 160 * 120 * 1024 * 3 + 160 * (1024 + 32) * 12, "the volume and the path rows");
         let e = sweep_depth(&reference, &[&left], &SweepParams { max_volume_bytes: need - 1, ..dense.clone() })
             .unwrap_err();
         assert_eq!((e.width, e.height, e.planes, e.bytes), (w, h, 1024, need));

@@ -73,10 +73,28 @@ impl Default for Params {
     }
 }
 
-/// Memory one MVS task may give its cost volume (see [`crate::stereo::volume_bytes`]). The
-/// defaults need 69 MB for a 1600x900 camera (400 x 225 x 256 planes x 3 bytes); full resolution
-/// with 256 planes needs 1.1 GB. Tasks run in parallel (`--jobs`), each within this budget.
+/// Memory one MVS task may hold at its peak: its cost volume and aggregation (see
+/// [`crate::stereo::volume_bytes`]), and the working images, census transforms and depth maps of
+/// its frames ([`frame_bytes`]). The defaults need 69 MB for a 1600x900 camera (400 x 225 x 256
+/// planes x 3 bytes); full resolution with 256 planes needs 1.1 GB. Measured: 990 planes at
+/// 1600x900 (over this budget now) peaked at 4.35 GB resident for the whole process; 960 planes
+/// (within it) at the figure in docs/BENCHMARKS.md. Tasks run in parallel (`--jobs`), each within
+/// this budget: a run warns when `--jobs` times it exceeds the machine's memory.
 pub const MAX_COST_VOLUME_BYTES: u64 = 4 << 30;
+
+/// What a task holds besides its sweep's volume: per frame of the window the working grey
+/// image and its census (1 + 8 bytes per working pixel) and a depth and confidence map (8
+/// bytes), and the full-resolution grey image made while downscaling (1 byte per pixel).
+fn frame_bytes(frames: &[Frame], downscale: u32) -> u64 {
+    let d = downscale.max(1) as u64;
+    frames
+        .iter()
+        .map(|f| {
+            let (w, h) = (f.calib.width as u64, f.calib.height as u64);
+            w.div_ceil(d) * h.div_ceil(d) * 17 + w * h
+        })
+        .sum()
+}
 
 /// Most neighbouring frames one target is matched against: the cost of a plane sums one census
 /// comparison per neighbour (in 8 bits of count), and the DiST-4D window is t-1..t+1.
@@ -131,10 +149,19 @@ impl Params {
     }
 
     /// A refused sweep, said with the params that size it.
-    fn too_large(&self, e: VolumeTooLarge) -> anyhow::Error {
+    fn too_large(&self, e: VolumeTooLarge, frames: u64) -> anyhow::Error {
+        let gib = |b: u64| format!("{:.1} GiB", b as f64 / (1u64 << 30) as f64);
         anyhow!(
-            "{e} per MultiViewStereo task: raise `downscale` (now {}), or lower `max_planes` (now {}) or raise \
-             `plane_step_px` (now {})",
+            "a MultiViewStereo task would need {}: its cost volume {} ({} x {} pixels x {} planes x 3 bytes, and the \
+             aggregation's rows) and its frames' images and maps {}, over the budget of {} per task: raise \
+             `downscale` (now {}), or lower `max_planes` (now {}) or raise `plane_step_px` (now {})",
+            gib(e.bytes + frames),
+            gib(e.bytes),
+            e.width,
+            e.height,
+            e.planes,
+            gib(frames),
+            gib(MAX_COST_VOLUME_BYTES),
             self.downscale,
             self.max_planes,
             self.plane_step_px
@@ -186,10 +213,12 @@ pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap,
     let reference = view(target, params.downscale)?;
     let sources =
         frames.iter().filter(|f| f.position != 0).map(|f| view(f, params.downscale)).collect::<Result<Vec<_>>>()?;
-    let sweep = params.sweep();
+    let mut sweep = params.sweep();
+    let held = frame_bytes(frames, params.downscale);
+    sweep.max_volume_bytes = MAX_COST_VOLUME_BYTES.saturating_sub(held);
     let refs: Vec<&StereoView> = sources.iter().collect();
     let mut buffers = SweepBuffers::default();
-    let mut depth = sweep_depth_with(&mut buffers, &reference, &refs, &sweep).map_err(|e| params.too_large(e))?;
+    let mut depth = sweep_depth_with(&mut buffers, &reference, &refs, &sweep).map_err(|e| params.too_large(e, held))?;
     dist4d_types::cancel::check()?;
     // Each neighbour, matched back against the target alone, checks the depths it sees; one
     // confirmation keeps a depth. (Checking only the longest baseline lost what that neighbour
@@ -197,7 +226,7 @@ pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap,
     let backs: Vec<StereoDepth> = sources
         .iter()
         .map(|s| {
-            let back = sweep_depth_with(&mut buffers, s, &[&reference], &sweep).map_err(|e| params.too_large(e))?;
+            let back = sweep_depth_with(&mut buffers, s, &[&reference], &sweep).map_err(|e| params.too_large(e, held))?;
             dist4d_types::cancel::check()?;
             Ok(back)
         })
@@ -242,6 +271,9 @@ impl Stage for MultiViewStereo {
     type Outputs = Outputs;
     fn new(params: Params) -> Result<Self> {
         Ok(MultiViewStereo(params))
+    }
+    fn peak_memory(&self) -> Option<u64> {
+        Some(MAX_COST_VOLUME_BYTES)
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let mut frames = Vec::new();
@@ -349,8 +381,11 @@ mod tests {
             data.iter().map(|(p, (i, c, q))| Frame { position: *p, image: i, calib: c, pose: q }).collect();
         let params = Params { downscale: 1, max_planes: 1024, plane_step_px: 0.01, ..Params::default() };
         let e = multi_view_stereo(&params, &frames).unwrap_err().to_string();
-        assert!(e.contains("would need 4.1 GiB (1600 x 900 pixels x 1024 planes x 3 bytes)"), "{e}");
-        assert!(e.contains("over the budget of 4.0 GiB per MultiViewStereo task"), "{e}");
+        assert!(
+            e.contains("a MultiViewStereo task would need 4.2 GiB: its cost volume 4.1 GiB (1600 x 900 pixels x 1024 planes x 3 bytes"),
+            "{e}"
+        );
+        assert!(e.contains("its frames' images and maps 0.1 GiB, over the budget of 4.0 GiB per task"), "{e}");
         assert!(e.contains("raise `downscale` (now 1), or lower `max_planes` (now 1024)"), "{e}");
         assert!(e.contains("`plane_step_px` (now 0.01)"), "{e}");
         // What the message suggests, half the resolution, fits.
