@@ -435,7 +435,9 @@ impl<'a> Engine<'a> {
             failures: vec![Failure { stage: "-".into(), item: "-".into(), error: format!("the run stopped: {e:#}") }],
             ..u.record
         };
-        if let Err(w) = runs::write_run(self.store, &record) {
+        // A full disk may have no room for a new file even now: the record it started then
+        // takes the update in place.
+        if let Err(w) = runs::write_run(self.store, &record).or_else(|_| runs::overwrite_run(self.store, &record)) {
             eprintln!("warning: the run's record could not be updated ({w:#}): `dist4d runs` will show it as killed");
         }
     }
@@ -767,7 +769,7 @@ impl<'a> Engine<'a> {
             None => 0,
         };
         self.store.sync()?;
-        keys_out.flush()?;
+        keys_out.flush().with_context(|| format!("writing {}", keys_tmp.display()))?;
         drop(keys_out);
         std::fs::rename(&keys_tmp, runs::keys_path(self.store, &run_id))
             .with_context(|| "saving the run's task keys")?;
@@ -1137,7 +1139,7 @@ impl Coord {
             }
             Outcome::Executed(key, produced, _, record) => (key, produced, record),
         };
-        self.keys_out.write_all(&key.0)?;
+        self.keys_out.write_all(&key.0).context("writing the run's task keys")?;
         self.store_outputs(e, slot, t, produced, record);
         Ok(())
     }
