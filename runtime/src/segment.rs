@@ -9,7 +9,8 @@
 //! A segment begins with `D4SEG` and a two-digit format version (`D4SEG01\n`). A segment of a
 //! later version was written by a newer dist4d: readers say so ([`Header::Newer`]) instead of
 //! taking it for an empty or foreign file, so that a store is never silently recomputed, nor its
-//! newer records deleted by gc.
+//! newer records deleted by gc. One flipped bit in `D4SEG` or the newline (not in the version) is
+//! damage to one of ours: it is read as ours.
 //!
 //! An entry that fails its checksum in the middle of a segment (a flipped bit, a bad sector)
 //! costs that entry only: a full read ([`Segment::entries`]) scans on from it for the next
@@ -33,6 +34,9 @@ pub const MAX_ENTRY: u32 = 64 << 20;
 pub enum Header {
     /// Ours: its entries can be read.
     Current,
+    /// Ours with one bit of `D4SEG` or of the newline flipped (the version digits exact): read as
+    /// ours, reported as damage by [`Segment::check`].
+    DamagedMagic,
     /// Empty, or cut inside the magic (a writer killed before its first entry): no entries, and
     /// nothing lost by removing it.
     Torn,
@@ -52,6 +56,12 @@ impl Header {
         if bytes.len() < MAGIC.len() && MAGIC.starts_with(bytes) {
             return Header::Torn;
         }
+        if let Some(h) = bytes.get(..MAGIC.len()).filter(|h| h[5..7] == MAGIC[5..7]) {
+            let flipped: u32 = h.iter().zip(MAGIC).map(|(a, b)| (a ^ b).count_ones()).sum();
+            if flipped == 1 {
+                return Header::DamagedMagic;
+            }
+        }
         let version = bytes
             .get(..MAGIC.len())
             .filter(|h| h.starts_with(b"D4SEG") && h[7] == b'\n' && h[5..7].iter().all(u8::is_ascii_digit))
@@ -65,7 +75,7 @@ impl Header {
     /// Why a store cannot use a segment with this header, if it cannot (for messages naming the file).
     pub fn problem(&self) -> Option<String> {
         match self {
-            Header::Current | Header::Torn => None,
+            Header::Current | Header::DamagedMagic | Header::Torn => None,
             Header::Newer(v) => Some(format!(
                 "was written by a newer dist4d (segment format {v:02}; this dist4d reads format {VERSION:02})"
             )),
@@ -104,8 +114,11 @@ impl SegmentWriter {
         let mut head = [0u8; 8];
         head[..4].copy_from_slice(&(payload.len() as u32).to_le_bytes());
         head[4..].copy_from_slice(&crc32fast::hash(payload).to_le_bytes());
-        self.out.write_all(&head)?;
-        self.out.write_all(payload)?;
+        // A full buffer is written out here: an error then (a full disk) names the file.
+        self.out
+            .write_all(&head)
+            .and_then(|_| self.out.write_all(payload))
+            .with_context(|| format!("writing {}", self.path.display()))?;
         self.unflushed += 1;
         Ok(())
     }
@@ -187,7 +200,11 @@ impl Segment {
             entries += 1;
             end = Self::end_of(off, payload.len());
         }
-        Check { header: self.header(), entries, damaged: it.skipped, tail: self.bytes().len().saturating_sub(end) }
+        let mut damaged = it.skipped;
+        if self.header() == Header::DamagedMagic {
+            damaged.insert(0, (0, MAGIC.len()));
+        }
+        Check { header: self.header(), entries, damaged, tail: self.bytes().len().saturating_sub(end) }
     }
 
     /// The end of the entries read in order from the start before the first damaged one: how far
@@ -238,7 +255,8 @@ pub struct Entries<'a> {
 impl<'a> Entries<'a> {
     fn new(bytes: &'a [u8], from: usize, resync: bool) -> Entries<'a> {
         // A segment that is not ours (a newer or foreign header) has no entries we can read.
-        let pos = if Header::of(bytes) != Header::Current { bytes.len() } else { from.max(MAGIC.len()) };
+        let ours = matches!(Header::of(bytes), Header::Current | Header::DamagedMagic);
+        let pos = if ours { from.max(MAGIC.len()) } else { bytes.len() };
         Entries { bytes, pos, resync, skipped: Vec::new() }
     }
 
@@ -441,6 +459,21 @@ mod tests {
     }
 
     #[test]
+    fn a_flipped_bit_in_the_magic_loses_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, payloads) = segment_of(dir.path(), 5, 10);
+        let clean = std::fs::read(&path).unwrap();
+        for bit in (0..40).chain(56..64) {
+            let mut bytes = clean.clone();
+            bytes[bit / 8] ^= 1 << (bit % 8);
+            std::fs::write(&path, &bytes).unwrap();
+            let seg = Segment::open(&path).unwrap();
+            assert_eq!(seg.entries().count(), payloads.len(), "bit {bit}");
+            assert_eq!(seg.check().damaged, vec![(0, 8)], "bit {bit}");
+        }
+    }
+
+    #[test]
     fn headers_say_who_wrote_a_segment() {
         assert_eq!(Header::of(b"D4SEG01\n\x05"), Header::Current);
         assert_eq!(Header::of(b""), Header::Torn);
@@ -449,6 +482,11 @@ mod tests {
         assert_eq!(Header::of(b"D4SEG17\n"), Header::Newer(17));
         assert_eq!(Header::of(b"D4SEG00\n"), Header::Unknown);
         assert_eq!(Header::of(b"hello world"), Header::Unknown);
+        // One flipped bit of the magic is damage to our own segment; one in the version digits
+        // is not taken for it ('1' ^ 2 = '3': format 03 may be a newer dist4d's).
+        assert_eq!(Header::of(b"D4SGG01\n"), Header::DamagedMagic);
+        assert_eq!(Header::of(b"D4SEG01\x0b"), Header::DamagedMagic);
+        assert_eq!(Header::of(b"D4SEG03\n"), Header::Newer(3));
         assert!(Header::Newer(2)
             .problem()
             .unwrap()

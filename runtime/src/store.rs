@@ -641,7 +641,9 @@ pub fn removable_segments(dir: &Path) -> Result<Vec<PathBuf>> {
             .and_then(|f| std::io::Read::read_to_end(&mut std::io::Read::take(f, 8), &mut head))
             .with_context(|| format!("reading {}", path.display()))?;
         match crate::segment::Header::of(&head) {
-            crate::segment::Header::Current | crate::segment::Header::Torn => out.push(path),
+            crate::segment::Header::Current | crate::segment::Header::DamagedMagic | crate::segment::Header::Torn => {
+                out.push(path)
+            }
             h => eprintln!("warning: leaving {} as it is: it {}", path.display(), h.problem().unwrap_or_default()),
         }
     }
