@@ -420,8 +420,9 @@ impl Store {
     /// Reads a blob and checks its digest: a corrupt blob is removed so that it is made again.
     /// Fails with a [`BlobError`] (which the scheduler recognises, to recompute the blob), or a
     /// [`NewerBlob`] for one a newer dist4d wrote (left in place; the task needing it fails).
+    /// A store opened [`Access::ReadOnly`] leaves a corrupt blob in place (it writes nothing).
     pub fn get_blob(&self, digest: &Digest) -> Result<Vec<u8>> {
-        read_blob(&self.blob_path(digest), digest)
+        read_checked(&self.blob_path(digest), digest, !self.read_only)
     }
 
     /// Fails for a store opened [`Access::ReadOnly`].
@@ -593,6 +594,11 @@ impl Drop for Store {
 /// Reads the blob file at `path`, unpacks it and checks its digest; a corrupt one is removed
 /// ([`BlobError`]), one that a newer dist4d wrote is not ([`NewerBlob`]).
 pub fn read_blob(path: &Path, digest: &Digest) -> Result<Vec<u8>> {
+    read_checked(path, digest, true)
+}
+
+/// [`read_blob`], removing a corrupt blob only with `remove_corrupt`.
+fn read_checked(path: &Path, digest: &Digest, remove_corrupt: bool) -> Result<Vec<u8>> {
     let file = read_retrying(path)
         .map_err(|e| BlobError { digest: *digest, problem: format!("cannot be read ({}): {e}", path.display()) })?;
     match blob::unpack(file, digest) {
@@ -600,10 +606,11 @@ pub fn read_blob(path: &Path, digest: &Digest) -> Result<Vec<u8>> {
         Err(why @ blob::Unreadable::Newer { .. }) => {
             Err(NewerBlob { digest: *digest, path: path.to_path_buf(), why }.into())
         }
-        Err(why) => {
+        Err(why) if remove_corrupt => {
             let _ = fs::remove_file(path);
             Err(BlobError { digest: *digest, problem: format!("{why} and was removed ({})", path.display()) }.into())
         }
+        Err(why) => Err(BlobError { digest: *digest, problem: format!("{why} ({})", path.display()) }.into()),
     }
 }
 
@@ -1059,6 +1066,10 @@ mod tests {
         assert!(s.read_only());
         assert_eq!(s.lookup(&Digest::of(b"a")).unwrap(), record(b"a"));
         assert_eq!(s.get_blob(&Digest::of(b"hello")).unwrap(), b"hello");
+        let blob = s.blob_path(&Digest::of(b"hello"));
+        fs::write(&blob, b"jello").unwrap();
+        assert!(s.get_blob(&Digest::of(b"hello")).unwrap_err().to_string().contains("is corrupt"));
+        assert!(blob.exists(), "a reader removes nothing, not even a corrupt blob");
         assert_eq!(s.file_digest(&raw, true).unwrap(), Some(Digest::of(b"raw")));
         assert_eq!(s.file_digest(&raw, false).unwrap(), Some(Digest::of(b"raw")), "memoised in memory");
         assert!(s.put_blob(&Digest::of(b"x"), b"x").is_err());
