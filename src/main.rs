@@ -319,17 +319,29 @@ enum Command {
         #[arg(long, default_value = "auto")]
         progress: String,
     },
-    /// Check every exported file of an output folder against what dist4d wrote there.
+    /// Check every exported file of an output folder against what dist4d wrote there, or (with
+    /// --store) every blob and record of a store.
     ///
     /// Hashes each file the folder's manifest lists. Exit code 0 when all are intact, 1 when some
-    /// are modified or missing (a rerun of the pipeline rewrites them). Example: dist4d verify out/curation
+    /// are modified or missing (a rerun of the pipeline rewrites them). With --store, reads every
+    /// task record and hashes every blob of the store named by --cache, writing nothing: exit code
+    /// 1 when something is damaged or was written by a newer dist4d. Examples: dist4d verify
+    /// out/curation; dist4d verify --store --cache pipelines/.dist4d
     Verify {
         /// The output folder (a run's --out).
-        out: PathBuf,
+        #[arg(required_unless_present = "store")]
+        out: Option<PathBuf>,
+        /// Check the store (--cache) instead: every blob against its digest, every record's checksum.
+        #[arg(long)]
+        store: bool,
+        /// The store directory, with --store.
+        #[arg(long, default_value = ".dist4d", requires = "store")]
+        cache: PathBuf,
     },
     /// Remove cached records and blobs that the last N runs did not use.
     ///
-    /// Needs the store alone (no run in progress). Example: dist4d gc --cache pipelines/.dist4d --keep-runs 3 --max-size 50G
+    /// Needs the store alone (no run in progress), except with --dry-run, which only reads it.
+    /// Example: dist4d gc --cache pipelines/.dist4d --keep-runs 3 --max-size 50G
     Gc {
         /// The store directory.
         #[arg(long, default_value = ".dist4d")]
@@ -340,6 +352,9 @@ enum Command {
         /// Keep at most this many bytes of blobs (suffixes K, M, G), dropping older runs first.
         #[arg(long, value_parser = parse_size)]
         max_size: Option<u64>,
+        /// Say what would be removed, and remove nothing (works on a store it cannot write).
+        #[arg(long)]
+        dry_run: bool,
     },
 }
 
@@ -874,7 +889,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             };
             let dataset = registry.open_dataset(&pipeline)?;
             let ops = registry.operators(&pipeline)?;
-            let store = Store::open(&p.cache_dir(), Access::Shared)?;
+            // Explain only reads: no lease, nothing written (it works on a read-only store).
+            let store = Store::open(&p.cache_dir(), Access::ReadOnly)?;
             let engine = Engine { pipeline: &pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
             let out_dir = p.out_dir(out, &pipeline);
             // The scenes a run with the same --shard would take.
@@ -1075,7 +1091,12 @@ fn run(cli: Cli) -> Result<ExitCode> {
             }
             Ok(ExitCode::SUCCESS)
         }
-        Command::Verify { out } => {
+        Command::Verify { out, store, cache } => {
+            let mut code = ExitCode::SUCCESS;
+            if store {
+                code = verify_store(&cache)?;
+            }
+            let Some(out) = out else { return Ok(code) };
             let r = dist4d_runtime::export::verify(&out)?;
             for rel in &r.modified {
                 println!("modified: {rel}");
@@ -1092,19 +1113,21 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 r.missing.len()
             );
             if r.modified.is_empty() && r.missing.is_empty() {
-                return Ok(ExitCode::SUCCESS);
+                return Ok(code);
             }
             println!("rerun pipeline `{owner}` with the same --out to rewrite them");
             Ok(ExitCode::from(1))
         }
-        Command::Gc { cache, keep_runs, max_size } => {
-            let r = dist4d_runtime::gc::gc(&cache, keep_runs, max_size)?;
+        Command::Gc { cache, keep_runs, max_size, dry_run } => {
+            let r = dist4d_runtime::gc::gc(&cache, keep_runs, max_size, dry_run)?;
             println!(
-                "kept {} runs, {} records, {} blobs ({} bytes); removed {} runs, {} records, {} blobs ({} bytes)",
+                "{}kept {} runs, {} records, {} blobs ({} bytes); {} {} runs, {} records, {} blobs ({} bytes)",
+                if dry_run { "--dry-run, nothing removed: would have " } else { "" },
                 r.runs_kept,
                 r.records_kept,
                 r.blobs_kept,
                 r.bytes_kept,
+                if dry_run { "would remove" } else { "removed" },
                 r.runs_dropped,
                 r.records_dropped,
                 r.blobs_dropped,
@@ -1113,6 +1136,39 @@ fn run(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// `dist4d verify --store`: prints what is wrong, then a summary; exit code 1 unless all is sound.
+fn verify_store(cache: &Path) -> Result<ExitCode> {
+    let r = dist4d_runtime::verify::verify_store(cache)?;
+    for line in &r.damaged {
+        println!("damaged:  {line}");
+    }
+    for line in &r.unreadable {
+        println!("unreadable: {line}");
+    }
+    for line in &r.notes {
+        println!("note:     {line}");
+    }
+    println!(
+        "{}: {} records in {} segments, {} fingerprints, {} blobs ({} bytes), {} run records checked; {} damaged, {} unreadable",
+        cache.display(),
+        r.records,
+        r.segments,
+        r.fingerprints,
+        r.blobs,
+        r.blob_bytes,
+        r.runs,
+        r.damaged.len(),
+        r.unreadable.len()
+    );
+    if r.sound() {
+        return Ok(ExitCode::SUCCESS);
+    }
+    if !r.damaged.is_empty() {
+        println!("runs recompute what damaged blobs and records held (rerun the pipelines that use them)");
+    }
+    Ok(ExitCode::from(1))
 }
 
 #[cfg(test)]

@@ -22,7 +22,9 @@
 //!                  the four zstd frames | the 0-3 filtered bytes past the last whole word
 //! ```
 //!
-//! A store reads every codec it ever wrote (2 is no longer written).
+//! A store reads every codec it ever wrote (2 is no longer written). A packed blob of a codec it
+//! does not know was written by a newer dist4d: [`unpack`] says so ([`Unreadable::Newer`]), and
+//! the store leaves the file as it is rather than remove it as corrupt (see `store::read_blob`).
 //!
 //! A blob is named by the digest of its bytes, not of its file, so task keys do not depend on
 //! how blobs are kept, and the digest is checked after unpacking on every read. A file that does
@@ -285,16 +287,48 @@ fn from_planes(planes: &[u8]) -> Vec<u8> {
     out
 }
 
+/// Why a blob file cannot give the bytes of its name.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Unreadable {
+    /// Damaged: it holds other bytes, or does not unpack.
+    Corrupt(&'static str),
+    /// Packed with a codec this dist4d does not know: a newer dist4d wrote it (or its header's
+    /// codec byte is damaged; either way it is not this dist4d's to remove).
+    Newer { codec: u8 },
+}
+
+impl std::fmt::Display for Unreadable {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Unreadable::Corrupt(why) => f.write_str(why),
+            Unreadable::Newer { codec } => write!(
+                f,
+                "was written by a newer dist4d (blob codec {codec}; this dist4d reads codecs 0 to {ZSTD_PLANES_APART})"
+            ),
+        }
+    }
+}
+
+/// The codec of a packed blob file's header (its first [`HEADER`] bytes or more) when this
+/// dist4d does not know it: a newer dist4d wrote the file.
+pub fn newer_codec(head: &[u8]) -> Option<u8> {
+    let header = head.get(..HEADER)?;
+    (header.starts_with(&MAGIC) && header[4] > ZSTD_PLANES_APART).then_some(header[4])
+}
+
 /// The bytes of a blob file named `digest`, checked. `Err` says what is wrong with the file.
-pub fn unpack(file: Vec<u8>, digest: &Digest) -> Result<Vec<u8>, &'static str> {
+pub fn unpack(file: Vec<u8>, digest: &Digest) -> Result<Vec<u8>, Unreadable> {
     if !file.starts_with(&MAGIC) {
-        return if Digest::of(&file) == *digest { Ok(file) } else { Err("is corrupt") };
+        return if Digest::of(&file) == *digest { Ok(file) } else { Err(Unreadable::Corrupt("is corrupt")) };
     }
     match unpack_packed(&file) {
         Some(bytes) if Digest::of(&bytes) == *digest => Ok(bytes),
         // Raw bytes that begin with the magic, as a store of the older format kept them.
         _ if Digest::of(&file) == *digest => Ok(file),
-        _ => Err("is corrupt (its packed bytes do not unpack to its digest)"),
+        _ => match newer_codec(&file) {
+            Some(codec) => Err(Unreadable::Newer { codec }),
+            None => Err(Unreadable::Corrupt("is corrupt (its packed bytes do not unpack to its digest)")),
+        },
     }
 }
 
@@ -464,7 +498,7 @@ pub(crate) mod tests {
         assert!(unpack(huge, &d).is_err(), "a damaged length allocates nothing");
         let mut codec = file.clone();
         codec[4] = 99;
-        assert!(unpack(codec, &d).is_err(), "unknown codec");
+        assert_eq!(unpack(codec, &d), Err(Unreadable::Newer { codec: 99 }), "unknown codec: a newer dist4d's");
         assert!(unpack(file[..10].to_vec(), &d).is_err(), "header only");
         assert!(unpack(vec![0x5a; 1000], &d).is_err(), "raw and wrong");
     }

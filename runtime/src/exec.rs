@@ -399,8 +399,50 @@ struct Awaiting {
 /// earlier stage).
 type ReadyEntry = Reverse<(u64, u32, u32, u32, u32)>;
 
+/// A run recorded as running and not yet ended: what [`Engine::run`] records if the run stops on
+/// an error (a full disk) instead of leaving it "running", which `dist4d runs` would then show as
+/// killed.
+struct Unfinished {
+    record: RunRecord,
+    started: Instant,
+    counters: Arc<Counters>,
+}
+
 impl<'a> Engine<'a> {
     pub fn run(&self, opts: &RunOptions) -> Result<RunSummary> {
+        let mut unfinished = None;
+        let result = self.run_recorded(opts, &mut unfinished);
+        if let (Err(e), Some(u)) = (&result, unfinished) {
+            self.record_stop(opts, u, e);
+        }
+        result
+    }
+
+    /// A run stopped by an error: its temp files go first (on a full disk, they may be what
+    /// leaves room for the record), then it is recorded as failed with the error. Best effort:
+    /// the error itself is what the caller reports.
+    fn record_stop(&self, opts: &RunOptions, u: Unfinished, e: &anyhow::Error) {
+        let out_tmp: Vec<PathBuf> = opts.out_dir.iter().map(|d| d.join(crate::export::TMP)).collect();
+        self.store.remove_own_temp_files(&out_tmp);
+        let mut stages = u.record.stages.clone();
+        for (i, s) in stages.iter_mut().enumerate() {
+            s.failed = u.counters.failed.get(i).map_or(0, |f| f.load(Ordering::Relaxed));
+        }
+        let record = RunRecord {
+            seconds: u.started.elapsed().as_secs_f64(),
+            status: RunStatus::Failed,
+            stages,
+            failures: vec![Failure { stage: "-".into(), item: "-".into(), error: format!("the run stopped: {e:#}") }],
+            ..u.record
+        };
+        // A full disk may have no room for a new file even now: the record it started then
+        // takes the update in place.
+        if let Err(w) = runs::write_run(self.store, &record).or_else(|_| runs::overwrite_run(self.store, &record)) {
+            eprintln!("warning: the run's record could not be updated ({w:#}): `dist4d runs` will show it as killed");
+        }
+    }
+
+    fn run_recorded(&self, opts: &RunOptions, unfinished: &mut Option<Unfinished>) -> Result<RunSummary> {
         let started = Instant::now();
         let started_unix = runs::now_secs();
         let p = self.pipeline;
@@ -490,6 +532,7 @@ impl<'a> Engine<'a> {
             writer: Some(self.store.writer_id().to_string()),
         };
         runs::write_run(self.store, &provisional)?;
+        *unfinished = Some(Unfinished { record: provisional.clone(), started, counters: counters.clone() });
         let reporter = Reporter::start(counters.clone(), opts.progress);
 
         let keys_tmp = self.store.temp_path();
@@ -727,7 +770,7 @@ impl<'a> Engine<'a> {
             None => 0,
         };
         self.store.sync()?;
-        keys_out.flush()?;
+        keys_out.flush().with_context(|| format!("writing {}", keys_tmp.display()))?;
         drop(keys_out);
         std::fs::rename(&keys_tmp, runs::keys_path(self.store, &run_id))
             .with_context(|| "saving the run's task keys")?;
@@ -1101,7 +1144,7 @@ impl Coord {
             }
             Outcome::Executed(key, produced, _, record) => (key, produced, record),
         };
-        self.keys_out.write_all(&key.0)?;
+        self.keys_out.write_all(&key.0).context("writing the run's task keys")?;
         self.store_outputs(e, slot, t, produced, record);
         Ok(())
     }

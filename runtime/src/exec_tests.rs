@@ -46,7 +46,8 @@ fn run(p: &Pipeline, grid: &Grid, store: &Path) -> RunRecord {
 
 /// What `explain` says of `p` against the store in `store`.
 fn explain(p: &Pipeline, grid: &Grid, store: &Path) -> Vec<crate::explain::StageExplain> {
-    let store = Store::open(store, Access::Shared).unwrap();
+    // As the CLI opens it: explain only reads.
+    let store = Store::open(store, Access::ReadOnly).unwrap();
     let ops = testkit::operators(p);
     crate::explain::explain(&Engine { pipeline: p, dataset: grid, operators: &ops, store: &store }, None, None, None)
         .unwrap()
@@ -423,7 +424,7 @@ fn gc_keeps_what_recent_runs_use() {
     let grid = testkit::grid_of(&testkit::load(CHAIN, &[]));
     run(&testkit::load(CHAIN, &["b.salt=1"]), &grid, dir.path());
     run(&testkit::load(CHAIN, &["b.salt=2"]), &grid, dir.path());
-    let report = crate::gc::gc(dir.path(), 1, None).unwrap();
+    let report = crate::gc::gc(dir.path(), 1, None, false).unwrap();
     assert_eq!((report.runs_kept, report.runs_dropped), (1, 1));
     // salt=1's b, per_frame, window, next, file records go; a is shared by both runs.
     assert_eq!(report.records_dropped, 24 + 8 + 8 + 6 + 8);
@@ -432,6 +433,87 @@ fn gc_keeps_what_recent_runs_use() {
     assert_eq!(again.executed(), 0, "the kept run is still fully cached");
     let old = run(&testkit::load(CHAIN, &["b.salt=1"]), &grid, dir.path());
     assert_eq!(old.stages.iter().find(|s| s.stage == "b").unwrap().executed, 24);
+}
+
+/// The one record segment of a store.
+fn the_segment(store: &Path) -> std::path::PathBuf {
+    let segs = crate::segment::segment_paths(&store.join("ac")).unwrap();
+    assert_eq!(segs.len(), 1, "{segs:?}");
+    segs[0].clone()
+}
+
+#[test]
+fn a_flipped_bit_in_a_record_reruns_that_task_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    let first = run(&p, &grid, dir.path());
+    assert!(first.executed() > 50, "{:?}", executed(&first));
+    let seg = the_segment(dir.path());
+    let mut bytes = std::fs::read(&seg).unwrap();
+    // A bit in the payload of the third record: the records after it are recovered.
+    let mut at = 8;
+    for _ in 0..2 {
+        at += 8 + u32::from_le_bytes(bytes[at..at + 4].try_into().unwrap()) as usize;
+    }
+    bytes[at + 8 + 5] ^= 0x04;
+    std::fs::write(&seg, &bytes).unwrap();
+    let again = run(&p, &grid, dir.path());
+    assert_eq!(again.executed(), 1, "{:?}", executed(&again));
+}
+
+#[test]
+fn gc_leaves_what_it_cannot_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let p = testkit::load(CHAIN, &[]);
+    let grid = testkit::grid_of(&p);
+    run(&p, &grid, dir.path());
+    let foreign = dir.path().join("ac/zz-foreign.seg");
+    std::fs::write(&foreign, b"some other program's file").unwrap();
+    // A blob no record names, packed by a newer dist4d (a codec this one does not know).
+    let newer = dir.path().join("cas/ff").join("f".repeat(62));
+    std::fs::create_dir_all(newer.parent().unwrap()).unwrap();
+    let mut file = crate::blob::MAGIC.to_vec();
+    file.extend_from_slice(&[9, 0, 0, 0, 3, 0, 0, 0, 0, 0, 0, 0, 1, 2, 3]);
+    std::fs::write(&newer, &file).unwrap();
+    let report = crate::gc::gc(dir.path(), 0, None, false).unwrap();
+    assert!(report.records_dropped > 50 && report.blobs_dropped > 0, "{report:?}");
+    assert!(foreign.exists() && newer.exists(), "gc never deletes what it cannot read");
+    assert_eq!(crate::segment::segment_paths(&dir.path().join("ac")).unwrap().len(), 2, "its own compacted one too");
+}
+
+#[test]
+fn gc_dry_run_reports_what_gc_removes_and_removes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let grid = testkit::grid_of(&testkit::load(CHAIN, &[]));
+    run(&testkit::load(CHAIN, &["b.salt=1"]), &grid, dir.path());
+    run(&testkit::load(CHAIN, &["b.salt=2"]), &grid, dir.path());
+    let files = |d: &Path| walk(d).len();
+    let before = files(dir.path());
+    // Beside a run holding the store: a dry run takes no lease and waits for nobody.
+    let holder = Store::open(dir.path(), Access::Shared).unwrap();
+    let dry = crate::gc::gc(dir.path(), 1, None, true).unwrap();
+    drop(holder);
+    assert_eq!(files(dir.path()), before);
+    let real = crate::gc::gc(dir.path(), 1, None, false).unwrap();
+    assert_eq!(dry, real);
+}
+
+/// Every file under `dir`.
+fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push(p);
+            }
+        }
+    }
+    out
 }
 
 #[test]
@@ -451,7 +533,7 @@ fn gc_counts_the_shards_of_one_group_as_one_run() {
     (killed.id, killed.status, killed.started) = ("9999999999999-dead".into(), RunStatus::Running, u64::MAX / 2);
     let killed_path = dir.path().join("runs").join(format!("{}.json", killed.id));
     std::fs::write(&killed_path, serde_json::to_vec(&killed).unwrap()).unwrap();
-    let report = crate::gc::gc(dir.path(), 1, None).unwrap();
+    let report = crate::gc::gc(dir.path(), 1, None, false).unwrap();
     assert_eq!((report.runs_kept, report.runs_dropped), (2, 1), "both shards kept, the older run dropped");
     assert!(!killed_path.exists());
     assert_eq!(run(&p, &grid, dir.path()).executed(), 0, "both shards' work is still cached");
@@ -793,7 +875,7 @@ fn outputs_only_exported_are_kept_in_the_output_folder_not_in_the_store() {
     assert_eq!(std::fs::read_to_string(out.join(".dist4d-manifest")).unwrap(), manifest);
 
     // gc keeps their records (it has no blob of theirs to keep).
-    crate::gc::gc(&store, 1, None).unwrap();
+    crate::gc::gc(&store, 1, None, false).unwrap();
     assert_eq!(run_with(&p, &grid, &store, &exporting(&out)).executed(), 0);
 
     // A run that exports nothing keeps every output in the store: its bytes would be nowhere else.

@@ -50,7 +50,7 @@ use std::sync::{Arc, Mutex};
 
 const MANIFEST: &str = ".dist4d-manifest";
 const MANIFEST_DELTAS: &str = ".dist4d-manifest.d";
-const TMP: &str = ".dist4d-tmp";
+pub(crate) const TMP: &str = ".dist4d-tmp";
 const INDEX: &str = "index.json";
 const INDEX_PARTS: &str = ".dist4d-index.d";
 /// First word of a version-2 manifest; version 1 had no header and no stats.
@@ -201,7 +201,7 @@ impl Manifest {
     }
 
     fn write(&self, dir: &Path, tmp: &Path) -> Result<()> {
-        write_atomic_via(tmp, &dir.join(MANIFEST), self.text(&[]).as_bytes())
+        write_if_changed(tmp, &dir.join(MANIFEST), self.text(&[]).as_bytes())
     }
 
     /// The manifest's text, with tombstones for `removed` (in a delta).
@@ -769,7 +769,7 @@ impl Exporter {
                 // it is written, so that no part is left newer than it; then the deltas this
                 // run read, which its manifest now holds.
                 let _ = std::fs::remove_dir_all(dir.join(INDEX_PARTS));
-                write_atomic_via(&tmps[1], &dir.join(INDEX), &json)?;
+                write_if_changed(&tmps[1], &dir.join(INDEX), &json)?;
                 for delta in &manifest.deltas {
                     let _ = std::fs::remove_file(delta);
                 }
@@ -777,6 +777,16 @@ impl Exporter {
         }
         Ok(count)
     }
+}
+
+/// Writes `dest` whole (see [`write_atomic_via`]) unless it already holds `bytes`: a run with
+/// nothing new to export writes nothing in the output folder, so it succeeds on a folder it
+/// cannot write (a read-only mount of a finished dataset).
+fn write_if_changed(tmp: &Path, dest: &Path, bytes: &[u8]) -> Result<()> {
+    if std::fs::read(dest).is_ok_and(|held| held == bytes) {
+        return Ok(());
+    }
+    write_atomic_via(tmp, dest, bytes)
 }
 
 /// Rewrites `index.json` from the index parts, again while parts changed as it merged them: of

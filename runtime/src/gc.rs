@@ -8,12 +8,17 @@
 //! process that hashed files: a cluster leaves thousands); then unreachable blobs are deleted.
 //! Needs the store alone: it gives way while another process's lease is live (see
 //! [`crate::lease`]).
+//!
+//! gc deletes only what it can read and found unreachable: a segment of a newer dist4d makes it
+//! refuse the store (as a run does), a segment of unknown format and a blob of an unknown codec
+//! (a newer dist4d's) are left in place. `dry_run` reports what it would remove and writes
+//! nothing, so it works on a store it cannot write (no lease either: a run may hold the store).
 
 use crate::digest::{Digest, DigestMap};
 use crate::record::TaskRecord;
 use crate::runs::{keys_path, list_runs};
-use crate::segment::{segment_paths, SegmentWriter};
-use crate::store::{Access, Store};
+use crate::segment::SegmentWriter;
+use crate::store::{removable_segments, Access, Store};
 use anyhow::{Context, Result};
 use std::collections::HashSet;
 use std::path::Path;
@@ -30,12 +35,12 @@ pub struct GcReport {
     pub bytes_kept: u64,
 }
 
-pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcReport> {
-    let store = Store::open(root, Access::Exclusive)?;
+pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>, dry_run: bool) -> Result<GcReport> {
+    let store = Store::open(root, if dry_run { Access::ReadOnly } else { Access::Exclusive })?;
     // Runs recorded as running are dead (gc holds the store alone): they recorded no keys.
     let (all, dead): (Vec<_>, Vec<_>) =
         list_runs(&store.runs_dir())?.into_iter().partition(|r| r.status != crate::runs::RunStatus::Running);
-    for run in &dead {
+    for run in dead.iter().filter(|_| !dry_run) {
         let _ = std::fs::remove_file(store.runs_dir().join(format!("{}.json", run.id)));
     }
     // A group (the shards and merge of one cluster submission) counts as one run.
@@ -100,27 +105,37 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcRep
     }
     report.runs_kept = kept_runs.len();
     for run in all.iter().filter(|r| !kept_runs.contains(&r.id)) {
-        let _ = std::fs::remove_file(store.runs_dir().join(format!("{}.json", run.id)));
-        let _ = std::fs::remove_file(keys_path(&store, &run.id));
+        if !dry_run {
+            let _ = std::fs::remove_file(store.runs_dir().join(format!("{}.json", run.id)));
+            let _ = std::fs::remove_file(keys_path(&store, &run.id));
+        }
         report.runs_dropped += 1;
     }
 
-    // Compact records: the kept ones go to a fresh segment, then the old segments go.
-    let old_segments = segment_paths(&root.join("ac"))?;
-    let mut writer = SegmentWriter::create(&root.join("ac"), &format!("gc-{}", store.writer_id()))?;
+    // Compact records: the kept ones go to a fresh segment, then the old segments go (those it
+    // read: one it cannot read stays).
+    let old_segments = if dry_run { Vec::new() } else { removable_segments(&root.join("ac"))? };
+    let mut writer = match dry_run {
+        true => None,
+        false => Some(SegmentWriter::create(&root.join("ac"), &format!("gc-{}", store.writer_id()))?),
+    };
     for (k, payload) in &records {
         if keys.contains(k) {
-            writer.append(payload)?;
+            if let Some(w) = writer.as_mut() {
+                w.append(payload)?;
+            }
             report.records_kept += 1;
         } else {
             report.records_dropped += 1;
         }
     }
-    writer.sync()?;
-    for seg in old_segments {
-        std::fs::remove_file(&seg).with_context(|| format!("removing {}", seg.display()))?;
+    if let Some(mut w) = writer {
+        w.sync()?;
+        for seg in old_segments {
+            std::fs::remove_file(&seg).with_context(|| format!("removing {}", seg.display()))?;
+        }
+        store.compact_fingerprints()?;
     }
-    store.compact_fingerprints()?;
 
     // Delete unreachable blobs.
     let cas = root.join("cas");
@@ -135,14 +150,32 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>) -> Result<GcRep
             if digest.is_some_and(|d| blobs.contains(&d)) {
                 report.blobs_kept += 1;
                 report.bytes_kept += len;
+            } else if let Some(codec) = newer_codec(&f) {
+                // No record names it, but a newer dist4d's may (in a store two versions share).
+                eprintln!(
+                    "warning: leaving {} as it is: it was written by a newer dist4d (blob codec {codec})",
+                    f.display()
+                );
+                report.blobs_kept += 1;
+                report.bytes_kept += len;
             } else {
-                std::fs::remove_file(&f).with_context(|| format!("removing {}", f.display()))?;
+                if !dry_run {
+                    std::fs::remove_file(&f).with_context(|| format!("removing {}", f.display()))?;
+                }
                 report.blobs_dropped += 1;
                 report.bytes_freed += len;
             }
         }
     }
     Ok(report)
+}
+
+/// The unknown codec of the blob file at `path`, if a newer dist4d packed it.
+fn newer_codec(path: &Path) -> Option<u8> {
+    let mut head = Vec::with_capacity(16);
+    let f = std::fs::File::open(path).ok()?;
+    std::io::Read::read_to_end(&mut std::io::Read::take(f, 16), &mut head).ok()?;
+    crate::blob::newer_codec(&head)
 }
 
 /// The task keys a run used (cached or run), as its keys file lists them; none when it has none.

@@ -19,6 +19,7 @@ pub mod record;
 pub mod runs;
 pub mod segment;
 pub mod store;
+pub mod verify;
 pub mod worker;
 pub mod worker_pool;
 

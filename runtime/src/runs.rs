@@ -121,6 +121,23 @@ pub fn write_run(store: &Store, rec: &RunRecord) -> Result<()> {
     store.write_atomic(&store.runs_dir().join(format!("{}.json", rec.id)), &json)
 }
 
+/// Rewrites a run's record in its own file, where [`write_run`] would write a new file and rename
+/// it: for a run stopped by a full disk, whose record file already holds the blocks it needs.
+/// Not atomic (a crash meanwhile leaves a record `dist4d runs` skips with a warning), so only
+/// when [`write_run`] failed.
+pub fn overwrite_run(store: &Store, rec: &RunRecord) -> Result<()> {
+    use std::io::Write;
+    let json = serde_json::to_vec(rec)?;
+    let path = store.runs_dir().join(format!("{}.json", rec.id));
+    let mut f =
+        std::fs::OpenOptions::new().write(true).open(&path).with_context(|| format!("opening {}", path.display()))?;
+    // Compact JSON: shorter than the pretty record it replaces, so it needs no new block.
+    f.write_all(&json)
+        .and_then(|_| f.set_len(json.len() as u64))
+        .and_then(|_| f.sync_all())
+        .with_context(|| format!("writing {}", path.display()))
+}
+
 /// All run records in the store, oldest first.
 pub fn list_runs(runs_dir: &Path) -> Result<Vec<RunRecord>> {
     let mut out = Vec::new();

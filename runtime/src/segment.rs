@@ -5,6 +5,17 @@
 //! own (named by a unique writer id), so concurrent processes on one store never write the same
 //! file. An entry is `len: u32 | crc32(payload): u32 | payload`; a process killed mid-append
 //! leaves a torn last entry, which fails its checksum and is ignored by readers.
+//!
+//! A segment begins with `D4SEG` and a two-digit format version (`D4SEG01\n`). A segment of a
+//! later version was written by a newer dist4d: readers say so ([`Header::Newer`]) instead of
+//! taking it for an empty or foreign file, so that a store is never silently recomputed, nor its
+//! newer records deleted by gc. One flipped bit in `D4SEG` or the newline (not in the version) is
+//! damage to one of ours: it is read as ours.
+//!
+//! An entry that fails its checksum in the middle of a segment (a flipped bit, a bad sector)
+//! costs that entry only: a full read ([`Segment::entries`]) scans on from it for the next
+//! offset where a whole entry checks out (a length no larger than [`MAX_ENTRY`] whose payload
+//! matches its CRC32), so the records after it are recovered.
 
 use anyhow::{Context, Result};
 use memmap2::Mmap;
@@ -13,8 +24,65 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 const MAGIC: &[u8; 8] = b"D4SEG01\n";
+/// The format version this dist4d writes and reads (the digits of [`MAGIC`]).
+pub const VERSION: u32 = 1;
 /// Entries larger than this are treated as corruption (a torn length field).
-const MAX_ENTRY: u32 = 64 << 20;
+pub const MAX_ENTRY: u32 = 64 << 20;
+
+/// What the first bytes of a segment file say about it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Header {
+    /// Ours: its entries can be read.
+    Current,
+    /// Ours with one bit of `D4SEG` or of the newline flipped (the version digits exact): read as
+    /// ours, reported as damage by [`Segment::check`].
+    DamagedMagic,
+    /// Empty, or cut inside the magic (a writer killed before its first entry): no entries, and
+    /// nothing lost by removing it.
+    Torn,
+    /// `D4SEG` and a version greater than [`VERSION`]: a newer dist4d wrote it. Never read as
+    /// empty nor removed.
+    Newer(u32),
+    /// Anything else (not a dist4d segment, or one whose header is damaged): not read, never
+    /// removed.
+    Unknown,
+}
+
+impl Header {
+    pub fn of(bytes: &[u8]) -> Header {
+        if bytes.starts_with(MAGIC) {
+            return Header::Current;
+        }
+        if bytes.len() < MAGIC.len() && MAGIC.starts_with(bytes) {
+            return Header::Torn;
+        }
+        if let Some(h) = bytes.get(..MAGIC.len()).filter(|h| h[5..7] == MAGIC[5..7]) {
+            let flipped: u32 = h.iter().zip(MAGIC).map(|(a, b)| (a ^ b).count_ones()).sum();
+            if flipped == 1 {
+                return Header::DamagedMagic;
+            }
+        }
+        let version = bytes
+            .get(..MAGIC.len())
+            .filter(|h| h.starts_with(b"D4SEG") && h[7] == b'\n' && h[5..7].iter().all(u8::is_ascii_digit))
+            .map(|h| u32::from(h[5] - b'0') * 10 + u32::from(h[6] - b'0'));
+        match version {
+            Some(v) if v > VERSION => Header::Newer(v),
+            _ => Header::Unknown,
+        }
+    }
+
+    /// Why a store cannot use a segment with this header, if it cannot (for messages naming the file).
+    pub fn problem(&self) -> Option<String> {
+        match self {
+            Header::Current | Header::DamagedMagic | Header::Torn => None,
+            Header::Newer(v) => Some(format!(
+                "was written by a newer dist4d (segment format {v:02}; this dist4d reads format {VERSION:02})"
+            )),
+            Header::Unknown => Some("does not begin with a dist4d segment header (D4SEGnn)".into()),
+        }
+    }
+}
 
 /// Appends entries to one segment file.
 pub struct SegmentWriter {
@@ -46,8 +114,11 @@ impl SegmentWriter {
         let mut head = [0u8; 8];
         head[..4].copy_from_slice(&(payload.len() as u32).to_le_bytes());
         head[4..].copy_from_slice(&crc32fast::hash(payload).to_le_bytes());
-        self.out.write_all(&head)?;
-        self.out.write_all(payload)?;
+        // A full buffer is written out here: an error then (a full disk) names the file.
+        self.out
+            .write_all(&head)
+            .and_then(|_| self.out.write_all(payload))
+            .with_context(|| format!("writing {}", self.path.display()))?;
         self.unflushed += 1;
         Ok(())
     }
@@ -101,35 +172,49 @@ impl Segment {
         self.map.as_deref().unwrap_or(&[])
     }
 
-    /// Valid entries as (offset of payload, payload). Stops at the first torn or corrupt entry.
-    pub fn entries(&self) -> impl Iterator<Item = (usize, &[u8])> {
-        self.entries_from(0)
+    /// What the segment's header says about it.
+    pub fn header(&self) -> Header {
+        Header::of(self.bytes())
+    }
+
+    /// Every valid entry as (offset of payload, payload). A damaged entry is skipped: the scan
+    /// goes on at the next offset where a whole entry checks out (see the module doc).
+    pub fn entries(&self) -> Entries<'_> {
+        Entries::new(self.bytes(), 0, true)
     }
 
     /// Valid entries from byte offset `from`, which is 0 (the first entry) or the end of an
     /// entry ([`Segment::end_of`]): what a writer appended since the segment was last read.
-    pub fn entries_from(&self, from: usize) -> impl Iterator<Item = (usize, &[u8])> {
-        let bytes = self.bytes();
-        let mut pos = if !bytes.starts_with(MAGIC) { bytes.len() } else { from.max(MAGIC.len()) };
-        std::iter::from_fn(move || {
-            if pos + 8 > bytes.len() {
-                return None;
-            }
-            let len = u32::from_le_bytes(bytes[pos..pos + 4].try_into().unwrap());
-            let crc = u32::from_le_bytes(bytes[pos + 4..pos + 8].try_into().unwrap());
-            let start = pos + 8;
-            // No writer appends an empty entry: zeros are a gap (bytes another node wrote not
-            // yet seen, on NFS), not an entry, whose checksum would pass (crc32 of nothing is 0).
-            if len == 0 || len > MAX_ENTRY || start + len as usize > bytes.len() {
-                return None;
-            }
-            let payload = &bytes[start..start + len as usize];
-            if crc32fast::hash(payload) != crc {
-                return None;
-            }
-            pos = start + len as usize;
-            Some((start, payload))
-        })
+    /// Stops at the first entry that does not check out: past the end of what was read, that is
+    /// most often bytes not yet seen (zeros on NFS, a torn tail), which a later read will find
+    /// whole; skipping ahead would lose them.
+    pub fn entries_from(&self, from: usize) -> Entries<'_> {
+        Entries::new(self.bytes(), from, false)
+    }
+
+    /// What a full read finds: for `verify --store`.
+    pub fn check(&self) -> Check {
+        let mut it = self.entries();
+        let (mut entries, mut end) = (0, MAGIC.len().min(self.bytes().len()));
+        for (off, payload) in it.by_ref() {
+            entries += 1;
+            end = Self::end_of(off, payload.len());
+        }
+        let mut damaged = it.skipped;
+        if self.header() == Header::DamagedMagic {
+            damaged.insert(0, (0, MAGIC.len()));
+        }
+        Check { header: self.header(), entries, damaged, tail: self.bytes().len().saturating_sub(end) }
+    }
+
+    /// The end of the entries read in order from the start before the first damaged one: how far
+    /// a reader that does not skip ([`Segment::entries_from`]) has read the segment.
+    pub fn sound_prefix(&self) -> usize {
+        let mut end = MAGIC.len();
+        for (off, payload) in self.entries_from(0) {
+            end = Self::end_of(off, payload.len());
+        }
+        end
     }
 
     /// The byte offset just past the entry whose payload starts at `offset` and is `len` long.
@@ -142,6 +227,87 @@ impl Segment {
         let bytes = self.bytes();
         let len = u32::from_le_bytes(bytes.get(offset - 8..offset - 4)?.try_into().ok()?) as usize;
         bytes.get(offset..offset + len)
+    }
+}
+
+/// What [`Segment::check`] found.
+#[derive(Debug, PartialEq, Eq)]
+pub struct Check {
+    pub header: Header,
+    /// Valid entries.
+    pub entries: usize,
+    /// Damaged stretches (start, end) that valid entries follow: what is lost is in them.
+    pub damaged: Vec<(usize, usize)>,
+    /// Bytes past the last valid entry: a torn last entry (a killed writer), or damage there.
+    pub tail: usize,
+}
+
+/// The valid entries of a segment, in order: see [`Segment::entries`] and [`Segment::entries_from`].
+pub struct Entries<'a> {
+    bytes: &'a [u8],
+    pos: usize,
+    /// Whether to scan past a damaged entry for the next valid one.
+    resync: bool,
+    /// Damaged stretches skipped so far (start, end).
+    skipped: Vec<(usize, usize)>,
+}
+
+impl<'a> Entries<'a> {
+    fn new(bytes: &'a [u8], from: usize, resync: bool) -> Entries<'a> {
+        // A segment that is not ours (a newer or foreign header) has no entries we can read.
+        let ours = matches!(Header::of(bytes), Header::Current | Header::DamagedMagic);
+        let pos = if ours { from.max(MAGIC.len()) } else { bytes.len() };
+        Entries { bytes, pos, resync, skipped: Vec::new() }
+    }
+
+    /// The entry at `pos` as (payload start, payload) if it checks out.
+    fn at(&self, pos: usize) -> Option<(usize, &'a [u8])> {
+        let bytes = self.bytes;
+        let head = bytes.get(pos..pos + 8)?;
+        let len = u32::from_le_bytes([head[0], head[1], head[2], head[3]]);
+        let crc = u32::from_le_bytes([head[4], head[5], head[6], head[7]]);
+        let start = pos + 8;
+        // No writer appends an empty entry: zeros are a gap (bytes another node wrote not
+        // yet seen, on NFS), not an entry, whose checksum would pass (crc32 of nothing is 0).
+        if len == 0 || len > MAX_ENTRY || start + len as usize > bytes.len() {
+            return None;
+        }
+        let payload = &bytes[start..start + len as usize];
+        (crc32fast::hash(payload) == crc).then_some((start, payload))
+    }
+}
+
+impl<'a> Iterator for Entries<'a> {
+    type Item = (usize, &'a [u8]);
+
+    fn next(&mut self) -> Option<Self::Item> {
+        if self.pos + 8 > self.bytes.len() {
+            return None;
+        }
+        let found = match self.at(self.pos) {
+            Some(e) => Some(e),
+            None if self.resync => {
+                // A damaged entry: the next offset whose length and checksum check out. A false
+                // match needs a CRC32 to agree by chance (1 in 2^32 per candidate offset).
+                let damaged = self.pos;
+                let next = (damaged + 1..=self.bytes.len() - 8).find_map(|p| self.at(p));
+                if let Some((start, _)) = next {
+                    self.skipped.push((damaged, start - 8));
+                }
+                next
+            }
+            None => None,
+        };
+        match found {
+            Some((start, payload)) => {
+                self.pos = start + payload.len();
+                Some((start, payload))
+            }
+            None => {
+                self.pos = self.bytes.len();
+                None
+            }
+        }
     }
 }
 
@@ -254,6 +420,85 @@ mod tests {
         f.write_all(&[0u8; 16]).unwrap();
         let seg = Segment::open(&path).unwrap();
         assert_eq!(seg.entries().map(|(_, p)| p).collect::<Vec<_>>(), vec![&b"first"[..]]);
+    }
+
+    /// Entries `0..n` of `size` bytes each, then the segment's bytes.
+    fn segment_of(dir: &Path, n: usize, size: usize) -> (PathBuf, Vec<Vec<u8>>) {
+        let mut w = SegmentWriter::create(dir, "a").unwrap();
+        let payloads: Vec<Vec<u8>> = (0..n).map(|i| format!("{i:0size$}").into_bytes()).collect();
+        for p in &payloads {
+            w.append(p).unwrap();
+        }
+        w.sync().unwrap();
+        (w.path().to_path_buf(), payloads)
+    }
+
+    #[test]
+    fn a_flipped_bit_costs_its_entry_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, payloads) = segment_of(dir.path(), 50, 40);
+        let clean = std::fs::read(&path).unwrap();
+        // Every bit of entry 10 (its length, its checksum, its payload) in turn.
+        let entry = 8 + 10 * 48;
+        for bit in 0..48 * 8 {
+            let mut bytes = clean.clone();
+            bytes[entry + bit / 8] ^= 1 << (bit % 8);
+            std::fs::write(&path, &bytes).unwrap();
+            let seg = Segment::open(&path).unwrap();
+            let got: Vec<&[u8]> = seg.entries().map(|(_, p)| p).collect();
+            let want: Vec<&[u8]> =
+                payloads.iter().enumerate().filter(|&(i, _)| i != 10).map(|(_, p)| p.as_slice()).collect();
+            assert_eq!(got, want, "bit {bit} of entry 10");
+            let check = seg.check();
+            assert_eq!((check.entries, check.tail), (49, 0));
+            assert_eq!(check.damaged, vec![(entry, entry + 48)], "bit {bit}");
+            // A reader that only follows what was appended stops there (it may be bytes not seen yet).
+            assert_eq!(seg.entries_from(0).count(), 10);
+            assert_eq!(seg.sound_prefix(), entry);
+        }
+    }
+
+    #[test]
+    fn a_flipped_bit_in_the_magic_loses_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let (path, payloads) = segment_of(dir.path(), 5, 10);
+        let clean = std::fs::read(&path).unwrap();
+        for bit in (0..40).chain(56..64) {
+            let mut bytes = clean.clone();
+            bytes[bit / 8] ^= 1 << (bit % 8);
+            std::fs::write(&path, &bytes).unwrap();
+            let seg = Segment::open(&path).unwrap();
+            assert_eq!(seg.entries().count(), payloads.len(), "bit {bit}");
+            assert_eq!(seg.check().damaged, vec![(0, 8)], "bit {bit}");
+        }
+    }
+
+    #[test]
+    fn headers_say_who_wrote_a_segment() {
+        assert_eq!(Header::of(b"D4SEG01\n\x05"), Header::Current);
+        assert_eq!(Header::of(b""), Header::Torn);
+        assert_eq!(Header::of(b"D4SE"), Header::Torn);
+        assert_eq!(Header::of(b"D4SEG02\nmore"), Header::Newer(2));
+        assert_eq!(Header::of(b"D4SEG17\n"), Header::Newer(17));
+        assert_eq!(Header::of(b"D4SEG00\n"), Header::Unknown);
+        assert_eq!(Header::of(b"hello world"), Header::Unknown);
+        // One flipped bit of the magic is damage to our own segment; one in the version digits
+        // is not taken for it ('1' ^ 2 = '3': format 03 may be a newer dist4d's).
+        assert_eq!(Header::of(b"D4SGG01\n"), Header::DamagedMagic);
+        assert_eq!(Header::of(b"D4SEG01\x0b"), Header::DamagedMagic);
+        assert_eq!(Header::of(b"D4SEG03\n"), Header::Newer(3));
+        assert!(Header::Newer(2)
+            .problem()
+            .unwrap()
+            .contains("newer dist4d (segment format 02; this dist4d reads format 01)"));
+        // A newer segment has no entries this dist4d reads, even if its entries look like ours.
+        let dir = tempfile::tempdir().unwrap();
+        let (path, _) = segment_of(dir.path(), 3, 10);
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes[6] = b'2';
+        std::fs::write(&path, &bytes).unwrap();
+        let seg = Segment::open(&path).unwrap();
+        assert_eq!((seg.header(), seg.entries().count()), (Header::Newer(2), 0));
     }
 
     #[test]

@@ -50,6 +50,30 @@ impl std::fmt::Display for BlobError {
 
 impl std::error::Error for BlobError {}
 
+/// A blob that a newer dist4d wrote (a codec this one does not know): left in place, and the task
+/// that needs it fails with this, rather than remove and remake what a newer version stored.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct NewerBlob {
+    pub digest: Digest,
+    pub path: PathBuf,
+    pub why: blob::Unreadable,
+}
+
+impl std::fmt::Display for NewerBlob {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "cache blob {} ({}) {}: it is left as it is; use that newer dist4d with this store, or give this one \
+             another --cache",
+            self.digest.short(),
+            self.path.display(),
+            self.why
+        )
+    }
+}
+
+impl std::error::Error for NewerBlob {}
+
 impl BlobError {
     /// The blob error in an error's chain, if any.
     pub fn find(e: &anyhow::Error) -> Option<&BlobError> {
@@ -64,6 +88,10 @@ pub enum Access {
     Shared,
     /// Garbage collection: alone.
     Exclusive,
+    /// Commands that only read (explain, `gc --dry-run`): no lease, no directory created, no temp
+    /// file removed, no fingerprint memoised on disk, so that they work on a store they cannot
+    /// write (a read-only mount, another user's store). Writes fail.
+    ReadOnly,
 }
 
 /// Records found after open, and how far each segment file has been read.
@@ -96,7 +124,9 @@ pub struct Store {
     /// Writers found dead at open (their leases then removed): their temp files elsewhere (in
     /// output folders) are abandoned too.
     dead_writers: std::collections::HashSet<String>,
-    writer_lease: Lease,
+    /// None for [`Access::ReadOnly`].
+    writer_lease: Option<Lease>,
+    read_only: bool,
     records: Mutex<Option<SegmentWriter>>,
     fp_writer: Mutex<Option<SegmentWriter>>,
     /// The records found at open: read without a lock (lookups are on the hot path).
@@ -112,7 +142,15 @@ pub struct Store {
 
 impl Store {
     /// Opens (creating if needed) the store at `root` and loads its record index and fingerprint memo.
+    ///
+    /// Refuses a store holding a segment that a newer dist4d wrote: reading it as empty would run
+    /// again every task it records (and gc would delete it). Segments that are not dist4d's are
+    /// left alone, with a warning.
     pub fn open(root: &Path, access: Access) -> Result<Store> {
+        refuse_newer(root)?;
+        if access == Access::ReadOnly {
+            return Store::load(root, unique_writer_id(), None, None, Default::default());
+        }
         for d in ["cas", "ac", "fp", "runs", "tmp", "leases"] {
             fs::create_dir_all(root.join(d))
                 .with_context(|| format!("creating store directory {}", root.join(d).display()))?;
@@ -154,7 +192,7 @@ impl Store {
                 }
                 Some(gc)
             }
-            Access::Shared => {
+            Access::Shared | Access::ReadOnly => {
                 // Our lease is out first, so a gc starting now sees us and gives way; one that
                 // already checked is waited for.
                 let mut said = false;
@@ -169,16 +207,33 @@ impl Store {
             }
         };
         let dead_writers = remove_abandoned(root, &writer_id, now());
+        Store::load(root, writer_id, Some(writer_lease), gc_lease, dead_writers)
+    }
 
+    /// Reads the record index and the fingerprint memo.
+    fn load(
+        root: &Path,
+        writer_id: String,
+        writer_lease: Option<Lease>,
+        gc_lease: Option<Lease>,
+        dead_writers: std::collections::HashSet<String>,
+    ) -> Result<Store> {
+        let read_only = writer_lease.is_none();
         let mut segments: Vec<Segment> = Vec::new();
         let mut index = DigestMap::default();
         let mut later = Later::default();
         for path in segment_paths(&root.join("ac"))? {
-            let seg = Segment::open(&path)?;
+            let seg = match Segment::open(&path) {
+                Ok(seg) => seg,
+                // Compacted away by a gc meanwhile (a reader holds no lease that would stop it).
+                Err(_) if read_only && !path.exists() => continue,
+                Err(e) => return Err(e),
+            };
+            if let Some(problem) = seg.header().problem() {
+                eprintln!("warning: ignoring {}: it {problem}", path.display());
+            }
             let si = segments.len() as u32;
-            let mut end = 0;
             for (off, payload) in seg.entries() {
-                end = Segment::end_of(off, payload.len());
                 let Some(key) = TaskRecord::key_of(payload) else { continue };
                 // A key recorded twice (a task run again) is rare: only then is a record compared.
                 let earlier = match index.get(&key) {
@@ -189,7 +244,9 @@ impl Store {
                     index.insert(key, (si, off as u64));
                 }
             }
-            later.read_to.insert(path, end);
+            // Later reads go on from the end of what reads in order (past a damaged entry, bytes
+            // may be ones not seen yet): see `Segment::entries_from`.
+            later.read_to.insert(path, seg.sound_prefix());
             segments.push(seg);
         }
         let fingerprints = load_fingerprints(&root.join("fp"))?;
@@ -199,6 +256,7 @@ impl Store {
             gc_lease,
             dead_writers,
             writer_lease,
+            read_only,
             records: Mutex::new(None),
             fp_writer: Mutex::new(None),
             segments,
@@ -301,6 +359,7 @@ impl Store {
     }
 
     pub fn append_record(&self, rec: &TaskRecord) -> Result<()> {
+        self.writable()?;
         let mut w = self.records.lock().unwrap();
         if w.is_none() {
             *w = Some(SegmentWriter::create(&self.root.join("ac"), &self.writer_id)?);
@@ -344,6 +403,7 @@ impl Store {
     /// when that pays (see [`crate::blob`]). Anything else in its place (a folder, say) is
     /// removed first, so that a store damaged that way heals.
     pub fn put_blob(&self, digest: &Digest, bytes: &[u8]) -> Result<()> {
+        self.writable()?;
         let path = self.blob_path(digest);
         match fs::symlink_metadata(&path) {
             Ok(m) if m.is_file() => return Ok(()),
@@ -358,9 +418,39 @@ impl Store {
     }
 
     /// Reads a blob and checks its digest: a corrupt blob is removed so that it is made again.
-    /// Fails with a [`BlobError`] (which the scheduler recognises, to recompute the blob).
+    /// Fails with a [`BlobError`] (which the scheduler recognises, to recompute the blob), or a
+    /// [`NewerBlob`] for one a newer dist4d wrote (left in place; the task needing it fails).
+    /// A store opened [`Access::ReadOnly`] leaves a corrupt blob in place (it writes nothing).
     pub fn get_blob(&self, digest: &Digest) -> Result<Vec<u8>> {
-        Ok(read_blob(&self.blob_path(digest), digest)?)
+        read_checked(&self.blob_path(digest), digest, !self.read_only)
+    }
+
+    /// Fails for a store opened [`Access::ReadOnly`].
+    fn writable(&self) -> Result<()> {
+        if self.read_only {
+            bail!("the store {} was opened read-only (by a command that only reads it)", self.root.display());
+        }
+        Ok(())
+    }
+
+    /// Whether the store was opened [`Access::ReadOnly`].
+    pub fn read_only(&self) -> bool {
+        self.read_only
+    }
+
+    /// Removes the temp files this process left in the store's `tmp/` and in `more` (an output
+    /// folder's temp folder): a run that stops on an error (a full disk) must not leave its
+    /// half-written files taking space until the lease timeout. Best effort.
+    pub fn remove_own_temp_files(&self, more: &[PathBuf]) {
+        let prefix = format!("{}-", self.writer_id);
+        for dir in std::iter::once(self.root.join("tmp")).chain(more.iter().cloned()) {
+            let Ok(rd) = fs::read_dir(&dir) else { continue };
+            for e in rd.filter_map(|e| e.ok()) {
+                if e.file_name().to_str().is_some_and(|n| n.starts_with(&prefix)) {
+                    let _ = fs::remove_file(e.path());
+                }
+            }
+        }
     }
 
     /// A path in `tmp/` unique to this process.
@@ -402,7 +492,12 @@ impl Store {
         let digest = Digest(*hasher.finalize().as_bytes());
         // A file modified while it was hashed gets a new stamp; do not memoise a mixed read.
         let after = fs::metadata(path)?;
-        if after.mtime() * 1_000_000_000 + after.mtime_nsec() == stamp.mtime_ns && after.size() == stamp.size {
+        let unchanged =
+            after.mtime() * 1_000_000_000 + after.mtime_nsec() == stamp.mtime_ns && after.size() == stamp.size;
+        if unchanged && self.read_only {
+            // Kept in memory only: a reader writes nothing.
+            self.fingerprints.write().unwrap().insert(path.to_path_buf(), (stamp, digest));
+        } else if unchanged {
             let mut payload = Vec::new();
             enc::bytes(&mut payload, path.as_os_str().as_encoded_bytes());
             for x in [stamp.dev, stamp.ino, stamp.size, stamp.mtime_ns as u64] {
@@ -439,7 +534,10 @@ impl Store {
 
     /// The time now on the store's filesystem clock (see [`lease::fs_now`]).
     pub fn fs_now(&self) -> std::time::SystemTime {
-        lease::fs_now(self.writer_lease.path())
+        match &self.writer_lease {
+            Some(l) => lease::fs_now(l.path()),
+            None => std::time::SystemTime::now(),
+        }
     }
 
     /// Packs the file-fingerprint memo into one segment (one entry per path: the last one read),
@@ -448,7 +546,8 @@ impl Store {
     /// alone. Returns the number of entries kept.
     pub fn compact_fingerprints(&self) -> Result<usize> {
         let dir = self.root.join("fp");
-        let old = segment_paths(&dir)?;
+        // Only segments it can read: one it cannot is left as it is.
+        let old = removable_segments(&dir)?;
         if old.len() <= 1 {
             return Ok(0);
         }
@@ -475,7 +574,7 @@ impl Store {
     /// its filesystem stalled for longer than the lease timeout) and may have taken over its
     /// work and removed its temp files. A run that sees this stops (see [`Lease::lost`]).
     pub fn lease_lost(&self) -> bool {
-        self.writer_lease.lost()
+        self.writer_lease.as_ref().is_some_and(|l| l.lost())
     }
 
     /// This process, as its lease names it.
@@ -497,14 +596,70 @@ impl Drop for Store {
     }
 }
 
-/// Reads the blob file at `path`, unpacks it and checks its digest; a corrupt one is removed.
-pub fn read_blob(path: &Path, digest: &Digest) -> Result<Vec<u8>, BlobError> {
+/// Reads the blob file at `path`, unpacks it and checks its digest; a corrupt one is removed
+/// ([`BlobError`]), one that a newer dist4d wrote is not ([`NewerBlob`]).
+pub fn read_blob(path: &Path, digest: &Digest) -> Result<Vec<u8>> {
+    read_checked(path, digest, true)
+}
+
+/// [`read_blob`], removing a corrupt blob only with `remove_corrupt`.
+fn read_checked(path: &Path, digest: &Digest, remove_corrupt: bool) -> Result<Vec<u8>> {
     let file = read_retrying(path)
         .map_err(|e| BlobError { digest: *digest, problem: format!("cannot be read ({}): {e}", path.display()) })?;
-    blob::unpack(file, digest).map_err(|why| {
-        let _ = fs::remove_file(path);
-        BlobError { digest: *digest, problem: format!("{why} and was removed ({})", path.display()) }
-    })
+    match blob::unpack(file, digest) {
+        Ok(bytes) => Ok(bytes),
+        Err(why @ blob::Unreadable::Newer { .. }) => {
+            Err(NewerBlob { digest: *digest, path: path.to_path_buf(), why }.into())
+        }
+        Err(why) if remove_corrupt => {
+            let _ = fs::remove_file(path);
+            Err(BlobError { digest: *digest, problem: format!("{why} and was removed ({})", path.display()) }.into())
+        }
+        Err(why) => Err(BlobError { digest: *digest, problem: format!("{why} ({})", path.display()) }.into()),
+    }
+}
+
+/// Fails when a segment of the store at `root` (records or fingerprint memo) was written by a
+/// newer dist4d, naming it.
+fn refuse_newer(root: &Path) -> Result<()> {
+    for dir in ["ac", "fp"] {
+        for path in segment_paths(&root.join(dir))? {
+            let mut head = [0u8; 8];
+            let n = File::open(&path)
+                .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
+                .with_context(|| format!("reading {}", path.display()))?;
+            if let h @ crate::segment::Header::Newer(_) = crate::segment::Header::of(&head[..n]) {
+                bail!(
+                    "the store {} holds {}, which {}: this dist4d will not use the store (it would run again \
+                     every task recorded there); use the newer dist4d, or give this one another --cache",
+                    root.display(),
+                    path.display(),
+                    h.problem().unwrap_or_default()
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
+/// The segments in `dir` that compaction may remove once it has copied their entries: ours, or
+/// torn before their first entry. A segment of a newer dist4d or of unknown format is left in
+/// place (with a warning): what cannot be read is never deleted.
+pub fn removable_segments(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut out = Vec::new();
+    for path in segment_paths(dir)? {
+        let mut head = Vec::with_capacity(8);
+        File::open(&path)
+            .and_then(|f| std::io::Read::read_to_end(&mut std::io::Read::take(f, 8), &mut head))
+            .with_context(|| format!("reading {}", path.display()))?;
+        match crate::segment::Header::of(&head) {
+            crate::segment::Header::Current | crate::segment::Header::DamagedMagic | crate::segment::Header::Torn => {
+                out.push(path)
+            }
+            h => eprintln!("warning: leaving {} as it is: it {}", path.display(), h.problem().unwrap_or_default()),
+        }
+    }
+    Ok(out)
 }
 
 /// How long a read waits for a file that a record names but that is not there: on NFS, a
@@ -677,7 +832,11 @@ fn remove_abandoned(root: &Path, me: &str, now: std::time::SystemTime) -> std::c
 fn load_fingerprints(dir: &Path) -> Result<HashMap<PathBuf, (FileStamp, Digest)>> {
     let mut out = HashMap::new();
     for path in segment_paths(dir)? {
-        let seg = Segment::open(&path)?;
+        let seg = match Segment::open(&path) {
+            Ok(seg) => seg,
+            Err(_) if !path.exists() => continue, // compacted away by a gc meanwhile
+            Err(e) => return Err(e),
+        };
         for (_, payload) in seg.entries() {
             let mut r = enc::Reader { buf: payload };
             let parsed = (|| -> Result<(PathBuf, FileStamp, Digest)> {
@@ -839,6 +998,94 @@ mod tests {
         assert!(BlobError::find(&e).is_some(), "{e:#}");
         assert!(e.to_string().contains("corrupt"), "{e}");
         assert!(!s.has_blob(&d), "removed, so that its task runs again");
+    }
+
+    #[test]
+    fn a_blob_a_newer_dist4d_wrote_is_left_in_place() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = Store::open(dir.path(), Access::Shared).unwrap();
+        let text = "a line a newer dist4d packs its own way\n".repeat(500).into_bytes();
+        let d = Digest::of(&text);
+        s.put_blob(&d, &text).unwrap();
+        let path = s.blob_path(&d);
+        let mut file = fs::read(&path).unwrap();
+        file[4] = 9;
+        fs::write(&path, &file).unwrap();
+        let e = s.get_blob(&d).unwrap_err();
+        assert!(BlobError::find(&e).is_none(), "not a blob to remake: {e:#}");
+        let newer = e.downcast_ref::<NewerBlob>().expect("a newer dist4d's blob");
+        assert_eq!(newer.why, blob::Unreadable::Newer { codec: 9 });
+        assert!(e.to_string().contains("was written by a newer dist4d (blob codec 9"), "{e}");
+        assert_eq!(fs::read(&path).unwrap(), file, "neither removed nor rewritten");
+        s.put_blob(&d, &text).unwrap();
+        assert_eq!(fs::read(&path).unwrap(), file);
+    }
+
+    #[test]
+    fn a_segment_a_newer_dist4d_wrote_refuses_the_store_and_a_foreign_one_is_left_alone() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            let s = Store::open(dir.path(), Access::Shared).unwrap();
+            s.append_record(&record(b"a")).unwrap();
+        }
+        fs::write(dir.path().join("ac/foreign.seg"), b"not a segment at all").unwrap();
+        let s = Store::open(dir.path(), Access::Shared).unwrap();
+        assert_eq!(s.record_count(), 1, "a foreign file is ignored (with a warning)");
+        drop(s);
+        assert_eq!(removable_segments(&dir.path().join("ac")).unwrap().len(), 1, "and never removed");
+        fs::write(dir.path().join("fp/later.seg"), b"D4SEG03\n\x05\x00\x00\x00").unwrap();
+        for access in [Access::Shared, Access::Exclusive, Access::ReadOnly] {
+            let e = Store::open(dir.path(), access).err().expect("refused").to_string();
+            assert!(e.contains("later.seg, which was written by a newer dist4d (segment format 03"), "{e}");
+        }
+    }
+
+    #[test]
+    fn a_read_only_open_writes_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let raw = dir.path().join("raw.bin");
+        fs::write(&raw, b"raw").unwrap();
+        let root = dir.path().join("store");
+        {
+            let s = Store::open(&root, Access::Shared).unwrap();
+            s.append_record(&record(b"a")).unwrap();
+            s.put_blob(&Digest::of(b"hello"), b"hello").unwrap();
+        }
+        let listing = |p: &Path| -> Vec<PathBuf> {
+            let mut out = Vec::new();
+            let mut stack = vec![p.to_path_buf()];
+            while let Some(d) = stack.pop() {
+                for e in fs::read_dir(&d).unwrap() {
+                    let p = e.unwrap().path();
+                    if p.is_dir() {
+                        stack.push(p.clone());
+                    }
+                    out.push(p);
+                }
+            }
+            out.sort();
+            out
+        };
+        let before = listing(&root);
+        let s = Store::open(&root, Access::ReadOnly).unwrap();
+        assert!(s.read_only());
+        assert_eq!(s.lookup(&Digest::of(b"a")).unwrap(), record(b"a"));
+        assert_eq!(s.get_blob(&Digest::of(b"hello")).unwrap(), b"hello");
+        let blob = s.blob_path(&Digest::of(b"hello"));
+        fs::write(&blob, b"jello").unwrap();
+        assert!(s.get_blob(&Digest::of(b"hello")).unwrap_err().to_string().contains("is corrupt"));
+        assert!(blob.exists(), "a reader removes nothing, not even a corrupt blob");
+        assert_eq!(s.file_digest(&raw, true).unwrap(), Some(Digest::of(b"raw")));
+        assert_eq!(s.file_digest(&raw, false).unwrap(), Some(Digest::of(b"raw")), "memoised in memory");
+        assert!(s.put_blob(&Digest::of(b"x"), b"x").is_err());
+        assert!(s.append_record(&record(b"b")).is_err());
+        assert!(!s.lease_lost());
+        drop(s);
+        assert_eq!(listing(&root), before, "no lease, no memo segment, no directory");
+        // A store that is not there reads as empty, and is not created.
+        let none = Store::open(&dir.path().join("none"), Access::ReadOnly).unwrap();
+        assert_eq!(none.record_count(), 0);
+        assert!(!dir.path().join("none").exists());
     }
 
     #[test]
