@@ -1,20 +1,20 @@
 """A worker for the engine's protocol tests (runtime/src/worker.rs): Python's standard library
 only. It echoes each request's first input path back as an output, and misbehaves on request:
 an input path of `hang` never replies (nor answers a cancel), `crash` exits, `garbage` writes a
-line that is not JSON, `bad item` replies with an error, `sleep:S` sleeps S seconds first, and
+line that is not JSON, `bad item` replies with an error, `sleep:S` sleeps S seconds first,
 `slow:S` works S seconds but stops when the engine cancels it (replying `error`, "cancelled"),
 `slow-late:S` does the same and then replies `ok` to the cancelled request as well (a late reply),
 `close-stdout` closes its stdout and goes on running, `unknown-id` replies to a request that was
-never sent, `long-line:N` writes N bytes to stdout without a newline (and waits), `long-stderr:N`
-writes N bytes to stderr without a newline and then crashes.
+never sent, `twice` replies twice, `long-line:N` writes N bytes to stdout without a newline (and
+waits), `long-stderr:N` writes N bytes to stderr without a newline and then crashes.
 `--die-at-start` exits before its hello; `--close-stdout-at-start` closes its stdout instead of
 saying hello and goes on running; `--no-read` never reads stdin after its hello; `--every MODE`
 takes every request as if its input path were MODE; `--op NAME` serves op NAME instead of `echo`;
 `--pid-file PATH` starts a `sleep` in its process group and appends both pids to PATH (so that a
 test can check that nothing of the worker outlives what ended it), and the id of each request it
-gets to PATH.requests; `--protocol N` says it speaks protocol N; `--max-batch N`
-takes batches of up to N requests (each answered on its own line, as a batched model would after
-one forward pass); `--no-pong` ignores pings (a wedged worker).
+gets to PATH.requests; `--protocol N` says it speaks protocol N; `--max-batch N` takes batches of
+up to N requests (each answered on its own line, as a batched model would after one forward
+pass); `--no-pong` ignores pings (a wedged worker).
 """
 import json
 import os
@@ -138,6 +138,8 @@ def answer(msg, lines):
             time.sleep(0.01)
     if what == "close-stdout":
         close_stdout_and_wait()
+    if what == "twice":
+        send({"type": "reply", "id": msg["id"], "status": "ok", "outputs": []})
     if what == "unknown-id":
         send({"type": "reply", "id": msg["id"] + 1000, "status": "ok", "outputs": []})
         return

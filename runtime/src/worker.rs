@@ -462,21 +462,31 @@ impl Worker {
                         return Err(CallError::Malformed(format!("a reply without a request id: {v}")));
                     };
                     let Some(i) = id.checked_sub(first).map(|i| i as usize).filter(|&i| i < replies.len()) else {
-                        // A late reply to a request given up on is not this call's; one to a
-                        // request never sent is a worker out of step, which no wait would mend.
+                        // A late reply to a request given up on is not this call's; any other
+                        // (an id never sent, a second reply to an answered one) is a worker out
+                        // of step, which no wait would mend.
                         if self.given_up.contains(&id) {
                             continue;
                         }
-                        return Err(CallError::Malformed(format!(
-                            "a reply to request {id}, which was never sent (this call's are {first} to {}): {v}",
-                            first + requests.len() as u64 - 1
-                        )));
+                        let last = first + requests.len() as u64 - 1;
+                        return Err(CallError::Malformed(if id >= self.next_id {
+                            format!("a reply to request {id}, which was never sent (this call's are {first} to {last}): {v}")
+                        } else {
+                            format!("a reply to request {id}, which is neither this call's ({first} to {last}) nor a cancelled one: {v}")
+                        }));
                     };
+                    if replies[i].is_some() {
+                        // The first reply to a request stands; a second one is late if the
+                        // request was cancelled, and a worker out of step if not.
+                        if self.given_up.contains(&id) {
+                            continue;
+                        }
+                        return Err(CallError::Malformed(format!("a second reply to request {id}: {v}")));
+                    }
                     let reply = serde_json::from_value(v.clone())
                         .map_err(|e| CallError::Malformed(format!("a reply ({e}): {v}")))?;
-                    if replies[i].replace(reply).is_none() {
-                        left -= 1;
-                    }
+                    replies[i] = Some(reply);
+                    left -= 1;
                 }
                 Some("pong") => continue,
                 _ => return Err(CallError::Malformed(format!("expected a reply, found {v}"))),
@@ -797,6 +807,11 @@ mod tests {
         let err = w.call(&request("unknown-id"), Duration::from_secs(10)).unwrap_err();
         assert!(matches!(err, CallError::Malformed(_)) && err.to_string().contains("never sent"), "{err}");
         assert!(t.elapsed() < Duration::from_secs(2), "at once, not at the deadline: {:?}", t.elapsed());
+        // A second reply to a request answered already is one too, found by the next call.
+        let mut w = Worker::start(&reference("protocol_test_worker.py", &[]), Duration::from_secs(10)).unwrap();
+        assert_eq!(w.call(&request("twice"), Duration::from_secs(5)).unwrap().status, Status::Ok);
+        let err = w.call(&request("a"), Duration::from_secs(10)).unwrap_err();
+        assert!(matches!(err, CallError::Malformed(_)) && err.to_string().contains("reply to request 1"), "{err}");
         // A worker that answers a cancel and then the cancelled request too: the late reply is
         // skipped by the next call.
         let mut w = Worker::start(&reference("protocol_test_worker.py", &[]), Duration::from_secs(10)).unwrap();
