@@ -389,6 +389,9 @@ fn parse_jobs(s: &str) -> Result<usize, String> {
 
 fn main() -> ExitCode {
     keep_freed_memory();
+    // Whichever way main ends (a return, an error, a panic unwinding), no model worker outlives
+    // it: the pools end theirs, and this ends any left (docs/security.md, "Signals").
+    let _workers = dist4d_runtime::worker::KillWorkersOnDrop;
     let cli = Cli::parse();
     match run(cli) {
         Ok(code) => code,
@@ -561,7 +564,8 @@ fn machine_memory() -> Option<u64> {
 /// Stops a run cleanly on SIGINT (Ctrl-C), SIGTERM (what Slurm, systemd and `kill` send before
 /// SIGKILL) and SIGHUP (its terminal closed): nothing new starts, running tasks stop at their next
 /// cancellation point (`dist4d_types::cancel`) or finish, the run record is written. A second
-/// signal leaves at once, which is safe too (every file is written whole or not at all). Returns
+/// signal leaves at once, which is safe too (every file is written whole or not at all), and
+/// kills the model workers' process groups first. Returns
 /// the number of the signal that stopped the run (SIGINT until one arrives).
 fn stop_on_signals(cancel: Arc<AtomicBool>) -> Result<Arc<AtomicI32>> {
     use signal_hook::consts::{SIGHUP, SIGINT, SIGTERM};
@@ -572,6 +576,9 @@ fn stop_on_signals(cancel: Arc<AtomicBool>) -> Result<Arc<AtomicI32>> {
     std::thread::Builder::new().name("dist4d-signals".into()).spawn(move || {
         for signal in signals.forever() {
             if cancel.swap(true, Ordering::SeqCst) {
+                // `exit` runs no Drop: the workers' process groups are killed here, or they
+                // would run on (and hold their GPU) after dist4d is gone.
+                dist4d_runtime::worker::kill_all_workers();
                 std::process::exit(128 + signal);
             }
             by.store(signal, Ordering::SeqCst);

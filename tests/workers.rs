@@ -277,3 +277,142 @@ fn a_run_that_defers_workers_starts_none_and_leaves_their_tasks_missing() {
     let gpu = scene.run_ok("curation", "out", &[], &[]);
     assert!(executed(&gpu, "complete") > 0 && executed(&gpu, "aggregate") == 0, "{gpu}");
 }
+
+/// `complete.worker` set to workers/protocol_test_worker.py (the system's `python3`: standard
+/// library only) serving `complete_depth`, with `args` and the worker options `options`.
+fn test_worker(args: &[&str], options: &str) -> String {
+    let script = repo().join("workers/protocol_test_worker.py").display().to_string();
+    let mut all = vec![script.as_str(), "--op", "complete_depth"];
+    all.extend(args);
+    worker_set("complete", Path::new("python3"), &all).replace("]))", &format!("], {options}))"))
+}
+
+/// The processes still alive (zombies are dead) that a test worker left: those whose pid or
+/// process group is a worker's pid in `pid_file` (each line: a worker's pid and the pid of the
+/// `sleep` it started in its group). Read from /proc.
+fn survivors(pid_file: &Path) -> Vec<u32> {
+    let listed: Vec<u32> =
+        std::fs::read_to_string(pid_file).unwrap_or_default().split_whitespace().map(|p| p.parse().unwrap()).collect();
+    let workers: Vec<u32> = listed.iter().step_by(2).copied().collect();
+    let mut alive = Vec::new();
+    for entry in std::fs::read_dir("/proc").unwrap().flatten() {
+        let Some(pid) = entry.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) else { continue };
+        let Ok(stat) = std::fs::read_to_string(entry.path().join("stat")) else { continue };
+        // `pid (comm) state ppid pgrp ...`: the command may hold spaces and parentheses.
+        let fields: Vec<&str> = stat[stat.rfind(')').unwrap() + 1..].split_whitespace().collect();
+        let (state, pgrp) = (fields[0], fields[2].parse::<u32>().unwrap());
+        if state != "Z" && (listed.contains(&pid) || workers.contains(&pgrp)) {
+            alive.push(pid);
+        }
+    }
+    alive
+}
+
+/// Kills what [`survivors`] finds, so that a failing test leaves nothing running behind it.
+fn kill_survivors(pid_file: &Path) {
+    for pid in survivors(pid_file) {
+        let _ = std::process::Command::new("kill").args(["-KILL", &pid.to_string()]).status();
+    }
+}
+
+/// `dist4d run pipelines/curation.ron` on the first frame of `scene` (6 items to complete)
+/// with `set`, started; its stdout and stderr go to files in the scene's folder (a pipe left
+/// unread could stop it).
+fn spawn_curation(scene: &Scene, out: &str, set: &str) -> std::process::Child {
+    let file = |name: &str| std::fs::File::create(scene.out(&format!("{out}.{name}"))).unwrap();
+    std::process::Command::new(bin())
+        .current_dir(repo())
+        .args(["run", "pipelines/curation.ron", "--limit", "1", "--progress", "off", "--set", set])
+        .args(["--set", &format!("dataset.root={}", scene.data.display())])
+        .args(["--cache", scene.out("cache").to_str().unwrap(), "--out", scene.out(out).to_str().unwrap()])
+        .stdout(file("stdout"))
+        .stderr(file("stderr"))
+        .spawn()
+        .unwrap()
+}
+
+/// Waits up to `limit` for `child` to end: its exit code and what it wrote. One still running
+/// then is killed, with the worker processes it left, and the test fails (instead of hanging).
+fn wait_within(
+    scene: &Scene,
+    out: &str,
+    mut child: std::process::Child,
+    limit: std::time::Duration,
+    pid_file: &Path,
+) -> (Option<i32>, String) {
+    let t0 = std::time::Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if t0.elapsed() > limit {
+            let _ = child.kill();
+            let _ = child.wait();
+            kill_survivors(pid_file);
+            panic!("the run was still going after {limit:?}");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    let read = |name: &str| std::fs::read_to_string(scene.out(&format!("{out}.{name}"))).unwrap_or_default();
+    (status.code(), format!("{}{}", read("stdout"), read("stderr")))
+}
+
+/// Waits up to 5 s for the processes a run's workers left to be gone (SIGKILL takes a moment to
+/// end them); those left then (killed after the look).
+fn survivors_after_a_moment(pid_file: &Path) -> Vec<u32> {
+    let t0 = std::time::Instant::now();
+    while !survivors(pid_file).is_empty() && t0.elapsed() < std::time::Duration::from_secs(5) {
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    let left = survivors(pid_file);
+    kill_survivors(pid_file);
+    left
+}
+
+/// A worker that closes its stdout and keeps running is a dead worker: its items fail (saying
+/// so) long before any deadline, and nothing of it (its process group) outlives the run. It used
+/// to hang the run forever.
+#[test]
+fn a_worker_that_closes_its_stdout_fails_its_items_and_leaves_no_process() {
+    let scene = Scene::new();
+    let pids = scene.out("pids");
+    let set =
+        test_worker(&["--every", "close-stdout", "--pid-file", pids.to_str().unwrap()], "deadline_s: 30, tries: 1");
+    let child = spawn_curation(&scene, "out", &set);
+    let t0 = std::time::Instant::now();
+    let (code, t) = wait_within(&scene, "out", child, std::time::Duration::from_secs(60), &pids);
+    assert_eq!(code, Some(1), "{t}");
+    assert!(t0.elapsed() < std::time::Duration::from_secs(30), "within one deadline: {:?}", t0.elapsed());
+    assert_eq!(failures(&t).len(), 6, "{t}");
+    assert!(t.contains("closed its stdout"), "{t}");
+    assert_eq!(std::fs::read_to_string(&pids).unwrap().lines().count(), 6, "a fresh worker for each item");
+    assert_eq!(survivors_after_a_moment(&pids), Vec::<u32>::new(), "worker processes left after the run");
+}
+
+/// A run stopped by a signal leaves no worker process: one SIGTERM stops it cleanly once the
+/// hanging worker's deadline has passed; a second one ends it at once, and ends the workers too
+/// (it used to leave them running).
+#[test]
+fn a_run_stopped_by_one_signal_or_two_leaves_no_worker_process() {
+    let scene = Scene::new();
+    for (signals, options) in [(1, "deadline_s: 2, tries: 1"), (2, "deadline_s: 600, tries: 1")] {
+        let pids = scene.out(&format!("pids-{signals}"));
+        let set = test_worker(&["--every", "hang", "--pid-file", pids.to_str().unwrap()], options);
+        let out = format!("out-{signals}");
+        let child = spawn_curation(&scene, &out, &set);
+        let t0 = std::time::Instant::now();
+        // Once the worker has its first request (and hangs on it).
+        let requests = scene.out(&format!("pids-{signals}.requests"));
+        while !requests.exists() {
+            assert!(t0.elapsed() < std::time::Duration::from_secs(60), "no request reached the worker");
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        for _ in 0..signals {
+            let _ = std::process::Command::new("kill").args(["-TERM", &child.id().to_string()]).status();
+            std::thread::sleep(std::time::Duration::from_millis(200));
+        }
+        let (code, t) = wait_within(&scene, &out, child, std::time::Duration::from_secs(30), &pids);
+        assert_eq!(code, Some(143), "{signals} signals: {t}");
+        assert_eq!(survivors_after_a_moment(&pids), Vec::<u32>::new(), "{signals} signals: workers left\n{t}");
+    }
+}
