@@ -1478,7 +1478,7 @@ mod tests {
             let (k0, k1) = (scene.frames[r0].extra.sample.unwrap(), scene.frames[r1].extra.sample.unwrap());
             let (t0, t1) = (scene.extra[k0].0, scene.extra[k1].0);
             let t_asap = t0 + (t1 - t0) * (f - r0) as i64 / (r1 - r0) as i64;
-            let at_asap = ds.0.boxes_at(scene, t_asap, None);
+            let at_asap = ds.0.boxes_at(scene, t_asap, None).unwrap();
             for c in 0..ds.0.tree.cameras.len() as u32 {
                 let item = ItemKey::new(&[0, f as u32, c]);
                 let image = ds.0.tree.reading("image", &item).unwrap();
@@ -1588,10 +1588,10 @@ mod tests {
             .expect("an agent leaves the annotated range");
         let (t0, t1) = (keys[k].0, keys[k + 1].0);
         let at =
-            |t: i64, ds: &Surround<NuScenes>| ds.0.boxes_at(scene, t, None).into_iter().find(|b| b.instance == lone);
+            |t: i64, ds: &Surround<NuScenes>| ds.0.boxes_at(scene, t, None).unwrap().into_iter().find(|b| b.instance == lone);
         let near = at(t0 + (t1 - t0) / 4, &ds).expect("a quarter interval on: extrapolated");
         assert!(near.extrapolated && !near.interpolated);
-        let annotated = ds.0.boxes_at(scene, t0, None).into_iter().find(|b| b.instance == lone).unwrap();
+        let annotated = ds.0.boxes_at(scene, t0, None).unwrap().into_iter().find(|b| b.instance == lone).unwrap();
         let moved: f64 = (0..3).map(|i| (near.center[i] - annotated.center[i]).powi(2)).sum::<f64>().sqrt();
         let speed: f64 = annotated.velocity.iter().map(|v| v * v).sum::<f64>().sqrt();
         assert!((moved - speed * (t1 - t0) as f64 * 0.25e-6).abs() < 1e-6, "moved {moved} at {speed} m/s");
@@ -1605,8 +1605,8 @@ mod tests {
         .map(Surround)
         .unwrap();
         let scene = &dropping.0.tree.scenes[0];
-        assert!(dropping.0.boxes_at(scene, t0 + (t1 - t0) / 4, None).iter().all(|b| b.instance != lone));
-        assert!(dropping.0.boxes_at(scene, t0, None).iter().any(|b| b.instance == lone), "its annotation stays");
+        assert!(dropping.0.boxes_at(scene, t0 + (t1 - t0) / 4, None).unwrap().iter().all(|b| b.instance != lone));
+        assert!(dropping.0.boxes_at(scene, t0, None).unwrap().iter().any(|b| b.instance == lone), "its annotation stays");
     }
 
     /// The figures of docs/BENCHMARKS.md ("Boxes at each image's time"), on a dataset made with
