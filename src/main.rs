@@ -599,6 +599,7 @@ fn run_pipeline(
         shard: p.shard,
         out_dir: Some(out_dir.clone()),
         progress: progress_mode(progress),
+        sets: p.sets.clone(),
         ..Default::default()
     };
     if let Some(j) = jobs {

@@ -423,3 +423,25 @@ fn the_same_pipeline_runs_on_dgp_data() {
     let front = read_npy_rows(&out.join("scene_02/CAMERA_01/001_uvz.npy"));
     assert!(front.len() > 2000, "{}", front.len());
 }
+
+/// Item keys are indices: the same pipeline run on a DGP scene into the store of a nuScenes run
+/// has tasks of the same stage and item. `explain` of the nuScenes run compares with its own.
+#[test]
+fn explain_in_a_store_shared_with_another_dataset_gives_only_the_true_reason() {
+    let (Some(nusc), Some(dgp)) = (shared_nuscenes(), shared_dgp()) else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let (cache, out) = (tmp.path().join("c"), tmp.path().join("o"));
+    let o = run_lidar_depth(&nusc, &cache, &out);
+    assert!(o.status.success(), "{}", text(&o));
+    let file = tmp.path().join("lidar_depth.ron");
+    std::fs::write(&file, with_dataset("lidar_depth", &format!("Dgp(root: {:?})", dgp.display().to_string()))).unwrap();
+    let (cache, out) = (cache.to_str().unwrap(), out.to_str().unwrap());
+    let o = dist4d(&["run", file.to_str().unwrap(), "--progress", "off", "--cache", cache]);
+    assert!(o.status.success(), "{}", text(&o));
+    let root = format!("dataset.root={}", nusc.display());
+    let args = ["explain", &pipeline(), "--cache", cache, "--out", out, "--set", &root];
+    let t = text(&dist4d(&[&args[..], &["--set", "project.min_depth=2"]].concat()));
+    assert!(t.contains("project (ProjectLidar): 0 cached, 6 will run"), "{t}");
+    assert!(t.contains("6 x param `min_depth` changed: 1.0 -> 2.0"), "{t}");
+    assert!(!t.contains("input `"), "the DGP scene's inputs are not this run's: {t}");
+}
