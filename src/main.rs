@@ -193,8 +193,9 @@ enum Command {
         /// Where exported files go [default: out/<pipeline name>/ beside the pipeline file].
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Progress: auto, lines, off.
-        #[arg(long, default_value = "off")]
+        /// Progress: auto (bars on a terminal, lines otherwise), lines, off. On by default, as for
+        /// `run`: an eval runs the pipeline, often for minutes.
+        #[arg(long, default_value = "auto")]
         progress: String,
     },
     /// Check a pipeline file without running it: every problem, with file:line:column.
@@ -414,13 +415,18 @@ fn synthesize(config: &dist4d_synth::SynthConfig, out: &Path) -> Result<()> {
     Ok(())
 }
 
+/// `--progress`: `auto` is bars on a terminal and lines otherwise, every `DIST4D_PROGRESS_SECS`
+/// (10 s) in both `auto` and `lines`.
 fn progress_mode(name: &str) -> ProgressMode {
+    use std::io::IsTerminal;
+    let lines = || {
+        ProgressMode::Lines(std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10))
+    };
     match name {
         "off" => ProgressMode::Off,
-        "lines" => {
-            ProgressMode::Lines(std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10))
-        }
-        _ => ProgressMode::Auto,
+        "lines" => lines(),
+        _ if std::io::stderr().is_terminal() => ProgressMode::Auto,
+        _ => lines(),
     }
 }
 

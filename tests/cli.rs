@@ -445,3 +445,22 @@ fn explain_in_a_store_shared_with_another_dataset_gives_only_the_true_reason() {
     assert!(t.contains("6 x param `min_depth` changed: 1.0 -> 2.0"), "{t}");
     assert!(!t.contains("input `"), "the DGP scene's inputs are not this run's: {t}");
 }
+
+/// `eval` runs the pipeline, often for minutes: it reports progress as `run` does, unasked.
+#[test]
+fn eval_reports_progress_by_default() {
+    let Some(data) = shared_nuscenes() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let curation = repo().join("pipelines/curation.ron");
+    let o = Command::new(bin())
+        .args(["eval", curation.to_str().unwrap(), "--jobs", "2"])
+        .args(["--cache", tmp.path().join("c").to_str().unwrap(), "--out", tmp.path().join("o").to_str().unwrap()])
+        .args(["--set", &format!("dataset.root={}", data.display())])
+        .env("DIST4D_PROGRESS_SECS", "1")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let err = String::from_utf8_lossy(&o.stderr);
+    let last = err.lines().filter(|l| l.starts_with("progress [")).last().unwrap_or_else(|| panic!("no progress: {err}"));
+    assert!(last.contains("complete 6/6"), "{last}");
+}
