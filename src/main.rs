@@ -226,13 +226,15 @@ enum Command {
         #[command(flatten)]
         p: PipelineArgs,
     },
-    /// List the runs recorded in a store.
+    /// List the runs recorded in a store: when, pipeline, status, counts, dataset, output folder
+    /// and --set values.
     ///
     /// Example: dist4d runs --cache pipelines/.dist4d --json
     Runs {
-        /// The store directory.
-        #[arg(long, default_value = ".dist4d")]
-        cache: PathBuf,
+        /// The store directory [default: pipelines/.dist4d, the store of `dist4d run
+        /// pipelines/x.ron`, else .dist4d].
+        #[arg(long)]
+        cache: Option<PathBuf>,
         /// Print the run records as JSON (newest last).
         #[arg(long)]
         json: bool,
@@ -419,9 +421,8 @@ fn synthesize(config: &dist4d_synth::SynthConfig, out: &Path) -> Result<()> {
 /// (10 s) in both `auto` and `lines`.
 fn progress_mode(name: &str) -> ProgressMode {
     use std::io::IsTerminal;
-    let lines = || {
-        ProgressMode::Lines(std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10))
-    };
+    let lines =
+        || ProgressMode::Lines(std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10));
     match name {
         "off" => ProgressMode::Off,
         "lines" => lines(),
@@ -795,6 +796,29 @@ fn slurm_merge(
     Ok(code)
 }
 
+/// What tells runs of one pipeline apart in `dist4d runs`: `  dataset NuScenes /data  out DIR  --set a=1`.
+fn run_inputs(r: &dist4d_runtime::RunRecord) -> String {
+    let mut s = String::new();
+    if let Some(d) = r.dataset_label() {
+        s += &format!("  dataset {}", printable(&d));
+    }
+    if let Some(out) = &r.out_dir {
+        s += &format!("  out {}", printable(out));
+    }
+    for set in &r.sets {
+        s += &format!("  --set {}", printable(set));
+    }
+    s
+}
+
+/// The store `dist4d runs` reads without --cache: the one `dist4d run pipelines/x.ron` uses
+/// (`.dist4d/` beside the pipeline files), else `.dist4d/` here, whichever has runs first.
+fn default_store() -> PathBuf {
+    let candidates = [PathBuf::from("pipelines/.dist4d"), PathBuf::from(".dist4d")];
+    let has_runs = |c: &PathBuf| c.join("runs").is_dir();
+    candidates.iter().find(|c| has_runs(c)).unwrap_or(&candidates[0]).clone()
+}
+
 fn beside(pipeline: &Path, rel: &str) -> PathBuf {
     pipeline.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).join(rel)
 }
@@ -893,6 +917,14 @@ fn run(cli: Cli) -> Result<ExitCode> {
             slurm_merge(&registry, &p, out, &group, shards, gpu_shards, no_retry, jobs, &progress)
         }
         Command::Runs { cache, json } => {
+            let cache = match cache {
+                Some(c) => c,
+                None => {
+                    let found = default_store();
+                    eprintln!("store: {} (--cache for another)", found.display());
+                    found
+                }
+            };
             let runs = dist4d_runtime::runs::list_runs(&cache.join("runs"))?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&runs)?);
@@ -921,7 +953,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 let executed = sum(|r| r.executed());
                 let missing = if last.missing() > 0 { format!(", {} missing", last.missing()) } else { String::new() };
                 println!(
-                    "{}  {}  {:<14} {}  {} executed, {} cached, {} failed{missing}, {:.1}s{what}",
+                    "{}  {}  {:<14} {}  {} executed, {} cached, {} failed{missing}, {:.1}s{what}{}",
                     dist4d_runtime::runs::format_utc(first.started),
                     id,
                     first.pipeline,
@@ -940,7 +972,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                         last.cached()
                     },
                     last.failed(),
-                    end - first.started as f64
+                    end - first.started as f64,
+                    run_inputs(first)
                 );
             }
             Ok(ExitCode::SUCCESS)

@@ -461,6 +461,40 @@ fn eval_reports_progress_by_default() {
         .unwrap();
     assert!(o.status.success(), "{}", text(&o));
     let err = String::from_utf8_lossy(&o.stderr);
-    let last = err.lines().filter(|l| l.starts_with("progress [")).last().unwrap_or_else(|| panic!("no progress: {err}"));
+    let last =
+        err.lines().filter(|l| l.starts_with("progress [")).last().unwrap_or_else(|| panic!("no progress: {err}"));
     assert!(last.contains("complete 6/6"), "{last}");
+}
+
+/// `dist4d runs` run where `dist4d run pipelines/x.ron` was reads that run's store, and tells runs
+/// of one pipeline apart by their dataset, output folder and --set values.
+#[test]
+fn runs_without_cache_reads_the_store_of_the_pipelines_and_tells_runs_apart() {
+    let s = multi_frame(1);
+    let dir = s.base.join("project");
+    std::fs::create_dir_all(dir.join("pipelines")).unwrap();
+    std::fs::copy(pipeline(), dir.join("pipelines/lidar_depth.ron")).unwrap();
+    let in_project = |args: &[&str]| Command::new(bin()).args(args).current_dir(&dir).output().unwrap();
+    let root = format!("dataset.root={}", s.root);
+    let run = ["run", "pipelines/lidar_depth.ron", "--progress", "off", "--set", &root];
+    let o = in_project(&run);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = in_project(&[&run[..], &["--set", "encode.preview_max_depth=50", "--out", "other"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+
+    let o = in_project(&["runs"]);
+    let t = text(&o);
+    assert!(o.status.success() && t.contains("store: pipelines/.dist4d"), "{t}");
+    let lines: Vec<&str> = t.lines().filter(|l| l.contains("lidar_depth")).collect();
+    assert_eq!(lines.len(), 2, "{t}");
+    for l in &lines {
+        assert!(l.contains(&format!("dataset NuScenes {}", s.root)), "{l}");
+    }
+    assert!(lines[0].contains("out pipelines/out/lidar_depth") && !lines[0].contains("preview"), "{}", lines[0]);
+    assert!(lines[1].contains("out other") && lines[1].contains("--set encode.preview_max_depth=50"), "{}", lines[1]);
+
+    let o = in_project(&["runs", "--json"]);
+    let runs: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let sets = &runs.as_array().unwrap()[1]["sets"];
+    assert_eq!(sets, &serde_json::json!([root, "encode.preview_max_depth=50"]), "{runs}");
 }
