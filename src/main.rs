@@ -440,7 +440,8 @@ fn execute(
     opts: RunOptions,
 ) -> Result<(ExitCode, dist4d_runtime::RunRecord)> {
     let dataset = registry.open_dataset(pipeline)?;
-    let ops = registry.operators(pipeline)?;
+    let why_nothing = Arc::new(dist4d_runtime::nothing::WhyNothing::default());
+    let ops = why_nothing.wrap(registry.operators(pipeline)?);
     let store = Store::open(cache, Access::Shared).with_context(|| format!("opening the store {}", cache.display()))?;
     let stopped_by = stop_on_signals(opts.cancel.clone())?;
     let engine = Engine { pipeline, dataset: dataset.as_ref(), operators: &ops, store: &store };
@@ -455,8 +456,10 @@ fn execute(
             s.stage, s.kind, s.total, s.executed, s.cached, s.failed, s.skipped, s.not_applicable, s.seconds
         );
     }
-    if rec.stages.iter().any(|s| s.not_applicable > 0) {
-        println!("(n/a: tasks with nothing to make, e.g. the exact view of a dataset that is not synthetic, and the tasks that needed them)");
+    // Once per stage, why it made nothing for some items: an output that is just missing, or a
+    // stage that made nothing at all, would otherwise go unexplained.
+    for line in why_nothing.lines(pipeline, &rec.stages) {
+        println!("{line}");
     }
     if rec.missing() > 0 {
         println!(
