@@ -1053,7 +1053,6 @@ fn run(cli: Cli) -> Result<ExitCode> {
             for w in &r.warnings {
                 eprintln!("warning: {w}");
             }
-            let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
             println!(
                 "{}: {} scene(s), {} samples ({} keyframes, {} camera rounds between), {} interpolated annotations ({} extrapolated)",
                 out.display(),
@@ -1064,8 +1063,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 r.annotations,
                 r.extrapolated
             );
-            if out.parent() == Some(root.as_path()) {
-                println!("load it with NuScenes(version='{name}', dataroot='{}')", root.display());
+            for line in interp12hz::how_to_load(&root, &out) {
+                println!("{line}");
             }
             Ok(ExitCode::SUCCESS)
         }
