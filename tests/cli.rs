@@ -462,7 +462,7 @@ fn eval_reports_progress_by_default() {
     assert!(o.status.success(), "{}", text(&o));
     let err = String::from_utf8_lossy(&o.stderr);
     let last =
-        err.lines().filter(|l| l.starts_with("progress [")).last().unwrap_or_else(|| panic!("no progress: {err}"));
+        err.lines().filter(|l| l.starts_with("progress [")).next_back().unwrap_or_else(|| panic!("no progress: {err}"));
     assert!(last.contains("complete 6/6"), "{last}");
 }
 
@@ -497,4 +497,44 @@ fn runs_without_cache_reads_the_store_of_the_pipelines_and_tells_runs_apart() {
     let runs: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     let sets = &runs.as_array().unwrap()[1]["sets"];
     assert_eq!(sets, &serde_json::json!([root, "encode.preview_max_depth=50"]), "{runs}");
+}
+
+/// A finished output folder holds the exports and dist4d's lists, not an empty temp folder.
+#[test]
+fn a_finished_run_leaves_no_temp_folder_in_its_output() {
+    let s = multi_frame(1);
+    run_ok(&s, "cache", "out", &[]);
+    assert!(!s.base.join("out/.dist4d-tmp").exists());
+    assert!(s.base.join("out/index.json").is_file());
+    run_ok(&s, "cache", "out", &["--set", "encode.preview_max_depth=50"]);
+    assert!(!s.base.join("out/.dist4d-tmp").exists());
+}
+
+/// An `Option` param left unset (CompleteDepth's `worker`) is not set by default, not required.
+#[test]
+fn an_unset_option_param_is_listed_as_none_not_required() {
+    let curation = repo().join("pipelines/curation.ron");
+    let o = dist4d(&["check", curation.to_str().unwrap(), "--set", "complete.wrker=1"]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(2), "{t}");
+    assert!(t.contains("worker (default None)") && !t.contains("(required)"), "{t}");
+    let reference = std::fs::read_to_string(repo().join("docs/stages.md")).unwrap();
+    assert!(!reference.contains("(required)"), "docs/stages.md is generated from the same defaults");
+}
+
+/// A nuScenes pipeline pointed at a path that does not exist, or at DGP data, says which.
+#[test]
+fn a_nuscenes_root_that_is_missing_or_dgp_data_says_so() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = |root: &Path| {
+        let o = run_lidar_depth(root, &tmp.path().join("c"), &tmp.path().join("o"));
+        assert_eq!(o.status.code(), Some(1));
+        text(&o)
+    };
+    let missing = tmp.path().join("no-such-folder");
+    let t = run(&missing);
+    assert!(t.contains(&format!("{} does not exist", missing.display())), "{t}");
+    let Some(dgp) = shared_dgp() else { return };
+    let t = run(&dgp);
+    assert!(t.contains("looks like a DGP dataset") && t.contains("Dgp(root: "), "{t}");
 }
