@@ -159,7 +159,7 @@ fn the_temporal_curation_reuses_a_curation_runs_depth_from_the_cache() {
         .unwrap();
     let t = text(&o);
     assert!(o.status.success(), "{t}");
-    let stages = ["aggregate", "sky", "mvs", "mvs_points", "fuse", "follow", "visible", "prompt", "complete"];
+    let stages = ["aggregate", "sky", "mvs", "mvs_points", "fuse", "visible", "prompt", "complete", "follow"];
     for stage in stages {
         let line = t.lines().find(|l| l.starts_with(&format!("{stage} ("))).unwrap_or_else(|| panic!("{stage}: {t}"));
         assert!(line.ends_with("cached, 0 will run") && !line.contains(": 0 cached"), "{line}\n{t}");
