@@ -136,9 +136,16 @@ impl RunRecord {
     }
 }
 
-/// A pipeline's dataset as run records name it: its kind and canonical config (`NuScenes(root:..)`).
+/// A pipeline's dataset as run records name it: its kind and canonical config (`NuScenes(root:..)`),
+/// the root resolved (`pipelines/../data` from `dist4d run pipelines/x.ron` and `/repo/data` from
+/// an absolute path are one dataset).
 pub fn dataset_identity(p: &dist4d_graph::Pipeline) -> String {
-    format!("{}{}", p.dataset.kind, p.dataset.config.canonical)
+    let canonical = &p.dataset.config.canonical;
+    let resolved = string_field(canonical, "root").and_then(|root| {
+        let real = std::fs::canonicalize(&root).ok()?.display().to_string();
+        Some(canonical.replacen(&format!("{root:?}"), &format!("{real:?}"), 1))
+    });
+    format!("{}{}", p.dataset.kind, resolved.as_deref().unwrap_or(canonical))
 }
 
 /// A string field of canonical params text (`(root:"/data",version:"v1.0-mini")`).
