@@ -93,3 +93,48 @@ impl Operator for Noting {
         self.inner.resource()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::exec::{Engine, RunOptions};
+    use crate::store::{Access, Store};
+    use crate::testkit;
+
+    const PIPELINE: &str = r#"Pipeline(
+    dataset: Grid(scenes: 1, frames: 2, cameras: 2),
+    stages: {
+        "a": Echo(inputs: {"x": "dataset.camera_value"}),
+        "b": Echo(inputs: {"x": "a.y"}),
+        "c": Echo(inputs: {"x": "dataset.camera_value"}),
+    },
+)"#;
+
+    fn run(p: &Pipeline, store: &std::path::Path) -> Vec<String> {
+        let store = Store::open(store, Access::Shared).unwrap();
+        let why = Arc::new(WhyNothing::default());
+        let ops = why.wrap(testkit::operators(p));
+        let grid = testkit::grid_of(p);
+        let engine = Engine { pipeline: p, dataset: &grid, operators: &ops, store: &store };
+        let rec = engine.run(&RunOptions { jobs: 2, ..Default::default() }).unwrap().record;
+        why.lines(p, &rec.stages)
+    }
+
+    #[test]
+    fn each_stage_with_nothing_to_make_says_why_once() {
+        let dir = tempfile::tempdir().unwrap();
+        let nothing = r#"a.nothing_on=["s0/001/cam1", "s0/000/cam1"]"#;
+        let p = testkit::load(PIPELINE, &[nothing]);
+        let lines = run(&p, &dir.path().join("store"));
+        assert_eq!(
+            lines,
+            [
+                "n/a: a (Echo): 2 of 4: asked for nothing on s0/000/cam1 (e.g. s0/000/cam1)",
+                "n/a: b (Echo): 2 of 4: nothing came from `a`",
+            ]
+        );
+        // A rerun finds them cached as having nothing: the first run said why.
+        let again = run(&p, &dir.path().join("store"));
+        assert!(again[0].ends_with("2 of 4: cached as having nothing to make (the run that ran them said why)"));
+    }
+}
