@@ -193,8 +193,9 @@ enum Command {
         /// Where exported files go [default: out/<pipeline name>/ beside the pipeline file].
         #[arg(long)]
         out: Option<PathBuf>,
-        /// Progress: auto, lines, off.
-        #[arg(long, default_value = "off")]
+        /// Progress: auto (bars on a terminal, lines otherwise), lines, off. On by default, as for
+        /// `run`: an eval runs the pipeline, often for minutes.
+        #[arg(long, default_value = "auto")]
         progress: String,
     },
     /// Check a pipeline file without running it: every problem, with file:line:column.
@@ -225,13 +226,15 @@ enum Command {
         #[command(flatten)]
         p: PipelineArgs,
     },
-    /// List the runs recorded in a store.
+    /// List the runs recorded in a store: when, pipeline, status, counts, dataset, output folder
+    /// and --set values.
     ///
     /// Example: dist4d runs --cache pipelines/.dist4d --json
     Runs {
-        /// The store directory.
-        #[arg(long, default_value = ".dist4d")]
-        cache: PathBuf,
+        /// The store directory [default: pipelines/.dist4d, the store of `dist4d run
+        /// pipelines/x.ron`, else .dist4d].
+        #[arg(long)]
+        cache: Option<PathBuf>,
         /// Print the run records as JSON (newest last).
         #[arg(long)]
         json: bool,
@@ -432,13 +435,17 @@ fn synthesize(config: &dist4d_synth::SynthConfig, out: &Path) -> Result<()> {
     Ok(())
 }
 
+/// `--progress`: `auto` is bars on a terminal and lines otherwise, every `DIST4D_PROGRESS_SECS`
+/// (10 s) in both `auto` and `lines`.
 fn progress_mode(name: &str) -> ProgressMode {
+    use std::io::IsTerminal;
+    let lines =
+        || ProgressMode::Lines(std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10));
     match name {
         "off" => ProgressMode::Off,
-        "lines" => {
-            ProgressMode::Lines(std::env::var("DIST4D_PROGRESS_SECS").ok().and_then(|s| s.parse().ok()).unwrap_or(10))
-        }
-        _ => ProgressMode::Auto,
+        "lines" => lines(),
+        _ if std::io::stderr().is_terminal() => ProgressMode::Auto,
+        _ => lines(),
     }
 }
 
@@ -451,7 +458,8 @@ fn execute(
     opts: RunOptions,
 ) -> Result<(ExitCode, dist4d_runtime::RunRecord)> {
     let dataset = registry.open_dataset(pipeline)?;
-    let ops = registry.operators(pipeline)?;
+    let why_nothing = Arc::new(dist4d_runtime::nothing::WhyNothing::default());
+    let ops = why_nothing.wrap(registry.operators(pipeline)?);
     if let Some(warning) = memory_warning(pipeline, &ops, opts.jobs, machine_memory()) {
         eprintln!("{warning}");
     }
@@ -469,8 +477,10 @@ fn execute(
             s.stage, s.kind, s.total, s.executed, s.cached, s.failed, s.skipped, s.not_applicable, s.seconds
         );
     }
-    if rec.stages.iter().any(|s| s.not_applicable > 0) {
-        println!("(n/a: tasks with nothing to make, e.g. the exact view of a dataset that is not synthetic, and the tasks that needed them)");
+    // Once per stage, why it made nothing for some items: an output that is just missing, or a
+    // stage that made nothing at all, would otherwise go unexplained.
+    for line in why_nothing.lines(pipeline, &rec.stages) {
+        println!("{line}");
     }
     if rec.missing() > 0 && rec.status == RunStatus::Interrupted {
         println!(
@@ -670,6 +680,7 @@ fn run_pipeline(
         shard: p.shard,
         out_dir: Some(out_dir.clone()),
         progress: progress_mode(progress),
+        sets: p.sets.clone(),
         ..Default::default()
     };
     if let Some(j) = jobs {
@@ -859,6 +870,29 @@ fn slurm_merge(
     Ok(code)
 }
 
+/// What tells runs of one pipeline apart in `dist4d runs`: `  dataset NuScenes /data  out DIR  --set a=1`.
+fn run_inputs(r: &dist4d_runtime::RunRecord) -> String {
+    let mut s = String::new();
+    if let Some(d) = r.dataset_label() {
+        s += &format!("  dataset {}", printable(&d));
+    }
+    if let Some(out) = &r.out_dir {
+        s += &format!("  out {}", printable(out));
+    }
+    for set in &r.sets {
+        s += &format!("  --set {}", printable(set));
+    }
+    s
+}
+
+/// The store `dist4d runs` reads without --cache: the one `dist4d run pipelines/x.ron` uses
+/// (`.dist4d/` beside the pipeline files), else `.dist4d/` here, whichever has runs first.
+fn default_store() -> PathBuf {
+    let candidates = [PathBuf::from("pipelines/.dist4d"), PathBuf::from(".dist4d")];
+    let has_runs = |c: &PathBuf| c.join("runs").is_dir();
+    candidates.iter().find(|c| has_runs(c)).unwrap_or(&candidates[0]).clone()
+}
+
 fn beside(pipeline: &Path, rel: &str) -> PathBuf {
     pipeline.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).join(rel)
 }
@@ -958,6 +992,14 @@ fn run(cli: Cli) -> Result<ExitCode> {
             slurm_merge(&registry, &p, out, &group, shards, gpu_shards, no_retry, jobs, &progress)
         }
         Command::Runs { cache, json } => {
+            let cache = match cache {
+                Some(c) => c,
+                None => {
+                    let found = default_store();
+                    eprintln!("store: {} (--cache for another)", found.display());
+                    found
+                }
+            };
             let runs = dist4d_runtime::runs::list_runs(&cache.join("runs"))?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&runs)?);
@@ -986,7 +1028,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 let executed = sum(|r| r.executed());
                 let missing = if last.missing() > 0 { format!(", {} missing", last.missing()) } else { String::new() };
                 println!(
-                    "{}  {}  {:<14} {}  {} executed, {} cached, {} failed{missing}, {:.1}s{what}",
+                    "{}  {}  {:<14} {}  {} executed, {} cached, {} failed{missing}, {:.1}s{what}{}",
                     dist4d_runtime::runs::format_utc(first.started),
                     id,
                     first.pipeline,
@@ -1005,7 +1047,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                         last.cached()
                     },
                     last.failed(),
-                    end - first.started as f64
+                    end - first.started as f64,
+                    run_inputs(first)
                 );
             }
             Ok(ExitCode::SUCCESS)
@@ -1082,7 +1125,6 @@ fn run(cli: Cli) -> Result<ExitCode> {
             for w in &r.warnings {
                 eprintln!("warning: {w}");
             }
-            let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
             println!(
                 "{}: {} scene(s), {} samples ({} keyframes, {} camera rounds between), {} interpolated annotations ({} extrapolated)",
                 out.display(),
@@ -1093,8 +1135,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 r.annotations,
                 r.extrapolated
             );
-            if out.parent() == Some(root.as_path()) {
-                println!("load it with NuScenes(version='{name}', dataroot='{}')", root.display());
+            for line in interp12hz::how_to_load(&root, &out) {
+                println!("{line}");
             }
             Ok(ExitCode::SUCCESS)
         }

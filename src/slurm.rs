@@ -558,6 +558,8 @@ mod tests {
             group: Some("g".into()),
             shard,
             writer: None,
+            dataset: None,
+            sets: vec![],
         };
         let runs = vec![
             rec(Some((0, 3)), RunStatus::Failed, &["scene-a/003/CAM_FRONT"]),

@@ -423,3 +423,118 @@ fn the_same_pipeline_runs_on_dgp_data() {
     let front = read_npy_rows(&out.join("scene_02/CAMERA_01/001_uvz.npy"));
     assert!(front.len() > 2000, "{}", front.len());
 }
+
+/// Item keys are indices: the same pipeline run on a DGP scene into the store of a nuScenes run
+/// has tasks of the same stage and item. `explain` of the nuScenes run compares with its own.
+#[test]
+fn explain_in_a_store_shared_with_another_dataset_gives_only_the_true_reason() {
+    let (Some(nusc), Some(dgp)) = (shared_nuscenes(), shared_dgp()) else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let (cache, out) = (tmp.path().join("c"), tmp.path().join("o"));
+    let o = run_lidar_depth(&nusc, &cache, &out);
+    assert!(o.status.success(), "{}", text(&o));
+    let file = tmp.path().join("lidar_depth.ron");
+    std::fs::write(&file, with_dataset("lidar_depth", &format!("Dgp(root: {:?})", dgp.display().to_string()))).unwrap();
+    let (cache, out) = (cache.to_str().unwrap(), out.to_str().unwrap());
+    let o = dist4d(&["run", file.to_str().unwrap(), "--progress", "off", "--cache", cache]);
+    assert!(o.status.success(), "{}", text(&o));
+    let root = format!("dataset.root={}", nusc.display());
+    let args = ["explain", &pipeline(), "--cache", cache, "--out", out, "--set", &root];
+    let t = text(&dist4d(&[&args[..], &["--set", "project.min_depth=2"]].concat()));
+    assert!(t.contains("project (ProjectLidar): 0 cached, 6 will run"), "{t}");
+    assert!(t.contains("6 x param `min_depth` changed: 1.0 -> 2.0"), "{t}");
+    assert!(!t.contains("input `"), "the DGP scene's inputs are not this run's: {t}");
+}
+
+/// `eval` runs the pipeline, often for minutes: it reports progress as `run` does, unasked.
+#[test]
+fn eval_reports_progress_by_default() {
+    let Some(data) = shared_nuscenes() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let curation = repo().join("pipelines/curation.ron");
+    let o = Command::new(bin())
+        .args(["eval", curation.to_str().unwrap(), "--jobs", "2"])
+        .args(["--cache", tmp.path().join("c").to_str().unwrap(), "--out", tmp.path().join("o").to_str().unwrap()])
+        .args(["--set", &format!("dataset.root={}", data.display())])
+        .env("DIST4D_PROGRESS_SECS", "1")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let err = String::from_utf8_lossy(&o.stderr);
+    let last =
+        err.lines().filter(|l| l.starts_with("progress [")).next_back().unwrap_or_else(|| panic!("no progress: {err}"));
+    assert!(last.contains("complete 6/6"), "{last}");
+}
+
+/// `dist4d runs` run where `dist4d run pipelines/x.ron` was reads that run's store, and tells runs
+/// of one pipeline apart by their dataset, output folder and --set values.
+#[test]
+fn runs_without_cache_reads_the_store_of_the_pipelines_and_tells_runs_apart() {
+    let s = multi_frame(1);
+    let dir = s.base.join("project");
+    std::fs::create_dir_all(dir.join("pipelines")).unwrap();
+    std::fs::copy(pipeline(), dir.join("pipelines/lidar_depth.ron")).unwrap();
+    let in_project = |args: &[&str]| Command::new(bin()).args(args).current_dir(&dir).output().unwrap();
+    let root = format!("dataset.root={}", s.root);
+    let run = ["run", "pipelines/lidar_depth.ron", "--progress", "off", "--set", &root];
+    let o = in_project(&run);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = in_project(&[&run[..], &["--set", "encode.preview_max_depth=50", "--out", "other"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+
+    let o = in_project(&["runs"]);
+    let t = text(&o);
+    assert!(o.status.success() && t.contains("store: pipelines/.dist4d"), "{t}");
+    let lines: Vec<&str> = t.lines().filter(|l| l.contains("lidar_depth")).collect();
+    assert_eq!(lines.len(), 2, "{t}");
+    for l in &lines {
+        assert!(l.contains(&format!("dataset NuScenes {}", s.root)), "{l}");
+    }
+    assert!(lines[0].contains("out pipelines/out/lidar_depth") && !lines[0].contains("preview"), "{}", lines[0]);
+    assert!(lines[1].contains("out other") && lines[1].contains("--set encode.preview_max_depth=50"), "{}", lines[1]);
+
+    let o = in_project(&["runs", "--json"]);
+    let runs: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let sets = &runs.as_array().unwrap()[1]["sets"];
+    assert_eq!(sets, &serde_json::json!([root, "encode.preview_max_depth=50"]), "{runs}");
+}
+
+/// A finished output folder holds the exports and dist4d's lists, not an empty temp folder.
+#[test]
+fn a_finished_run_leaves_no_temp_folder_in_its_output() {
+    let s = multi_frame(1);
+    run_ok(&s, "cache", "out", &[]);
+    assert!(!s.base.join("out/.dist4d-tmp").exists());
+    assert!(s.base.join("out/index.json").is_file());
+    run_ok(&s, "cache", "out", &["--set", "encode.preview_max_depth=50"]);
+    assert!(!s.base.join("out/.dist4d-tmp").exists());
+}
+
+/// An `Option` param left unset (CompleteDepth's `worker`) is not set by default, not required.
+#[test]
+fn an_unset_option_param_is_listed_as_none_not_required() {
+    let curation = repo().join("pipelines/curation.ron");
+    let o = dist4d(&["check", curation.to_str().unwrap(), "--set", "complete.wrker=1"]);
+    let t = text(&o);
+    assert_eq!(o.status.code(), Some(2), "{t}");
+    assert!(t.contains("worker (default None)") && !t.contains("(required)"), "{t}");
+    let reference = std::fs::read_to_string(repo().join("docs/stages.md")).unwrap();
+    assert!(!reference.contains("(required)"), "docs/stages.md is generated from the same defaults");
+}
+
+/// A nuScenes pipeline pointed at a path that does not exist, or at DGP data, says which.
+#[test]
+fn a_nuscenes_root_that_is_missing_or_dgp_data_says_so() {
+    let tmp = tempfile::tempdir().unwrap();
+    let run = |root: &Path| {
+        let o = run_lidar_depth(root, &tmp.path().join("c"), &tmp.path().join("o"));
+        assert_eq!(o.status.code(), Some(1));
+        text(&o)
+    };
+    let missing = tmp.path().join("no-such-folder");
+    let t = run(&missing);
+    assert!(t.contains(&format!("{} does not exist", missing.display())), "{t}");
+    let Some(dgp) = shared_dgp() else { return };
+    let t = run(&dgp);
+    assert!(t.contains("looks like a DGP dataset") && t.contains("Dgp(root: "), "{t}");
+}

@@ -247,3 +247,20 @@ print(json.dumps({"samples": len(tokens), "nbr_samples": scene["nbr_samples"], "
     assert!(!speeds.is_empty() && speeds.iter().all(|s| (0.5..20.0).contains(s)), "{v}");
     assert!(std::fs::metadata(&png).unwrap().len() > 10_000, "render_sample wrote its figure");
 }
+
+/// `export-12hz --out` outside the dataset root writes tables the devkit cannot load from the
+/// folder's parent (no images, no map masks there): it says so, and how to load them.
+#[test]
+fn the_12hz_tables_written_outside_the_root_say_how_to_load_them() {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    synth_camera_sweeps(&root, 160, 90);
+    let out = tmp.path().join("elsewhere/interp_12Hz_mini");
+    let o = dist4d(&["export-12hz", "--root", root.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let root = root.canonicalize().unwrap();
+    assert!(t.contains("is outside the dataset root") && t.contains("map masks"), "{t}");
+    assert!(t.contains(&format!("ln -s {} {}", out.display(), root.join("interp_12Hz_mini").display())), "{t}");
+    assert!(t.contains(&format!("NuScenes(version='interp_12Hz_mini', dataroot='{}')", root.display())), "{t}");
+}

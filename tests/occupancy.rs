@@ -422,3 +422,24 @@ print('ok')";
         .unwrap();
     assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("ok"), "{}", text(&o));
 }
+
+/// A scene shorter than the 16-frame window (the shared DGP scene has 3) gets no window sheet,
+/// HexPlane or DiT conditions: the run says so once per stage, with the reason.
+#[test]
+fn a_scene_shorter_than_the_window_says_why_its_window_stages_made_nothing() {
+    let Some(dgp) = shared_dgp() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("occupancy.ron");
+    std::fs::write(&file, with_dataset("occupancy", &format!("Dgp(root: {:?})", dgp.display().to_string()))).unwrap();
+    let out = tmp.path().join("out");
+    let o = dist4d(&["run", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let why =
+        "nothing made: the window of 16 frames runs past the scene's end (3 frame(s) from here) (e.g. scene_02/000)";
+    for stage in ["sheet (OccupancySheet)", "hexplane (HexPlaneBaseline)", "conditions (DitConditions)"] {
+        let line = format!("n/a: {stage}: 1 of 1, {why}");
+        assert_eq!(t.matches(&line).count(), 1, "{line}\n{t}");
+    }
+    assert!(t.contains("n/a: sheet_png (EncodeImage): 1 of 1, nothing made: nothing came from `sheet`"), "{t}");
+}

@@ -124,3 +124,44 @@ print(len(x), int(p.has_colors()), float(np.median(np.abs(x[:, 0]))), float(np.m
     let again = temporal("run", &data, tmp.path(), "worker", &["--set", &worker]);
     assert_eq!(column(&again, "future", 3), 0, "{again}");
 }
+
+/// The temporal flow's curation is curation.ron's, stage for stage (docs/temporal.md): after a
+/// curation run into the same store, none of its stages has anything left to do.
+#[test]
+fn the_temporal_curation_reuses_a_curation_runs_depth_from_the_cache() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let args = ["synth", "--out", data.to_str().unwrap(), "--keyframes", "2", "--width", "160", "--height", "90"];
+    let o = dist4d(&[&args[..], &["--no-ground-truth"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    let root = format!("dataset.root={}", data.display());
+    let cache = tmp.path().join("cache");
+    let curation = repo().join("pipelines/curation.ron");
+    let o = dist4d(&[
+        "run",
+        curation.to_str().unwrap(),
+        "--progress",
+        "off",
+        "--set",
+        &root,
+        "--cache",
+        cache.to_str().unwrap(),
+        "--out",
+        tmp.path().join("out-curation").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let out = tmp.path().join("out");
+    let o = std::process::Command::new(bin())
+        .current_dir(repo())
+        .args(["explain", "pipelines/temporal.ron", "--set", &root, "--cache", cache.to_str().unwrap()])
+        .args(["--out", out.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    let stages = ["aggregate", "sky", "mvs", "mvs_points", "fuse", "visible", "prompt", "complete", "follow"];
+    for stage in stages {
+        let line = t.lines().find(|l| l.starts_with(&format!("{stage} ("))).unwrap_or_else(|| panic!("{stage}: {t}"));
+        assert!(line.ends_with("cached, 0 will run") && !line.contains(": 0 cached"), "{line}\n{t}");
+    }
+}

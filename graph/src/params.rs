@@ -96,7 +96,10 @@ impl ParamsSpec {
                     .as_ref()
                     .and_then(|d| d.field(n))
                     .map(|f| sources.slice(f.value.span).to_string())
-                    .unwrap_or_else(|| "(required)".into());
+                    // Every field has a default (`P: Default`); one the canonical text leaves out is
+                    // an `Option` that is `None` (`skip_serializing_if`, which keeps the task keys of
+                    // params written before the field was): not set, never required.
+                    .unwrap_or_else(|| "None".into());
                 ParamInfo { name: n.to_string(), default }
             })
             .collect();

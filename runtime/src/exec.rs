@@ -65,6 +65,8 @@ pub struct RunOptions {
     /// Set (by a Ctrl-C handler) to stop cleanly: running tasks finish, nothing new starts.
     pub cancel: Arc<AtomicBool>,
     pub progress: ProgressMode,
+    /// The `--set` overrides the pipeline was loaded with, kept in the run record.
+    pub sets: Vec<String>,
 }
 
 impl Default for RunOptions {
@@ -81,6 +83,7 @@ impl Default for RunOptions {
             out_dir: None,
             cancel: Arc::new(AtomicBool::new(false)),
             progress: ProgressMode::Off,
+            sets: Vec::new(),
         }
     }
 }
@@ -530,6 +533,8 @@ impl<'a> Engine<'a> {
             group: opts.group.clone(),
             shard: opts.shard,
             writer: Some(self.store.writer_id().to_string()),
+            dataset: Some(runs::dataset_identity(p)),
+            sets: opts.sets.clone(),
         };
         runs::write_run(self.store, &provisional)?;
         *unfinished = Some(Unfinished { record: provisional.clone(), started, counters: counters.clone() });

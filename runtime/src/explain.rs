@@ -33,8 +33,8 @@ pub struct StageExplain {
 
 /// What the previous task for the same stage and item looked like.
 struct Previous {
-    /// Whether the last run of the pipeline used it.
-    used: bool,
+    /// Its [`RunRanks`] rank: the newer the run of this pipeline on this dataset that used it, the higher.
+    rank: usize,
     finished_ms: u64,
     version: u32,
     params: Digest,
@@ -74,33 +74,35 @@ pub fn explain_per_outer(
     let view = View { space: engine.dataset, second_dim_limit };
     let outers = select_outer(engine.dataset, &p.dims[0].name, outer_items)?;
 
-    // The record of every (stage, item) to say what changed against: the one the last run of this
-    // pipeline used, else the latest. (The latest alone misleads after switching back: a run on a
-    // worker writes newer records than the cached ones the next run goes back to.)
-    // Keyed by kind too: pipelines sharing a store may give one stage name to stages of different
-    // kinds, whose params have nothing to compare.
-    let last_run = list_runs(&store.runs_dir())?
+    // The record of every (stage, item) to say what changed against: this pipeline's own previous
+    // task. Item keys are indices, so one stage and item of the same pipeline run on another
+    // dataset into the same store is another task altogether: records are ranked by the newest
+    // run of this pipeline on this dataset that used them, and those only other datasets' runs
+    // used are left out. Unused records rank last, newest first (the latest alone misleads after
+    // switching back: a run on a worker writes newer records than the cached ones the next run
+    // goes back to). Keyed by kind too: pipelines sharing a store may give one stage name to
+    // stages of different kinds, whose params have nothing to compare.
+    let dataset = crate::runs::dataset_identity(p);
+    let own_runs: Vec<_> = list_runs(&store.runs_dir())?
         .into_iter()
-        .rev()
-        .find(|r| r.pipeline == p.name && r.status != crate::runs::RunStatus::Running);
-    let last_keys: HashSet<Digest> = match &last_run {
-        Some(r) => crate::gc::read_keys(&crate::runs::keys_path(store, &r.id))?.into_iter().collect(),
-        None => HashSet::new(),
-    };
+        .filter(|r| r.pipeline == p.name && r.status != crate::runs::RunStatus::Running)
+        .collect();
+    let last_run = own_runs.iter().rev().find(|r| r.read_dataset(&dataset)).cloned();
+    let ranks = RunRanks::read(store, &own_runs, &dataset)?;
     let mut previous: HashMap<(String, String, ItemKey), Previous> = HashMap::new();
     for (_, payload) in store.all_records() {
         let Ok(rec) = TaskRecord::decode(payload) else { continue };
-        let used = last_keys.contains(&rec.key);
+        let Some(rank) = ranks.of(&rec.key) else { continue };
         let slot = previous.entry((rec.stage.clone(), rec.kind.clone(), rec.item));
         let newer = match &slot {
             std::collections::hash_map::Entry::Occupied(o) => {
-                (o.get().used, o.get().finished_ms) <= (used, rec.finished_ms)
+                (o.get().rank, o.get().finished_ms) <= (rank, rec.finished_ms)
             }
             std::collections::hash_map::Entry::Vacant(_) => true,
         };
         if newer {
             let prev = Previous {
-                used,
+                rank,
                 finished_ms: rec.finished_ms,
                 version: rec.version,
                 params: rec.params,
@@ -262,6 +264,43 @@ pub fn explain_per_outer(
         pending.push((outer, will_run(&out) - before));
     }
     Ok((p.stage_order().map(|n| std::mem::take(&mut out[n])).collect(), pending))
+}
+
+/// Which records a pipeline's own runs used: the task keys of its runs on this dataset, ranked
+/// by the run (newest highest), and those of its runs on other datasets.
+struct RunRanks {
+    ours: HashMap<Digest, usize>,
+    others: HashSet<Digest>,
+}
+
+impl RunRanks {
+    /// At most this many of the pipeline's newest runs are read: each lists every task key it
+    /// used (32 bytes a task), and older ones have been superseded for nearly every task.
+    const RUNS: usize = 16;
+
+    fn read(store: &crate::Store, runs: &[crate::RunRecord], dataset: &str) -> Result<RunRanks> {
+        let mut ranks = RunRanks { ours: HashMap::new(), others: HashSet::new() };
+        let newest = &runs[runs.len().saturating_sub(Self::RUNS)..];
+        for (i, r) in newest.iter().enumerate() {
+            let keys = crate::gc::read_keys(&crate::runs::keys_path(store, &r.id))?;
+            if r.read_dataset(dataset) {
+                ranks.ours.extend(keys.into_iter().map(|k| (k, i + 1)));
+            } else {
+                ranks.others.extend(keys);
+            }
+        }
+        Ok(ranks)
+    }
+
+    /// The rank of a record (0: no run of ours used it); `None` for one only runs on other
+    /// datasets used, which is not this pipeline's task at all.
+    fn of(&self, key: &Digest) -> Option<usize> {
+        match self.ours.get(key) {
+            Some(&rank) => Some(rank),
+            None if self.others.contains(key) => None,
+            None => Some(0),
+        }
+    }
 }
 
 fn first_line(s: &str) -> &str {

@@ -4,7 +4,7 @@
 //! <out>/
 //!   .dist4d-manifest   which pipeline owns the folder, and what each exported path holds
 //!   .dist4d-manifest.d/<time>-<writer>   what one sharded run changed, applied over the manifest
-//!   .dist4d-tmp/       temp files, renamed into place when complete
+//!   .dist4d-tmp/       temp files, renamed into place when complete (the folder goes when a run leaves it empty)
 //!   .dist4d-index.d/shard-<i>-of-<n>.json   the files one shard exported
 //!   index.json         every file of the last run with its stage, item and digest
 //! ```
@@ -442,6 +442,20 @@ enum Source {
 impl ExportJob {
     /// Writes the file unless it already holds the right bytes; returns its stat afterwards.
     pub fn write(self) -> Result<FileStat> {
+        match self.write_once() {
+            // Another run exporting into the folder finished and removed the temp folder, empty
+            // then ([`Exporter::finish`]): made again, once the temp file is in it, it stays.
+            Err(_) if self.tmp.parent().is_some_and(|d| !d.exists()) => {
+                if let Some(d) = self.tmp.parent() {
+                    std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+                }
+                self.write_once()
+            }
+            r => r,
+        }
+    }
+
+    fn write_once(&self) -> Result<FileStat> {
         if let Some(stat) = FileStat::of(&self.dest).filter(|s| self.confirm && s.size == self.size) {
             // Same size: maybe the same bytes (a copied folder, a touched file, a v1 manifest).
             if file_digest(&self.dest) == Some(self.digest) {
@@ -724,7 +738,19 @@ impl Exporter {
     ///
     /// Both list only files that exist: a path whose export failed keeps its manifest entry only
     /// while the file earlier runs wrote is still there, untouched, and is left out of the index.
-    pub fn finish(mut self) -> Result<u64> {
+    pub fn finish(self) -> Result<u64> {
+        let tmp = self.folder.dir.join(TMP);
+        let count = self.write_lists();
+        // The temp folder goes when empty: a finished folder holds the exports and their lists
+        // only. (Not while another run still writes there: it is not empty then; and a run that
+        // finds it gone makes it again, see `ExportJob::write`.)
+        let _ = std::fs::remove_dir(&tmp);
+        count
+    }
+
+    fn write_lists(mut self) -> Result<u64> {
+        std::fs::create_dir_all(self.folder.dir.join(TMP))
+            .with_context(|| format!("creating {}", self.folder.dir.join(TMP).display()))?;
         let tmps: Vec<PathBuf> = ["manifest", "index", "part"].iter().map(|w| self.tmp_path(w)).collect();
         let Exporter { folder, entries, done, sources, jobs_done, part, removed, writer, .. } = self;
         let dir = folder.dir.clone();

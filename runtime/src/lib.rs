@@ -12,6 +12,7 @@ pub mod gc;
 pub mod item;
 pub mod keys;
 pub mod lease;
+pub mod nothing;
 pub mod operator;
 pub mod plan;
 pub mod progress;

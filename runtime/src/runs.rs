@@ -91,6 +91,15 @@ pub struct RunRecord {
     /// The store writer id of the process (its lease says whether a `Running` run still runs).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub writer: Option<String>,
+    /// The dataset the run read: its kind and checked config ([`dataset_identity`]). Pipelines
+    /// of one name run on several datasets into one store, and their item keys (indices) collide:
+    /// `explain` compares a task with the records of runs on the same dataset. `None` in runs
+    /// recorded before it was.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dataset: Option<String>,
+    /// The `--set` overrides the run was given, as typed: what tells two runs of one file apart.
+    #[serde(default)]
+    pub sets: Vec<String>,
 }
 
 impl RunRecord {
@@ -109,6 +118,42 @@ impl RunRecord {
     pub fn deferred(&self) -> u64 {
         self.stages.iter().map(|s| s.deferred).sum()
     }
+
+    /// Whether this run read the dataset `identity` ([`dataset_identity`]); a run recorded
+    /// without one may have.
+    pub fn read_dataset(&self, identity: &str) -> bool {
+        self.dataset.as_deref().is_none_or(|d| d == identity)
+    }
+
+    /// The dataset as a listing shows it: `NuScenes /data/nuscenes` (its kind and root).
+    pub fn dataset_label(&self) -> Option<String> {
+        let d = self.dataset.as_deref()?;
+        let (kind, config) = d.split_at(d.find('(').unwrap_or(d.len()));
+        Some(match string_field(config, "root") {
+            Some(root) => format!("{kind} {root}"),
+            None => d.to_string(),
+        })
+    }
+}
+
+/// A pipeline's dataset as run records name it: its kind and canonical config (`NuScenes(root:..)`),
+/// the root resolved (`pipelines/../data` from `dist4d run pipelines/x.ron` and `/repo/data` from
+/// an absolute path are one dataset).
+pub fn dataset_identity(p: &dist4d_graph::Pipeline) -> String {
+    let canonical = &p.dataset.config.canonical;
+    let resolved = string_field(canonical, "root").and_then(|root| {
+        let real = std::fs::canonicalize(&root).ok()?.display().to_string();
+        Some(canonical.replacen(&format!("{root:?}"), &format!("{real:?}"), 1))
+    });
+    format!("{}{}", p.dataset.kind, resolved.as_deref().unwrap_or(canonical))
+}
+
+/// A string field of canonical params text (`(root:"/data",version:"v1.0-mini")`).
+fn string_field(canonical: &str, field: &str) -> Option<String> {
+    let mut sources = dist4d_graph::source::Sources::default();
+    let id = sources.add("", canonical);
+    let value = dist4d_graph::syntax::parse_value(canonical, id).ok()?;
+    value.field(field).and_then(|f| f.value.as_str()).map(String::from)
 }
 
 /// Path of the list of task keys a run used (32 bytes each), which `gc` keeps alive.

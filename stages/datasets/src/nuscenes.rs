@@ -425,18 +425,61 @@ fn names_channel(filename: &str, channel: &str) -> bool {
     filename.contains(&format!("__{channel}__")) || filename.split('/').any(|part| part == channel)
 }
 
+/// Why `root` has no `version` table folder, in the words that lead to the fix: a path that does
+/// not exist, a DGP dataset or scene (another reader), other versions than the one asked for.
+fn not_nuscenes(root: &Path, config: &NuScenesConfig) -> String {
+    let given = format!("(dataset.root = {:?}, dataset.version = {:?})", config.root, config.version);
+    if !root.exists() {
+        return format!("{} does not exist {given}", root.display());
+    }
+    if !root.is_dir() {
+        return format!("{} is a file, not a nuScenes folder {given}", root.display());
+    }
+    let names: Vec<String> = std::fs::read_dir(root)
+        .map(|d| d.filter_map(|e| e.ok()).map(|e| e.file_name().to_string_lossy().into_owned()).collect())
+        .unwrap_or_default();
+    let json_named = |prefix: &str| names.iter().any(|n| n.starts_with(prefix) && n.ends_with(".json"));
+    if json_named("scene_dataset") {
+        return format!(
+            "{} looks like a DGP dataset (it holds a scene_dataset*.json), not nuScenes: read it with \
+             `dataset: Dgp(root: {:?})` (or --set 'dataset=Dgp(root: {:?})') {given}",
+            root.display(),
+            config.root,
+            config.root
+        );
+    }
+    if json_named("scene_") {
+        return format!(
+            "{} looks like a DGP scene (it holds a scene_*.json), not nuScenes: read the folder holding its \
+             scene_dataset*.json with `dataset: Dgp(root: ..)` {given}",
+            root.display()
+        );
+    }
+    let mut versions: Vec<&String> = names.iter().filter(|n| n.starts_with("v1.0-") && root.join(n).is_dir()).collect();
+    versions.sort();
+    if !versions.is_empty() {
+        let list: Vec<String> = versions.iter().map(|v| format!("{v:?}")).collect();
+        return format!(
+            "{} has no {} tables, but {}: set dataset.version {given}",
+            root.display(),
+            config.version,
+            list.join(", ")
+        );
+    }
+    format!(
+        "{} is not a nuScenes {} folder: it has no {}/ with the tables {given}",
+        root.display(),
+        config.version,
+        config.version
+    )
+}
+
 impl NuScenes {
     pub fn open(config: NuScenesConfig) -> Result<NuScenes> {
         let root = PathBuf::from(&config.root);
         let tables = root.join(&config.version);
         if !tables.is_dir() {
-            bail!(
-                "{} is not a nuScenes {} folder (dataset.root = {:?}, dataset.version = {:?})",
-                tables.display(),
-                config.version,
-                config.root,
-                config.version
-            );
+            bail!("{}", not_nuscenes(&root, &config));
         }
         let mut warnings = Vec::new();
         let w = &mut warnings;

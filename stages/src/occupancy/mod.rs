@@ -18,7 +18,11 @@ pub fn window<'a, A>(port: &str, list: &'a [(i64, A)], frames: usize) -> Result<
         frames.saturating_sub(1)
     );
     if list.len() < frames {
-        return Err(NotApplicable(format!("the window of {frames} frames runs past the scene's end")).into());
+        return Err(NotApplicable(format!(
+            "the window of {frames} frames runs past the scene's end ({} frame(s) from here)",
+            list.len()
+        ))
+        .into());
     }
     let mut sorted: Vec<&(i64, A)> = list.iter().collect();
     sorted.sort_by_key(|(pos, _)| *pos);

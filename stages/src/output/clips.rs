@@ -10,13 +10,14 @@
 //! refuses one that no export has); and the
 //! clip's ego trajectory (the first camera's ego pose at each frame). Everything comes from the
 //! dataset's `image_info` port, which answers for a missing image too (a dropped frame): clips
-//! holding one are left out, not the scene. Record layout and a numpy-only loader:
-//! docs/datasets.md, "Training clips".
+//! holding one are left out, not the scene. A scene with no clip at all has nothing to make
+//! (no file, and the run says why once) rather than an empty file nobody is told about. Record
+//! layout and a numpy-only loader: docs/datasets.md, "Training clips".
 
 use crate::stage::Stage;
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::TaskContext;
+use dist4d_runtime::{NotApplicable, TaskContext};
 use dist4d_types::artifact::{File, ImageInfo};
 use dist4d_types::geometry::Se3;
 use serde::{Deserialize, Serialize};
@@ -160,6 +161,17 @@ pub fn clip_index(p: &Params, images: &[ImageInfo]) -> Result<Vec<u8>> {
     Ok(out)
 }
 
+/// Why [`clip_index`] gave no clip for a scene of `images`.
+fn why_no_clips(p: &Params, images: &[ImageInfo]) -> String {
+    let mut frames: Vec<&str> = images.iter().map(|i| i.frame.as_str()).collect();
+    frames.dedup();
+    if frames.len() < p.frames as usize {
+        format!("no clip: the scene has {} frame(s), fewer than a clip's {} (`frames`)", frames.len(), p.frames)
+    } else {
+        format!("no clip: every clip of {} frames holds a dropped image", p.frames)
+    }
+}
+
 crate::ports! {
     pub struct Inputs {
         /// every camera item's image, calibration, poses and boxes: All("dataset.image_info")
@@ -184,7 +196,8 @@ pub struct ClipIndex(Params);
 
 impl Stage for ClipIndex {
     const KIND: &'static str = "ClipIndex";
-    const VERSION: u32 = 1;
+    // 2: a scene with no clip has nothing to make, instead of an empty file.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str =
         "A scene's camera items -> its training clips (frames x cameras: image, calibration, poses, boxes, depth paths) as JSON lines";
     const GRAINS: &'static [&'static str] = &["scene"];
@@ -196,7 +209,12 @@ impl Stage for ClipIndex {
         Ok(ClipIndex(params))
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        Ok(Outputs { jsonl: File(clip_index(&self.0, &strip(i.images))?) })
+        let images = strip(i.images);
+        let jsonl = clip_index(&self.0, &images)?;
+        if jsonl.is_empty() {
+            return Err(NotApplicable(why_no_clips(&self.0, &images)).into());
+        }
+        Ok(Outputs { jsonl: File(jsonl) })
     }
 }
 
@@ -271,8 +289,10 @@ mod tests {
         let trajectory = clips[1]["ego_trajectory"].as_array().unwrap();
         assert_eq!(trajectory.len(), 3);
         assert_eq!((trajectory[2]["frame"].as_str(), trajectory[2]["camera"].as_str()), (Some("004"), Some("CAM0")));
-        // Fewer frames than a clip: no clips.
-        assert!(clip_index(&Params { frames: 8, ..p.clone() }, &images).unwrap().is_empty());
+        // Fewer frames than a clip: no clips, and why.
+        let long = Params { frames: 8, ..p.clone() };
+        assert!(clip_index(&long, &images).unwrap().is_empty());
+        assert_eq!(why_no_clips(&long, &images), "no clip: the scene has 7 frame(s), fewer than a clip's 8 (`frames`)");
     }
 
     #[test]
@@ -283,6 +303,9 @@ mod tests {
         let clips = records(clip_index(&p, &images).unwrap());
         let numbers: Vec<u64> = clips.iter().map(|c| c["clip"].as_u64().unwrap()).collect();
         assert_eq!(numbers, [0, 1], "clip 2 (frames 4-6) holds it");
+        let one = Params { frames: 7, ..p };
+        assert!(clip_index(&one, &images).unwrap().is_empty());
+        assert_eq!(why_no_clips(&one, &images), "no clip: every clip of 7 frames holds a dropped image");
     }
 
     #[test]

@@ -565,6 +565,30 @@ fn check_destination(out: &Path, root: &Path, tables: &Path) -> Result<()> {
     Ok(())
 }
 
+/// What to tell the user about loading the tables written to `out` from the dataset at `root`.
+/// The devkit reads a version's tables from `dataroot/<version>/` and the images and map masks
+/// (`maps/..`, opened when it loads) from `dataroot` itself: a folder beside the dataset's
+/// `samples/` and `maps/` loads as it is, one elsewhere does not until it is linked there.
+pub fn how_to_load(root: &Path, out: &Path) -> Vec<String> {
+    let absolute = |p: &Path| p.canonicalize().or_else(|_| std::path::absolute(p)).unwrap_or_else(|_| p.to_path_buf());
+    let (root, out) = (absolute(root), absolute(out));
+    let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let load = format!("NuScenes(version='{name}', dataroot='{}')", root.display());
+    if out.parent() == Some(root.as_path()) {
+        return vec![format!("load it with {load}")];
+    }
+    vec![
+        format!(
+            "{} is outside the dataset root {}: the devkit reads the images and the map masks (maps/) from its \
+             dataroot, which the folder's parent does not hold, so loading it there fails on a missing map mask",
+            out.display(),
+            root.display()
+        ),
+        format!("link it into the dataset root: ln -s {} {}", out.display(), root.join(&name).display()),
+        format!("then load it with {load}"),
+    ]
+}
+
 /// Writes the tables into a new folder beside `out` and moves it into place (the old export, if
 /// any, moved aside first, put back if the move fails, removed after), so a loader never sees half
 /// a version; the copied tables are copied file to file.
