@@ -596,9 +596,16 @@ impl Exporter {
             }
         };
         let tmp = dir.join(TMP);
-        std::fs::create_dir_all(&tmp).with_context(|| format!("creating output directory {}", dir.display()))?;
+        // The temp folder is made for the run's writes. A folder that cannot take it (a finished,
+        // read-only --out) is still opened: a run with nothing to write there goes on, and one
+        // that must write fails then, naming the file.
+        if let Err(e) = std::fs::create_dir_all(&tmp) {
+            if !dir.is_dir() {
+                return Err(e).with_context(|| format!("creating output directory {}", dir.display()));
+            }
+        }
         // Temp files of writers that are gone (killed runs) are removed.
-        for e in std::fs::read_dir(&tmp)? {
+        for e in std::fs::read_dir(&tmp).into_iter().flatten() {
             let p = e?.path();
             let writer =
                 p.file_name().and_then(|n| n.to_str()).and_then(|n| n.rsplit_once('-')).map(|(w, _)| w.to_string());
@@ -749,8 +756,9 @@ impl Exporter {
     }
 
     fn write_lists(mut self) -> Result<u64> {
-        std::fs::create_dir_all(self.folder.dir.join(TMP))
-            .with_context(|| format!("creating {}", self.folder.dir.join(TMP).display()))?;
+        // Best effort, as in `open`: lists that have not changed are not written (a read-only
+        // folder then needs no temp folder), and a write that needs it names the file it failed.
+        let _ = std::fs::create_dir_all(self.folder.dir.join(TMP));
         let tmps: Vec<PathBuf> = ["manifest", "index", "part"].iter().map(|w| self.tmp_path(w)).collect();
         let Exporter { folder, entries, done, sources, jobs_done, part, removed, writer, .. } = self;
         let dir = folder.dir.clone();

@@ -141,24 +141,14 @@ fn decode_jpeg_strictly(bytes: &[u8]) -> Result<Vec<u8>> {
 /// The width and height an image file's header declares, without decoding it: how a camera's
 /// calibration learns that the metadata's size is the file's, for stages that never decode it.
 pub fn image_dimensions(path: &Path) -> Result<(u32, u32)> {
-    let bytes = read_input_prefix(path, "the image", MAX_IMAGE_FILE_BYTES, IMAGE_HEADER_BYTES)?;
-    image::ImageReader::new(std::io::Cursor::new(&bytes))
+    // Buffered, so the decoder reads the header's blocks and no more (a whole JPEG would double
+    // the image reads of a run).
+    let file = open_regular(path, "the image", MAX_IMAGE_FILE_BYTES)?;
+    image::ImageReader::new(std::io::BufReader::with_capacity(16 << 10, file))
         .with_guessed_format()
         .map_err(anyhow::Error::from)
         .and_then(|r| Ok(r.into_dimensions()?))
         .with_context(|| format!("{} is not a readable image (its header)", path.display()))
-}
-
-/// How much of an image file is read for its size: JPEG EXIF blocks (thumbnails included) stay
-/// under 64 KiB; 1 MiB leaves room for PNG ancillary chunks before IHDR's neighbours.
-const IMAGE_HEADER_BYTES: u64 = 1 << 20;
-
-/// The first `prefix` bytes of a regular file of at most `max_bytes` (see [`read_input`]).
-fn read_input_prefix(path: &Path, what: &str, max_bytes: u64, prefix: u64) -> Result<Vec<u8>> {
-    let file = open_regular(path, what, max_bytes)?;
-    let mut bytes = Vec::new();
-    file.take(prefix).read_to_end(&mut bytes).with_context(|| format!("reading {what} {}", path.display()))?;
-    Ok(bytes)
 }
 
 /// A JPEG (it starts with the SOI marker FF D8) must end with the EOI marker FF D9. Zero bytes

@@ -1630,8 +1630,9 @@ mod tests {
             .find_map(|k| instances(k).into_iter().find(|i| !instances(k + 1).contains(i)).map(|i| (k, i)))
             .expect("an agent leaves the annotated range");
         let (t0, t1) = (keys[k].0, keys[k + 1].0);
-        let at =
-            |t: i64, ds: &Surround<NuScenes>| ds.0.boxes_at(scene, t, None).unwrap().into_iter().find(|b| b.instance == lone);
+        let at = |t: i64, ds: &Surround<NuScenes>| {
+            ds.0.boxes_at(scene, t, None).unwrap().into_iter().find(|b| b.instance == lone)
+        };
         let near = at(t0 + (t1 - t0) / 4, &ds).expect("a quarter interval on: extrapolated");
         assert!(near.extrapolated && !near.interpolated);
         let annotated = ds.0.boxes_at(scene, t0, None).unwrap().into_iter().find(|b| b.instance == lone).unwrap();
@@ -1649,7 +1650,10 @@ mod tests {
         .unwrap();
         let scene = &dropping.0.tree.scenes[0];
         assert!(dropping.0.boxes_at(scene, t0 + (t1 - t0) / 4, None).unwrap().iter().all(|b| b.instance != lone));
-        assert!(dropping.0.boxes_at(scene, t0, None).unwrap().iter().any(|b| b.instance == lone), "its annotation stays");
+        assert!(
+            dropping.0.boxes_at(scene, t0, None).unwrap().iter().any(|b| b.instance == lone),
+            "its annotation stays"
+        );
     }
 
     /// The figures of docs/BENCHMARKS.md ("Boxes at each image's time"), on a dataset made with

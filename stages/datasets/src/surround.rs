@@ -332,8 +332,14 @@ impl<R: SurroundReader> Dataset for Surround<R> {
             "camera_calib" => {
                 // A stage that sizes its maps by the calibration (LiDAR projection) never decodes
                 // the image: so the metadata's size is checked against the file's header here.
-                let (w, h) = image_dimensions(&r.file).with_context(|| r.what.clone())?;
-                if (w, h) != (r.calib.width, r.calib.height) {
+                // An image that is not there (a LiDAR-only download) leaves the metadata's size,
+                // which is bounded when the dataset is opened.
+                let dims = match image_dimensions(&r.file) {
+                    Ok(dims) => Some(dims),
+                    Err(e) if is_not_found(&e) => None,
+                    Err(e) => return Err(e.context(r.what.clone())),
+                };
+                if let Some((w, h)) = dims.filter(|&d| d != (r.calib.width, r.calib.height)) {
                     bail!(
                         "{} is {w}x{h} but {} (fields width, height) says {}x{}",
                         r.file.display(),
@@ -409,4 +415,9 @@ fn sidecar_digest(
         }
     }
     Ok(Some(b.finish()))
+}
+
+/// Whether an error is a file that does not exist.
+fn is_not_found(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| c.downcast_ref::<std::io::Error>().is_some_and(|io| io.kind() == std::io::ErrorKind::NotFound))
 }
