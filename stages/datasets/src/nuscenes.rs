@@ -871,12 +871,15 @@ impl NuScenes {
                         .collect()
                 }
             };
-            // Keyframes out of time order (swapped, reversed, repeated) or before 1970 would give
-            // wrong windows, box interpolation and velocities: their frames fail, naming the row.
+            // Keyframes out of time order (swapped, reversed, repeated) would give wrong windows,
+            // box interpolation (between keyframes found by time) and velocities anywhere in the
+            // scene: every frame of it fails, naming the first bad row. A keyframe before 1970
+            // fails its own frames.
             let sample_file = tables.join("sample.json");
-            let bad_times = keyframe_time_problems(&keys, &sample_file);
+            let (negative, disorder) = keyframe_time_problems(&keys, &sample_file);
             for f in frames.iter_mut() {
-                if let Some(why) = f.extra.sample.and_then(|k| bad_times.get(&k)) {
+                let why = disorder.as_ref().or_else(|| f.extra.sample.and_then(|k| negative.get(&k)));
+                if let Some(why) = why {
                     f.lidar = Err(why.clone());
                     f.cameras.iter_mut().for_each(|c| *c = Err(why.clone()));
                 }
@@ -1067,26 +1070,28 @@ fn incomplete_rounds(scene: &str, cameras: &[String], rounds: &[CameraRound], ha
     ))
 }
 
-/// Why keyframe `i` of a scene (its samples in `next` order) has a timestamp that cannot be
-/// used: negative, or not after the previous keyframe's.
-fn keyframe_time_problems(keys: &[&SampleRow], file: &Path) -> HashMap<usize, String> {
-    let mut out = HashMap::new();
+/// The timestamps of a scene's keyframes (its samples in `next` order) that cannot be used:
+/// by keyframe index, those that are negative; and the first keyframe not after the one before
+/// it, if any (the scene's keyframes are then out of time order).
+fn keyframe_time_problems(keys: &[&SampleRow], file: &Path) -> (HashMap<usize, String>, Option<String>) {
+    let mut negative = HashMap::new();
+    let mut disorder = None;
     for (i, k) in keys.iter().enumerate() {
         let at = Place::row(file, k.row, &k.token);
         if k.timestamp < 0 {
-            out.insert(i, format!("{at}: field timestamp {} is negative", k.timestamp));
-        } else if let Some(p) = i.checked_sub(1).map(|j| keys[j]).filter(|p| k.timestamp <= p.timestamp) {
-            out.insert(
-                i,
+            negative.insert(i, format!("{at}: field timestamp {} is negative", k.timestamp));
+        }
+        if let Some(p) = i.checked_sub(1).map(|j| keys[j]).filter(|p| k.timestamp <= p.timestamp) {
+            disorder.get_or_insert_with(|| {
                 format!(
                     "{at}: field timestamp {} is not after that of the keyframe before it in the scene (row {}, token \
                      {}: {}); keyframes must be in time order",
                     k.timestamp, p.row, p.token, p.timestamp
-                ),
-            );
+                )
+            });
         }
     }
-    out
+    (negative, disorder)
 }
 
 /// A frame from its LiDAR reading with that reading's lidarseg labels (none when it failed), and
