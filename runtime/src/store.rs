@@ -625,9 +625,12 @@ fn refuse_newer(root: &Path) -> Result<()> {
     for dir in ["ac", "fp"] {
         for path in segment_paths(&root.join(dir))? {
             let mut head = [0u8; 8];
-            let n = File::open(&path)
-                .and_then(|mut f| std::io::Read::read(&mut f, &mut head))
-                .with_context(|| format!("reading {}", path.display()))?;
+            let n = match File::open(&path).and_then(|mut f| std::io::Read::read(&mut f, &mut head)) {
+                Ok(n) => n,
+                // Compacted away by a gc since the listing: nothing of it to refuse.
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+                Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+            };
             if let h @ crate::segment::Header::Newer(_) = crate::segment::Header::of(&head[..n]) {
                 bail!(
                     "the store {} holds {}, which {}: this dist4d will not use the store (it would run again \
@@ -649,9 +652,11 @@ pub fn removable_segments(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut out = Vec::new();
     for path in segment_paths(dir)? {
         let mut head = Vec::with_capacity(8);
-        File::open(&path)
-            .and_then(|f| std::io::Read::read_to_end(&mut std::io::Read::take(f, 8), &mut head))
-            .with_context(|| format!("reading {}", path.display()))?;
+        match File::open(&path).and_then(|f| std::io::Read::read_to_end(&mut std::io::Read::take(f, 8), &mut head)) {
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => continue,
+            Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+        }
         match crate::segment::Header::of(&head) {
             crate::segment::Header::Current | crate::segment::Header::DamagedMagic | crate::segment::Header::Torn => {
                 out.push(path)

@@ -50,6 +50,16 @@ impl Sidecars {
 pub fn read_depth_exr(path: &Path) -> Result<DepthMap> {
     use exr::prelude::*;
     let bytes = crate::files::read_input(path, "the depth EXR", crate::checks::MAX_SENSOR_FILE_BYTES)?;
+    // The layers' sizes from the header, checked before anything is decoded: a small compressed
+    // file may declare 65535 x 65535 pixels.
+    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(&bytes), false)
+        .with_context(|| format!("reading {}", path.display()))?;
+    for h in &meta.headers {
+        let side = |v: usize| u32::try_from(v).unwrap_or(u32::MAX);
+        let at = path.display().to_string();
+        crate::checks::image_size(&at, "its size", side(h.layer_size.0), side(h.layer_size.1))
+            .map_err(anyhow::Error::msg)?;
+    }
     let img = read()
         .no_deep_data()
         .largest_resolution_level()
@@ -59,13 +69,6 @@ pub fn read_depth_exr(path: &Path) -> Result<DepthMap> {
         .from_buffered(std::io::Cursor::new(bytes))
         .with_context(|| format!("reading {}", path.display()))?;
     let (w, h): (usize, usize) = img.layer_data.size.into();
-    crate::checks::image_size(
-        &path.display().to_string(),
-        "its size",
-        w.min(u32::MAX as usize) as u32,
-        h.min(u32::MAX as usize) as u32,
-    )
-    .map_err(anyhow::Error::msg)?;
     let Some(ch) = img.layer_data.channel_data.list.first() else { bail!("{} has no channel", path.display()) };
     let data = match &ch.sample_data {
         FlatSamples::F32(v) => v.clone(),
