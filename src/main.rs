@@ -337,18 +337,20 @@ enum Command {
         /// Check the store (--cache) instead: every blob against its digest, every record's checksum.
         #[arg(long)]
         store: bool,
-        /// The store directory, with --store.
-        #[arg(long, default_value = ".dist4d", requires = "store")]
-        cache: PathBuf,
+        /// The store directory, with --store [default: pipelines/.dist4d, the store of `dist4d run
+        /// pipelines/x.ron`, else .dist4d].
+        #[arg(long, requires = "store")]
+        cache: Option<PathBuf>,
     },
     /// Remove cached records and blobs that the last N runs did not use.
     ///
     /// Needs the store alone (no run in progress), except with --dry-run, which only reads it.
     /// Example: dist4d gc --cache pipelines/.dist4d --keep-runs 3 --max-size 50G
     Gc {
-        /// The store directory.
-        #[arg(long, default_value = ".dist4d")]
-        cache: PathBuf,
+        /// The store directory [default: pipelines/.dist4d, the store of `dist4d run
+        /// pipelines/x.ron`, else .dist4d].
+        #[arg(long)]
+        cache: Option<PathBuf>,
         /// Keep what the newest N runs used.
         #[arg(long, default_value_t = 5)]
         keep_runs: usize,
@@ -885,12 +887,24 @@ fn run_inputs(r: &dist4d_runtime::RunRecord) -> String {
     s
 }
 
-/// The store `dist4d runs` reads without --cache: the one `dist4d run pipelines/x.ron` uses
+/// The store `dist4d runs`, `gc` and `verify --store` read without --cache: the one `dist4d run pipelines/x.ron` uses
 /// (`.dist4d/` beside the pipeline files), else `.dist4d/` here, whichever has runs first.
 fn default_store() -> PathBuf {
     let candidates = [PathBuf::from("pipelines/.dist4d"), PathBuf::from(".dist4d")];
     let has_runs = |c: &PathBuf| c.join("runs").is_dir();
     candidates.iter().find(|c| has_runs(c)).unwrap_or(&candidates[0]).clone()
+}
+
+/// The store a command that only works on an existing store (gc, verify --store) was given, or
+/// [`default_store`] (said on stderr); a folder that does not exist is an error, not a new store.
+fn existing_store(cache: Option<PathBuf>) -> Result<PathBuf> {
+    let cache = cache.unwrap_or_else(|| {
+        let found = default_store();
+        eprintln!("store: {} (--cache for another)", found.display());
+        found
+    });
+    anyhow::ensure!(cache.is_dir(), "there is no store at {} (--cache names it)", cache.display());
+    Ok(cache)
 }
 
 fn beside(pipeline: &Path, rel: &str) -> PathBuf {
@@ -1143,7 +1157,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
         Command::Verify { out, store, cache } => {
             let mut code = ExitCode::SUCCESS;
             if store {
-                code = verify_store(&cache)?;
+                code = verify_store(&existing_store(cache)?)?;
             }
             let Some(out) = out else { return Ok(code) };
             let r = dist4d_runtime::export::verify(&out)?;
@@ -1168,6 +1182,7 @@ fn run(cli: Cli) -> Result<ExitCode> {
             Ok(ExitCode::from(1))
         }
         Command::Gc { cache, keep_runs, max_size, dry_run } => {
+            let cache = existing_store(cache)?;
             let r = dist4d_runtime::gc::gc(&cache, keep_runs, max_size, dry_run)?;
             println!(
                 "{}kept {} runs, {} records, {} blobs ({} bytes); {} {} runs, {} records, {} blobs ({} bytes)",

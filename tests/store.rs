@@ -260,3 +260,16 @@ fn a_read_only_store_can_be_explained_gc_dry_run_and_verified_and_a_finished_rea
     let rec = last_run(&cache);
     assert_eq!((rec["status"].as_str(), total_executed(&rec)), (Some("complete"), 0), "{rec}");
 }
+
+#[test]
+fn gc_and_verify_store_on_a_missing_store_say_so_and_create_nothing() {
+    let tmp = tempfile::tempdir().unwrap();
+    let missing = tmp.path().join("no-store");
+    for args in [vec!["gc", "--cache"], vec!["gc", "--dry-run", "--cache"], vec!["verify", "--store", "--cache"]] {
+        let o = dist4d(&[&args[..], &[missing.to_str().unwrap()]].concat());
+        let t = text(&o);
+        assert!(!o.status.success(), "{args:?}: {t}");
+        assert!(t.contains(&format!("there is no store at {}", missing.display())), "{args:?}: {t}");
+        assert!(!missing.exists(), "{args:?} made a store");
+    }
+}

@@ -1457,7 +1457,7 @@ fn describe_selector(s: Selector, dims: Option<&[Dim]>) -> String {
         Selector::Window { dim, before, after } => format!("Window({}, {before}, {after})", name(dim)),
         Selector::Offset { dim, by } => format!("Offset({}, {by})", name(dim)),
         Selector::Gather { dim } => format!("Gather({})", name(dim)),
-        Selector::All => "the whole scene".into(),
+        Selector::All => "every item under the outer item".into(),
         Selector::VariantOffset { dim } => format!("the variant's offset along {}", name(dim)),
         Selector::Across { dim } => format!("Across({})", name(dim)),
     }

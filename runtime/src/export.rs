@@ -551,6 +551,27 @@ fn claim_new(manifest: &Manifest, dir: &Path, tmp: &Path) -> Result<Option<Manif
             let theirs = Manifest::read(dir)?.with_context(|| format!("{} vanished", dir.join(MANIFEST).display()))?;
             Ok(Some(theirs))
         }
+        // A filesystem without hard links (FUSE object stores, SMB, exFAT): create_new is
+        // exclusive too; the manifest is then written in place, so a kill in that instant can leave
+        // it short (the next run then refuses the folder, naming the manifest to remove).
+        Err(e) if matches!(e.raw_os_error(), Some(libc::EPERM) | Some(libc::EOPNOTSUPP) | Some(libc::ENOSYS)) => {
+            let created = std::fs::OpenOptions::new().write(true).create_new(true).open(dir.join(MANIFEST));
+            match created {
+                Ok(mut f) => {
+                    use std::io::Write;
+                    f.write_all(manifest.text(&[]).as_bytes())
+                        .and_then(|_| f.sync_all())
+                        .with_context(|| format!("writing {}", dir.join(MANIFEST).display()))?;
+                    Ok(None)
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let theirs =
+                        Manifest::read(dir)?.with_context(|| format!("{} vanished", dir.join(MANIFEST).display()))?;
+                    Ok(Some(theirs))
+                }
+                Err(e) => Err(e).with_context(|| format!("claiming {}", dir.display())),
+            }
+        }
         Err(e) => Err(e).with_context(|| format!("claiming {} with {}", dir.display(), dir.join(MANIFEST).display())),
     }
 }
