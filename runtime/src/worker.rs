@@ -218,7 +218,13 @@ pub struct Worker {
     next_id: u64,
     /// Requests cancelled by earlier calls, the latest last (at most `GIVEN_UP_KEPT`).
     given_up: VecDeque<u64>,
+    /// Whether the process was asked to stop ([`Worker::stop_when`]): a call then ends as its
+    /// deadline would, at once, instead of waiting up to the deadline.
+    stop: Option<fn() -> bool>,
 }
+
+/// How often a call waiting on a worker looks whether the process was asked to stop.
+const STOP_POLL: Duration = Duration::from_millis(200);
 
 /// Reads the worker's stdout into `tx`, a line at a time, each at most [`MAX_LINE`] bytes: a
 /// longer one is reported and ends the reading (the stream is out of step from there on).
@@ -328,6 +334,7 @@ impl Worker {
             stderr_read,
             next_id: 1,
             given_up: VecDeque::new(),
+            stop: None,
         };
         if let Err(e) = write::set_nonblocking(&worker.stdin) {
             worker.kill();
@@ -408,6 +415,13 @@ impl Worker {
     /// `deadline` for all their replies, which come back in the order of `requests`. One request
     /// goes as a plain `request`; more as `{"type": "batch", "requests": [..]}`, each with its
     /// own id, answered by one `reply` line per id in any order. At most the hello's `max_batch`.
+    /// Ends calls early, as their deadline would (a `cancel`, then the kill), once `stop` says
+    /// the process was asked to stop: a run stopping on SIGTERM must not wait out a deadline of
+    /// minutes.
+    pub fn stop_when(&mut self, stop: Option<fn() -> bool>) {
+        self.stop = stop;
+    }
+
     pub fn call_batch(
         &mut self,
         requests: &[&Request],
@@ -433,8 +447,20 @@ impl Worker {
         let mut left = requests.len();
         let mut cancelled = false;
         while left > 0 {
-            let v = match self.next_line(until) {
+            // Waits in slices while a stop may come, so that it is seen within STOP_POLL.
+            let slice_end = match self.stop {
+                Some(_) if !cancelled => until.min(Instant::now() + STOP_POLL),
+                _ => until,
+            };
+            let v = match self.next_line(slice_end) {
                 Ok(v) => v,
+                Err(CallError::Timeout(_)) if Instant::now() < until => {
+                    if self.stop.is_some_and(|stop| stop()) {
+                        // Asked to stop: the deadline is now (cancel, then kill).
+                        until = Instant::now();
+                    }
+                    continue;
+                }
                 Err(CallError::Timeout(_)) if !cancelled => {
                     // Ask the worker to stop what is pending: one that answers keeps its process
                     // (a GPU model takes minutes to load); one that does not is killed.

@@ -32,6 +32,9 @@ pub struct PoolOptions {
     /// A worker idle this long is pinged before it is given work, and replaced if it does not
     /// answer (a process wedged between items).
     pub ping_after: Duration,
+    /// Whether the process was asked to stop: calls then end at once (as at their deadline),
+    /// and nothing is tried again or restarted.
+    pub stop: Option<fn() -> bool>,
 }
 
 impl Default for PoolOptions {
@@ -43,6 +46,7 @@ impl Default for PoolOptions {
             tries: 3,
             backoff: Duration::from_millis(100),
             ping_after: Duration::from_secs(30),
+            stop: None,
         }
     }
 }
@@ -171,10 +175,17 @@ impl WorkerPool {
         s.starts += 1;
         let pause = (s.failures > 0).then(|| self.options.backoff * 2u32.saturating_pow(s.failures - 1));
         drop(s);
-        if let Some(p) = pause {
+        if let Some(p) = pause.filter(|_| !self.stopping()) {
             std::thread::sleep(p.min(Duration::from_secs(30)));
         }
-        let started = Worker::start(&self.command, self.options.startup);
+        let started = if self.stopping() {
+            Err(anyhow!("stopped: the process was asked to stop, so worker `{}` is not started", self.command))
+        } else {
+            Worker::start(&self.command, self.options.startup).map(|mut w| {
+                w.stop_when(self.options.stop);
+                w
+            })
+        };
         let mut s = self.lock()?;
         let w = match started {
             Ok(w) => w,
@@ -301,7 +312,7 @@ impl WorkerPool {
                         }
                         Status::Retryable => {
                             ticket.last = format!("try {}: retryable: {}", ticket.tries, reply.message);
-                            if ticket.tries >= tries {
+                            if ticket.tries >= tries || self.stopping() {
                                 ticket.result =
                                     Some(Err(anyhow!("worker `{program}` failed {}: {}", times(tries), ticket.last)));
                             } else {
@@ -337,7 +348,7 @@ impl WorkerPool {
                     ticket.last = format!("try {}: {e}{tail}", ticket.tries);
                     if malformed {
                         ticket.result = Some(Err(anyhow!("worker `{program}`: {e}{tail}")));
-                    } else if ticket.tries >= tries {
+                    } else if ticket.tries >= tries || self.stopping() {
                         ticket.result =
                             Some(Err(anyhow!("worker `{program}` failed {}: {}", times(tries), ticket.last)));
                     } else {
@@ -348,6 +359,11 @@ impl WorkerPool {
                 Ok(s)
             }
         }
+    }
+
+    /// Whether the process was asked to stop ([`PoolOptions::stop`]).
+    fn stopping(&self) -> bool {
+        self.options.stop.is_some_and(|stop| stop())
     }
 
     /// Shuts every idle worker down.

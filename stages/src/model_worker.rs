@@ -122,6 +122,8 @@ impl ModelWorker {
                     max_workers: spec.max_workers as usize,
                     deadline: Duration::from_secs_f64(spec.deadline_s),
                     tries: spec.tries,
+                    // A run stopping on SIGTERM does not wait out a deadline, nor try again.
+                    stop: Some(dist4d_types::cancel::requested),
                     ..PoolOptions::default()
                 },
             )
