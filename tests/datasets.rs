@@ -7,21 +7,8 @@ use common::*;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 
-/// A tiny synthetic nuScenes dataset (2 keyframes, 160 x 90 images) under a temp folder.
 fn synthetic() -> (tempfile::TempDir, PathBuf) {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().join("data");
-    let o = dist4d(&["synth", "--out", root.to_str().unwrap(), "--keyframes", "2", "--width", "160", "--height", "90"]);
-    assert!(o.status.success(), "{}", text(&o));
-    (tmp, root)
-}
-
-fn table(root: &Path, name: &str) -> Vec<Value> {
-    serde_json::from_slice(&std::fs::read(root.join(format!("v1.0-mini/{name}.json"))).unwrap()).unwrap()
-}
-
-fn write_table(root: &Path, name: &str, rows: &[Value]) {
-    std::fs::write(root.join(format!("v1.0-mini/{name}.json")), serde_json::to_vec(rows).unwrap()).unwrap();
+    synthetic_nuscenes(2)
 }
 
 /// Index of the LiDAR keyframe sample_data row of keyframe `k` (samples in time order).

@@ -8,40 +8,43 @@ mod common;
 use common::*;
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Output};
 use std::time::{Duration, Instant};
 
-/// A tiny synthetic nuScenes dataset (3 keyframes, 160 x 90 images) under a temp folder.
 fn synthetic() -> (tempfile::TempDir, PathBuf) {
-    let tmp = tempfile::tempdir().unwrap();
-    let root = tmp.path().join("data");
-    let o = dist4d(&["synth", "--out", root.to_str().unwrap(), "--keyframes", "3", "--width", "160", "--height", "90"]);
-    assert!(o.status.success(), "{}", text(&o));
-    (tmp, root)
-}
-
-fn table(root: &Path, name: &str) -> Vec<Value> {
-    serde_json::from_slice(&std::fs::read(root.join(format!("v1.0-mini/{name}.json"))).unwrap()).unwrap()
-}
-
-fn write_table(root: &Path, name: &str, rows: &[Value]) {
-    std::fs::write(root.join(format!("v1.0-mini/{name}.json")), serde_json::to_vec(rows).unwrap()).unwrap();
+    synthetic_nuscenes(3)
 }
 
 /// Runs `dist4d args`; a run still going after `limit` is killed and the test fails (a hang must
 /// fail the test, not hang the suite).
 fn dist4d_within(args: &[&str], limit: Duration) -> Output {
-    let mut child = Command::new(bin()).args(args).stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().unwrap();
+    let mut command = Command::new(bin());
+    command.args(args);
+    finish_within(command, limit, |_| {})
+}
+
+/// Starts `command` with its output going to files (a pipe nobody reads would block a chatty run
+/// and pass for a hang), calls `meanwhile` with the child, and waits at most `limit` after that.
+fn finish_within(mut command: Command, limit: Duration, meanwhile: impl FnOnce(&std::process::Child)) -> Output {
+    let logs = tempfile::tempdir().unwrap();
+    let (out, err) = (logs.path().join("stdout"), logs.path().join("stderr"));
+    command.stdout(std::fs::File::create(&out).unwrap()).stderr(std::fs::File::create(&err).unwrap());
+    let mut child = command.spawn().unwrap();
+    meanwhile(&child);
     let start = Instant::now();
-    while child.try_wait().unwrap().is_none() {
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
         if start.elapsed() > limit {
             child.kill().unwrap();
-            let o = child.wait_with_output().unwrap();
-            panic!("dist4d {args:?} still ran after {limit:?}:\n{}", text(&o));
+            let status = child.wait().unwrap();
+            let o = Output { status, stdout: std::fs::read(&out).unwrap(), stderr: std::fs::read(&err).unwrap() };
+            panic!("{command:?} still ran {limit:?} later:\n{}", text(&o));
         }
         std::thread::sleep(Duration::from_millis(50));
-    }
-    child.wait_with_output().unwrap()
+    };
+    Output { status, stdout: std::fs::read(&out).unwrap(), stderr: std::fs::read(&err).unwrap() }
 }
 
 /// `pipeline` (a shipped one) on `root`, with a fresh store and output folder under `tmp`.
@@ -305,27 +308,17 @@ fn sigterm_stops_a_run_inside_a_long_task_within_seconds() {
     let set_root = format!("dataset.root={}", root.display());
     let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
     let grid = "exact.grid=(range: [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], voxel: 0.1, lift: 0.0)";
-    let mut child = Command::new(bin())
+    let mut command = Command::new(bin());
+    command
         .args(["run", p.to_str().unwrap(), "--progress", "off", "--jobs", "1", "--set", &set_root])
         .args(["--set", "exact.samples=16", "--set", grid])
-        .args(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap()])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    std::thread::sleep(Duration::from_secs(6));
-    assert!(child.try_wait().unwrap().is_none(), "the run is still in its long task");
-    let term = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
-    assert!(term.success());
-    let sent = Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if sent.elapsed() > Duration::from_secs(20) {
-            child.kill().unwrap();
-            panic!("still running 20 s after SIGTERM:\n{}", text(&child.wait_with_output().unwrap()));
-        }
-        std::thread::sleep(Duration::from_millis(50));
-    }
-    let o = child.wait_with_output().unwrap();
+        .args(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    // SIGTERM once the run is in its long task; it must be over within 20 s of it.
+    let o = finish_within(command, Duration::from_secs(20), |child| {
+        std::thread::sleep(Duration::from_secs(6));
+        let term = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+        assert!(term.success());
+    });
     let t = text(&o);
     assert_eq!(o.status.code(), Some(143), "{t}");
     assert!(t.contains("Interrupted") && t.contains("rerun the same command to finish"), "{t}");

@@ -120,9 +120,11 @@ impl RunRecord {
     }
 
     /// Whether this run read the dataset `identity` ([`dataset_identity`]); a run recorded
-    /// without one may have.
+    /// without one may have. The same kind at the same root is the same dataset whatever its
+    /// other settings: a changed setting (`frames`, `lone_tracks`) is a reason for `explain` to
+    /// give (inputs changed), not another dataset.
     pub fn read_dataset(&self, identity: &str) -> bool {
-        self.dataset.as_deref().is_none_or(|d| d == identity)
+        same_dataset(self.dataset.as_deref(), identity)
     }
 
     /// The dataset as a listing shows it: `NuScenes /data/nuscenes` (its kind and root).
@@ -146,6 +148,19 @@ pub fn dataset_identity(p: &dist4d_graph::Pipeline) -> String {
         Some(canonical.replacen(&format!("{root:?}"), &format!("{real:?}"), 1))
     });
     format!("{}{}", p.dataset.kind, resolved.as_deref().unwrap_or(canonical))
+}
+
+/// Whether a run that recorded dataset `recorded` read the dataset `identity` (see
+/// [`RunRecord::read_dataset`]).
+fn same_dataset(recorded: Option<&str>, identity: &str) -> bool {
+    let place = |d: &str| -> (String, Option<String>) {
+        let (kind, config) = d.split_at(d.find('(').unwrap_or(d.len()));
+        (kind.to_string(), string_field(config, "root"))
+    };
+    recorded.is_none_or(|d| match (place(d), place(identity)) {
+        ((k1, Some(r1)), (k2, Some(r2))) => k1 == k2 && r1 == r2,
+        _ => d == identity,
+    })
 }
 
 /// A string field of canonical params text (`(root:"/data",version:"v1.0-mini")`).
@@ -281,6 +296,18 @@ pub fn now_secs() -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_dataset_is_its_kind_and_root_whatever_its_other_settings() {
+        let keyframes = r#"NuScenes(root:"/data/nuscenes",version:"v1.0-mini",frames:Keyframes)"#;
+        let sweeps = r#"NuScenes(root:"/data/nuscenes",version:"v1.0-mini",frames:Sweeps)"#;
+        let other = r#"NuScenes(root:"/data/other",version:"v1.0-mini",frames:Keyframes)"#;
+        let dgp = r#"Dgp(root:"/data/nuscenes")"#;
+        assert!(same_dataset(Some(keyframes), sweeps), "a changed setting is the same dataset");
+        assert!(!same_dataset(Some(keyframes), other));
+        assert!(!same_dataset(Some(keyframes), dgp));
+        assert!(same_dataset(None, other), "a run recorded without a dataset may have read it");
+    }
 
     #[test]
     fn formats_utc_dates() {

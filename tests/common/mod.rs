@@ -270,3 +270,24 @@ pub fn check_against_devkit(
     }
     checked
 }
+
+/// A tiny synthetic nuScenes dataset (`keyframes` keyframes, 160 x 90 images) under a temp folder,
+/// for tests that edit its tables the way a careless or hostile writer would.
+pub fn synthetic_nuscenes(keyframes: u32) -> (tempfile::TempDir, PathBuf) {
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    let k = keyframes.to_string();
+    let o = dist4d(&["synth", "--out", root.to_str().unwrap(), "--keyframes", &k, "--width", "160", "--height", "90"]);
+    assert!(o.status.success(), "{}", text(&o));
+    (tmp, root)
+}
+
+/// The rows of nuScenes table `name` of the dataset at `root`.
+pub fn table(root: &Path, name: &str) -> Vec<Value> {
+    serde_json::from_slice(&std::fs::read(root.join(format!("v1.0-mini/{name}.json"))).unwrap()).unwrap()
+}
+
+/// Replaces nuScenes table `name` of the dataset at `root` with `rows`.
+pub fn write_table(root: &Path, name: &str, rows: &[Value]) {
+    std::fs::write(root.join(format!("v1.0-mini/{name}.json")), serde_json::to_vec(rows).unwrap()).unwrap();
+}
