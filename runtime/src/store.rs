@@ -471,7 +471,19 @@ impl Store {
         // A FIFO would block the hashing thread until a writer comes, /dev/zero would never end:
         // a dataset's files are regular files (a symlink to one is followed).
         if !meta.is_file() {
-            anyhow::bail!("{} is not a regular file; dist4d reads only regular files", path.display());
+            // (Callers name the file.)
+            use std::os::unix::fs::FileTypeExt;
+            let t = meta.file_type();
+            let kind = if t.is_fifo() {
+                "a FIFO"
+            } else if t.is_char_device() || t.is_block_device() {
+                "a device"
+            } else if t.is_dir() {
+                "a folder"
+            } else {
+                "a special file"
+            };
+            anyhow::bail!("it is not a regular file but {kind}; dist4d reads only regular files");
         }
         let stamp = FileStamp {
             dev: 0,
