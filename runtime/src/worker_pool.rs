@@ -51,6 +51,10 @@ impl Default for PoolOptions {
     }
 }
 
+/// Items in a row whose every try crashed or missed its deadline, after which a pool gives up on
+/// its worker for the rest of the run.
+pub const GIVE_UP_AFTER_ITEMS: u32 = 3;
+
 /// "once", "2 times".
 fn times(n: u32) -> String {
     if n == 1 {
@@ -89,6 +93,12 @@ struct State {
     /// Set when a worker broke the protocol: the model's code writes to stdout, and every worker
     /// started will, so the calls after it fail at once with why instead of restarting it.
     broken: Option<String>,
+    /// Items in a row, since the last reply `ok`, whose every try crashed or timed out; at
+    /// [`GIVE_UP_AFTER_ITEMS`] the pool stops starting the worker ([`State::given_up`]).
+    failed_in_row: u32,
+    /// Why the pool gave up on the worker: a worker that dies on every request would otherwise
+    /// cost each remaining item its tries, and the restart pause (up to 30 s) each try.
+    given_up: Option<String>,
     /// Requests sent in batches of more than one, and workers started (for tests and
     /// benchmarks).
     batched: u64,
@@ -116,6 +126,8 @@ impl WorkerPool {
                 tickets: HashMap::new(),
                 next_ticket: 0,
                 broken: None,
+                failed_in_row: 0,
+                given_up: None,
                 batched: 0,
                 starts: 0,
             }),
@@ -233,6 +245,9 @@ impl WorkerPool {
                 self.command
             );
         }
+        if let Some(why) = &s.given_up {
+            return Err(self.gave_up(why));
+        }
         let id = s.next_ticket;
         s.next_ticket += 1;
         s.tickets
@@ -244,6 +259,12 @@ impl WorkerPool {
                 return t.result.expect("checked above");
             }
             let queued = s.queue.contains(&id);
+            // Calls that waited while the pool gave up on the worker do not start it again.
+            if let Some(why) = s.given_up.clone().filter(|_| queued) {
+                s.queue.retain(|t| *t != id);
+                s.tickets.remove(&id);
+                return Err(self.gave_up(&why));
+            }
             if queued && (!s.idle.is_empty() || s.live < self.options.max_workers) {
                 s = self.lead(s, id)?;
             } else {
@@ -323,6 +344,7 @@ impl WorkerPool {
                 }
                 if ok {
                     s.failures = 0;
+                    s.failed_in_row = 0;
                 }
                 self.give_back(s, w);
                 self.lock()
@@ -351,6 +373,10 @@ impl WorkerPool {
                     } else if ticket.tries >= tries || self.stopping() {
                         ticket.result =
                             Some(Err(anyhow!("worker `{program}` failed {}: {}", times(tries), ticket.last)));
+                        s.failed_in_row += 1;
+                        if s.failed_in_row >= GIVE_UP_AFTER_ITEMS && s.given_up.is_none() {
+                            s.given_up = Some(format!("the last: {}", s.tickets[t].last));
+                        }
                     } else {
                         s.queue.push_front(*t);
                     }
@@ -359,6 +385,15 @@ impl WorkerPool {
                 Ok(s)
             }
         }
+    }
+
+    /// The error of a call made after the pool gave up on its worker ([`State::given_up`]).
+    fn gave_up(&self, why: &str) -> anyhow::Error {
+        anyhow!(
+            "worker `{}` failed every try of {GIVE_UP_AFTER_ITEMS} items in a row earlier in this run, so it is not \
+             started again (fix it and rerun: these items are not cached): {why}",
+            self.command
+        )
     }
 
     /// Whether the process was asked to stop ([`PoolOptions::stop`]).
@@ -412,6 +447,23 @@ mod tests {
             backoff: Duration::from_millis(10),
             ..PoolOptions::default()
         }
+    }
+
+    #[test]
+    fn a_worker_that_dies_on_every_request_is_given_up_after_three_items() {
+        // Each try fails at once, but the restart pause doubles up to 30 s: 96 items of such a
+        // worker took over an hour. After three items whose every try failed, the rest fail at once.
+        let pool = WorkerPool::new(command(&["--every", "close-stdout"]), PoolOptions { tries: 2, ..quick() });
+        for i in 0..GIVE_UP_AFTER_ITEMS {
+            let err = format!("{:#}", pool.call(&request(&format!("item{i}"))).unwrap_err());
+            assert!(err.contains("failed 2 times") && err.contains("closed its stdout"), "{err}");
+        }
+        let starts = pool.state.lock().unwrap().starts;
+        let t = Instant::now();
+        let err = format!("{:#}", pool.call(&request("next")).unwrap_err());
+        assert!(t.elapsed() < Duration::from_millis(100), "at once");
+        assert!(err.contains("failed every try of 3 items in a row") && err.contains("closed its stdout"), "{err}");
+        assert_eq!(pool.state.lock().unwrap().starts, starts, "not started again");
     }
 
     #[test]
