@@ -307,30 +307,49 @@ fn a_jpeg_with_corrupt_scan_data_fails_its_item() {
 
 #[test]
 fn sigterm_stops_a_run_inside_a_long_task_within_seconds() {
-    // The exact occupancy at 0.1 m with 16^3 samples per voxel runs for many minutes per frame;
-    // a run used to wait for it (60 s and more) before it stopped.
-    let (tmp, root) = synthetic();
-    let p = repo().join("pipelines/occupancy.ron");
-    let set_root = format!("dataset.root={}", root.display());
-    let (cache, out) = (tmp.path().join("cache"), tmp.path().join("out"));
+    // Each of these tasks runs for minutes (the exact occupancy at 0.1 m with 16^3 samples per
+    // voxel), or tens of seconds (MultiViewStereo at full size with 900 planes; the completion's
+    // refinement with 10,000 steps); a run used to wait for its running tasks before it stopped.
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().join("data");
+    let o =
+        dist4d(&["synth", "--out", root.to_str().unwrap(), "--keyframes", "3", "--width", "800", "--height", "450"]);
+    assert!(o.status.success(), "{}", text(&o));
     let grid = "exact.grid=(range: [-40.0, -40.0, -1.0, 40.0, 40.0, 5.4], voxel: 0.1, lift: 0.0)";
-    let mut command = Command::new(bin());
-    command
-        .args(["run", p.to_str().unwrap(), "--progress", "off", "--jobs", "1", "--set", &set_root])
-        .args(["--set", "exact.samples=16", "--set", grid])
-        .args(["--cache", cache.to_str().unwrap(), "--out", out.to_str().unwrap()]);
-    // SIGTERM once the run is in its long task; it must be over within 20 s of it.
-    let o = finish_within(command, Duration::from_secs(20), |child| {
-        std::thread::sleep(Duration::from_secs(6));
-        let term = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
-        assert!(term.success());
-    });
-    let t = text(&o);
-    assert_eq!(o.status.code(), Some(143), "{t}");
-    assert!(t.contains("Interrupted") && t.contains("rerun the same command to finish"), "{t}");
-    assert!(!t.contains("failed: exact"), "a task cut short is not a failure: {t}");
-    let run = last_run(&cache);
-    assert_eq!(run["status"], "interrupted", "{run}");
+    let cases: [(&str, &str, &[&str]); 3] = [
+        ("occupancy", "exact", &["exact.samples=16", grid]),
+        ("curation", "mvs", &["mvs.downscale=1", "mvs.max_planes=900", "mvs.plane_step_px=0.05"]),
+        ("curation", "complete", &["complete.refine_iterations=10000"]),
+    ];
+    for (pipeline, stage, sets) in cases {
+        let p = repo().join(format!("pipelines/{pipeline}.ron"));
+        let set_root = format!("dataset.root={}", root.display());
+        let (cache, out) = (tmp.path().join(format!("cache-{stage}")), tmp.path().join(format!("out-{stage}")));
+        let mut command = Command::new(bin());
+        command.args(["run", p.to_str().unwrap(), "--progress", "off", "--jobs", "1", "--set", &set_root]).args([
+            "--cache",
+            cache.to_str().unwrap(),
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        for set in sets {
+            command.args(["--set", set]);
+        }
+        // SIGTERM once the run is in its long tasks; it must be over within 10 s of it.
+        let o = finish_within(command, Duration::from_secs(10), |child| {
+            std::thread::sleep(Duration::from_secs(8));
+            let term = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+            assert!(term.success());
+        });
+        let t = text(&o);
+        assert_eq!(o.status.code(), Some(143), "{stage}: {t}");
+        assert!(t.contains("Interrupted") && t.contains("rerun the same command to finish"), "{stage}: {t}");
+        assert!(!t.contains("failed:"), "{stage}: a task cut short is not a failure: {t}");
+        let run = last_run(&cache);
+        assert_eq!(run["status"], "interrupted", "{stage}: {run}");
+        let stats = run["stages"].as_array().unwrap().iter().find(|s| s["stage"] == stage).unwrap().clone();
+        assert_eq!(stats["failed"], 0, "{stage}: {stats}");
+    }
 }
 
 #[test]
