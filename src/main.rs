@@ -398,6 +398,15 @@ fn main() -> ExitCode {
     // it: the pools end theirs, and this ends any left (docs/security.md, "Signals").
     let _workers = dist4d_runtime::worker::KillWorkersOnDrop;
     let cli = Cli::parse();
+    if matches!(cli.command, Command::Runs { .. } | Command::Graph { .. } | Command::Check { .. }) {
+        // Commands that only print and start no worker end quietly when their reader goes
+        // (`dist4d runs --json | head`), as Unix tools do, instead of panicking on the closed
+        // pipe. Not for the others: a worker's closed stdin must stay an error, not a signal.
+        // SAFETY: setting a signal's disposition to the default has no memory effects.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
     match run(cli) {
         Ok(code) => code,
         Err(e) => {

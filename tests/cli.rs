@@ -538,3 +538,30 @@ fn a_nuscenes_root_that_is_missing_or_dgp_data_says_so() {
     let t = run(&dgp);
     assert!(t.contains("looks like a DGP dataset") && t.contains("Dgp(root: "), "{t}");
 }
+
+/// `dist4d runs --json | head` ends quietly when `head` has read enough, as Unix tools do: it
+/// used to panic ("failed printing to stdout: Broken pipe").
+#[test]
+fn a_listing_whose_reader_went_away_ends_without_a_panic() {
+    use std::os::unix::process::ExitStatusExt;
+    let s = multi_frame(2);
+    run_ok(&s, "cache", "out", &[]);
+    let cache = s.base.join("cache");
+    // A pipe whose reader is gone before dist4d starts (no race with its first write).
+    let (reader, writer) = std::io::pipe().unwrap();
+    drop(reader);
+    let o = std::process::Command::new(bin())
+        .args(["runs", "--json", "--cache", cache.to_str().unwrap()])
+        .stdout(writer)
+        .stderr(std::process::Stdio::piped())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!err.contains("panicked"), "{err}");
+    assert_eq!(o.status.signal(), Some(libc_sigpipe()), "ended by SIGPIPE, as `head` expects: {:?} {err}", o.status);
+}
+
+/// SIGPIPE's number on Linux.
+fn libc_sigpipe() -> i32 {
+    13
+}
