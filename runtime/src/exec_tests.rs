@@ -541,20 +541,14 @@ fn gc_counts_the_shards_of_one_group_as_one_run() {
 
 /// Every file under `dir` but the manifest (which holds file stats), relative path -> digest.
 fn files_under(dir: &Path) -> BTreeMap<String, String> {
-    let mut out = BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for e in std::fs::read_dir(&d).unwrap() {
-            let p = e.unwrap().path();
-            if p.is_dir() {
-                stack.push(p);
-            } else if !p.ends_with(".dist4d-manifest") {
-                let bytes = std::fs::read(&p).unwrap();
-                out.insert(p.strip_prefix(dir).unwrap().display().to_string(), crate::Digest::of(&bytes).short());
-            }
-        }
-    }
-    out
+    walk(dir)
+        .into_iter()
+        .filter(|p| !p.ends_with(".dist4d-manifest"))
+        .map(|p| {
+            let digest = crate::Digest::of(&std::fs::read(&p).unwrap()).short();
+            (p.strip_prefix(dir).unwrap().display().to_string(), digest)
+        })
+        .collect()
 }
 
 fn index_paths(out: &Path) -> Vec<String> {

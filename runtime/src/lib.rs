@@ -17,6 +17,7 @@ pub mod operator;
 pub mod plan;
 pub mod progress;
 pub mod record;
+pub mod regular_file;
 pub mod runs;
 pub mod segment;
 pub mod store;

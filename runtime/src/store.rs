@@ -467,24 +467,9 @@ impl Store {
     /// The content digest of a raw input file, hashing it only when its (path, size, mtime, inode)
     /// is not in the memo. With `allow_hash` false, returns `None` instead of hashing.
     pub fn file_digest(&self, path: &Path, allow_hash: bool) -> Result<Option<Digest>> {
-        let meta = fs::metadata(path).with_context(|| format!("reading {}", path.display()))?;
-        // A FIFO would block the hashing thread until a writer comes, /dev/zero would never end:
-        // a dataset's files are regular files (a symlink to one is followed).
-        if !meta.is_file() {
-            // (Callers name the file.)
-            use std::os::unix::fs::FileTypeExt;
-            let t = meta.file_type();
-            let kind = if t.is_fifo() {
-                "a FIFO"
-            } else if t.is_char_device() || t.is_block_device() {
-                "a device"
-            } else if t.is_dir() {
-                "a folder"
-            } else {
-                "a special file"
-            };
-            anyhow::bail!("it is not a regular file but {kind}; dist4d reads only regular files");
-        }
+        // Regular files only: a FIFO or /dev/zero among a dataset's files must not hang the run.
+        // (The errors leave the path to the callers, which name the file.)
+        let (file, meta) = crate::regular_file::open(path)?;
         let stamp = FileStamp {
             dev: 0,
             ino: meta.ino(),
@@ -500,7 +485,13 @@ impl Store {
             return Ok(None);
         }
         let mut hasher = blake3::Hasher::new();
-        hasher.update_mmap(path).with_context(|| format!("reading {}", path.display()))?;
+        // The file opened above, mapped (an empty file cannot be): no second open by path.
+        if meta.len() > 0 {
+            // SAFETY: the map is read while this function runs; a file changed meanwhile gives a
+            // mixed digest, which the stamp check below keeps out of the memo.
+            let map = unsafe { memmap2::Mmap::map(&file) }.with_context(|| format!("reading {}", path.display()))?;
+            hasher.update(&map);
+        }
         let digest = Digest(*hasher.finalize().as_bytes());
         // A file modified while it was hashed gets a new stamp; do not memoise a mixed read.
         let after = fs::metadata(path)?;

@@ -19,11 +19,7 @@ pub enum End {
 /// line of exactly `max` bytes is whole, a longer one is [`End::TooLong`].
 pub fn read_line(r: &mut impl BufRead, buf: &mut Vec<u8>, max: usize) -> io::Result<End> {
     loop {
-        let chunk = match r.fill_buf() {
-            Ok(c) => c,
-            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
-            Err(e) => return Err(e),
-        };
+        let chunk = fill(r)?;
         if chunk.is_empty() {
             return Ok(End::Eof);
         }
@@ -42,16 +38,25 @@ pub fn read_line(r: &mut impl BufRead, buf: &mut Vec<u8>, max: usize) -> io::Res
     }
 }
 
+/// The reader's buffered bytes, filled if empty (retried when interrupted); empty at the end.
+fn fill(r: &mut impl BufRead) -> io::Result<&[u8]> {
+    loop {
+        match r.fill_buf() {
+            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
+            // Asked again: the borrow checker refuses returning the first answer from inside the
+            // loop; a filled buffer comes back without another read.
+            Ok(_) => return r.fill_buf(),
+            Err(e) => return Err(e),
+        }
+    }
+}
+
 /// Reads past the rest of the current line (its newline included) keeping none of it: the
 /// number of bytes skipped, and whether the stream ended first.
 pub fn skip_line(r: &mut impl BufRead) -> io::Result<(u64, End)> {
     let mut skipped = 0u64;
     loop {
-        let chunk = match r.fill_buf() {
-            Ok(c) => c,
-            Err(e) if e.kind() == io::ErrorKind::Interrupted => continue,
-            Err(e) => return Err(e),
-        };
+        let chunk = fill(r)?;
         if chunk.is_empty() {
             return Ok((skipped, End::Eof));
         }

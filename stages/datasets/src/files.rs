@@ -6,17 +6,14 @@ use crate::checks::{MAX_IMAGE_FILE_BYTES, MAX_NPZ_MEMBER_BYTES};
 use anyhow::{bail, ensure, Context, Result};
 use dist4d_types::artifact::Image;
 use std::io::Read;
-use std::os::unix::fs::OpenOptionsExt;
 use std::path::Path;
 
 /// Reads a file of a dataset whole: `what` says what it is (`a LiDAR sweep`) for the errors, and
 /// `max_bytes` is the most such a file may hold (the bounds are in [`crate::checks`]).
 ///
-/// Only a regular file is read (a symlink to one is followed). A FIFO would block the reading
-/// thread until some writer opens it, `/dev/zero` or a socket would never end: so the file is
-/// opened without blocking (`O_NONBLOCK` changes nothing for a regular file and makes opening a
-/// FIFO return at once), its type checked on the opened descriptor (no race with a rename), and at
-/// most `max_bytes` + 1 bytes read, so a file that grows while it is read cannot exhaust memory.
+/// Only a regular file is read ([`dist4d_runtime::regular_file`]: a FIFO or `/dev/zero` fails at
+/// once), and at most `max_bytes` + 1 bytes, so a file that grows while it is read cannot exhaust
+/// memory.
 pub fn read_input(path: &Path, what: &str, max_bytes: u64) -> Result<Vec<u8>> {
     let file = open_regular(path, what, max_bytes)?;
     let len = file.metadata().map(|m| m.len()).unwrap_or(0);
@@ -32,15 +29,8 @@ pub fn read_input(path: &Path, what: &str, max_bytes: u64) -> Result<Vec<u8>> {
 
 /// Opens a regular file of at most `max_bytes` without blocking (see [`read_input`]).
 fn open_regular(path: &Path, what: &str, max_bytes: u64) -> Result<std::fs::File> {
-    let file = std::fs::OpenOptions::new()
-        .read(true)
-        .custom_flags(libc::O_NONBLOCK)
-        .open(path)
-        .with_context(|| format!("reading {what} {}", path.display()))?;
-    let meta = file.metadata().with_context(|| format!("reading {what} {}", path.display()))?;
-    if !meta.is_file() {
-        bail!("{what} {} is not a regular file (a {}); dist4d reads only regular files", path.display(), kind(&meta));
-    }
+    let (file, meta) =
+        dist4d_runtime::regular_file::open(path).with_context(|| format!("reading {what} {}", path.display()))?;
     ensure!(
         meta.len() <= max_bytes,
         "{what} {} is {} bytes, more than the {max_bytes} bytes such a file may have",
@@ -48,25 +38,6 @@ fn open_regular(path: &Path, what: &str, max_bytes: u64) -> Result<std::fs::File
         meta.len()
     );
     Ok(file)
-}
-
-/// What kind of file a non-regular one is, for messages.
-fn kind(meta: &std::fs::Metadata) -> &'static str {
-    use std::os::unix::fs::FileTypeExt;
-    let t = meta.file_type();
-    if t.is_dir() {
-        "folder"
-    } else if t.is_fifo() {
-        "FIFO"
-    } else if t.is_char_device() {
-        "character device"
-    } else if t.is_block_device() {
-        "block device"
-    } else if t.is_socket() {
-        "socket"
-    } else {
-        "special file"
-    }
 }
 
 /// Decodes a JPEG (or any image the `image` crate reads) to RGB8.
