@@ -469,8 +469,7 @@ fn execute(
     opts: RunOptions,
 ) -> Result<(ExitCode, dist4d_runtime::RunRecord)> {
     let dataset = registry.open_dataset(pipeline)?;
-    let why_nothing = Arc::new(dist4d_runtime::nothing::WhyNothing::default());
-    let ops = why_nothing.wrap(registry.operators(pipeline)?);
+    let ops = registry.operators(pipeline)?;
     if let Some(warning) = memory_warning(pipeline, &ops, opts.jobs, machine_memory()) {
         eprintln!("{warning}");
     }
@@ -490,7 +489,7 @@ fn execute(
     }
     // Once per stage, why it made nothing for some items: an output that is just missing, or a
     // stage that made nothing at all, would otherwise go unexplained.
-    for line in why_nothing.lines(pipeline, &rec.stages) {
+    for line in dist4d_runtime::nothing::lines(pipeline, &rec.stages) {
         println!("{line}");
     }
     if rec.missing() > 0 && rec.status == RunStatus::Interrupted {

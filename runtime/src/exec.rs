@@ -32,7 +32,7 @@ use std::collections::{BinaryHeap, HashMap, VecDeque};
 use std::io::Write;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 /// How to run.
@@ -594,7 +594,8 @@ impl<'a> Engine<'a> {
             stop: opts.cancel.clone(),
         };
         let deferred = self.operators.iter().map(|op| op.as_deref().is_some_and(deferred_node)).collect();
-        let ctx = Ctx { engine: self, keys: &keys, deferred };
+        let nothing = Mutex::new(vec![None; p.nodes.len()]);
+        let ctx = Ctx { engine: self, keys: &keys, deferred, nothing };
         let mut next_outer = 0usize;
         let mut inflight = 0usize;
         let mut exporting = 0usize;
@@ -760,10 +761,16 @@ impl<'a> Engine<'a> {
         drop(wait_pool);
         drop(pool);
         drop(reporter);
-        let Coord { mut stats, failures, mut keys_out, exporter, awaiting, .. } = c;
+        let Coord { mut stats, failures, mut keys_out, exporter, awaiting, counter_of, .. } = c;
         debug_assert!(awaiting.is_empty(), "every export job has ended");
         for (i, s) in stats.iter_mut().enumerate() {
             s.total = counters.total[i].load(Ordering::Relaxed);
+        }
+        let nothing = ctx.nothing.into_inner().unwrap_or_else(|e| e.into_inner());
+        for (node, why) in nothing.into_iter().enumerate() {
+            if let (Some(why), Some(&ci)) = (why, counter_of.get(node)) {
+                stats[ci].nothing = Some(why);
+            }
         }
 
         // The output folder first (its files, then its manifest), then the store: after a power
@@ -799,7 +806,7 @@ impl<'a> Engine<'a> {
 
     /// Worker side: key the task if the coordinator could not (hashing raw files), check the
     /// cache, else run it and store its outputs and record.
-    fn execute(&self, mut job: Job, keys: &Keys) -> Result<Outcome> {
+    fn execute(&self, mut job: Job, keys: &Keys, nothing: &Mutex<Vec<Option<(String, String)>>>) -> Result<Outcome> {
         let node = &self.pipeline.nodes[job.node];
         let stage = node.stage().expect("jobs are for stages");
         let label = self.dataset.path(&job.item);
@@ -847,8 +854,19 @@ impl<'a> Engine<'a> {
             .run(&ctx, &artifacts)
         {
             Ok(outs) => outs,
-            // Recorded with no outputs, like a task that made them (see NotApplicable).
-            Err(e) if e.downcast_ref::<NotApplicable>().is_some() => Vec::new(),
+            // Recorded with no outputs, like a task that made them (see NotApplicable); the
+            // first reason per stage is kept for the run to say.
+            Err(e) if e.downcast_ref::<NotApplicable>().is_some() => {
+                if let Some(NotApplicable(reason)) = e.downcast_ref::<NotApplicable>() {
+                    let mut first = nothing.lock().unwrap_or_else(|e| e.into_inner());
+                    if let Some(slot) = first.get_mut(job.node) {
+                        if slot.as_ref().is_none_or(|(_, item)| label.as_str() < item.as_str()) {
+                            *slot = Some((reason.clone(), label.clone()));
+                        }
+                    }
+                }
+                Vec::new()
+            }
             Err(e) => return Err(e.context(format!("{} ({})", node.name, stage.kind))),
         };
         if !outs.is_empty() && outs.len() != node.outputs.len() {
@@ -1464,6 +1482,9 @@ struct Ctx<'e, 'a> {
     keys: &'e Keys<'e>,
     /// Per node: its tasks are only taken from the cache ([`RunOptions::defer_resources`]).
     deferred: Vec<bool>,
+    /// Per node: the reason its first task (by item label, so the same at any thread count) with
+    /// nothing to make gave, and that item ([`StageStats::nothing`]).
+    nothing: Mutex<Vec<Option<(String, String)>>>,
 }
 
 impl Ctx<'_, '_> {
@@ -1522,8 +1543,9 @@ fn spawn_task<'s>(scope: &rayon::Scope<'s>, ctx: &'s Ctx<'_, '_>, tx: &Sender<Ms
     let tx = tx.clone();
     scope.spawn(move |_| {
         let (slot, task) = (job.slot, job.task);
-        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| ctx.engine.execute(job, ctx.keys)))
-            .unwrap_or_else(|panic| Err(anyhow!("the stage panicked: {}", panic_message(&panic))));
+        let result =
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| ctx.engine.execute(job, ctx.keys, &ctx.nothing)))
+                .unwrap_or_else(|panic| Err(anyhow!("the stage panicked: {}", panic_message(&panic))));
         let _ = tx.send(Msg::Task { slot, task, waited, result });
     });
 }

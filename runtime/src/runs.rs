@@ -35,6 +35,11 @@ pub struct StageStats {
     pub deferred: u64,
     /// Summed run time of executed tasks.
     pub seconds: f64,
+    /// Why this stage made nothing for some items: the reason its first task (by item label)
+    /// with nothing to make gave ([`crate::NotApplicable`]), and that item. `None` when no task
+    /// of this run said (none had nothing, or those that had were cached or passed over).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nothing: Option<(String, String)>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
