@@ -1046,10 +1046,13 @@ mod tests {
                     .map(|i| {
                         let (out, store, barrier) = (&out, &store, &barrier);
                         scope.spawn(move || {
-                            let s = Store::open(store, crate::Access::Shared).unwrap();
+                            // Every thread reaches the barrier, even one whose store failed to
+                            // open: a panic before it left the other seven waiting for ever.
+                            let s = Store::open(store, crate::Access::Shared);
                             // Runs 0-3 are four pipelines, 4-7 shards of pipeline p0.
                             let name = format!("p{}", if i < 4 { i } else { 0 });
                             barrier.wait();
+                            let s = s.expect("opening the store");
                             let opened = Exporter::open(out, &s, &name, &[], &[], None);
                             (name, opened)
                         })

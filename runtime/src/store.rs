@@ -766,12 +766,18 @@ pub fn write_whole_via(tmp: &Path, dest: &Path, bytes: &[u8], durable: bool) -> 
 }
 
 fn unique_writer_id() -> String {
+    // Stores opened by threads of one process in the same clock tick (a coarse clock on CI
+    // machines) got one id, and the second failed with "writer id is taken": the per-process
+    // count makes them differ whatever the clock.
+    static OPENED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let nth = OPENED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos()).unwrap_or(0);
     let host = fs::read_to_string("/proc/sys/kernel/hostname").unwrap_or_default();
     let d = crate::digest::DigestBuilder::new("writer")
         .str(host.trim())
         .u64(std::process::id() as u64)
         .u64(nanos as u64)
+        .u64(nth)
         .finish();
     format!("{}-{}", std::process::id(), &d.hex()[..10])
 }
@@ -867,6 +873,26 @@ mod tests {
     use super::*;
     use crate::item::ItemKey;
     use crate::record::OutputRef;
+
+    #[test]
+    fn stores_opened_at_once_by_threads_of_one_process_get_distinct_writer_ids() {
+        // CI hung when two threads opened a store in one clock tick: the same id, "writer id is
+        // taken", and a test barrier waiting for the thread that had panicked.
+        let ids: std::collections::HashSet<String> = std::thread::scope(|scope| {
+            let handles: Vec<_> =
+                (0..16).map(|_| scope.spawn(|| (0..64).map(|_| unique_writer_id()).collect::<Vec<_>>())).collect();
+            handles.into_iter().flat_map(|h| h.join().unwrap()).collect()
+        });
+        assert_eq!(ids.len(), 16 * 64);
+        let dir = tempfile::tempdir().unwrap();
+        let stores: Vec<Store> = std::thread::scope(|scope| {
+            let handles: Vec<_> =
+                (0..8).map(|_| scope.spawn(|| Store::open(dir.path(), Access::Shared).unwrap())).collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        let writers: std::collections::HashSet<&str> = stores.iter().map(|s| s.writer_id()).collect();
+        assert_eq!(writers.len(), 8);
+    }
 
     fn record(key: &[u8]) -> TaskRecord {
         TaskRecord {
