@@ -1872,12 +1872,15 @@ crate::ports! {
         sparse: One<DepthMap>,
         /// sky pixels (e.g. from EstimateSky), set to sky_depth
         sky: Optional<Mask>,
+        /// the ego vehicle's body (EgoMask.mask): no sample is read there, and depth and support
+        /// are 0 (invalid) there
+        ego: Optional<Mask>,
     }
 }
 
 crate::ports! {
     pub struct Outputs {
-        /// dense metric depth, sky at sky_depth
+        /// dense metric depth, sky at sky_depth, 0 on the ego body
         depth: One<DepthMap>,
         /// per-pixel confidence: distance (px) to the nearest sample of the sparse input, 0 on a
         /// sample (a training loader masks pixels above its own threshold); kept only when the
@@ -1921,14 +1924,34 @@ impl Stage for CompleteDepth {
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         self.1.resource()
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
-        if self.1.is_set() {
-            return worker_completion(ctx, &self.0, &self.1, &i);
+    fn run(&self, ctx: &TaskContext, mut i: Inputs) -> Result<Outputs> {
+        let ego = super::ego_mask::wired(i.ego.as_ref(), i.sparse.width, i.sparse.height, "prompt")?.map(<[u8]>::to_vec);
+        if let Some(ego) = &ego {
+            // A prompt made without the mask still has the road behind the hood on it.
+            for (z, &e) in i.sparse.data.iter_mut().zip(ego) {
+                if e != 0 {
+                    *z = 0.0;
+                }
+            }
         }
-        let c = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, i.sky.as_ref(), ctx.wants("support"))?;
-        // The refinement stops early on a stop request: its partial result is not kept.
-        dist4d_types::cancel::check()?;
-        Ok(Outputs { depth: c.depth, support: c.support })
+        let mut out = if self.1.is_set() {
+            worker_completion(ctx, &self.0, &self.1, &i)?
+        } else {
+            let c = ScanlineCompleter(self.0.clone()).complete(&i.image, &i.sparse, i.sky.as_ref(), ctx.wants("support"))?;
+            // The refinement stops early on a stop request: its partial result is not kept.
+            dist4d_types::cancel::check()?;
+            Outputs { depth: c.depth, support: c.support }
+        };
+        if let Some(ego) = &ego {
+            for map in std::iter::once(&mut out.depth).chain(out.support.as_mut()) {
+                for (z, &e) in map.data.iter_mut().zip(ego) {
+                    if e != 0 {
+                        *z = 0.0;
+                    }
+                }
+            }
+        }
+        Ok(out)
     }
 }
 

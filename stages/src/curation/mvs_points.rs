@@ -257,6 +257,9 @@ crate::ports! {
         boxes: One<Boxes3D>,
         /// sky pixels (EstimateSky); MVS depth there is dropped
         sky: Optional<Mask>,
+        /// the ego vehicle's body (EgoMask.mask, image size); MVS depth there is dropped (a body
+        /// fixed in the camera matches as if at infinity)
+        ego: Optional<Mask>,
     }
 }
 
@@ -283,10 +286,27 @@ impl Stage for StaticMvsPoints {
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
         let cloud_from_world = i.cloud_pose.ego_to_world.then_from(&i.cloud_calib.sensor_to_ego).inverse();
+        // Both masks say "no MVS point here": one map of their union.
+        let dropped = match (i.sky, i.ego.filter(|e| e.width > 0 && e.height > 0)) {
+            (Some(sky), Some(ego)) if sky.width > 0 => {
+                ensure!(
+                    (sky.width, sky.height) == (ego.width, ego.height),
+                    "the sky mask is {}x{} but the ego mask {}x{}",
+                    sky.width,
+                    sky.height,
+                    ego.width,
+                    ego.height
+                );
+                let data = sky.data.iter().zip(&ego.data).map(|(&s, &e)| s | e).collect();
+                Some(Mask { data, ..sky })
+            }
+            (_, Some(ego)) => Some(ego),
+            (sky, None) => sky,
+        };
         let m = MvsInputs {
             depth: &i.depth,
             confidence: &i.confidence,
-            sky: i.sky.as_ref(),
+            sky: dropped.as_ref(),
             view: &view,
             cloud_from_world,
             boxes: &i.boxes,

@@ -25,12 +25,12 @@
 //! hold-out cannot judge this alone: its points have the same LiDAR-versus-camera visibility as
 //! the leaks.
 
-use crate::camera::{CameraView, CloudInView, ZBuffer};
+use crate::camera::{CameraView, ViewPorts, ZBuffer};
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_types::artifact::{DepthMap, PointCloud};
+use dist4d_types::artifact::{DepthMap, Mask, PointCloud};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
 
@@ -145,6 +145,18 @@ pub fn drop_occluded(map: &mut DepthMap, window: [f64; 2], tolerance: f64) {
 }
 
 crate::ports! {
+    pub struct Inputs {
+        /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
+        points: One<PointCloud>,
+        /// the cloud's sensor and pose, the camera's calibration and pose
+        view: Group<ViewPorts>,
+        /// the ego vehicle's body (EgoMask.mask): no sample there (the roof LiDAR's returns
+        /// there are the road behind the hood)
+        ego: Optional<Mask>,
+    }
+}
+
+crate::ports! {
     pub struct Outputs {
         /// z-buffered projection, 0 = no point
         sparse: One<DepthMap>,
@@ -159,14 +171,22 @@ impl Stage for DepthPrompt {
     const SUMMARY: &'static str = "Points -> sparse z-buffered depth of one camera (the depth prompt before its fill)";
     const GRAINS: &'static [&'static str] = &["camera"];
     type Params = Params;
-    type Inputs = CloudInView;
+    type Inputs = Inputs;
     type Outputs = Outputs;
     fn new(params: Params) -> Result<Self> {
         Ok(DepthPrompt(params))
     }
-    fn run(&self, _: &TaskContext, i: CloudInView) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
         let view = i.view.view()?;
-        Ok(Outputs { sparse: project_points(&self.0, &i.points, &view) })
+        let mut sparse = project_points(&self.0, &i.points, &view);
+        if let Some(ego) = super::ego_mask::wired(i.ego.as_ref(), sparse.width, sparse.height, "prompt")? {
+            for (z, &e) in sparse.data.iter_mut().zip(ego) {
+                if e != 0 {
+                    *z = 0.0;
+                }
+            }
+        }
+        Ok(Outputs { sparse })
     }
 }
 

@@ -367,6 +367,8 @@ crate::ports! {
         support: Optional<DepthMap>,
         /// Cityscapes-id segmentation (sky = 23); when given, it is the answer
         semantic: Optional<Segmentation>,
+        /// the ego vehicle's body (EgoMask.mask), never sky (a hood mirrors the sky)
+        ego: Optional<Mask>,
     }
 }
 
@@ -398,7 +400,23 @@ impl Stage for EstimateSky {
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         self.1.resource()
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, mut i: Inputs) -> Result<Outputs> {
+        let ego = i.ego.take();
+        let mut out = self.sky(ctx, i)?;
+        if let Some(ego) = super::ego_mask::wired(ego.as_ref(), out.sky.width, out.sky.height, "image")? {
+            for (s, &e) in out.sky.data.iter_mut().zip(ego) {
+                if e != 0 {
+                    *s = 0;
+                }
+            }
+        }
+        Ok(out)
+    }
+}
+
+impl EstimateSky {
+    /// The sky from the worker, the dataset's segmentation or the estimate.
+    fn sky(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
         let (w, h) = (i.image.width, i.image.height);
         let has_semantic = i.semantic.as_ref().is_some_and(|s| s.width > 0 && s.height > 0);
         if self.1.is_set() && !has_semantic {

@@ -4,6 +4,7 @@
 pub mod boundary;
 pub mod canny;
 pub mod image_scores;
+pub mod labels;
 pub mod report;
 pub mod sky;
 

@@ -1,0 +1,383 @@
+//! `EgoMask`: which pixels of a camera image show the recording vehicle itself (hood, boot,
+//! mirrors, pillars), so that no stage takes them for the scene.
+//!
+//! The ego body is fixed in each camera: a roof LiDAR never sees it (its returns there are the
+//! road *behind* the hood, projected through it), so without a mask a completion paints road
+//! depth onto the hood, a point cloud gets a hood lying on the road and a novel view carries the
+//! car body of the neighbouring camera. The mask says where the body is; the stages that read it
+//! (DepthPrompt, EstimateSky, StaticMvsPoints, CompleteDepth) drop samples there, never call it
+//! sky and write depth 0 (invalid) there, which every stage that lifts depth to 3D skips.
+//!
+//! Sources, per camera, first that applies:
+//! - `polygons`: polygons in image pixels given in the pipeline, per camera name (a pixel is
+//!   masked when its centre lies inside, even-odd rule). The shipped pipelines carry the rigs of
+//!   nuScenes (Renault Zoe) and TRI's DDAD fleet (Ford Fusion), drawn by hand (docs/stages.md).
+//! - `files`: a mask image per camera name (PNG or JPEG, any non-zero grey value = ego), the size
+//!   of the camera's images; a relative path is taken from the working directory. Its bytes are
+//!   part of the task key: editing the file reruns what depends on it.
+//! - none: an empty mask.
+//!
+//! `grow` then widens the mask by whole pixels: JPEG ringing and motion blur put the body's edge
+//! a pixel or two into the scene, where a sample of the road would still be wrong.
+
+use crate::stage::Stage;
+use anyhow::{ensure, Context, Result};
+use dist4d_graph::{ParamChecks, ParamProblem, Validate};
+use dist4d_runtime::TaskContext;
+use dist4d_types::artifact::{Image, ImageInfo, Mask};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// A polygon's vertices, in image pixels: x right, y down, the pixel (i, j) covering
+/// [i, i+1) x [j, j+1). Closed implicitly.
+pub type Polygon = Vec<(i32, i32)>;
+
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct Params {
+    /// Per camera name: the ego body as polygons in that camera's image pixels.
+    pub polygons: BTreeMap<String, Vec<Polygon>>,
+    /// Per camera name: a mask image (non-zero = ego), for cameras without polygons.
+    pub files: BTreeMap<String, String>,
+    /// Pixels by which the mask grows (a square neighbourhood), 0-64.
+    pub grow: u32,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { polygons: BTreeMap::new(), files: BTreeMap::new(), grow: 2 }
+    }
+}
+
+impl Validate for Params {
+    fn validate(&self) -> Vec<ParamProblem> {
+        let mut c = ParamChecks::new();
+        c.within("grow", self.grow as f64, 0.0, 64.0);
+        let mut problems = c.done();
+        for (camera, polygons) in &self.polygons {
+            for (k, p) in polygons.iter().enumerate() {
+                if p.len() < 3 {
+                    problems.push(ParamProblem::new(
+                        "polygons",
+                        format!("polygon {k} of camera {camera:?} has {} vertices; a polygon needs 3 or more", p.len()),
+                    ));
+                }
+                if let Some((x, y)) = p.iter().find(|(x, y)| x.abs() > 1 << 20 || y.abs() > 1 << 20) {
+                    problems.push(ParamProblem::new(
+                        "polygons",
+                        format!("polygon {k} of camera {camera:?} has vertex ({x}, {y}), beyond any image"),
+                    ));
+                }
+            }
+        }
+        for (camera, path) in &self.files {
+            if self.polygons.contains_key(camera) {
+                problems.push(ParamProblem::new(
+                    "files",
+                    format!("camera {camera:?} has both polygons and a file ({path}); give one"),
+                ));
+            }
+        }
+        problems
+    }
+}
+
+/// The pixels of a `w` x `h` image whose centres lie inside the polygons (even-odd rule over
+/// all of them together, so a polygon inside another cuts a hole), as 1 in a row-major map.
+pub fn fill_polygons(w: u32, h: u32, polygons: &[Polygon]) -> Vec<u8> {
+    let exact: Vec<Vec<(f64, f64)>> =
+        polygons.iter().map(|p| p.iter().map(|&(x, y)| (x as f64, y as f64)).collect()).collect();
+    fill_polygons_f64(w, h, &exact)
+}
+
+/// [`fill_polygons`] with vertices anywhere (hand labels in the convention of OpenCV's
+/// `fillPoly`, where the pixel (i, j) is the point (i, j), are these shifted by half a pixel).
+pub fn fill_polygons_f64(w: u32, h: u32, polygons: &[Vec<(f64, f64)>]) -> Vec<u8> {
+    let (w, h) = (w as usize, h as usize);
+    let mut out = vec![0u8; w * h];
+    let mut crossings: Vec<f64> = Vec::new();
+    for y in 0..h {
+        let cy = y as f64 + 0.5;
+        crossings.clear();
+        for p in polygons {
+            for k in 0..p.len() {
+                let (a, b) = (p[k], p[(k + 1) % p.len()]);
+                let (ay, by) = (a.1, b.1);
+                // Half-open in y, so a vertex on the scanline is counted once.
+                if (ay <= cy) != (by <= cy) {
+                    let t = (cy - ay) / (by - ay);
+                    crossings.push(a.0 + t * (b.0 - a.0));
+                }
+            }
+        }
+        crossings.sort_by(f64::total_cmp);
+        for pair in crossings.chunks_exact(2) {
+            // Pixels whose centre x + 0.5 lies in [pair[0], pair[1]).
+            let first = (pair[0] - 0.5).ceil().clamp(0.0, w as f64) as usize;
+            let end = (pair[1] - 0.5).ceil().clamp(0.0, w as f64) as usize;
+            for v in &mut out[y * w + first.min(end)..y * w + end] {
+                *v = 1;
+            }
+        }
+    }
+    out
+}
+
+/// `mask` widened by `by` pixels in every direction (a (2by+1)-square dilation, separable).
+pub fn grow(mask: &[u8], w: usize, h: usize, by: usize) -> Vec<u8> {
+    if by == 0 || w == 0 || h == 0 {
+        return mask.to_vec();
+    }
+    // A line of `n` values `stride` apart: each is set if a set value lies within `by` of it,
+    // from the distance to the last set value seen going each way.
+    fn dilate_line(src: &[u8], dst: &mut [u8], start: usize, n: usize, stride: usize, by: usize) {
+        let mut since = usize::MAX;
+        for k in 0..n {
+            since = if src[start + k * stride] != 0 { 0 } else { since.saturating_add(1) };
+            dst[start + k * stride] = (since <= by) as u8;
+        }
+        since = usize::MAX;
+        for k in (0..n).rev() {
+            since = if src[start + k * stride] != 0 { 0 } else { since.saturating_add(1) };
+            dst[start + k * stride] |= (since <= by) as u8;
+        }
+    }
+    let mut rows = vec![0u8; w * h];
+    for y in 0..h {
+        dilate_line(mask, &mut rows, y * w, w, 1, by);
+    }
+    let mut out = vec![0u8; w * h];
+    for x in 0..w {
+        dilate_line(&rows, &mut out, x, h, w, by);
+    }
+    out
+}
+
+/// A mask image file as 0/1, checked against the camera's image size.
+fn read_mask_file(path: &str, camera: &str, w: u32, h: u32) -> Result<Vec<u8>> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading the ego mask of camera {camera}: {path}"))?;
+    let image = image::load_from_memory(&bytes)
+        .with_context(|| format!("decoding the ego mask of camera {camera}: {path}"))?
+        .to_luma8();
+    ensure!(
+        image.dimensions() == (w, h),
+        "the ego mask of camera {camera} ({path}) is {}x{}, but the camera's images are {w}x{h}",
+        image.width(),
+        image.height()
+    );
+    Ok(image.into_raw().into_iter().map(|v| (v != 0) as u8).collect())
+}
+
+/// The camera's image with the mask tinted red and outlined, for a look at it.
+pub fn preview(image: &Image, mask: &Mask) -> Image {
+    let (w, h) = (image.width as usize, image.height as usize);
+    let mut rgb = image.rgb.clone();
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            if mask.data[i] == 0 {
+                continue;
+            }
+            let edge = [(x > 0, i.wrapping_sub(1)), (x + 1 < w, i + 1), (y > 0, i.wrapping_sub(w)), (y + 1 < h, i + w)]
+                .iter()
+                .any(|&(inside, j)| inside && mask.data[j] == 0);
+            let px = &mut rgb[3 * i..3 * i + 3];
+            if edge {
+                px.copy_from_slice(&[255, 32, 32]);
+            } else {
+                px[0] = ((px[0] as u16 + 255) / 2) as u8;
+                px[1] /= 2;
+                px[2] /= 2;
+            }
+        }
+    }
+    Image { width: image.width, height: image.height, rgb }
+}
+
+crate::ports! {
+    pub struct Inputs {
+        /// the camera and its image size (dataset.image_info)
+        info: One<ImageInfo>,
+        /// the image, for the preview only
+        image: Optional<Image>,
+    }
+}
+
+crate::ports! {
+    pub struct Outputs {
+        /// 1 = the ego vehicle's body
+        mask: One<Mask>,
+        /// the image with the mask tinted red (an empty image when `image` is not wired)
+        preview: One<Image>,
+    }
+}
+
+pub struct EgoMask(Params);
+
+impl Stage for EgoMask {
+    const KIND: &'static str = "EgoMask";
+    const VERSION: u32 = 1;
+    const SUMMARY: &'static str = "Camera -> the pixels of the ego vehicle's body (per-camera polygons or mask files)";
+    const GRAINS: &'static [&'static str] = &["camera"];
+    type Params = Params;
+    type Inputs = Inputs;
+    type Outputs = Outputs;
+    fn new(params: Params) -> Result<Self> {
+        Ok(EgoMask(params))
+    }
+    /// The mask files' bytes decide the outputs too.
+    fn identity(&self) -> Result<Option<String>> {
+        if self.0.files.is_empty() {
+            return Ok(None);
+        }
+        let mut text = String::new();
+        for (camera, path) in &self.0.files {
+            let bytes = std::fs::read(path).with_context(|| format!("reading the ego mask of camera {camera}: {path}"))?;
+            text += &format!("{camera}={}\n", blake3::hash(&bytes).to_hex());
+        }
+        Ok(Some(text))
+    }
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+        let _ = ctx;
+        let (w, h, camera) = (i.info.width, i.info.height, i.info.camera.as_str());
+        let drawn = if let Some(polygons) = self.0.polygons.get(camera) {
+            fill_polygons(w, h, polygons)
+        } else if let Some(path) = self.0.files.get(camera) {
+            read_mask_file(path, camera, w, h)?
+        } else {
+            vec![0; w as usize * h as usize]
+        };
+        let data = grow(&drawn, w as usize, h as usize, self.0.grow as usize);
+        let mask = Mask { width: w, height: h, data };
+        let preview = match &i.image {
+            Some(image) if image.width > 0 => {
+                ensure!(
+                    (image.width, image.height) == (w, h),
+                    "the image of camera {camera} is {}x{}, its info says {w}x{h}",
+                    image.width,
+                    image.height
+                );
+                preview(image, &mask)
+            }
+            _ => Image { width: 0, height: 0, rgb: Vec::new() },
+        };
+        Ok(Outputs { mask, preview })
+    }
+}
+
+/// Checks a mask wired into a stage against the image size and returns its data, or `None`
+/// when it is not wired (or empty: a dataset item without an image).
+pub fn wired<'m>(mask: Option<&'m Mask>, w: u32, h: u32, what: &str) -> Result<Option<&'m [u8]>> {
+    match mask {
+        Some(m) if m.width > 0 && m.height > 0 => {
+            ensure!(
+                (m.width, m.height) == (w, h),
+                "the ego mask is {}x{} but the {what} is {w}x{h}",
+                m.width,
+                m.height
+            );
+            Ok(Some(&m.data))
+        }
+        _ => Ok(None),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pixel_is_inside_when_its_centre_is() {
+        // The square from (1, 1) to (4, 3): pixels x 1..4, y 1..3.
+        let m = fill_polygons(6, 5, &[vec![(1, 1), (4, 1), (4, 3), (1, 3)]]);
+        let inside: Vec<(usize, usize)> = (0..30).filter(|&i| m[i] == 1).map(|i| (i % 6, i / 6)).collect();
+        assert_eq!(inside, vec![(1, 1), (2, 1), (3, 1), (1, 2), (2, 2), (3, 2)]);
+        // A triangle: its area in pixels is near its geometric area.
+        let t = fill_polygons(100, 100, &[vec![(0, 100), (100, 100), (100, 0)]]);
+        let n = t.iter().filter(|&&v| v == 1).count() as f64;
+        assert!((n - 5000.0).abs() < 101.0, "{n}");
+        // A polygon inside another cuts a hole; vertices beyond the image are clipped.
+        let holed = fill_polygons(10, 10, &[vec![(-5, -5), (15, -5), (15, 15), (-5, 15)], vec![(2, 2), (8, 2), (8, 8), (2, 8)]]);
+        assert_eq!(holed.iter().filter(|&&v| v == 1).count(), 100 - 36);
+    }
+
+    #[test]
+    fn growing_widens_by_whole_pixels_in_every_direction() {
+        let (w, h) = (9, 7);
+        let mut m = vec![0u8; w * h];
+        m[3 * w + 4] = 1;
+        let g = grow(&m, w, h, 2);
+        for y in 0..h {
+            for x in 0..w {
+                let near = (x as i32 - 4).abs() <= 2 && (y as i32 - 3).abs() <= 2;
+                assert_eq!(g[y * w + x] == 1, near, "({x}, {y})");
+            }
+        }
+        assert_eq!(grow(&m, w, h, 0), m);
+        // At the border.
+        let mut c = vec![0u8; w * h];
+        c[0] = 1;
+        assert_eq!(grow(&c, w, h, 1).iter().filter(|&&v| v == 1).count(), 4);
+    }
+
+    fn info(camera: &str, w: u32, h: u32) -> ImageInfo {
+        ImageInfo { camera: camera.into(), width: w, height: h, ..Default::default() }
+    }
+
+    fn run(params: Params, info: ImageInfo, image: Option<Image>) -> Result<Outputs> {
+        let ctx = TaskContext { item: Default::default(), seed: 0, label: "s/0/c", unread: &[] };
+        EgoMask::new(params)?.run(&ctx, Inputs { info, image })
+    }
+
+    #[test]
+    fn each_camera_takes_its_own_polygons_or_file_and_the_others_are_empty() {
+        let mut params = Params { grow: 0, ..Default::default() };
+        params.polygons.insert("CAM_BACK".into(), vec![vec![(0, 6), (8, 6), (8, 8), (0, 8)]]);
+        let back = run(params.clone(), info("CAM_BACK", 8, 8), None).unwrap();
+        assert_eq!(back.mask.data.iter().filter(|&&v| v == 1).count(), 16);
+        assert_eq!(back.preview.width, 0);
+        let front = run(params.clone(), info("CAM_FRONT", 8, 8), None).unwrap();
+        assert!(front.mask.data.iter().all(|&v| v == 0));
+
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("m.png");
+        let mut png = image::GrayImage::new(8, 8);
+        png.put_pixel(3, 7, image::Luma([255]));
+        png.save(&path).unwrap();
+        params.files.insert("CAM_FRONT".into(), path.display().to_string());
+        let front = run(params.clone(), info("CAM_FRONT", 8, 8), None).unwrap();
+        assert_eq!(front.mask.data.iter().position(|&v| v == 1), Some(7 * 8 + 3));
+        let id = EgoMask::new(params.clone()).unwrap().identity().unwrap().unwrap();
+        png.put_pixel(4, 7, image::Luma([255]));
+        png.save(&path).unwrap();
+        assert_ne!(EgoMask::new(params.clone()).unwrap().identity().unwrap().unwrap(), id, "the file is in the key");
+
+        // A file of the wrong size, or none, is an error naming the camera and the file.
+        let e = run(params.clone(), info("CAM_FRONT", 16, 8), None).err().unwrap().to_string();
+        assert!(e.contains("CAM_FRONT") && e.contains("is 8x8") && e.contains("16x8"), "{e}");
+        params.files.insert("CAM_FRONT".into(), dir.path().join("gone.png").display().to_string());
+        let e = format!("{:#}", run(params, info("CAM_FRONT", 8, 8), None).err().unwrap());
+        assert!(e.contains("CAM_FRONT") && e.contains("gone.png"), "{e}");
+    }
+
+    #[test]
+    fn the_preview_tints_the_mask_and_outlines_it() {
+        let mut params = Params { grow: 0, ..Default::default() };
+        params.polygons.insert("C".into(), vec![vec![(0, 2), (4, 2), (4, 4), (0, 4)]]);
+        let image = Image { width: 4, height: 4, rgb: vec![100; 48] };
+        let out = run(params, info("C", 4, 4), Some(image.clone())).unwrap();
+        assert_eq!(&out.preview.rgb[..24], &image.rgb[..24], "outside is untouched");
+        assert_eq!(&out.preview.rgb[3 * 8..3 * 8 + 3], &[255, 32, 32], "the mask's edge is red");
+        let bad = Image { width: 5, height: 4, rgb: vec![0; 60] };
+        assert!(run(Params::default(), info("C", 4, 4), Some(bad)).is_err());
+    }
+
+    #[test]
+    fn bad_polygons_are_param_problems() {
+        let mut p = Params::default();
+        p.polygons.insert("C".into(), vec![vec![(0, 0), (1, 1)]]);
+        p.files.insert("C".into(), "x.png".into());
+        let problems: Vec<String> = p.validate().iter().map(|q| format!("{q:?}")).collect();
+        assert_eq!(problems.len(), 2, "{problems:?}");
+    }
+}
