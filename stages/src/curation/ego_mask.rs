@@ -10,12 +10,15 @@
 //!
 //! Sources, per camera, first that applies:
 //! - `polygons`: polygons in image pixels given in the pipeline, per camera name (a pixel is
-//!   masked when its centre lies inside, even-odd rule). The shipped pipelines carry the rigs of
-//!   nuScenes (Renault Zoe) and TRI's DDAD fleet (Ford Fusion), drawn by hand (docs/stages.md).
+//!   masked when its centre lies inside, even-odd rule).
 //! - `files`: a mask image per camera name (PNG or JPEG, any non-zero grey value = ego), the size
 //!   of the camera's images; a relative path is taken from the working directory. Its bytes are
 //!   part of the task key: editing the file reruns what depends on it.
-//! - none: an empty mask.
+//! - `rig`: a built-in rig, drawn by hand on real images (`ego_rigs/*.json`): `nuscenes` (the
+//!   Renault Zoe's boot in CAM_BACK) and `ddad` (TRI's Ford Fusion: hood, mirrors, pillars and
+//!   boot in CAMERA_05-09). `auto` (the default) takes the rig that names the camera and has its
+//!   image size (nuScenes' CAM_* at 1600x900, DDAD's CAMERA_* at 1936x1216); `none` takes none.
+//! - none: an empty mask. A camera of another rig gets none until its polygons or file are given.
 //!
 //! `grow` then widens the mask by whole pixels: JPEG ringing and motion blur put the body's edge
 //! a pixel or two into the scene, where a sample of the road would still be wrong.
@@ -39,13 +42,61 @@ pub struct Params {
     pub polygons: BTreeMap<String, Vec<Polygon>>,
     /// Per camera name: a mask image (non-zero = ego), for cameras without polygons.
     pub files: BTreeMap<String, String>,
+    /// The built-in rig for cameras without polygons or a file: `auto`, `none`, or a rig's name.
+    pub rig: String,
     /// Pixels by which the mask grows (a square neighbourhood), 0-64.
     pub grow: u32,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { polygons: BTreeMap::new(), files: BTreeMap::new(), grow: 2 }
+        Params { polygons: BTreeMap::new(), files: BTreeMap::new(), rig: "auto".into(), grow: 1 }
+    }
+}
+
+/// A built-in rig: the ego body in the cameras of one vehicle model, drawn by hand.
+#[derive(Deserialize)]
+pub struct Rig {
+    pub name: String,
+    /// What it is and where it was drawn.
+    pub what: String,
+    pub width: u32,
+    pub height: u32,
+    /// Per camera, polygons in OpenCV's `fillPoly` convention (the pixel (i, j) is the point (i, j)).
+    pub cameras: BTreeMap<String, Vec<Vec<[f64; 2]>>>,
+}
+
+/// The built-in rigs.
+pub fn rigs() -> &'static [Rig] {
+    static RIGS: std::sync::OnceLock<Vec<Rig>> = std::sync::OnceLock::new();
+    RIGS.get_or_init(|| {
+        [include_str!("ego_rigs/nuscenes.json"), include_str!("ego_rigs/ddad.json")]
+            .iter()
+            .map(|text| serde_json::from_str(text).expect("the built-in rigs parse (a unit test reads them)"))
+            .collect()
+    })
+}
+
+impl Rig {
+    /// The rig's mask of `camera` at `w` x `h`, if it has the camera at that size.
+    fn mask(&self, camera: &str, w: u32, h: u32) -> Option<Vec<u8>> {
+        let polygons = self.cameras.get(camera).filter(|_| (self.width, self.height) == (w, h))?;
+        let mut out = vec![0u8; (w * h) as usize];
+        for p in polygons {
+            let shifted: Vec<(f64, f64)> = p.iter().map(|&[x, y]| (x + 0.5, y + 0.5)).collect();
+            for (o, v) in out.iter_mut().zip(fill_polygons_f64(w, h, &[shifted])) {
+                *o |= v;
+            }
+        }
+        Some(out)
+    }
+
+    /// Whether the rig is the one of a camera named `camera` with images of `w` x `h`: it names
+    /// the camera, or a camera of the same naming (`CAM_FRONT` for nuScenes' rig, which masks only
+    /// CAM_BACK), at that size.
+    fn fits(&self, camera: &str, w: u32, h: u32) -> bool {
+        let family = |c: &str| c.trim_end_matches(|ch: char| ch.is_ascii_digit()).split('_').next().unwrap_or("").to_string();
+        (self.width, self.height) == (w, h) && self.cameras.keys().any(|c| family(c) == family(camera))
     }
 }
 
@@ -69,6 +120,13 @@ impl Validate for Params {
                     ));
                 }
             }
+        }
+        if !matches!(self.rig.as_str(), "auto" | "none") && !rigs().iter().any(|r| r.name == self.rig) {
+            let names: Vec<&str> = rigs().iter().map(|r| r.name.as_str()).collect();
+            problems.push(ParamProblem::new(
+                "rig",
+                format!("is {:?}; it is `auto`, `none` or a built-in rig: {}", self.rig, names.join(", ")),
+            ));
         }
         for (camera, path) in &self.files {
             if self.polygons.contains_key(camera) {
@@ -245,7 +303,13 @@ impl Stage for EgoMask {
         } else if let Some(path) = self.0.files.get(camera) {
             read_mask_file(path, camera, w, h)?
         } else {
-            vec![0; w as usize * h as usize]
+            let rig = match self.0.rig.as_str() {
+                "none" => None,
+                "auto" => rigs().iter().find(|r| r.fits(camera, w, h)),
+                name => rigs().iter().find(|r| r.name == name),
+            };
+            // A camera of the rig that shows nothing of the body (CAM_FRONT) gets an empty mask.
+            rig.and_then(|r| r.mask(camera, w, h)).unwrap_or_else(|| vec![0; w as usize * h as usize])
         };
         let data = grow(&drawn, w as usize, h as usize, self.0.grow as usize);
         let mask = Mask { width: w, height: h, data };
@@ -358,6 +422,34 @@ mod tests {
         params.files.insert("CAM_FRONT".into(), dir.path().join("gone.png").display().to_string());
         let e = format!("{:#}", run(params, info("CAM_FRONT", 8, 8), None).err().unwrap());
         assert!(e.contains("CAM_FRONT") && e.contains("gone.png"), "{e}");
+    }
+
+    #[test]
+    fn the_built_in_rigs_parse_and_auto_takes_the_one_of_the_cameras_names_and_size() {
+        assert_eq!(rigs().iter().map(|r| r.name.as_str()).collect::<Vec<_>>(), ["nuscenes", "ddad"]);
+        let count = |params: &Params, camera: &str, w: u32, h: u32| {
+            run(params.clone(), info(camera, w, h), None).unwrap().mask.data.iter().filter(|&&v| v == 1).count()
+        };
+        let auto = Params { grow: 0, ..Default::default() };
+        // nuScenes: the boot along CAM_BACK's bottom rows, nothing in CAM_FRONT.
+        let boot = count(&auto, "CAM_BACK", 1600, 900);
+        assert!(boot > 20_000 && boot < 80_000, "{boot}");
+        assert_eq!(count(&auto, "CAM_FRONT", 1600, 900), 0);
+        // DDAD: the hood of CAMERA_05; CAMERA_01 sees none of the car.
+        assert!(count(&auto, "CAMERA_05", 1936, 1216) > 50_000);
+        assert_eq!(count(&auto, "CAMERA_01", 1936, 1216), 0);
+        // Another size or naming is another rig: no mask.
+        assert_eq!(count(&auto, "CAM_BACK", 800, 450), 0);
+        assert_eq!(count(&auto, "CAMERA_05", 1600, 900), 0);
+        assert_eq!(count(&auto, "pcam_b0", 1600, 900), 0);
+        let none = Params { rig: "none".into(), ..auto.clone() };
+        assert_eq!(count(&none, "CAM_BACK", 1600, 900), 0);
+        // Polygons given for a camera replace the rig's.
+        let mut own = auto.clone();
+        own.polygons.insert("CAM_BACK".into(), vec![vec![(0, 0), (10, 0), (10, 10)]]);
+        assert!(count(&own, "CAM_BACK", 1600, 900) < 100);
+        let bad = Params { rig: "zoe".into(), ..auto };
+        assert!(format!("{:?}", bad.validate()).contains("nuscenes, ddad"));
     }
 
     #[test]

@@ -193,6 +193,75 @@ pub fn streak_ratio(depth: &DepthMap, sky_depth: f32) -> Option<f64> {
     Some((vertical as f64 / pairs_v as f64) / (horizontal as f64 / pairs_h as f64))
 }
 
+/// One labelled image of an export folder, scored.
+#[derive(Debug, Clone)]
+pub struct ScoredImage {
+    /// The label file.
+    pub labels: std::path::PathBuf,
+    /// The exported depth (relative to the export folder).
+    pub depth: String,
+    pub scores: LabelScores,
+    pub streak_ratio: Option<f64>,
+}
+
+/// Scores the curated depth of an export folder (`dist4d run pipelines/curation.ron --out OUT`:
+/// its `index.json` names each item's source image and its `encode.npy` depth) against every
+/// label file under `labels` whose image the export has. Label files of images the export does
+/// not have are skipped (a run over part of a dataset).
+pub fn score_export(out: &Path, labels: &Path, sky_depth: f32) -> Result<Vec<ScoredImage>> {
+    let index_path = out.join("index.json");
+    let index: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(&index_path).with_context(|| format!("reading {}", index_path.display()))?,
+    )
+    .with_context(|| format!("parsing {}", index_path.display()))?;
+    // Source image -> item label (`scene/frame/camera`).
+    let mut item_of = std::collections::HashMap::new();
+    for (frame_item, v) in index["sources"].as_object().into_iter().flatten() {
+        for (camera, c) in v["cameras"].as_object().into_iter().flatten() {
+            if let Some(file) = c["file"].as_str() {
+                item_of.insert(file.to_string(), format!("{frame_item}/{camera}"));
+            }
+        }
+    }
+    let mut depth_of = std::collections::HashMap::new();
+    for f in index["files"].as_array().into_iter().flatten() {
+        if f["stage"] == "encode" && f["port"] == "npy" {
+            if let (Some(item), Some(path)) = (f["item"].as_str(), f["path"].as_str()) {
+                depth_of.insert(item.to_string(), path.to_string());
+            }
+        }
+    }
+    let mut files = Vec::new();
+    let mut stack = vec![labels.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).with_context(|| format!("listing {}", dir.display()))? {
+            let p = e?.path();
+            if p.is_dir() {
+                stack.push(p);
+            } else if p.extension().is_some_and(|x| x == "json") {
+                files.push(p);
+            }
+        }
+    }
+    files.sort();
+    let mut scored = Vec::new();
+    for file in files {
+        let l = LabelFile::read(&file)?;
+        let Some(depth) = item_of.get(&l.image).and_then(|item| depth_of.get(item)) else { continue };
+        let bytes = std::fs::read(out.join(depth)).with_context(|| format!("reading {}", out.join(depth).display()))?;
+        let (shape, data) = dist4d_types::formats::read_npy_f32(&bytes).with_context(|| format!("reading {depth}"))?;
+        ensure!(shape.len() == 2, "{depth}: shape {shape:?}, expected H x W");
+        let map = DepthMap { width: shape[1] as u32, height: shape[0] as u32, data };
+        scored.push(ScoredImage {
+            scores: score(&l, &map, sky_depth).with_context(|| format!("scoring {depth} against {}", file.display()))?,
+            streak_ratio: streak_ratio(&map, sky_depth),
+            labels: file,
+            depth: depth.clone(),
+        });
+    }
+    Ok(scored)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
