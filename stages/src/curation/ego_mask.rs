@@ -60,6 +60,11 @@ pub struct Rig {
     pub name: String,
     /// What it is and where it was drawn.
     pub what: String,
+    /// The vehicles it was drawn for, as the first part of the images' file names
+    /// (`n015-2018-07-24-11-22-45+0800__CAM_BACK__1532402927637525.jpg`: nuScenes names a
+    /// log's files by the vehicle); empty = any (DGP names its files by timestamp).
+    #[serde(default)]
+    pub vehicles: Vec<String>,
     pub width: u32,
     pub height: u32,
     /// Per camera, polygons in OpenCV's `fillPoly` convention (the pixel (i, j) is the point (i, j)).
@@ -91,12 +96,17 @@ impl Rig {
         Some(out)
     }
 
-    /// Whether the rig is the one of a camera named `camera` with images of `w` x `h`: it names
-    /// the camera, or a camera of the same naming (`CAM_FRONT` for nuScenes' rig, which masks only
-    /// CAM_BACK), at that size.
-    fn fits(&self, camera: &str, w: u32, h: u32) -> bool {
+    /// Whether the rig is the one of the camera of `info`: it names the camera, or a camera of
+    /// the same naming (`CAM_FRONT` for nuScenes' rig, which masks only CAM_BACK), at the image's
+    /// size, and the image's file names one of its vehicles.
+    /// The synthetic world names its files like nuScenes with vehicle `n000`: no rig of a real
+    /// car fits it.
+    fn fits(&self, info: &ImageInfo) -> bool {
         let family = |c: &str| c.trim_end_matches(|ch: char| ch.is_ascii_digit()).split('_').next().unwrap_or("").to_string();
-        (self.width, self.height) == (w, h) && self.cameras.keys().any(|c| family(c) == family(camera))
+        let file = info.file.rsplit('/').next().unwrap_or_default();
+        (self.width, self.height) == (info.width, info.height)
+            && self.cameras.keys().any(|c| family(c) == family(&info.camera))
+            && (self.vehicles.is_empty() || self.vehicles.iter().any(|v| file.starts_with(&format!("{v}-"))))
     }
 }
 
@@ -305,7 +315,7 @@ impl Stage for EgoMask {
         } else {
             let rig = match self.0.rig.as_str() {
                 "none" => None,
-                "auto" => rigs().iter().find(|r| r.fits(camera, w, h)),
+                "auto" => rigs().iter().find(|r| r.fits(&i.info)),
                 name => rigs().iter().find(|r| r.name == name),
             };
             // A camera of the rig that shows nothing of the body (CAM_FRONT) gets an empty mask.
@@ -428,7 +438,13 @@ mod tests {
     fn the_built_in_rigs_parse_and_auto_takes_the_one_of_the_cameras_names_and_size() {
         assert_eq!(rigs().iter().map(|r| r.name.as_str()).collect::<Vec<_>>(), ["nuscenes", "ddad"]);
         let count = |params: &Params, camera: &str, w: u32, h: u32| {
-            run(params.clone(), info(camera, w, h), None).unwrap().mask.data.iter().filter(|&&v| v == 1).count()
+            let file = if camera.starts_with("CAM") {
+                format!("samples/{camera}/n015-2018-07-24-11-22-45+0800__{camera}__1532402927637525.jpg")
+            } else {
+                format!("scene_02/rgb/{camera}/15616458249936530.jpg")
+            };
+            let info = ImageInfo { file, ..info(camera, w, h) };
+            run(params.clone(), info, None).unwrap().mask.data.iter().filter(|&&v| v == 1).count()
         };
         let auto = Params { grow: 0, ..Default::default() };
         // nuScenes: the boot along CAM_BACK's bottom rows, nothing in CAM_FRONT.
@@ -442,6 +458,9 @@ mod tests {
         assert_eq!(count(&auto, "CAM_BACK", 800, 450), 0);
         assert_eq!(count(&auto, "CAMERA_05", 1600, 900), 0);
         assert_eq!(count(&auto, "pcam_b0", 1600, 900), 0);
+        // The synthetic world's files (vehicle n000) are no real car's.
+        let synthetic = ImageInfo { file: "samples/CAM_BACK/n000-2018-01-01-00-00-00+0000__CAM_BACK__1.jpg".into(), ..info("CAM_BACK", 1600, 900) };
+        assert!(run(auto.clone(), synthetic, None).unwrap().mask.data.iter().all(|&v| v == 0));
         let none = Params { rig: "none".into(), ..auto.clone() };
         assert_eq!(count(&none, "CAM_BACK", 1600, 900), 0);
         // Polygons given for a camera replace the rig's.

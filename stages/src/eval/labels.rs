@@ -253,7 +253,8 @@ pub fn score_export(out: &Path, labels: &Path, sky_depth: f32) -> Result<Vec<Sco
         ensure!(shape.len() == 2, "{depth}: shape {shape:?}, expected H x W");
         let map = DepthMap { width: shape[1] as u32, height: shape[0] as u32, data };
         scored.push(ScoredImage {
-            scores: score(&l, &map, sky_depth).with_context(|| format!("scoring {depth} against {}", file.display()))?,
+            scores: score(&l, &map, sky_depth)
+                .with_context(|| format!("scoring {depth} against {}", file.display()))?,
             streak_ratio: streak_ratio(&map, sky_depth),
             labels: file,
             depth: depth.clone(),
@@ -311,7 +312,9 @@ mod tests {
         let smooth = DepthMap {
             width: w as u32,
             height: h as u32,
-            data: (0..w * h).map(|i| 10.0 + (i % w) as f32 * 0.1 + (i / w) as f32 * 0.07 + ((i * 7) % 3) as f32).collect(),
+            data: (0..w * h)
+                .map(|i| 10.0 + (i % w) as f32 * 0.1 + (i / w) as f32 * 0.07 + ((i * 7) % 3) as f32)
+                .collect(),
         };
         let mut streaked = smooth.clone();
         for y in 0..h {
