@@ -30,6 +30,13 @@ fn mean_of(report: &str, title: &str, col: usize) -> f64 {
     row.split('|').map(str::trim).filter(|s| !s.is_empty()).nth(2 + col).unwrap().parse().unwrap()
 }
 
+/// The first percentage in the row starting with `row` of table `title`.
+fn table_row(report: &str, title: &str, row: &str) -> f64 {
+    let at = report.find(&format!("\n{title}\n")).unwrap_or_else(|| panic!("no table {title} in\n{report}"));
+    let line = report[at..].lines().find(|l| l.starts_with(row)).unwrap_or_else(|| panic!("no row {row} in\n{report}"));
+    line.split('|').map(str::trim).find_map(|c| c.strip_suffix('%')?.parse().ok()).unwrap()
+}
+
 /// Executed count of `stage` in the run table.
 fn executed(report: &str, stage: &str) -> u64 {
     let line = report.lines().find(|l| l.split_whitespace().next() == Some(stage)).unwrap();
@@ -153,6 +160,10 @@ fn curation_runs_on_the_shared_nuscenes_keyframe_and_dgp_scene() {
     assert_eq!(executed(&report, "complete"), 18, "3 samples x 6 cameras\n{report}");
     let held = mean_of(&report, "holdout (raw)", 0);
     assert!(held > 0.0 && held < 0.5, "{held}\n{report}");
+    // Static structure seen by two frames: the share whose depths agree within 10% (issue 42's
+    // target is 95%; today 89% at +-1 frame, docs/BENCHMARKS.md "Depth over time").
+    let agree = table_row(&report, "temporal (temporal agreement)", "| all | +1 |");
+    assert!(agree >= 85.0, "{agree}\n{report}");
     let labelled = against_hand_labels(&dir.join("out"), "dgp-scene02", 18);
     assert!(labelled.bright_not_sky.value().unwrap() >= 0.99, "{labelled:?}");
 }

@@ -14,4 +14,5 @@ crate::stage_modules! {
     moving::OnMovingObjects,
     novel_view::EvalNovelView,
     render_synthetic::RenderSynthetic,
+    temporal::EvalTemporal,
 }

@@ -26,6 +26,7 @@ const KIND: &str = "EvalDepth";
 pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<(&str, Params)>> {
     let mut views = view_stages(pipeline)?;
     views.extend(occupancy_stages(pipeline)?);
+    views.extend(temporal_stages(pipeline)?);
     let stages: Vec<(usize, &str, Params)> = pipeline
         .nodes
         .iter()
@@ -57,6 +58,7 @@ pub fn tables(pipeline: &Pipeline, out_dir: &Path) -> Result<String> {
     let index = dist4d_runtime::export::read_index(out_dir)?;
     let mut text = view_tables(pipeline, &index, out_dir)?;
     text.push_str(&occupancy_tables(pipeline, &index, out_dir)?);
+    text.push_str(&temporal_tables(pipeline, &index, out_dir)?);
     for (stage, p) in scored_stages(pipeline)? {
         let mut images = Vec::new();
         for entry in index.iter().filter(|e| e.stage == stage) {
@@ -318,6 +320,71 @@ fn stages_of<'p>(pipeline: &'p Pipeline, kind: &str, template: &str) -> Result<V
 /// The `EvalNovelView` stages of `pipeline`; an error when one does not export its scores.
 fn view_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
     stages_of(pipeline, VIEW_KIND, "{scene}/{camera}/{frame}_{variant}_view.json")
+}
+
+const TEMPORAL_KIND: &str = "EvalTemporal";
+
+fn temporal_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
+    stages_of(pipeline, TEMPORAL_KIND, "{scene}/{camera}/{frame}_temporal.json")
+}
+
+/// Per `EvalTemporal` stage, a table `<stage> (temporal agreement)`: per camera and frame offset,
+/// the share of static pixels seen by both frames whose depths agree, pooled over the camera's
+/// images (and the ground truth's, when there is one).
+fn temporal_tables(
+    pipeline: &Pipeline,
+    index: &[dist4d_runtime::export::IndexEntry],
+    out_dir: &Path,
+) -> Result<String> {
+    use super::temporal::{Agreement, TemporalScores};
+    let mut text = String::new();
+    for stage in temporal_stages(pipeline)? {
+        // (camera, offset) -> (depth, gt)
+        let mut pooled: BTreeMap<(String, String), (Agreement, Agreement)> = BTreeMap::new();
+        let mut images = 0;
+        for entry in index.iter().filter(|e| e.stage == stage) {
+            let path = out_dir.join(&entry.path);
+            let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
+            let t: TemporalScores = serde_json::from_slice(&bytes)
+                .with_context(|| format!("{} is not an {TEMPORAL_KIND} score file", path.display()))?;
+            let camera = entry.item.rsplit('/').next().unwrap_or_default().to_string();
+            for (source, map) in [(0, &t.depth), (1, &t.gt)] {
+                for (offset, a) in map {
+                    let slot = pooled.entry((camera.clone(), offset.clone())).or_default();
+                    let into = if source == 0 { &mut slot.0 } else { &mut slot.1 };
+                    into.seen_by_both += a.seen_by_both;
+                    into.agree += a.agree;
+                }
+            }
+            images += 1;
+        }
+        let p = pipeline
+            .nodes
+            .iter()
+            .find(|n| n.name == stage)
+            .and_then(|n| n.stage())
+            .and_then(|s| s.params.get::<super::temporal::Params>().cloned())
+            .unwrap_or_default();
+        text.push_str(&format!(
+            "\n# {stage}: {images} images; static pixels seen by two frames whose depths agree within {:.0}%\n\n\
+             {stage} (temporal agreement)\n\n| camera | offset | depth | gt |\n| --- | --- | --- | --- |\n",
+            100.0 * p.agree
+        ));
+        let cell = |a: &Agreement| a.share().map_or("-".to_string(), |v| format!("{:.2}%", 100.0 * v));
+        let mut all: BTreeMap<String, (Agreement, Agreement)> = BTreeMap::new();
+        for ((camera, offset), (d, g)) in &pooled {
+            text.push_str(&format!("| {camera} | {offset} | {} | {} |\n", cell(d), cell(g)));
+            let slot = all.entry(offset.clone()).or_default();
+            slot.0.seen_by_both += d.seen_by_both;
+            slot.0.agree += d.agree;
+            slot.1.seen_by_both += g.seen_by_both;
+            slot.1.agree += g.agree;
+        }
+        for (offset, (d, g)) in &all {
+            text.push_str(&format!("| all | {offset} | {} | {} |\n", cell(d), cell(g)));
+        }
+    }
+    Ok(text)
 }
 
 fn occupancy_stages(pipeline: &Pipeline) -> Result<Vec<&str>> {
