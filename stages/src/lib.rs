@@ -7,6 +7,7 @@ pub mod curation;
 pub mod eval;
 pub mod generation;
 pub mod hull;
+pub mod lift;
 pub mod middlebury;
 pub mod model_worker;
 pub mod novel_view;

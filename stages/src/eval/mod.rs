@@ -10,6 +10,7 @@ pub mod sky;
 
 crate::stage_modules! {
     above_fov::AboveLidarFov,
+    cloud::EvalCloud,
     depth::EvalDepth,
     moving::OnMovingObjects,
     novel_view::EvalNovelView,

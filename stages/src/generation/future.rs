@@ -19,7 +19,8 @@ use crate::model_worker::{npy_rgb8, read_npy_rgb8, worker_depth, Exchange, Model
 use crate::novel_view::fill_baseline::fill;
 use crate::novel_view::frame_pair::{camera_views, frame_record, info_view, view_of};
 use crate::novel_view::moving::{split, Moving};
-use crate::novel_view::splat::{reproject, PinholeView, RgbdView, SplatParams};
+use crate::lift::LiftParams;
+use crate::novel_view::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
 use crate::stage::{variant_of, Stage};
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate, VariantPlan, Variants};
@@ -58,6 +59,8 @@ pub struct Params {
     /// The hole filling's background tolerance ([`crate::novel_view::fill_baseline`]).
     pub background_tolerance: f32,
     pub splat: SplatParams,
+    /// Which reference pixels are drawn ([`crate::lift`]; its `sky_depth` is this stage's).
+    pub lift: LiftParams,
     /// DiST-T (or any future-frame generator) as an external worker in place of the baseline:
     /// `Some((program: "python3", args: ["my_dist_t.py"]))`, op `generate_future`
     /// (docs/workers.md). Its name, version and weights enter the task keys.
@@ -76,6 +79,7 @@ impl Default for Params {
             sky_depth: 100.0,
             background_tolerance: 0.1,
             splat: SplatParams::default(),
+            lift: LiftParams::default(),
             worker: None,
         }
     }
@@ -99,6 +103,7 @@ impl Validate for Params {
             10.0,
         );
         self.splat.check(&mut c);
+        self.lift.check(&mut c);
         if let Some(w) = &self.worker {
             w.check(&mut c);
         }
@@ -117,6 +122,9 @@ crate::ports! {
         /// the controls of this camera at the step: `Offset("dataset.image_info", frame, variant)`
         /// (its pose on the future trajectory, calibration and the boxes then; not its pixels)
         target_info: One<ImageInfo>,
+        /// their support maps (`Across("complete.support", camera)`, px to the nearest prompt
+        /// sample): when wired, pixels beyond `lift.max_support_px` are not drawn
+        supports: OptionalMany<DepthMap>,
         /// the bird's-eye-view layout at the step (`BevLayout`: road and boxes), for a worker;
         /// the baseline does not read it
         layout: Optional<Image>,
@@ -144,7 +152,8 @@ pub struct GenerateFuture(Params, ModelWorker);
 impl Stage for GenerateFuture {
     const KIND: &'static str = "GenerateFuture";
     // 2: a record of each view; the sky's depth exactly `sky_depth` after the fill.
-    const VERSION: u32 = 2;
+    // 3: the reference depth lifted by the shared rule (crate::lift): no flying pixels.
+    const VERSION: u32 = 3;
     const SUMMARY: &'static str =
         "DiST-T: future multi-camera RGB-D per step from a reference frame and controls (worker, or a warp baseline)";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -211,20 +220,47 @@ fn step_record(target: &ImageInfo, view: &PinholeView) -> serde_json::Value {
     r
 }
 
-/// One reference camera: its image, depth, info and camera.
+/// One reference camera: its image, depth (and support map, when wired), info and camera.
 struct Reference<'a> {
     image: &'a Image,
     depth: &'a DepthMap,
+    support: Option<&'a DepthMap>,
     info: &'a ImageInfo,
     view: PinholeView,
 }
 
 /// The reference cameras that have an image, matched by position.
 fn references(i: &Inputs) -> Result<Vec<Reference<'_>>> {
+    ensure!(
+        i.supports.is_empty() || i.supports.len() == i.depths.len(),
+        "`supports` holds {} items and `depths` {}: wire them with the same selector (Across(.., camera))",
+        i.supports.len(),
+        i.depths.len()
+    );
     let mut out = Vec::new();
     for (image, depth, info) in camera_views(&i.images, &i.depths, &i.infos, "`images`, `depths` and `infos`")? {
         let view = view_of(info, image, depth).with_context(|| format!("the reference {}", info.camera))?;
-        out.push(Reference { image, depth, info, view });
+        // The support map of the same camera (the same position as its depth).
+        let pos = i.depths.iter().find(|(_, d)| std::ptr::eq(d, depth)).map(|(p, _)| *p);
+        let support = match pos {
+            Some(pos) if !i.supports.is_empty() => {
+                let s = i.supports.iter().find(|(p, _)| *p == pos).map(|(_, s)| s).with_context(|| {
+                    format!("`supports` has nothing at the position of the reference {}", info.camera)
+                })?;
+                ensure!(
+                    (s.width, s.height) == (depth.width, depth.height),
+                    "the reference {}: support map {}x{} and depth {}x{} differ in size",
+                    info.camera,
+                    s.width,
+                    s.height,
+                    depth.width,
+                    depth.height
+                );
+                Some(s)
+            }
+            _ => None,
+        };
+        out.push(Reference { image, depth, support, info, view });
     }
     ensure!(!out.is_empty(), "the reference frame has no camera image");
     Ok(out)
@@ -233,43 +269,30 @@ fn references(i: &Inputs) -> Result<Vec<Reference<'_>>> {
 /// The built-in baseline of the module doc.
 fn warp_baseline(p: &Params, refs: &[Reference], target: &ImageInfo, view: &PinholeView) -> Result<(Image, DepthMap, Mask)> {
     let (w, h) = (view.width, view.height);
-    let sky_from = p.sky_depth * 0.995;
-    // Surfaces: every reference camera's non-sky depth, split into the static rest and the
-    // objects that moved by the step's time.
+    let lift = LiftParams { sky_depth: p.sky_depth, ..p.lift.clone() };
+    // Surfaces: every reference camera's liftable depth (crate::lift: no edges' far sides, no
+    // sky, no unsupported pixels), split into the static rest and the objects that moved by the
+    // step's time; the sky apart, drawn as directions.
     let mut pieces = Vec::new();
     let mut skies = Vec::new();
-    let target_centre = view.world_from_cam.translation;
     for r in refs {
-        let (surface, sky): (Vec<f32>, Vec<f32>) =
-            r.depth.data.iter().map(|&z| if z >= sky_from { (0.0, z) } else { (z, 0.0) }).unzip();
+        let (surface, sky) = lift_source(&r.depth.data, &r.view, r.support.map(|s| &s.data[..]), &lift);
         let (parts, _) = split(&surface, &r.view, &r.info.boxes.boxes, &target.boxes.boxes, p.moving);
         pieces.extend(parts.into_iter().map(|piece| (r.image, piece)));
-        // The sky as directions: seen from the future camera's centre.
-        let mut at_target = r.view;
-        at_target.world_from_cam.translation = target_centre;
-        skies.push((r.image, sky, at_target));
+        skies.push((r.image, sky, r.view));
     }
     let rgbd: Vec<RgbdView> =
         pieces.iter().map(|(image, piece)| RgbdView { rgb: &image.rgb, depth: &piece.depth, view: &piece.view }).collect();
-    let surfaces = reproject(&rgbd, view, &SplatParams { max_depth: f32::MAX, ..p.splat.clone() })?;
+    let splat = SplatParams { max_depth: f32::MAX, ..p.splat.clone() };
+    let mut surfaces = reproject(&rgbd, view, &splat)?;
     let sky_views: Vec<RgbdView> =
         skies.iter().map(|(image, sky, v)| RgbdView { rgb: &image.rgb, depth: sky, view: v }).collect();
-    let sky = reproject(&sky_views, view, &SplatParams { max_depth: f32::MAX, ..p.splat.clone() })?;
-    let n = (w * h) as usize;
-    let mut rgb = surfaces.rgb;
-    let mut depth = surfaces.depth;
-    let mut valid: Vec<bool> = surfaces.valid.iter().map(|&v| v != 0).collect();
-    for px in 0..n {
-        if !valid[px] && sky.valid[px] != 0 {
-            rgb[3 * px..3 * px + 3].copy_from_slice(&sky.rgb[3 * px..3 * px + 3]);
-            depth[px] = p.sky_depth;
-            valid[px] = true;
-        }
-    }
-    let mask = Mask { width: w, height: h, data: valid.iter().map(|&v| v as u8).collect() };
-    let (rgb, mut depth) = fill(&rgb, &depth, &valid, w as usize, h as usize, p.background_tolerance);
+    draw_sky(&mut surfaces, &sky_views, view, &splat, p.sky_depth)?;
+    let valid: Vec<bool> = surfaces.valid.iter().map(|&v| v != 0).collect();
+    let mask = Mask { width: w, height: h, data: surfaces.valid };
+    let (rgb, mut depth) = fill(&surfaces.rgb, &surfaces.depth, &valid, w as usize, h as usize, p.background_tolerance);
     // The fill averages neighbours: a hole in the sky comes out at 100.000015, not 100.
-    for z in depth.iter_mut().filter(|z| **z >= sky_from) {
+    for z in depth.iter_mut().filter(|z| lift.is_sky(**z)) {
         *z = p.sky_depth;
     }
     Ok((Image { width: w, height: h, rgb }, DepthMap { width: w, height: h, data: depth }, mask))
@@ -369,6 +392,7 @@ mod tests {
         let refs = vec![Reference {
             image: &image,
             depth: &depth,
+            support: None,
             info: &reference,
             view: info_view(&reference).unwrap(),
         }];

@@ -5,8 +5,9 @@
 //!
 //! The cloud is in the ego frame of the rig's first camera at the step (x forward, y left, z up,
 //! metres), thinned to one point per voxel (the first in camera, then row order, so the bytes do
-//! not depend on threads). The sky (the curation's 100 m) is left out: it is a convention, not a
-//! surface.
+//! not depend on threads). Only what [`crate::lift`] lifts becomes a point: no pixel on the far
+//! side of a depth edge (the flying pixels between a tree and what is behind it), no lone pixel,
+//! no pixel without a depth (0), and no sky (the curation's 100 m is a convention, not a surface).
 //!
 //! It runs per variant (a step) under a camera, as the generated views do, and reads every camera
 //! of its step through `Across(.., camera)`; the cloud is made once, by the task of the rig's
@@ -15,6 +16,7 @@
 //! item alone: a task's outputs must follow from its key, and the six tasks of a step read the
 //! same views.
 
+use crate::lift::{focal_of, liftable, LiftParams};
 use crate::novel_view::frame_pair::{resize_image, VoxelHasher};
 use crate::novel_view::splat::PinholeView;
 use crate::stage::Stage;
@@ -32,8 +34,10 @@ use std::hash::BuildHasherDefault;
 pub struct Params {
     /// One point per voxel of this size (m); 0 = every pixel.
     pub voxel: f32,
-    /// Depths beyond this (m) are left out (the curated sky sits at 100 m).
+    /// Depths beyond this (m) are left out.
     pub max_depth: f32,
+    /// Which pixels become points ([`crate::lift`]).
+    pub lift: LiftParams,
     /// The preview's top-down view covers +-this many metres around the ego.
     pub bev_range: f32,
     /// The preview's height (px): the camera images are scaled to fit two rows of it.
@@ -42,7 +46,7 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        Params { voxel: 0.1, max_depth: 99.0, bev_range: 50.0, preview_height: 480 }
+        Params { voxel: 0.1, max_depth: 99.0, lift: LiftParams::default(), bev_range: 50.0, preview_height: 480 }
     }
 }
 
@@ -53,6 +57,7 @@ impl Validate for Params {
             .above("max_depth", self.max_depth as f64, 0.0, 1e6)
             .above("bev_range", self.bev_range as f64, 0.0, 1e4)
             .count("preview_height", self.preview_height as u64, 64, 4096);
+        self.lift.check(&mut c);
         c.done()
     }
 }
@@ -73,6 +78,9 @@ crate::ports! {
         /// where each view shows what was seen (`Across("future.mask", camera)`): when wired, the
         /// pixels a generator filled in (a baseline's smears) are left out of the cloud
         masks: OptionalMany<Mask>,
+        /// their support maps (px to the nearest prompt sample, `CompleteDepth`'s `support`), when
+        /// the depths are curated ones: pixels beyond `lift.max_support_px` are left out
+        supports: OptionalMany<DepthMap>,
     }
 }
 
@@ -93,7 +101,8 @@ pub struct SurroundCloud(Params);
 impl Stage for SurroundCloud {
     const KIND: &'static str = "SurroundCloud";
     // 2: the first camera's task is found from its own calibration (an input), not its item.
-    const VERSION: u32 = 2;
+    // 3: pixels lifted by the shared rule (crate::lift): no flying pixels.
+    const VERSION: u32 = 3;
     const SUMMARY: &'static str =
         "bullet time: every camera's RGB-D of a step as one coloured point cloud, and a preview of the step";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -122,6 +131,11 @@ impl Stage for SurroundCloud {
             "`masks` holds {} items and `images` {n}: wire them with the same selector",
             i.masks.len()
         );
+        ensure!(
+            i.supports.is_empty() || i.supports.len() == n,
+            "`supports` holds {} items and `images` {n}: wire them with the same selector",
+            i.supports.len()
+        );
         let mut cams = Vec::with_capacity(n);
         for k in 0..n {
             let (pos, image) = (&i.images[k].0, &i.images[k].1);
@@ -129,15 +143,23 @@ impl Stage for SurroundCloud {
                 i.depths[k].0 == *pos
                     && i.calibs[k].0 == *pos
                     && i.poses[k].0 == *pos
-                    && i.masks.get(k).is_none_or(|m| m.0 == *pos),
+                    && i.masks.get(k).is_none_or(|m| m.0 == *pos)
+                    && i.supports.get(k).is_none_or(|m| m.0 == *pos),
                 "the inputs must be wired with the same selector (Across(.., camera))"
             );
-            cams.push((image, &i.depths[k].1, &i.calibs[k].1, &i.poses[k].1, i.masks.get(k).map(|m| &m.1)));
+            cams.push(Camera {
+                image,
+                depth: &i.depths[k].1,
+                calib: &i.calibs[k].1,
+                pose: &i.poses[k].1,
+                mask: i.masks.get(k).map(|m| &m.1),
+                support: i.supports.get(k).map(|m| &m.1),
+            });
         }
-        let ego_from_world = cams[0].3.ego_to_world.inverse();
+        let ego_from_world = cams[0].pose.ego_to_world.inverse();
         let points = fuse(&self.0, &cams, |p| ego_from_world.apply(p))?;
         let preview = preview(&self.0, &cams, &points)?;
-        let pose = cams[0].3;
+        let pose = cams[0].pose;
         let t = |s: &dist4d_types::geometry::Se3| serde_json::json!({ "translation": s.translation.to_array(), "rotation": s.wxyz() });
         let record = serde_json::json!({
             "frame": "the ego frame of the rig's first camera at the step (x forward, y left, z up, m)",
@@ -150,17 +172,26 @@ impl Stage for SurroundCloud {
     }
 }
 
-type Camera<'a> = (&'a Image, &'a DepthMap, &'a Calibration, &'a Pose, Option<&'a Mask>);
+/// One camera of the step.
+struct Camera<'a> {
+    image: &'a Image,
+    depth: &'a DepthMap,
+    calib: &'a Calibration,
+    pose: &'a Pose,
+    mask: Option<&'a Mask>,
+    support: Option<&'a DepthMap>,
+}
 
-/// Every camera's pixels with a depth in (0, max_depth) (and inside its mask, if any),
-/// back-projected, moved by `to_frame` from the world, thinned to voxels.
+/// Every camera's pixels that [`crate::lift`] lifts, with a depth below max_depth (and inside
+/// its mask, if any), back-projected, moved by `to_frame` from the world, thinned to voxels.
 fn fuse(p: &Params, cams: &[Camera], to_frame: impl Fn(DVec3) -> DVec3) -> Result<PointCloud> {
     let mut seen: HashSet<(i64, i64, i64), BuildHasherDefault<VoxelHasher>> = HashSet::default();
     let mut cloud = PointCloud::default();
-    for (k, (image, depth, calib, pose, mask)) in cams.iter().enumerate() {
+    for (k, &Camera { image, depth, calib, pose, mask, support }) in cams.iter().enumerate() {
         ensure!(
             (image.width, image.height) == (depth.width, depth.height)
-                && mask.is_none_or(|m| (m.width, m.height) == (depth.width, depth.height)),
+                && mask.is_none_or(|m| (m.width, m.height) == (depth.width, depth.height))
+                && support.is_none_or(|m| (m.width, m.height) == (depth.width, depth.height)),
             "camera {k}: image {}x{}, depth {}x{} and mask differ in size",
             image.width,
             image.height,
@@ -171,10 +202,11 @@ fn fuse(p: &Params, cams: &[Camera], to_frame: impl Fn(DVec3) -> DVec3) -> Resul
         let view = view.resized(image.width, image.height);
         let kk = view.k;
         let (w, h) = (image.width as usize, image.height as usize);
+        let lifted = liftable(&depth.data, w, h, focal_of(&kk), support.map(|s| &s.data[..]), &p.lift);
         for y in 0..h {
             for x in 0..w {
                 let z = depth.data[y * w + x];
-                if !(z > 0.0 && z < p.max_depth) || mask.is_some_and(|m| m.data[y * w + x] == 0) {
+                if !lifted[y * w + x] || z >= p.max_depth || mask.is_some_and(|m| m.data[y * w + x] == 0) {
                     continue;
                 }
                 let z = z as f64;
@@ -203,16 +235,16 @@ fn fuse(p: &Params, cams: &[Camera], to_frame: impl Fn(DVec3) -> DVec3) -> Resul
 fn preview(p: &Params, cams: &[Camera], cloud: &PointCloud) -> Result<Image> {
     // Each camera's heading in the ego frame: its optical axis (camera z).
     let heading = |c: &Camera| {
-        let axis = c.2.sensor_to_ego.rotation * DVec3::Z;
+        let axis = c.calib.sensor_to_ego.rotation * DVec3::Z;
         axis.y.atan2(axis.x)
     };
     let (mut front, mut back): (Vec<(f64, &Image)>, Vec<(f64, &Image)>) = (Vec::new(), Vec::new());
     for c in cams {
         let a = heading(c);
         if a.abs() <= std::f64::consts::FRAC_PI_2 {
-            front.push((-a, c.0)); // left (positive heading) first
+            front.push((-a, c.image)); // left (positive heading) first
         } else {
-            back.push((a.rem_euclid(std::f64::consts::TAU), c.0)); // back left, back, back right
+            back.push((a.rem_euclid(std::f64::consts::TAU), c.image)); // back left, back, back right
         }
     }
     front.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -225,7 +257,7 @@ fn preview(p: &Params, cams: &[Camera], cloud: &PointCloud) -> Result<Image> {
     for (k, (_, im)) in back.iter().enumerate() {
         slots[2 * k + 1] = Some(im);
     }
-    let first = cams[0].0;
+    let first = cams[0].image;
     preview_of(p, first, &slots, cloud)
 }
 
@@ -298,7 +330,7 @@ mod tests {
         depth.data[0] = 100.0; // sky: left out
         let mut mask = Mask { width: w, height: h, data: vec![1; (w * h) as usize] };
         mask.data[1] = 0; // filled in: left out
-        let cams = vec![(&image, &depth, &calib, &pose, Some(&mask))];
+        let cams = vec![Camera { image: &image, depth: &depth, calib: &calib, pose: &pose, mask: Some(&mask), support: None }];
         let inverse = pose.ego_to_world.inverse();
         let all = fuse(&Params { voxel: 0.0, ..Params::default() }, &cams, |p| inverse.apply(p)).unwrap();
         assert_eq!(all.points.len(), (w * h - 2) as usize);

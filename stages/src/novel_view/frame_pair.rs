@@ -14,7 +14,8 @@
 //! index with the exported paths.
 
 use super::moving::{split, Moved, Moving};
-use super::splat::{reproject, PinholeView, RgbdView, SplatParams};
+use super::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
+use crate::lift::LiftParams;
 use crate::stage::{variant_of, Stage};
 use anyhow::{bail, ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate, VariantPlan, Variants};
@@ -65,6 +66,9 @@ pub struct Params {
     /// where their box is at the target's time.
     pub moving: Moving,
     pub splat: SplatParams,
+    /// Which source pixels are drawn ([`crate::lift`]); the sky only as directions, and only when
+    /// `splat.max_depth` admits its depth (by default it does not).
+    pub lift: LiftParams,
 }
 
 impl Default for Params {
@@ -78,6 +82,7 @@ impl Default for Params {
             // The curated sky (100 m) is a convention, not a surface: moved with the ego it would
             // land 5-10 m nearer in the target, so it is left out of the condition.
             splat: SplatParams { max_depth: 99.0, ..SplatParams::default() },
+            lift: LiftParams::default(),
         }
     }
 }
@@ -104,6 +109,7 @@ impl Validate for Params {
             });
         }
         self.splat.check(&mut c);
+        self.lift.check(&mut c);
         c.done()
     }
 }
@@ -114,6 +120,9 @@ crate::ports! {
         image: One<Image>,
         /// its curated dense depth
         depth: One<DepthMap>,
+        /// its support map (`complete.support`, px to the nearest prompt sample): when wired,
+        /// pixels beyond `lift.max_support_px` are not drawn
+        support: Optional<DepthMap>,
         /// what the image is and where it was taken
         info: One<ImageInfo>,
         /// the target frame's image: `Offset("dataset.image", frame, variant)`, the variant's
@@ -130,6 +139,8 @@ crate::ports! {
         surround_depths: OptionalMany<DepthMap>,
         /// every camera's image info at frame t
         surround_infos: OptionalMany<ImageInfo>,
+        /// every camera's support map at frame t, when wired (as `support`)
+        surround_supports: OptionalMany<DepthMap>,
     }
 }
 
@@ -159,7 +170,8 @@ impl Stage for FramePair {
     // 2: moving objects follow their boxes to the target's time.
     // 3: the own and target frames as single inputs (Offset by the variant).
     // 4: the target may come resized already.
-    const VERSION: u32 = 4;
+    // 5: sources lifted by the shared rule (crate::lift): no flying pixels.
+    const VERSION: u32 = 5;
     const SUMMARY: &'static str =
         "DiST-S training pairs: frame t's RGB-D cloud drawn into frame t+offset of the same camera, per variant";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -179,8 +191,12 @@ impl Stage for FramePair {
             |v| {
                 let surround = vec!["surround_images", "surround_depths", "surround_infos"];
                 match v.from {
-                    Sources::Own => VariantPlan { offset: v.offset, unused: surround, needs: Vec::new() },
-                    Sources::Others => VariantPlan { offset: v.offset, unused: Vec::new(), needs: surround },
+                    Sources::Own => VariantPlan {
+                        offset: v.offset,
+                        unused: [&surround[..], &["surround_supports"]].concat(),
+                        needs: Vec::new(),
+                    },
+                    Sources::Others => VariantPlan { offset: v.offset, unused: vec!["support"], needs: surround },
                 }
             },
         )
@@ -223,26 +239,53 @@ impl Stage for FramePair {
                 view_of(info, image, depth).with_context(|| format!("the source {}", info.camera))
             })
             .collect::<Result<_>>()?;
+        // Each source's support map, when wired: its own, or the surround's of the same camera.
+        let supports: Vec<Option<&DepthMap>> = sources
+            .iter()
+            .map(|(_, depth, _)| {
+                let s = match variant.from {
+                    Sources::Own => inputs.support.as_ref(),
+                    Sources::Others => {
+                        let pos = inputs.surround_depths.iter().find(|(_, d)| std::ptr::eq(d, *depth)).map(|(p, _)| *p);
+                        inputs.surround_supports.iter().find(|(p, _)| Some(*p) == pos).map(|(_, s)| s)
+                    }
+                };
+                if let Some(s) = s {
+                    ensure!(
+                        (s.width, s.height) == (depth.width, depth.height),
+                        "a support map of {}x{} for a depth of {}x{}",
+                        s.width,
+                        s.height,
+                        depth.width,
+                        depth.height
+                    );
+                }
+                Ok(s)
+            })
+            .collect::<Result<_>>()?;
         // Each source thinned to voxels (an augmentation), then split into its static rest and
         // the objects that moved between its time and the target's.
+        // The rule first (it needs every neighbour), then the thinning.
         let mut moved = Moved::default();
         let mut pieces = Vec::new();
-        for ((image, depth, info), view) in sources.iter().zip(&views) {
-            let thinned;
-            let depth = if variant.voxel > 0.0 {
-                thinned = thin_to_voxels(&depth.data, view, variant.voxel);
-                &thinned
-            } else {
-                &depth.data
-            };
-            let (parts, m) = split(depth, view, &info.boxes.boxes, &tgt_info.boxes.boxes, self.params.moving);
+        let mut skies = Vec::new();
+        for (((image, depth, info), view), support) in sources.iter().zip(&views).zip(&supports) {
+            let (surface, sky) = lift_source(&depth.data, view, support.map(|s| &s.data[..]), &self.params.lift);
+            skies.push((*image, sky, *view));
+            let depth = if variant.voxel > 0.0 { thin_to_voxels(&surface, view, variant.voxel) } else { surface };
+            let (parts, m) = split(&depth, view, &info.boxes.boxes, &tgt_info.boxes.boxes, self.params.moving);
             moved.followed += m.followed;
             moved.dropped += m.dropped;
             pieces.extend(parts.into_iter().map(|p| (*image, p)));
         }
         let rgbd: Vec<RgbdView> =
             pieces.iter().map(|(image, p)| RgbdView { rgb: &image.rgb, depth: &p.depth, view: &p.view }).collect();
-        let cond = reproject(&rgbd, &tgt_view, &self.params.splat)?;
+        let mut cond = reproject(&rgbd, &tgt_view, &self.params.splat)?;
+        if self.params.lift.is_sky(self.params.splat.max_depth) {
+            let sky: Vec<RgbdView> =
+                skies.iter().map(|(image, sky, view)| RgbdView { rgb: &image.rgb, depth: sky, view }).collect();
+            draw_sky(&mut cond, &sky, &tgt_view, &self.params.splat, self.params.lift.sky_depth)?;
+        }
         let (w, h) = (self.params.width, self.params.height);
         let record = json!({
             "kind": "dist_s",

@@ -1,8 +1,12 @@
 //! `Reproject`: RGB-D images of one or more cameras and frames drawn into one target camera (any
 //! pose, intrinsics and resolution): the image and depth conditions of DiST-S and SCC (paper Sec.
-//! 3.3-3.4) and the valid mask. How points are splatted is in [`super::splat`].
+//! 3.3-3.4) and the valid mask. How points are splatted is in [`super::splat`]; which pixels
+//! become points in [`crate::lift`]. The sky is never a point: when `splat.max_depth` admits the
+//! sky's depth (the default) it is drawn as directions from the target camera under the
+//! surfaces, at `lift.sky_depth`; with `max_depth: 99` it is left out of the condition.
 
-use super::splat::{reproject, PinholeView, RgbdView, SplatParams};
+use super::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
+use crate::lift::LiftParams;
 use crate::stage::Stage;
 use anyhow::{bail, ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -10,7 +14,7 @@ use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::{Calibration, DepthMap, Image, Mask, Pose};
 use serde::{Deserialize, Serialize};
 
-#[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Default)]
+#[derive(Serialize, Deserialize, Clone, Debug, PartialEq)]
 #[serde(deny_unknown_fields, default)]
 pub struct Params {
     /// Output width and height (px); 0 and 0 = the target camera's own image size. The target's
@@ -18,6 +22,22 @@ pub struct Params {
     pub width: u32,
     pub height: u32,
     pub splat: SplatParams,
+    /// Which source pixels are drawn ([`crate::lift`]). The edge tests are off by default
+    /// (`max_jump: 0`): the holes they leave cost the fill baseline's novel views 0.6 dB of PSNR
+    /// on the synthetic scene (docs/BENCHMARKS.md, "Flying pixels (issue 42)"); 0, NaN and the
+    /// sky are never points either way.
+    pub lift: LiftParams,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params {
+            width: 0,
+            height: 0,
+            splat: SplatParams::default(),
+            lift: LiftParams { max_jump: 0.0, ..LiftParams::default() },
+        }
+    }
 }
 
 impl Validate for Params {
@@ -29,6 +49,7 @@ impl Validate for Params {
             || "and `height` are both 0 (the target's size) or both set".into(),
         );
         self.splat.check(&mut checks);
+        self.lift.check(&mut checks);
         checks.done()
     }
 }
@@ -44,6 +65,9 @@ crate::ports! {
         calibs: Many<Calibration>,
         /// the sources' ego poses
         poses: Many<Pose>,
+        /// the sources' support maps (`CompleteDepth`'s `support`, px to the nearest prompt sample),
+        /// matched by position: when wired, pixels beyond `lift.max_support_px` are not drawn
+        supports: OptionalMany<DepthMap>,
         /// the target camera's mounting, intrinsics and image size
         target_calib: One<Calibration>,
         /// the target's ego pose
@@ -69,7 +93,8 @@ pub struct Reproject {
 impl Stage for Reproject {
     const KIND: &'static str = "Reproject";
     // 2: sources of another size than their calibration are seen by it resized.
-    const VERSION: u32 = 2;
+    // 3: sources lifted by the shared rule (crate::lift); the sky drawn as directions.
+    const VERSION: u32 = 3;
     const SUMMARY: &'static str =
         "RGB-D of one or more cameras/frames drawn into a target camera with footprint splats and a soft z-buffer";
     const GRAINS: &'static [&'static str] = &["camera", "variant", "frame", "scene"];
@@ -112,12 +137,48 @@ impl Stage for Reproject {
                 })
             })
             .collect::<Result<_>>()?;
-        let rgbd: Vec<RgbdView> = sources
+        ensure!(
+            inputs.supports.is_empty() || inputs.supports.len() == sources.len(),
+            "input `supports` has {} sources and `images` {}: they must be wired with the same selector",
+            inputs.supports.len(),
+            sources.len()
+        );
+        // Per source, its surface (what the rule lifts) and its sky.
+        let mut split = Vec::with_capacity(sources.len());
+        for (s, view) in sources.iter().zip(&views) {
+            let support = if inputs.supports.is_empty() {
+                None
+            } else {
+                let m = at(&inputs.supports, s.pos, "supports")?;
+                ensure!(
+                    (m.width, m.height) == (s.depth.width, s.depth.height),
+                    "source at position {}: support map {}x{} and depth {}x{} differ in size",
+                    s.pos,
+                    m.width,
+                    m.height,
+                    s.depth.width,
+                    s.depth.height
+                );
+                Some(&m.data[..])
+            };
+            split.push(lift_source(&s.depth.data, view, support, &self.params.lift));
+        }
+        let surfaces: Vec<RgbdView> = sources
             .iter()
             .zip(&views)
-            .map(|(s, view)| RgbdView { rgb: &s.image.rgb, depth: &s.depth.data, view })
+            .zip(&split)
+            .map(|((s, view), (surface, _))| RgbdView { rgb: &s.image.rgb, depth: surface, view })
             .collect();
-        let out = reproject(&rgbd, &target, &self.params.splat)?;
+        let mut out = reproject(&surfaces, &target, &self.params.splat)?;
+        if self.params.lift.is_sky(self.params.splat.max_depth) {
+            let skies: Vec<RgbdView> = sources
+                .iter()
+                .zip(&views)
+                .zip(&split)
+                .map(|((s, view), (_, sky))| RgbdView { rgb: &s.image.rgb, depth: sky, view })
+                .collect();
+            draw_sky(&mut out, &skies, &target, &self.params.splat, self.params.lift.sky_depth)?;
+        }
         Ok(Outputs {
             image: Image { width: out.width, height: out.height, rgb: out.rgb },
             depth: DepthMap { width: out.width, height: out.height, data: out.depth },

@@ -692,6 +692,53 @@ fn draw(acc: &mut Accumulator, src: &RgbdView, target: &PinholeView, params: &Sp
     Ok(())
 }
 
+/// Draws the sky of `sources` (each an image and a depth map holding the sky's fill value where
+/// it is the sky, 0 elsewhere) into the pixels of `surfaces` that nothing landed on, at depth
+/// `sky_depth`. The sky is a direction, not a surface (see [`crate::lift`]): it is drawn as seen
+/// from the target camera's centre, each source turned as it is but not moved, so that it does
+/// not come nearer as the camera moves.
+pub fn draw_sky(
+    surfaces: &mut Reprojected,
+    sources: &[RgbdView],
+    target: &PinholeView,
+    params: &SplatParams,
+    sky_depth: f32,
+) -> Result<()> {
+    let at_target: Vec<PinholeView> = sources
+        .iter()
+        .map(|s| {
+            let mut v = *s.view;
+            v.world_from_cam.translation = target.world_from_cam.translation;
+            v
+        })
+        .collect();
+    let views: Vec<RgbdView> =
+        sources.iter().zip(&at_target).map(|(s, v)| RgbdView { rgb: s.rgb, depth: s.depth, view: v }).collect();
+    let sky = reproject(&views, target, &SplatParams { max_depth: f32::MAX, ..params.clone() })?;
+    for px in 0..surfaces.valid.len() {
+        if surfaces.valid[px] == 0 && sky.valid[px] != 0 {
+            surfaces.rgb[3 * px..3 * px + 3].copy_from_slice(&sky.rgb[3 * px..3 * px + 3]);
+            surfaces.depth[px] = sky_depth;
+            surfaces.valid[px] = 1;
+        }
+    }
+    Ok(())
+}
+
+/// A source's depth split for drawing: its surface pixels as [`crate::lift::surface_only`] keeps
+/// them (the rest 0) and its sky (the fill value where the depth is the sky, the rest 0).
+pub fn lift_source(
+    depth: &[f32],
+    view: &PinholeView,
+    support: Option<&[f32]>,
+    lift: &crate::lift::LiftParams,
+) -> (Vec<f32>, Vec<f32>) {
+    let (w, h) = (view.width as usize, view.height as usize);
+    let surface = crate::lift::surface_only(depth, w, h, crate::lift::focal_of(&view.k), support, lift);
+    let sky = depth.iter().map(|&z| if lift.is_sky(z) && z.is_finite() { z } else { 0.0 }).collect();
+    (surface, sky)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -229,6 +229,12 @@ impl Renderer {
         Ok(grid)
     }
 
+    /// The world of scene `scene` at a nuScenes timestamp (microseconds): to cast rays in.
+    pub fn snapshot_at_timestamp(&self, scene: u32, timestamp_us: i64) -> Result<Snapshot<'_>> {
+        let w = self.worlds.get(scene as usize).with_context(|| format!("no scene {scene}"))?;
+        Ok(Snapshot::new(w, (timestamp_us - writer::scene_start_us(scene)) as f64 * 1e-6))
+    }
+
     /// Like [`Renderer::render`] with a nuScenes timestamp (microseconds).
     pub fn render_at_timestamp(&self, scene: u32, timestamp_us: i64, camera: &PinholeCamera) -> Result<CameraImage> {
         self.render(scene, (timestamp_us - writer::scene_start_us(scene)) as f64 * 1e-6, camera)

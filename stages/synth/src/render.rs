@@ -63,6 +63,31 @@ impl<'w> Snapshot<'w> {
         Snapshot { world, grid: Grid::build(prims, 4.0) }
     }
 
+    /// Whether a surface of the world lies within `radius` of `p`: the ground plane (z = 0) by
+    /// its distance, the primitives by rays of that length in the 26 directions of a cube's
+    /// faces, edges and corners (so a plane is found up to ~0.89 `radius` away whatever its
+    /// orientation, and up to `radius` when it faces one of them). A point inside a primitive
+    /// counts as on it.
+    pub fn near_surface(&self, p: DVec3, radius: f64) -> bool {
+        if p.z.abs() <= radius {
+            return true;
+        }
+        for i in -1i32..=1 {
+            for j in -1i32..=1 {
+                for k in -1i32..=1 {
+                    if (i, j, k) == (0, 0, 0) {
+                        continue;
+                    }
+                    let d = DVec3::new(i as f64, j as f64, k as f64).normalize();
+                    if self.grid.cast(p, d, 0.0, radius).is_some() {
+                        return true;
+                    }
+                }
+            }
+        }
+        false
+    }
+
     pub fn cast(&self, o: DVec3, d: DVec3, t_max: f64) -> Option<SurfaceHit> {
         let t_ground = if d.z < 0.0 && o.z > 0.0 { -o.z / d.z } else { f64::INFINITY };
         let limit = t_max.min(t_ground);
