@@ -147,9 +147,10 @@ fn curation_runs_on_the_shared_nuscenes_keyframe_and_dgp_scene() {
         assert!(held > 0.0 && held < 0.5, "{held}\n{report}");
         assert!(dir.join("out/scene-0061/CAM_FRONT/000_depth.exr").is_file());
         let labelled = against_hand_labels(&dir.join("out"), "nuscenes-scene0061-kf0", 6);
-        // Target 99%: the white curved soffit of CAM_FRONT_RIGHT's overhanging building is still
-        // taken for sky (27% of it kept; docs/BENCHMARKS.md, "Real images against hand labels").
-        assert!(labelled.bright_not_sky.value().unwrap() >= 0.89, "{labelled:?}");
+        // Target 99%: the lattice over bluish glass of CAM_FRONT_RIGHT's overhanging building is
+        // still taken for sky (97.8% in all; 89.7% before sky pixels had to be blue or neutral;
+        // docs/BENCHMARKS.md, "Real images against hand labels").
+        assert!(labelled.bright_not_sky.value().unwrap() >= 0.97, "{labelled:?}");
     }
     let Some(dgp) = shared_dgp() else { return };
     let dir = tmp.path().join("dgp");
