@@ -13,6 +13,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{DimSpec, SourcePortSpec};
 use dist4d_runtime::{Dataset, Digest, DigestBuilder, FileDigests, ItemKey, ItemSpace};
 use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, ImageInfo, PointCloud, Pose};
+use dist4d_types::geometry::Se3;
 use std::path::{Path, PathBuf};
 
 pub(crate) const DIMS: [DimSpec; 3] = [
@@ -180,6 +181,11 @@ pub trait SurroundReader: Send + Sync {
     fn lidar_digest(&self, lidar: &Reading, frame: &Self::Frame, files: &dyn FileDigests) -> Result<Option<Digest>>;
     /// The `lidar` port: the point cloud of a frame whose LiDAR reading is `lidar`.
     fn read_lidar(&self, lidar: &Reading, frame: &Self::Frame) -> Result<PointCloud>;
+    /// The recording vehicle's box in its ego frame (min and max corners; x forward, y left, z
+    /// up; metres). LiDAR returns inside it are the car itself (its roof, the sensor's mount)
+    /// and the `lidar` port drops them, as the nuscenes-devkit's `remove_close` does around the
+    /// sensor; every stage then sees the scene only. `None`: the format's sweeps hold none.
+    const EGO_BOX: Option<([f64; 3], [f64; 3])> = None;
     /// The format's id of frame `frame` of scene `scene` (tree indices): by default its LiDAR
     /// reading's token.
     fn frame_token(&self, scene: usize, frame: usize) -> Option<String> {
@@ -205,6 +211,29 @@ pub trait SurroundReader: Send + Sync {
 
 /// A format reader as the runtime's dataset.
 pub struct Surround<R>(pub R);
+
+/// `cloud` (in the sensor frame) without the points that lie inside `ego` (min and max corners
+/// in the ego frame; `sensor_to_ego` places the sensor), every column kept in step.
+pub fn without_ego_returns(cloud: PointCloud, sensor_to_ego: &Se3, ego: ([f64; 3], [f64; 3])) -> PointCloud {
+    let (lo, hi) = (glam::DVec3::from(ego.0), glam::DVec3::from(ego.1));
+    let keep: Vec<bool> = cloud
+        .points
+        .iter()
+        .map(|p| {
+            let e = sensor_to_ego.apply(glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64));
+            !(e.cmpge(lo).all() && e.cmple(hi).all())
+        })
+        .collect();
+    if keep.iter().all(|&k| k) {
+        return cloud;
+    }
+    let pick = |k: usize| keep[k];
+    PointCloud {
+        points: cloud.points.iter().enumerate().filter(|(k, _)| pick(*k)).map(|(_, p)| *p).collect(),
+        labels: cloud.labels.iter().enumerate().filter(|(k, _)| pick(*k)).map(|(_, l)| *l).collect(),
+        rgb: cloud.rgb.iter().enumerate().filter(|(k, _)| pick(*k)).map(|(_, c)| *c).collect(),
+    }
+}
 
 impl<R: SurroundReader> ItemSpace for Surround<R> {
     fn count(&self, prefix: &ItemKey) -> u32 {
@@ -235,7 +264,19 @@ impl<R: SurroundReader> Dataset for Surround<R> {
         Ok(match port {
             "lidar" => {
                 let (_, frame) = tree.scene_frame(item)?;
-                self.0.lidar_digest(tree.reading(port, item)?, &frame.extra, files)?
+                let files_digest = self.0.lidar_digest(tree.reading(port, item)?, &frame.extra, files)?;
+                // The port drops the ego box's returns: the box is part of what it gives.
+                match (files_digest, R::EGO_BOX) {
+                    (Some(d), Some((lo, hi))) => {
+                        let mut b = DigestBuilder::new("lidar without the ego box");
+                        b.digest(&d);
+                        for v in lo.iter().chain(&hi) {
+                            b.u64(v.to_bits());
+                        }
+                        Some(b.finish())
+                    }
+                    (d, _) => d,
+                }
             }
             "image" => tree.reading(port, item)?.file_digest(files)?,
             "gt_depth" | "semantic" => {
@@ -323,7 +364,10 @@ impl<R: SurroundReader> Dataset for Surround<R> {
             "lidar" => {
                 let cloud = self.0.read_lidar(r, &tree.scene_frame(item)?.1.extra)?;
                 crate::checks::lidar_points(&r.file, &r.what, &cloud.points).map_err(anyhow::Error::msg)?;
-                cloud.encode()
+                match R::EGO_BOX {
+                    Some(ego) => without_ego_returns(cloud, &r.calib.sensor_to_ego, ego).encode(),
+                    None => cloud.encode(),
+                }
             }
             "image" => read_camera_image(&r.file, r.calib.width, r.calib.height, &r.what)?.encode(),
             "gt_depth" => tree.sidecars.gt_depth(tree.camera(item), &r.file)?.encode(),
@@ -420,4 +464,31 @@ fn sidecar_digest(
 /// Whether an error is a file that does not exist.
 fn is_not_found(e: &anyhow::Error) -> bool {
     e.chain().any(|c| c.downcast_ref::<std::io::Error>().is_some_and(|io| io.kind() == std::io::ErrorKind::NotFound))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn returns_inside_the_ego_box_are_dropped_with_their_labels_and_colours() {
+        // The sensor 1.8 m up, 1 m ahead of the ego origin; the box the car's.
+        let sensor_to_ego = Se3::from_yaw(0.0, glam::DVec3::new(1.0, 0.0, 1.8));
+        let cloud = PointCloud {
+            points: vec![
+                [0.3, 0.2, 0.0, 1.0],   // the sensor's mount: ego (1.3, 0.2, 1.8)
+                [10.0, 0.0, -1.7, 2.0], // the road ahead
+                [0.0, -2.5, -1.0, 3.0], // beside the car
+                [2.0, 0.0, -1.5, 4.0],  // the hood: ego (3.0, 0, 0.3)
+            ],
+            labels: vec![1, 2, 3, 4],
+            rgb: vec![[1; 3], [2; 3], [3; 3], [4; 3]],
+        };
+        let kept = without_ego_returns(cloud.clone(), &sensor_to_ego, ([-1.0, -1.0, -1.0], [3.4, 1.0, 2.0]));
+        assert_eq!(kept.points.iter().map(|p| p[3]).collect::<Vec<_>>(), [2.0, 3.0]);
+        assert_eq!(kept.labels, [2, 3]);
+        assert_eq!(kept.rgb, [[2; 3], [3; 3]]);
+        // A box nothing falls in gives the cloud back.
+        assert_eq!(without_ego_returns(cloud.clone(), &sensor_to_ego, ([50.0; 3], [60.0; 3])), cloud);
+    }
 }
