@@ -108,6 +108,15 @@ impl Stage for LabelPoints {
     fn identity(&self) -> Result<Option<String>> {
         self.1.identity()
     }
+    /// Without a worker the images are never read: not loading them saves decoding every
+    /// camera's JPEG of every frame (0.28 s of a nuScenes keyframe's 1 s).
+    fn unused_inputs(params: &Params) -> Vec<&'static str> {
+        if params.worker.is_some() {
+            Vec::new()
+        } else {
+            vec!["images", "infos"]
+        }
+    }
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         self.1.resource()
     }
