@@ -155,7 +155,8 @@ impl Stage for AggregateScene {
     // 2: unlabelled sweeps take the nearest labelled point's label.
     // 3: a labelled point joins a track exactly when its label is the box's class, feet included.
     // 5: camera labels; the wider transfer; the geometry rule says `others`, not manmade.
-    const VERSION: u32 = 5;
+    // 6: a camera label of the box's class joins the box whole, feet included.
+    const VERSION: u32 = 6;
     const SUMMARY: &'static str =
         "a scene's LiDAR gathered once: static points in the world, each object's in its box frame, Occ3D classes";
     const GRAINS: &'static [&'static str] = &["scene"];
@@ -333,11 +334,17 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
             // A labelled point joins a box's track only when its label is the box's class: the
             // pole or the wall a pedestrian stands by, inside the grown box, is not the pedestrian
             // (drawn at every pose of the track, it would walk along with it).
+            // A camera label joins the same way when it is the box's class (a pedestrian's feet,
+            // under the raised bottom, would otherwise trail behind as static points); when it is
+            // another class the box geometry decides, as for an unlabelled point (a pixel on a
+            // car's rim may be the road behind it).
+            let seen = camera.map(|c| c[k]);
             let in_box = boxes
                 .iter()
-                .find(|(raised, whole, class, _)| match label {
-                    None => raised.contains(world),
-                    Some(l) => l == *class && whole.contains(world),
+                .find(|(raised, whole, class, _)| match (label, seen) {
+                    (Some(l), _) => l == *class && whole.contains(world),
+                    (None, Some(c)) if c == *class => whole.contains(world),
+                    _ => raised.contains(world),
                 })
                 .map(|(_, whole, _, b)| (whole, *b));
             if let (Some((_, b)), Objects::World) = (in_box, p.objects) {
@@ -357,9 +364,7 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
                 dropped += 1;
                 continue;
             }
-            // Camera labels do not decide box membership (a pixel on a car's rim may be road):
-            // the box geometry does, as for unlabelled points.
-            let class = match (label, camera.map(|c| c[k])) {
+            let class = match (label, seen) {
                 (Some(l), _) => Some((l, Source::Lidarseg)),
                 (None, Some(c)) if c != UNLABELLED && c != DROP => Some((c, Source::Camera)),
                 _ => None,
@@ -534,6 +539,36 @@ mod tests {
         let narrow = Params { transfer_reach: 0.0, ..Params::default() };
         let (statics, _, _) = aggregate(&narrow, &s);
         assert_eq!(class_near(&statics, 11.5, 0.0), DRIVEABLE_SURFACE);
+    }
+
+    #[test]
+    fn a_pedestrians_feet_labelled_by_a_camera_walk_with_it() {
+        let (calib, pose, _) = identity();
+        let boxes = Boxes3D {
+            timestamp_us: 0,
+            boxes: vec![dist4d_types::artifact::Box3D {
+                center: [10.0, 0.0, 0.9],
+                size: [0.6, 0.6, 1.8],
+                rotation: [1.0, 0.0, 0.0, 0.0],
+                velocity: [0.0; 3],
+                instance: "walker".into(),
+                category: "human.pedestrian.adult".into(),
+                attributes: Vec::new(),
+                num_lidar_pts: 0,
+                interpolated: false,
+                extrapolated: false,
+            }],
+        };
+        // A foot 0.05 m up (under the raised bottom), the person's chest, and the road beside.
+        let sweep = PointCloud {
+            points: vec![[10.0, 0.0, 0.05, 0.0], [10.0, 0.0, 1.2, 0.0], [12.0, 0.0, 0.0, 0.0]],
+            ..PointCloud::default()
+        };
+        let camera = [7u8, 7, 11];
+        let s = [Sweep { points: &sweep, calib: &calib, pose: &pose, boxes: &boxes, camera_labels: Some(&camera) }];
+        let (statics, tracks, _) = aggregate(&Params::default(), &s);
+        assert_eq!(tracks.tracks[0].points.len(), 2, "the foot joins the track: {:?}", tracks.tracks[0].points);
+        assert_eq!(statics.labels, vec![11], "only the road stays behind");
     }
 
     #[test]
