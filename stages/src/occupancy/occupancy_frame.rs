@@ -12,7 +12,8 @@
 //!    outer edge; a filled column takes the most common class and layer of the ground around it.
 //!    The rings' spacing grows with range (a few metres at 20-40 m on a keyframe), wider than that
 //!    closing bridges: columns at least `ground_fill_far_from` metres from the ego get a second
-//!    closing, of `ground_fill_far` voxels (0: none). Without it a sixth of the exact road of a
+//!    closing, with a disc of radius `ground_fill_far` voxels (0: none; a square that wide
+//!    leaves rectangular blocks on sparse real sweeps). Without it a sixth of the exact road of a
 //!    keyframe was left free, half of it inside `mask_lidar`, teaching "free" on the road.
 //! 2. **`mask_lidar`.** The frame's own sweep, ray by ray from the LiDAR to each return
 //!    (Amanatides-Woo traversal): the voxels a ray passes through and the one it ends in were
@@ -125,7 +126,8 @@ pub struct Occupancy(Params);
 impl Stage for Occupancy {
     const KIND: &'static str = "Occupancy";
     // 2: the far ground closing; the metadata.
-    const VERSION: u32 = 2;
+    // 3: the far closing with a disc.
+    const VERSION: u32 = 3;
     const SUMMARY: &'static str =
         "a frame's semantic occupancy (Occ3D): the scene's static points and tracks voxelized, LiDAR and camera visibility";
     const GRAINS: &'static [&'static str] = &["frame"];
@@ -233,7 +235,7 @@ pub fn occupancy(
         }
     }
     if p.ground_fill > 0 {
-        fill_ground(&mut semantics, g.dims, p.ground_fill as usize, |_, _| true);
+        fill_ground(&mut semantics, g.dims, p.ground_fill as usize, Shape::Square, |_, _| true);
     }
     if p.ground_fill_far > 0 {
         // A column's bird's-eye distance from the ego (the ego frame's origin), m.
@@ -241,7 +243,7 @@ pub fn occupancy(
         let far = move |i: usize, j: usize| {
             (min.x + (i as f64 + 0.5) * voxel).hypot(min.y + (j as f64 + 0.5) * voxel) >= from
         };
-        fill_ground(&mut semantics, g.dims, p.ground_fill_far as usize, far);
+        fill_ground(&mut semantics, g.dims, p.ground_fill_far as usize, Shape::Disc, far);
     }
     let n = g.len();
     Ok(OccupancyGrid {
@@ -252,6 +254,15 @@ pub fn occupancy(
     })
 }
 
+/// The structuring element of a ground closing.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Shape {
+    Square,
+    /// For the far closing: a square that wide bridges diagonal gaps 1.4 times as wide and
+    /// leaves rectangular blocks on sparse real sweeps.
+    Disc,
+}
+
 /// The ground classes: driveable surface, other flat, sidewalk, terrain.
 fn is_ground(class: u8) -> bool {
     (11..=14).contains(&class)
@@ -259,7 +270,7 @@ fn is_ground(class: u8) -> bool {
 
 /// The ground densification of the module doc, on `semantics` (C order over `dims`): a closing
 /// of radius `r`, filling only the columns (i, j) that `fills` allows.
-fn fill_ground(semantics: &mut [u8], dims: [usize; 3], r: usize, fills: impl Fn(usize, usize) -> bool) {
+fn fill_ground(semantics: &mut [u8], dims: [usize; 3], r: usize, shape: Shape, fills: impl Fn(usize, usize) -> bool) {
     let [nx, ny, nz] = dims;
     let low = nz.min(2);
     // Per column: its ground (layer, class) in the lowest layers, and whether anything occupies
@@ -277,8 +288,30 @@ fn fill_ground(semantics: &mut [u8], dims: [usize; 3], r: usize, fills: impl Fn(
             }
         }
     }
-    // Closing = dilation then erosion, with a (2r+1)^2 square (separable: rows, then columns).
+    // Closing = dilation then erosion, with a (2r+1)^2 square (separable: rows, then columns) or
+    // a disc of radius r.
+    let disc: Vec<(i64, i64)> = {
+        let r = r as i64;
+        (-r..=r).flat_map(|a| (-r..=r).map(move |b| (a, b))).filter(|(a, b)| a * a + b * b <= r * r).collect()
+    };
     let box_any = |mask: &[bool]| -> Vec<bool> {
+        if shape == Shape::Disc {
+            let mut out = vec![false; nx * ny];
+            for i in 0..nx {
+                for j in 0..ny {
+                    if !mask[i * ny + j] {
+                        continue;
+                    }
+                    for &(a, b) in &disc {
+                        let (ii, jj) = (i as i64 + a, j as i64 + b);
+                        if ii >= 0 && jj >= 0 && (ii as usize) < nx && (jj as usize) < ny {
+                            out[ii as usize * ny + jj as usize] = true;
+                        }
+                    }
+                }
+            }
+            return out;
+        }
         let mut rows = vec![false; nx * ny];
         for i in 0..nx {
             for j in 0..ny {
