@@ -279,7 +279,8 @@ print('ok')";
 }
 
 /// The shared real recordings: the nuScenes keyframe (folder named by its sample token) and the
-/// DGP scene (by LiDAR datum key); neither has point labels, so the summary names the fallback.
+/// DGP scene (by LiDAR datum key); neither has point labels: `run` warns once, naming the stage
+/// and the dataset, and every frame's meta.json and the summary say the semantics are geometry.
 #[test]
 fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
     let (Some(nuscenes), Some(dgp)) = (shared_nuscenes(), shared_dgp()) else { return };
@@ -301,6 +302,14 @@ fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
         let o = dist4d(&["run", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
         let t = text(&o);
         assert!(o.status.success(), "{name}: {t}");
+        let warnings: Vec<&str> = t.lines().filter(|l| l.contains("geometry only")).collect();
+        assert_eq!(warnings.len(), 1, "{name}: one warning line\n{t}");
+        let dataset = if name == "dgp" { "Dgp at " } else { "NuScenes at " };
+        assert!(
+            warnings[0].starts_with("warning: stage `scene` (AggregateScene): dataset ")
+                && warnings[0].contains(dataset),
+            "{t}"
+        );
         assert_eq!(
             column(&t, "exact", 7),
             column(&t, "exact", 2),
@@ -311,14 +320,19 @@ fn occupancy_runs_on_the_shared_nuscenes_and_dgp_recordings() {
         assert_eq!(frames.len() as u64, column(&t, "occupancy", 3), "{name}");
         for f in &frames {
             assert!(f.join("labels.npz").is_file(), "{}", f.display());
+            let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(f.join("meta.json")).unwrap()).unwrap();
+            assert_eq!(
+                (meta["semantics_source"].as_str(), meta["geometry_only"].as_bool()),
+                (Some("geometry"), Some(true))
+            );
         }
         let summary = std::fs::read_to_string(out.join(scene.file_name().unwrap()).join("aggregate.json")).unwrap();
-        assert!(summary.contains("fallback"), "{name}: {summary}");
+        assert!(summary.contains(r#""semantics_source": "geometry""#), "{name}: {summary}");
         // The report says so too.
         let o = dist4d(&["eval", file.to_str().unwrap(), "--progress", "off", "--out", out.to_str().unwrap()]);
         let t = text(&o);
         assert!(
-            o.status.success() && t.contains("# labels of ") && t.contains("fallback: no sweep has point labels"),
+            o.status.success() && t.contains("# labels of ") && t.contains("geometry only: no sweep"),
             "{name}: {t}"
         );
     }
@@ -442,4 +456,77 @@ fn a_scene_shorter_than_the_window_says_why_its_window_stages_made_nothing() {
         assert_eq!(t.matches(&line).count(), 1, "{line}\n{t}");
     }
     assert!(t.contains("n/a: sheet_png (EncodeImage): 1 of 1, nothing made: nothing came from `sheet`"), "{t}");
+}
+
+/// Issue 42: occupancy semantics say where they come from. On a synthetic scene with its lidarseg
+/// turned off, without a segmenter `run` warns once and every frame's meta.json says
+/// `geometry`; with the oracle segmenter worker (the exact semantic images: it tests the
+/// plumbing) the points take their pixels' classes, no warning, `camera` in every meta.json, and
+/// the classes come back (sidewalk, manmade, vegetation: geometry cannot tell them apart).
+#[test]
+fn occupancy_semantics_from_a_segmenter_worker_or_geometry_only_with_a_warning() {
+    let Some(python) = peers_python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let data = tmp.path().join("data");
+    let o =
+        dist4d(&["synth", "--out", data.to_str().unwrap(), "--keyframes", "2", "--width", "320", "--height", "180"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let root = format!("dataset.root={}", data.display());
+    let cache = tmp.path().join("cache");
+    let run = |out: &str, extra: &[&str]| {
+        let o = std::process::Command::new(bin())
+            .current_dir(repo())
+            .args(["run", "pipelines/occupancy.ron", "--set", &root, "--set", "scene.lidarseg=false"])
+            .args(["--set", "exact.samples=1", "--progress", "off", "--cache", cache.to_str().unwrap()])
+            .args(["--out", tmp.path().join(out).to_str().unwrap()])
+            .args(extra)
+            .output()
+            .unwrap();
+        let t = text(&o);
+        assert!(o.status.success(), "{t}");
+        t
+    };
+    let metas = |out: &str| -> Vec<serde_json::Value> {
+        let dir = tmp.path().join(out).join("gts/synth-0000");
+        let frames: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().path()).collect();
+        assert_eq!(frames.len(), 2);
+        frames.iter().map(|f| serde_json::from_slice(&std::fs::read(f.join("meta.json")).unwrap()).unwrap()).collect()
+    };
+    let classes = |out: &str| -> std::collections::BTreeSet<u8> {
+        let dir = tmp.path().join(out).join("gts/synth-0000");
+        let frame = std::fs::read_dir(&dir).unwrap().next().unwrap().unwrap().path();
+        let code = "import sys, numpy as np; print(*sorted(set(np.load(sys.argv[1])['semantics'].ravel().tolist())))";
+        let o = std::process::Command::new(&python).args(["-c", code]).arg(frame.join("labels.npz")).output().unwrap();
+        assert!(o.status.success(), "{}", text(&o));
+        String::from_utf8_lossy(&o.stdout).split_whitespace().map(|c| c.parse().unwrap()).collect()
+    };
+    let t = run("geometry", &[]);
+    let warnings: Vec<&str> = t.lines().filter(|l| l.starts_with("warning: ")).collect();
+    assert_eq!(warnings.len(), 1, "{t}");
+    assert!(
+        warnings[0].contains("stage `scene` (AggregateScene): dataset NuScenes at ")
+            && warnings[0].contains("geometry only")
+    );
+    assert!(metas("geometry").iter().all(|m| m["semantics_source"] == "geometry" && m["geometry_only"] == true));
+    let geometry = classes("geometry");
+    assert!(!geometry.contains(&15) && !geometry.contains(&13) && !geometry.contains(&14), "{geometry:?}");
+    assert!(geometry.contains(&0), "unlabelled structure is `others`: {geometry:?}");
+
+    let worker = format!(
+        "labels.worker=Some((program: {:?}, args: [{:?}, \"--root\", {:?}]))",
+        python.display().to_string(),
+        repo().join("workers/synth_semantic_oracle.py").display().to_string(),
+        data.display().to_string()
+    );
+    let t = run("camera", &["--set", &worker]);
+    assert!(!t.contains("warning: "), "{t}");
+    assert!(metas("camera").iter().all(|m| m["semantics_source"] == "camera" && m["geometry_only"] == false));
+    let camera = classes("camera");
+    for class in [11, 13, 15, 16] {
+        assert!(camera.contains(&class), "class {class} from the cameras: {camera:?}");
+    }
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(tmp.path().join("camera/synth-0000/aggregate.json")).unwrap()).unwrap();
+    assert_eq!(summary["sweeps_with_camera_labels"], 2, "{summary}");
+    assert!(summary["static_labels_camera"].as_u64().unwrap() > summary["static_labels_transferred"].as_u64().unwrap());
 }

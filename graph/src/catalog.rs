@@ -78,6 +78,10 @@ pub struct StageSchema {
     /// offset), how to split checked params into the variants: such a stage runs per `variant`,
     /// the dimension [`VARIANT_DIM`] the pipeline then gets under the dataset's innermost one.
     pub variants: Option<fn(&ParamsValue) -> Option<Variants>>,
+    /// The input ports the stage does not read with these params (a segmenter's images when no
+    /// segmenter is configured): the planner hands them over empty, so their sources are never
+    /// loaded (six JPEGs decoded per frame for nothing). Only optional or `Many` inputs.
+    pub unused_inputs: Option<fn(&ParamsValue) -> Vec<&'static str>>,
 }
 
 /// The name of the dimension a pipeline gets when a stage declares variants: export templates

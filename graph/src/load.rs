@@ -745,6 +745,7 @@ impl<'c> Checker<'c> {
             )));
         }
         let variants = schema.variants.zip(params.as_ref()).and_then(|(split, p)| split(p));
+        let unused = schema.unused_inputs.zip(params.as_ref()).map(|(f, p)| f(p)).unwrap_or_default();
         let node = nodes.len();
         nodes.push(Node {
             name: name.to_string(),
@@ -758,6 +759,7 @@ impl<'c> Checker<'c> {
                 every,
                 inputs: Vec::new(),
                 variants,
+                unused,
             }),
         });
         declared.push(Declared {

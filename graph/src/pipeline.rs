@@ -92,6 +92,9 @@ pub struct StageNode {
     /// For a stage that declares variants: its params split per variant (it runs per
     /// [`crate::VARIANT_DIM`]).
     pub variants: Option<crate::Variants>,
+    /// The input ports it does not read with its params (see `StageSchema::unused_inputs`):
+    /// planned with no sources.
+    pub unused: Vec<&'static str>,
 }
 
 #[derive(Clone, Debug, PartialEq)]

@@ -122,6 +122,7 @@ fn stage(
         export_template_params: vec![],
         aligned_inputs: vec![],
         variants: None,
+        unused_inputs: None,
     }
 }
 

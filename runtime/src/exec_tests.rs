@@ -62,6 +62,22 @@ fn counts(pairs: &[(&str, u64)]) -> BTreeMap<String, u64> {
 }
 
 #[test]
+fn inputs_a_stage_does_not_read_with_its_params_are_never_loaded() {
+    let pipeline = r#"Pipeline(
+        dataset: Grid(scenes: 1, frames: 2, cameras: 3),
+        stages: {"m": Merge(inputs: {"xs": Gather("dataset.camera_value", camera)}, params: (salt: SALT))},
+        export: {},
+    )"#;
+    for (salt, loads) in [("1", 6), ("404", 0)] {
+        let dir = tempfile::tempdir().unwrap();
+        let p = testkit::load(&pipeline.replace("SALT", salt), &[]);
+        let grid = testkit::grid_of(&p);
+        assert_eq!(executed(&run(&p, &grid, dir.path())), counts(&[("m", 2)]));
+        assert_eq!(grid.loads.load(Ordering::Relaxed), loads, "salt {salt}");
+    }
+}
+
+#[test]
 fn plans_every_selector_and_caches_the_second_run() {
     let dir = tempfile::tempdir().unwrap();
     let p = testkit::load(CHAIN, &[]);

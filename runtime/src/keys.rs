@@ -453,6 +453,7 @@ mod tests {
         };
         StageNode {
             variants: None,
+            unused: Vec::new(),
             kind: "Pinned".into(),
             version: 3,
             params: ParamsValue::new(params).unwrap(),

@@ -150,7 +150,9 @@ pub fn plan_outer(pipeline: &Pipeline, view: &View, outer: u32) -> OuterPlan {
             let plan = stage.variants.as_ref().and_then(|v| v.plans.get(*item.coords().last().unwrap_or(&0) as usize));
             for input in &stage.inputs {
                 let from = &pipeline.nodes[input.from];
-                if plan.is_some_and(|p| p.unused.contains(&input.port.as_str())) {
+                if plan.is_some_and(|p| p.unused.contains(&input.port.as_str()))
+                    || stage.unused.contains(&input.port.as_str())
+                {
                     inputs.push(Vec::new());
                     continue;
                 }

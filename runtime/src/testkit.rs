@@ -138,6 +138,7 @@ fn kind(kind: &'static str, inputs: Vec<PortSpec>, outputs: Vec<PortSpec>, grain
         seeded: false,
         export_template_params: vec![],
         aligned_inputs: vec![],
+        unused_inputs: None,
         variants: None,
     }
 }
@@ -148,12 +149,22 @@ impl Default for TestCatalog {
         TestCatalog {
             kinds: vec![
                 kind("Echo", vec![PortSpec::one("x", "Bytes", "")], vec![PortSpec::one("y", "Bytes", "")], all.clone()),
-                kind(
-                    "Merge",
-                    vec![PortSpec::many("xs", "Bytes", "")],
-                    vec![PortSpec::one("y", "Bytes", "")],
-                    vec!["frame", "scene", "camera"],
-                ),
+                StageSchema {
+                    // `salt: 404`: it does not read `xs` (handed over empty, never loaded).
+                    unused_inputs: Some(|p| {
+                        if p.get::<EchoParams>().is_some_and(|e| e.salt == 404) {
+                            vec!["xs"]
+                        } else {
+                            Vec::new()
+                        }
+                    }),
+                    ..kind(
+                        "Merge",
+                        vec![PortSpec::many("xs", "Bytes", "")],
+                        vec![PortSpec::one("y", "Bytes", "")],
+                        vec!["frame", "scene", "camera"],
+                    )
+                },
                 kind(
                     "ToFile",
                     vec![PortSpec::one("x", "Bytes", "")],

@@ -79,12 +79,20 @@ impl Registry {
                 for w in &ds.warnings {
                     eprintln!("warning: {w}");
                 }
+                let what = format!("NuScenes at {}", ds.config.root);
+                for w in occupancy::geometry_only_warnings(p, ds.has_point_labels, &what) {
+                    eprintln!("warning: {w}");
+                }
                 Ok(Box::new(Surround(ds)))
             }
             "Dgp" => {
                 let ds =
                     dist4d_datasets::dgp::Dgp::open(config(&p.dataset.config)?).context("opening the DGP dataset")?;
                 for w in &ds.warnings {
+                    eprintln!("warning: {w}");
+                }
+                let what = format!("Dgp at {}", ds.config.root);
+                for w in occupancy::geometry_only_warnings(p, false, &what) {
                     eprintln!("warning: {w}");
                 }
                 Ok(Box::new(Surround(ds)))

@@ -74,6 +74,11 @@ pub trait Stage: Sized + Send + Sync + 'static {
     fn variants(_params: &Self::Params) -> Option<dist4d_graph::Variants> {
         None
     }
+    /// The `Many` or optional input ports it does not read with `params`: planned with no
+    /// sources, so the run never loads them (they arrive empty).
+    fn unused_inputs(_params: &Self::Params) -> Vec<&'static str> {
+        Vec::new()
+    }
     fn run(&self, ctx: &TaskContext, inputs: Self::Inputs) -> Result<Self::Outputs>;
 }
 
@@ -323,6 +328,7 @@ impl StageDef {
                 export_template_params: S::EXPORT_TEMPLATE_PARAMS.to_vec(),
                 aligned_inputs: S::ALIGNED_INPUTS.to_vec(),
                 variants: S::VARIANTS.then_some(|p: &ParamsValue| p.get::<S::Params>().and_then(S::variants)),
+                unused_inputs: Some(|p: &ParamsValue| p.get::<S::Params>().map(S::unused_inputs).unwrap_or_default()),
             },
             build: Box::new(|checked, wired| {
                 let params = checked.get::<S::Params>().ok_or_else(|| {

@@ -265,6 +265,9 @@ pub struct NuScenes {
     sample_time: HashMap<String, i64>,
     /// What was missing but optional, repeated or normalised (printed when the dataset is opened).
     pub warnings: Vec<String>,
+    /// Whether the dataset has nuScenes-lidarseg labels (a `lidarseg` table with rows): stages
+    /// that would fall back to geometry without them say so when the run starts.
+    pub has_point_labels: bool,
 }
 
 /// A table row; the tables whose rows errors cite keep their index in the file.
@@ -519,6 +522,7 @@ impl NuScenes {
         // lidarseg is an add-on: absent means no labels, without a warning.
         let lidarseg: Vec<LidarsegRow> =
             if tables.join("lidarseg.json").exists() { read_table(&tables, "lidarseg", w)? } else { Vec::new() };
+        let has_point_labels = !lidarseg.is_empty();
         let (sd_file, cs_file) = (tables.join("sample_data.json"), tables.join("calibrated_sensor.json"));
         ensure_keyframes(&sample_data, &sd_file)?;
 
@@ -919,6 +923,7 @@ impl NuScenes {
             annotation_by_token,
             sample_time,
             warnings,
+            has_point_labels,
         })
     }
 

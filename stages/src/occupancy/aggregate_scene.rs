@@ -10,16 +10,26 @@
 //! goes by its label instead: into the box when its label is the box's class, the bottom
 //! included (a pedestrian's feet, which would otherwise stay behind as a trail of static
 //! pedestrian points), and never when it is something else (a pole by a pedestrian). The others
-//! are static. Classes ([`super::classes`]): nuScenes-lidarseg labels where the sweep has them. A
-//! sweep without labels (nuScenes labels keyframes only: at 10-20 Hz, most sweeps) takes, for
-//! each static point, the label of the nearest labelled static point of the scene in the world
-//! frame, within `transfer_distance` metres (the labelled sweeps' static points are gathered
-//! first). A point with none that near, or a scene without any labels, falls back to height:
-//! within `fallback_ground` metres of the ego frame's ground plane driveable surface, above it
-//! manmade. The `summary` says how many points took which. Both clouds are thinned to one point
-//! per voxel (`voxel`, `track_voxel`), the first in sweep, then point order.
+//! are static. Classes ([`super::classes`]), first source that has one:
+//! 1. nuScenes-lidarseg labels where the sweep has them (`lidarseg: true`);
+//! 2. the camera labels of `LabelPoints` (a segmenter worker), where it labelled the point;
+//! 3. for a static point still without one (a sweep between labelled keyframes, a point no
+//!    camera saw): the label of the nearest labelled static point of the scene in the world
+//!    frame, within `transfer_distance` metres, else within `transfer_reach` metres (among the
+//!    labelled points thinned to one per `transfer_distance` voxel). The second, wider search is
+//!    what keeps the rings of the unlabelled 20 Hz sweeps that lie between the labelled rings
+//!    (further than `transfer_distance` from any) from taking the geometry rule, which painted
+//!    road-labelled arcs across terrain and sidewalk;
+//! 4. the geometry rule, the only one on a scene without any labels: within `fallback_ground`
+//!    metres of the ego frame's ground plane driveable surface, above it `others` (0), never a
+//!    guessed class such as manmade (grass, hedges, cars without a box are not buildings).
+//!
+//! The `summary` says which sources the scene had (`semantics_source`: `lidarseg`, `camera`,
+//! `lidarseg+camera`, `geometry`; `+transfer` when unlabelled sweeps took their neighbours'
+//! labels) and how many static points took which. Both clouds are thinned to one point per voxel
+//! (`voxel`, `track_voxel`), the first in sweep, then point order.
 
-use super::classes::{self, DRIVEABLE_SURFACE, DROP, MANMADE};
+use super::classes::{self, DRIVEABLE_SURFACE, DROP, OTHERS, UNLABELLED};
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -59,10 +69,16 @@ pub struct Params {
     /// The ego vehicle's box in the ego frame, min and max corners (m).
     pub ego_box_min: [f64; 3],
     pub ego_box_max: [f64; 3],
-    /// Without point labels: points below this height (m, ego frame) are driveable surface.
+    /// Without point labels: points below this height (m, ego frame) are driveable surface,
+    /// the others `others`.
     pub fallback_ground: f64,
     /// An unlabelled point takes the label of the nearest labelled one within this distance (m).
     pub transfer_distance: f64,
+    /// Failing that, of the nearest labelled one within this distance (m; 0 = no second search).
+    pub transfer_reach: f64,
+    /// Use the dataset's nuScenes-lidarseg labels (false: only cameras or geometry; what the
+    /// segmenter is benchmarked with on data that has lidarseg).
+    pub lidarseg: bool,
 }
 
 impl Default for Params {
@@ -78,6 +94,8 @@ impl Default for Params {
             ego_box_max: [3.4, 1.0, 2.0],
             fallback_ground: 0.3,
             transfer_distance: 0.5,
+            transfer_reach: 3.0,
+            lidarseg: true,
         }
     }
 }
@@ -91,7 +109,8 @@ impl Validate for Params {
             .within("ground_clearance", self.ground_clearance, 0.0, 100.0)
             .within("min_distance", self.min_distance, 0.0, 1000.0)
             .within("fallback_ground", self.fallback_ground, -100.0, 100.0)
-            .within("transfer_distance", self.transfer_distance, 0.0, 100.0);
+            .within("transfer_distance", self.transfer_distance, 0.0, 100.0)
+            .within("transfer_reach", self.transfer_reach, 0.0, 100.0);
         for a in 0..3 {
             c.check(
                 self.ego_box_min[a].is_finite() && self.ego_box_max[a].is_finite() && self.ego_box_min[a] <= self.ego_box_max[a],
@@ -113,6 +132,8 @@ crate::ports! {
         poses: Many<Pose>,
         /// the boxes at each sweep's time
         boxes: Many<Boxes3D>,
+        /// the sweeps' points labelled by cameras (`All("labels.sweep")`, `LabelPoints`; Occ3D classes, 254 = none); unwired or empty without a segmenter
+        camera_labels: OptionalMany<PointCloud>,
     }
 }
 
@@ -122,7 +143,7 @@ crate::ports! {
         static_points: One<PointCloud>,
         /// each tracked object's points in its box frame, with its class
         tracks: One<TrackClouds>,
-        /// JSON: sweeps, points kept, where the labels came from
+        /// JSON: sweeps, points kept, where the labels came from (`semantics_source`)
         summary: One<File>,
     }
 }
@@ -133,7 +154,9 @@ impl Stage for AggregateScene {
     const KIND: &'static str = "AggregateScene";
     // 2: unlabelled sweeps take the nearest labelled point's label.
     // 3: a labelled point joins a track exactly when its label is the box's class, feet included.
-    const VERSION: u32 = 4;
+    // 5: camera labels; the wider transfer; the geometry rule says `others`, not manmade.
+    // 6: a camera label of the box's class joins the box whole, feet included.
+    const VERSION: u32 = 6;
     const SUMMARY: &'static str =
         "a scene's LiDAR gathered once: static points in the world, each object's in its box frame, Occ3D classes";
     const GRAINS: &'static [&'static str] = &["scene"];
@@ -161,7 +184,27 @@ impl Stage for AggregateScene {
                 i.calibs[k].0 == pos && i.poses[k].0 == pos && i.boxes[k].0 == pos,
                 "the inputs must be wired with the same selector (All(..))"
             );
-            sweeps.push(Sweep { points: &i.sweeps[k].1, calib: &i.calibs[k].1, pose: &i.poses[k].1, boxes: &i.boxes[k].1 });
+            // An empty cloud: `LabelPoints` without a worker.
+            let camera = i
+                .camera_labels
+                .iter()
+                .find(|(p, c)| *p == pos && !c.points.is_empty())
+                .map(|(_, c)| c.labels.as_slice());
+            if let Some(c) = camera {
+                ensure!(
+                    c.len() == i.sweeps[k].1.points.len(),
+                    "`camera_labels` at position {pos} has {} labels for a sweep of {} points: wire it from the same sweeps",
+                    c.len(),
+                    i.sweeps[k].1.points.len()
+                );
+            }
+            sweeps.push(Sweep {
+                points: &i.sweeps[k].1,
+                calib: &i.calibs[k].1,
+                pose: &i.poses[k].1,
+                boxes: &i.boxes[k].1,
+                camera_labels: camera,
+            });
         }
         let (static_points, tracks, summary) = aggregate(&self.0, &sweeps);
         Ok(Outputs { static_points, tracks, summary: File(serde_json::to_vec_pretty(&summary)?) })
@@ -173,6 +216,8 @@ pub struct Sweep<'a> {
     pub calib: &'a Calibration,
     pub pose: &'a Pose,
     pub boxes: &'a Boxes3D,
+    /// `LabelPoints`' Occ3D class per point ([`UNLABELLED`]: none), when a segmenter ran.
+    pub camera_labels: Option<&'a [u8]>,
 }
 
 type Voxel = (i64, i64, i64);
@@ -181,12 +226,19 @@ fn voxel_of(p: DVec3, size: f64) -> Voxel {
     ((p.x / size).floor() as i64, (p.y / size).floor() as i64, (p.z / size).floor() as i64)
 }
 
-/// A static point of a sweep, in the world, with its class if its sweep had labels, and its
-/// height in its own ego frame (for the height fallback).
+/// Where a static point's class came from.
+#[derive(Clone, Copy, PartialEq, Eq, Debug)]
+enum Source {
+    Lidarseg,
+    Camera,
+}
+
+/// A static point of a sweep, in the world, with its class and its source if it has one, and
+/// its height in its own ego frame (for the geometry rule).
 struct StaticPoint {
     world: DVec3,
     intensity: f32,
-    class: Option<u8>,
+    class: Option<(u8, Source)>,
     ego_z: f64,
 }
 
@@ -230,7 +282,12 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
         }
         std::collections::hash_map::Entry::Occupied(e) => {
             let old = &mut statics[*e.get()];
-            if old.class.is_none() && sp.class.is_some() {
+            let rank = |c: &Option<(u8, Source)>| match c {
+                None => 0,
+                Some((_, Source::Camera)) => 1,
+                Some((_, Source::Lidarseg)) => 2,
+            };
+            if rank(&sp.class) > rank(&old.class) {
                 *old = sp;
             }
         }
@@ -238,10 +295,12 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
     // instance -> (class, voxels seen, points)
     let mut tracks: BTreeMap<String, (u8, HashSet<Voxel>, Vec<[f32; 3]>)> = BTreeMap::new();
     let (emin, emax) = (DVec3::from_array(p.ego_box_min), DVec3::from_array(p.ego_box_max));
-    let (mut labelled, mut points_in, mut dropped) = (0usize, 0usize, 0usize);
+    let (mut labelled, mut camera_labelled, mut points_in, mut dropped) = (0usize, 0usize, 0usize, 0usize);
     for s in sweeps {
-        let has_labels = s.points.labels.len() == s.points.points.len() && !s.points.points.is_empty();
+        let has_labels = p.lidarseg && s.points.labels.len() == s.points.points.len() && !s.points.points.is_empty();
         labelled += has_labels as usize;
+        let camera = if has_labels { None } else { s.camera_labels.filter(|c| c.len() == s.points.points.len()) };
+        camera_labelled += camera.is_some() as usize;
         // Per box: the test for unlabelled points (its bottom raised: the ground under a car is
         // not the car) and the one for points its class labels (whole: a pedestrian's feet are).
         let boxes: Vec<(BoxTest, BoxTest, u8, &dist4d_types::artifact::Box3D)> = s
@@ -275,15 +334,22 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
             // A labelled point joins a box's track only when its label is the box's class: the
             // pole or the wall a pedestrian stands by, inside the grown box, is not the pedestrian
             // (drawn at every pose of the track, it would walk along with it).
+            // A camera label joins the same way when it is the box's class (a pedestrian's feet,
+            // under the raised bottom, would otherwise trail behind as static points); when it is
+            // another class the box geometry decides, as for an unlabelled point (a pixel on a
+            // car's rim may be the road behind it).
+            let seen = camera.map(|c| c[k]);
             let in_box = boxes
                 .iter()
-                .find(|(raised, whole, class, _)| match label {
-                    None => raised.contains(world),
-                    Some(l) => l == *class && whole.contains(world),
+                .find(|(raised, whole, class, _)| match (label, seen) {
+                    (Some(l), _) => l == *class && whole.contains(world),
+                    (None, Some(c)) if c == *class => whole.contains(world),
+                    _ => raised.contains(world),
                 })
                 .map(|(_, whole, _, b)| (whole, *b));
             if let (Some((_, b)), Objects::World) = (in_box, p.objects) {
-                keep(StaticPoint { world, intensity: q[3], class: Some(classes::of_category(&b.category)), ego_z: ego.z });
+                let class = Some((classes::of_category(&b.category), Source::Lidarseg));
+                keep(StaticPoint { world, intensity: q[3], class, ego_z: ego.z });
                 continue;
             }
             if let Some((test, b)) = in_box {
@@ -294,27 +360,51 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
                 }
                 continue;
             }
-            let class = label;
-            if class == Some(DROP) {
+            if label == Some(DROP) {
                 dropped += 1;
                 continue;
             }
+            let class = match (label, seen) {
+                (Some(l), _) => Some((l, Source::Lidarseg)),
+                (None, Some(c)) if c != UNLABELLED && c != DROP => Some((c, Source::Camera)),
+                _ => None,
+            };
             keep(StaticPoint { world, intensity: q[3], class, ego_z: ego.z });
         }
     }
     drop(keep);
-    // Labels for the points of unlabelled sweeps: the nearest labelled static point's.
+    // Labels for the points of unlabelled sweeps: the nearest labelled static point's, near,
+    // then (among labelled points thinned to one per `transfer_distance` voxel) within reach.
     let size = p.transfer_distance.max(0.05);
     let mut index = LabelIndex { size, cells: HashMap::new() };
-    for sp in statics.iter().filter(|sp| sp.class.is_some()) {
-        index.cells.entry(voxel_of(sp.world, size)).or_default().push((sp.world, sp.class.unwrap_or(0)));
+    let reach_size = p.transfer_reach.max(size);
+    let mut wide = LabelIndex { size: reach_size, cells: HashMap::new() };
+    let mut thinned: HashSet<Voxel> = HashSet::new();
+    for sp in &statics {
+        let Some((class, _)) = sp.class else { continue };
+        index.cells.entry(voxel_of(sp.world, size)).or_default().push((sp.world, class));
+        if thinned.insert(voxel_of(sp.world, size)) {
+            wide.cells.entry(voxel_of(sp.world, reach_size)).or_default().push((sp.world, class));
+        }
     }
-    let (mut transferred, mut fallback) = (0usize, 0usize);
+    let (mut from_lidarseg, mut from_camera, mut transferred, mut fallback) = (0usize, 0usize, 0usize, 0usize);
     let mut static_points = PointCloud::default();
     for sp in &statics {
+        let near = || {
+            index.nearest(sp.world, p.transfer_distance).or_else(|| {
+                (p.transfer_reach > p.transfer_distance).then(|| wide.nearest(sp.world, p.transfer_reach)).flatten()
+            })
+        };
         let class = match sp.class {
-            Some(c) => c,
-            None => match index.nearest(sp.world, p.transfer_distance) {
+            Some((c, Source::Lidarseg)) => {
+                from_lidarseg += 1;
+                c
+            }
+            Some((c, Source::Camera)) => {
+                from_camera += 1;
+                c
+            }
+            None => match near() {
                 Some(c) => {
                     transferred += 1;
                     c
@@ -324,7 +414,7 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
                     if sp.ego_z < p.fallback_ground {
                         DRIVEABLE_SURFACE
                     } else {
-                        MANMADE
+                        OTHERS
                     }
                 }
             },
@@ -338,17 +428,23 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
             .map(|(instance, (class, _, points))| TrackCloud { instance, class, points })
             .collect(),
     };
-    let source = match labelled {
-        0 => "fallback: no sweep has point labels; boxes give their class, the rest is driveable surface below `fallback_ground` (ego frame) and manmade above",
-        l if l == sweeps.len() => "nuScenes-lidarseg (every sweep), boxes give their class",
-        _ => "nuScenes-lidarseg where a sweep has it; the other sweeps' static points take the nearest labelled point's label within `transfer_distance` (else the height fallback); boxes give their class",
+    let provenance = semantics_source(sweeps.len(), labelled, camera_labelled);
+    let source = match provenance.as_str() {
+        "geometry" => "geometry only: no sweep has point labels and no segmenter labelled any; boxes give their class, the rest is driveable surface below `fallback_ground` (ego frame) and others (0) above",
+        "lidarseg" => "nuScenes-lidarseg (every sweep), boxes give their class",
+        "camera" => "camera segmentation (LabelPoints) on every sweep; points no camera labelled take the nearest labelled point's label within `transfer_reach` (else the geometry rule); boxes give their class",
+        _ => "nuScenes-lidarseg where a sweep has it, camera segmentation (LabelPoints) where a segmenter labelled it; the other static points take the nearest labelled point's label within `transfer_reach` (else the geometry rule); boxes give their class",
     };
     let summary = json!({
         "sweeps": sweeps.len(),
         "sweeps_with_labels": labelled,
+        "sweeps_with_camera_labels": camera_labelled,
+        "semantics_source": provenance,
         "labels": source,
         "points_read": points_in,
         "points_dropped": dropped,
+        "static_labels_lidarseg": from_lidarseg,
+        "static_labels_camera": from_camera,
         "static_labels_transferred": transferred,
         "static_labels_by_height": fallback,
         "static_points": static_points.points.len(),
@@ -356,4 +452,141 @@ pub fn aggregate(p: &Params, sweeps: &[Sweep]) -> (PointCloud, TrackClouds, serd
         "track_points": tracks.tracks.iter().map(|t| t.points.len()).sum::<usize>(),
     });
     (static_points, tracks, summary)
+}
+
+/// The `semantics_source` of a scene: which label sources its sweeps had (`lidarseg`, `camera`,
+/// both joined by `+`, or `geometry` for none), with `+transfer` when some sweeps had neither
+/// and took their neighbours' labels. Every frame's metadata repeats it
+/// ([`super::occupancy_frame`]).
+pub fn semantics_source(sweeps: usize, lidarseg: usize, camera: usize) -> String {
+    let mut parts = Vec::new();
+    if lidarseg > 0 {
+        parts.push("lidarseg");
+    }
+    if camera > 0 {
+        parts.push("camera");
+    }
+    if parts.is_empty() {
+        return "geometry".into();
+    }
+    if lidarseg + camera < sweeps {
+        parts.push("transfer");
+    }
+    parts.join("+")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use dist4d_types::artifact::{Calibration, Pose};
+
+    fn identity() -> (Calibration, Pose, Boxes3D) {
+        (
+            Calibration { sensor_to_ego: Se3::default(), intrinsics: None, width: 0, height: 0 },
+            Pose { ego_to_world: Se3::default(), timestamp_us: 0 },
+            Boxes3D::default(),
+        )
+    }
+
+    /// A ring of ground points (z = 0) at radius `r` around the origin, 2 degrees apart.
+    fn ring(r: f32) -> Vec<[f32; 4]> {
+        (0..180).map(|a| (a as f32 * 2.0).to_radians()).map(|t| [r * t.cos(), r * t.sin(), 0.0, 0.0]).collect()
+    }
+
+    fn class_near(cloud: &PointCloud, x: f32, y: f32) -> u8 {
+        let k = (0..cloud.points.len())
+            .min_by(|&a, &b| {
+                let d = |q: &[f32; 4]| (q[0] - x).powi(2) + (q[1] - y).powi(2);
+                d(&cloud.points[a]).total_cmp(&d(&cloud.points[b]))
+            })
+            .unwrap();
+        cloud.labels[k]
+    }
+
+    #[test]
+    fn geometry_only_marks_the_ground_driveable_and_the_rest_others_not_manmade() {
+        let (calib, pose, boxes) = identity();
+        let mut points = ring(10.0);
+        points.push([5.0, 5.0, 1.5, 0.0]); // a bush, a wall, a parked car without a box: unknown
+        let sweep = PointCloud { points, ..PointCloud::default() };
+        let s = [Sweep { points: &sweep, calib: &calib, pose: &pose, boxes: &boxes, camera_labels: None }];
+        let (statics, _, summary) = aggregate(&Params::default(), &s);
+        assert_eq!(class_near(&statics, 10.0, 0.0), DRIVEABLE_SURFACE);
+        assert_eq!(class_near(&statics, 5.0, 5.0), OTHERS);
+        assert_eq!(summary["semantics_source"], "geometry");
+    }
+
+    #[test]
+    fn an_unlabelled_ring_between_labelled_terrain_rings_takes_terrain_not_road() {
+        // Keyframe rings of terrain (lidarseg 27) at 10 and 13 m; an unlabelled sweep's ring at
+        // 11.5 m, 1.5 m from both: beyond `transfer_distance`, within `transfer_reach`.
+        let (calib, pose, boxes) = identity();
+        let mut labelled = PointCloud::default();
+        for q in ring(10.0).into_iter().chain(ring(13.0)) {
+            labelled.points.push(q);
+            labelled.labels.push(27);
+        }
+        let unlabelled = PointCloud { points: ring(11.5), ..PointCloud::default() };
+        let s = [
+            Sweep { points: &labelled, calib: &calib, pose: &pose, boxes: &boxes, camera_labels: None },
+            Sweep { points: &unlabelled, calib: &calib, pose: &pose, boxes: &boxes, camera_labels: None },
+        ];
+        let (statics, _, summary) = aggregate(&Params::default(), &s);
+        assert_eq!(class_near(&statics, 11.5, 0.0), 14, "terrain, not an arc of road");
+        assert_eq!(summary["static_labels_by_height"], 0);
+        assert_eq!(summary["semantics_source"], "lidarseg+transfer");
+        // Within `transfer_distance` only (the old rule), the ring took the height fallback.
+        let narrow = Params { transfer_reach: 0.0, ..Params::default() };
+        let (statics, _, _) = aggregate(&narrow, &s);
+        assert_eq!(class_near(&statics, 11.5, 0.0), DRIVEABLE_SURFACE);
+    }
+
+    #[test]
+    fn a_pedestrians_feet_labelled_by_a_camera_walk_with_it() {
+        let (calib, pose, _) = identity();
+        let boxes = Boxes3D {
+            timestamp_us: 0,
+            boxes: vec![dist4d_types::artifact::Box3D {
+                center: [10.0, 0.0, 0.9],
+                size: [0.6, 0.6, 1.8],
+                rotation: [1.0, 0.0, 0.0, 0.0],
+                velocity: [0.0; 3],
+                instance: "walker".into(),
+                category: "human.pedestrian.adult".into(),
+                attributes: Vec::new(),
+                num_lidar_pts: 0,
+                interpolated: false,
+                extrapolated: false,
+            }],
+        };
+        // A foot 0.05 m up (under the raised bottom), the person's chest, and the road beside.
+        let sweep = PointCloud {
+            points: vec![[10.0, 0.0, 0.05, 0.0], [10.0, 0.0, 1.2, 0.0], [12.0, 0.0, 0.0, 0.0]],
+            ..PointCloud::default()
+        };
+        let camera = [7u8, 7, 11];
+        let s = [Sweep { points: &sweep, calib: &calib, pose: &pose, boxes: &boxes, camera_labels: Some(&camera) }];
+        let (statics, tracks, _) = aggregate(&Params::default(), &s);
+        assert_eq!(tracks.tracks[0].points.len(), 2, "the foot joins the track: {:?}", tracks.tracks[0].points);
+        assert_eq!(statics.labels, vec![11], "only the road stays behind");
+    }
+
+    #[test]
+    fn camera_labels_class_static_points_and_lidarseg_comes_first() {
+        let (calib, pose, boxes) = identity();
+        let sweep = PointCloud { points: ring(10.0), ..PointCloud::default() };
+        let mut camera: Vec<u8> = vec![13; 180]; // sidewalk
+        camera[0] = UNLABELLED; // (10, 0): no camera saw it; its neighbour's label
+        let s = [Sweep { points: &sweep, calib: &calib, pose: &pose, boxes: &boxes, camera_labels: Some(&camera) }];
+        let (statics, _, summary) = aggregate(&Params::default(), &s);
+        assert!(statics.labels.iter().all(|&c| c == 13), "{:?}", statics.labels);
+        assert_eq!(summary["semantics_source"], "camera");
+        assert_eq!(summary["static_labels_camera"], 179);
+        // With lidarseg on the same sweep, lidarseg wins.
+        let seg = PointCloud { labels: vec![27; 180], ..sweep.clone() };
+        let s = [Sweep { points: &seg, calib: &calib, pose: &pose, boxes: &boxes, camera_labels: Some(&camera) }];
+        let (statics, _, summary) = aggregate(&Params::default(), &s);
+        assert!(statics.labels.iter().all(|&c| c == 14));
+        assert_eq!(summary["semantics_source"], "lidarseg");
+    }
 }

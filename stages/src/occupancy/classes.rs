@@ -11,6 +11,60 @@
 
 pub use dist4d_types::occ3d::{of_lidarseg, DRIVEABLE_SURFACE, DROP, FREE, FROM_LIDARSEG, MANMADE, NAMES};
 
+/// Occ3D's `others`: occupied, class unknown or outside the 16.
+pub const OTHERS: u8 = 0;
+
+/// A point that no source labelled (no lidarseg, no camera saw it unoccluded, or its pixel's
+/// class has no Occ3D counterpart): it takes a neighbour's label or the geometry rule
+/// ([`super::aggregate_scene`]). Not [`DROP`]: it is still occupancy.
+pub const UNLABELLED: u8 = 254;
+
+/// Cityscapes label id (the 34 ids of `cityscapesscripts/helpers/labels.py`, not the 19
+/// train ids; what a segmenter worker's op `segment` returns and `dist4d synth` writes) ->
+/// Occ3D class, [`UNLABELLED`] where a LiDAR point cannot take the pixel's class. The table is
+/// documented in docs/stages.md (LabelPoints).
+pub const FROM_CITYSCAPES: [u8; 34] = [
+    UNLABELLED, // 0 unlabeled
+    UNLABELLED, // 1 ego vehicle
+    UNLABELLED, // 2 rectification border
+    UNLABELLED, // 3 out of roi
+    OTHERS,     // 4 static
+    OTHERS,     // 5 dynamic
+    12,         // 6 ground -> other_flat
+    11,         // 7 road -> driveable_surface
+    13,         // 8 sidewalk
+    11,         // 9 parking -> driveable_surface (nuScenes counts parking lots as driveable)
+    12,         // 10 rail track -> other_flat
+    MANMADE,    // 11 building
+    MANMADE,    // 12 wall
+    MANMADE,    // 13 fence
+    1,          // 14 guard rail -> barrier
+    MANMADE,    // 15 bridge
+    MANMADE,    // 16 tunnel
+    MANMADE,    // 17 pole
+    MANMADE,    // 18 polegroup
+    MANMADE,    // 19 traffic light
+    MANMADE,    // 20 traffic sign
+    16,         // 21 vegetation
+    14,         // 22 terrain
+    UNLABELLED, // 23 sky: a LiDAR return is not sky (a mislabelled edge)
+    7,          // 24 person -> pedestrian
+    2,          // 25 rider -> bicycle (nuScenes boxes a cyclist with the bicycle)
+    4,          // 26 car
+    10,         // 27 truck
+    3,          // 28 bus
+    9,          // 29 caravan -> trailer
+    9,          // 30 trailer
+    OTHERS,     // 31 train
+    6,          // 32 motorcycle
+    2,          // 33 bicycle
+];
+
+/// The Occ3D class of a Cityscapes id ([`FROM_CITYSCAPES`]; ids past it are [`UNLABELLED`]).
+pub fn of_cityscapes(id: u8) -> u8 {
+    FROM_CITYSCAPES.get(id as usize).copied().unwrap_or(UNLABELLED)
+}
+
 /// A colour per class, as SurroundOcc's visualisation draws Occ3D-nuScenes (weiyithu/SurroundOcc,
 /// `tools/visual.py`, the `colors` table), which the occupancy papers' figures use; free is
 /// not drawn (here: dark grey).
@@ -92,5 +146,18 @@ mod tests {
         assert_eq!(of_category("Motorcycle"), 6);
         assert_eq!(of_category("animal"), 0);
         assert_eq!(NAMES[FREE as usize], "free");
+    }
+
+    #[test]
+    fn cityscapes_ids_map_to_occ3d_and_sky_or_void_to_no_label() {
+        // The ids `dist4d synth` writes (docs/datasets.md).
+        let synth = [(7, 11), (8, 13), (11, 15), (17, 15), (21, 16), (22, 14), (24, 7), (26, 4)];
+        for (id, occ) in synth {
+            assert_eq!(of_cityscapes(id), occ, "Cityscapes {id}");
+        }
+        for id in [0, 1, 2, 3, 23, 34, 255] {
+            assert_eq!(of_cityscapes(id), UNLABELLED, "Cityscapes {id}");
+        }
+        assert!(FROM_CITYSCAPES.iter().all(|&c| c < FREE || c == UNLABELLED), "never free, never dropped");
     }
 }

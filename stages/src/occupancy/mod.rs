@@ -5,6 +5,7 @@
 pub mod classes;
 pub mod grid;
 
+use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_runtime::NotApplicable;
 
@@ -29,6 +30,36 @@ pub fn window<'a, A>(port: &str, list: &'a [(i64, A)], frames: usize) -> Result<
     Ok(sorted.into_iter().map(|(_, a)| a).collect())
 }
 
+/// The warnings `run` prints when a pipeline's occupancy will be geometry only (issue 42: it
+/// used to say so only in `aggregate.json`): one line per `AggregateScene` that has neither the
+/// dataset's point labels (`has_point_labels`, and its `lidarseg` param) nor a `LabelPoints`
+/// with a segmenter worker wired into `camera_labels`. `dataset` names the dataset in the line.
+pub fn geometry_only_warnings(p: &dist4d_graph::Pipeline, has_point_labels: bool, dataset: &str) -> Vec<String> {
+    let mut out = Vec::new();
+    for node in &p.nodes {
+        let Some(stage) = node.stage() else { continue };
+        if stage.kind != aggregate_scene::AggregateScene::KIND {
+            continue;
+        }
+        let lidarseg = has_point_labels && stage.params.get::<aggregate_scene::Params>().is_none_or(|a| a.lidarseg);
+        let segmenter = stage.inputs.iter().filter(|i| i.port == "camera_labels").any(|i| {
+            p.nodes.get(i.from).and_then(|n| n.stage()).is_some_and(|s| {
+                s.kind == label_points::LabelPoints::KIND
+                    && s.params.get::<label_points::Params>().is_some_and(|l| l.worker.is_some())
+            })
+        });
+        if !lidarseg && !segmenter {
+            out.push(format!(
+                "stage `{}` (AggregateScene): dataset {dataset} has no LiDAR point labels and no segmenter is configured \
+                 (`LabelPoints` worker), so occupancy semantics are geometry only: ground = driveable_surface, every other \
+                 static point = others; each frame's meta.json says \"semantics_source\": \"geometry\" (docs/occupancy.md)",
+                node.name
+            ));
+        }
+    }
+    out
+}
+
 crate::stage_modules! {
     dynamic_city::EncodeCarlaSC,
     poses_txt::PosesTxt,
@@ -40,6 +71,7 @@ crate::stage_modules! {
     exact::ExactOccupancy,
     generate::GenerateHexPlane,
     hexplane::HexPlaneBaseline,
+    label_points::LabelPoints,
     occupancy_frame::Occupancy,
     preview::OccupancyPreview,
     sheet::OccupancySheet,
