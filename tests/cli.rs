@@ -128,6 +128,8 @@ fn eval_of_a_pipeline_that_exports_no_scores_fails_before_running() {
     let t = text(&o);
     assert!(t.contains("stage `eval` (EvalDepth) is not exported"), "{t}");
     assert!(t.contains(r#""eval.json": "{scene}/{camera}/{frame}_metrics.json""#), "{t}");
+    // Every scoring stage that is not exported is named at once.
+    assert!(t.contains("stage `temporal` (EvalTemporal) is not exported"), "{t}");
     assert!(!tmp.path().join(".dist4d").exists(), "nothing may run: {t}");
 }
 

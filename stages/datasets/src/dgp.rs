@@ -370,9 +370,8 @@ pub fn read_dgp_points(path: &Path) -> Result<PointCloud> {
 }
 
 impl SurroundReader for Dgp {
-    /// DDAD's Ford Fusion (4.87 x 1.85 m; the ego frame on the ground, the cameras 1.55 m up
-    /// around x 0.1-1.5) with a margin.
-    const EGO_BOX: Option<([f64; 3], [f64; 3])> = Some(([-1.3, -1.0, -0.5], [3.9, 1.0, 2.0]));
+    /// DDAD's Ford Fusion (the ego frame on the ground, the cameras 1.55 m up around x 0.1-1.5).
+    const EGO_BOX: Option<([f64; 3], [f64; 3])> = Some(dist4d_types::geometry::ego_box::DDAD);
     const FORMAT: &'static str = "DGP";
     type Scene = Ontology;
     type Frame = BoxFile;

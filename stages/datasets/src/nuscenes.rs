@@ -1117,11 +1117,9 @@ fn frame(
 }
 
 impl SurroundReader for NuScenes {
-    /// The Renault Zoe of nuScenes (4.08 x 1.73 m, the ego frame at the rear axle on the ground)
-    /// with room for the roof LiDAR's mount (1.84 m up): its self-returns within 0.5 m of the
-    /// sensor were 24% of the shared keyframe's sweep. The synthetic world (read by this reader)
-    /// puts its small hatchback inside it too.
-    const EGO_BOX: Option<([f64; 3], [f64; 3])> = Some(([-1.0, -1.0, -1.0], [3.4, 1.0, 2.0]));
+    /// The Renault Zoe (its self-returns within 0.5 m of the sensor were 24% of the shared
+    /// keyframe's sweep); the synthetic world, read by this reader, puts its hatchback inside.
+    const EGO_BOX: Option<([f64; 3], [f64; 3])> = Some(dist4d_types::geometry::ego_box::NUSCENES);
     const FORMAT: &'static str = "nuScenes";
     type Scene = Keyframes;
     type Frame = Sweep;

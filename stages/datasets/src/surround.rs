@@ -215,13 +215,12 @@ pub struct Surround<R>(pub R);
 /// `cloud` (in the sensor frame) without the points that lie inside `ego` (min and max corners
 /// in the ego frame; `sensor_to_ego` places the sensor), every column kept in step.
 pub fn without_ego_returns(cloud: PointCloud, sensor_to_ego: &Se3, ego: ([f64; 3], [f64; 3])) -> PointCloud {
-    let (lo, hi) = (glam::DVec3::from(ego.0), glam::DVec3::from(ego.1));
     let keep: Vec<bool> = cloud
         .points
         .iter()
         .map(|p| {
             let e = sensor_to_ego.apply(glam::DVec3::new(p[0] as f64, p[1] as f64, p[2] as f64));
-            !(e.cmpge(lo).all() && e.cmple(hi).all())
+            !dist4d_types::geometry::ego_box::contains(&ego, e)
         })
         .collect();
     if keep.iter().all(|&k| k) {

@@ -24,34 +24,48 @@ const KIND: &str = "EvalDepth";
 /// each exports its scores (the tables are read from the exported files), so that a run that
 /// could not be reported on is refused before it starts.
 pub fn scored_stages(pipeline: &Pipeline) -> Result<Vec<(&str, Params)>> {
-    let mut views = view_stages(pipeline)?;
-    views.extend(occupancy_stages(pipeline)?);
-    views.extend(temporal_stages(pipeline)?);
-    views.extend(cloud_stages(pipeline)?);
-    let stages: Vec<(usize, &str, Params)> = pipeline
+    // Every scoring stage, and every one that is not exported, named at once.
+    let mut scoring = 0;
+    let mut unexported = Vec::new();
+    for (id, n) in pipeline.nodes.iter().enumerate() {
+        let Some(kind) = n.stage().map(|s| s.kind.as_str()) else { continue };
+        let Some((kind, template)) = SCORED.iter().find(|(k, _)| *k == kind) else { continue };
+        scoring += 1;
+        if !pipeline.exports.iter().any(|e| e.node == id) {
+            unexported.push(format!(
+                "{}: stage `{}` ({kind}) is not exported, and `dist4d eval` reads the scores from the exported \
+                 files: add `\"{}.json\": \"{template}\"` to `export`",
+                pipeline.path.display(),
+                n.name,
+                n.name
+            ));
+        }
+    }
+    ensure!(
+        scoring > 0,
+        "{}: the pipeline has no {} stage to report",
+        pipeline.path.display(),
+        SCORED.iter().map(|(k, _)| *k).collect::<Vec<_>>().join(", ")
+    );
+    ensure!(unexported.is_empty(), "{}", unexported.join("\n"));
+    Ok(pipeline
         .nodes
         .iter()
-        .enumerate()
-        .filter_map(|(id, n)| {
+        .filter_map(|n| {
             let s = n.stage().filter(|s| s.kind == KIND)?;
-            Some((id, n.name.as_str(), s.params.get::<Params>().cloned().unwrap_or_default()))
+            Some((n.name.as_str(), s.params.get::<Params>().cloned().unwrap_or_default()))
         })
-        .collect();
-    ensure!(
-        !stages.is_empty() || !views.is_empty(),
-        "{}: the pipeline has no {KIND}, {VIEW_KIND}, {CLOUD_KIND} or {OCC_KIND} stage to report",
-        pipeline.path.display()
-    );
-    for (id, name, _) in &stages {
-        ensure!(
-            pipeline.exports.iter().any(|e| e.node == *id),
-            "{}: stage `{name}` ({KIND}) is not exported, and `dist4d eval` reads the scores from the \
-             exported files: add `\"{name}.json\": \"{{scene}}/{{camera}}/{{frame}}_metrics.json\"` to `export`",
-            pipeline.path.display()
-        );
-    }
-    Ok(stages.into_iter().map(|(_, name, params)| (name, params)).collect())
+        .collect())
 }
+
+/// The kinds `dist4d eval` tabulates, each with the export template its scores are read from.
+const SCORED: &[(&str, &str)] = &[
+    (KIND, "{scene}/{camera}/{frame}_metrics.json"),
+    (VIEW_KIND, "{scene}/{camera}/{frame}_{variant}_view.json"),
+    (OCC_KIND, "{scene}/occupancy/{frame}_scores.json"),
+    (TEMPORAL_KIND, "{scene}/{camera}/{frame}_temporal.json"),
+    (CLOUD_KIND, "{scene}/bullet_time/{frame}_{variant}_{camera}_cloud.json"),
+];
 
 /// The score tables of every `EvalDepth` stage of `pipeline`, from the files its last run
 /// exported into `out_dir`.

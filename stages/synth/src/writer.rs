@@ -634,10 +634,14 @@ fn exact_occupancy(
         .collect();
     let lidar_to_ego = LIDAR_TOP.sensor_to_ego();
     let bytes = std::fs::read(root.join(&r.filename)).with_context(|| format!("reading {}", r.filename))?;
-    let returns = bytes.chunks_exact(20).map(|p| {
-        let f = |i: usize| f32::from_le_bytes([p[i], p[i + 1], p[i + 2], p[i + 3]]) as f64;
-        lidar_to_ego.apply(DVec3::new(f(0), f(4), f(8)))
-    });
+    // Without the car's own returns, as the nuScenes reader gives the sweep to the pipeline.
+    let returns = bytes
+        .chunks_exact(20)
+        .map(|p| {
+            let f = |i: usize| f32::from_le_bytes([p[i], p[i + 1], p[i + 2], p[i + 3]]) as f64;
+            lidar_to_ego.apply(DVec3::new(f(0), f(4), f(8)))
+        })
+        .filter(|e| !dist4d_types::geometry::ego_box::contains(&dist4d_types::geometry::ego_box::NUSCENES, *e));
     let ego_from_world = ego_to_world.inverse();
     let views: Vec<MaskCamera> = CAMERA_RIG
         .iter()

@@ -197,3 +197,19 @@ mod tests {
         assert!(!crosses(&car(0.0), eye, eye));
     }
 }
+
+/// The recording cars' boxes in their ego frames (min and max corners; x forward, y left, z up;
+/// metres): a LiDAR's returns inside are the car itself, which the dataset readers drop
+/// (docs/datasets.md).
+pub mod ego_box {
+    /// nuScenes' Renault Zoe (4.08 x 1.73 m, the ego frame at the rear axle on the ground) with
+    /// room for the roof LiDAR's mount (1.84 m up). The synthetic world's hatchback lies inside.
+    pub const NUSCENES: ([f64; 3], [f64; 3]) = ([-1.0, -1.0, -1.0], [3.4, 1.0, 2.0]);
+    /// DDAD's Ford Fusion (4.87 x 1.85 m; the ego frame on the ground) with a margin.
+    pub const DDAD: ([f64; 3], [f64; 3]) = ([-1.3, -1.0, -0.5], [3.9, 1.0, 2.0]);
+
+    /// Whether the ego-frame point `p` lies in `b`.
+    pub fn contains(b: &([f64; 3], [f64; 3]), p: glam::DVec3) -> bool {
+        (0..3).all(|k| p[k] >= b.0[k] && p[k] <= b.1[k])
+    }
+}
