@@ -275,8 +275,9 @@ crate::ports! {
     pub struct Outputs {
         /// 1 = the ego vehicle's body
         mask: One<Mask>,
-        /// the image with the mask tinted red (an empty image when `image` is not wired)
-        preview: One<Image>,
+        /// the image with the mask tinted red (an empty image when `image` is not wired); made
+        /// only when the run reads it
+        preview: OnDemand<Image>,
     }
 }
 
@@ -306,7 +307,6 @@ impl Stage for EgoMask {
         Ok(Some(text))
     }
     fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
-        let _ = ctx;
         let (w, h, camera) = (i.info.width, i.info.height, i.info.camera.as_str());
         let drawn = if let Some(polygons) = self.0.polygons.get(camera) {
             fill_polygons(w, h, polygons)
@@ -324,6 +324,7 @@ impl Stage for EgoMask {
         let data = grow(&drawn, w as usize, h as usize, self.0.grow as usize);
         let mask = Mask { width: w, height: h, data };
         let preview = match &i.image {
+            _ if !ctx.wants("preview") => None,
             Some(image) if image.width > 0 => {
                 ensure!(
                     (image.width, image.height) == (w, h),
@@ -331,9 +332,9 @@ impl Stage for EgoMask {
                     image.width,
                     image.height
                 );
-                preview(image, &mask)
+                Some(preview(image, &mask))
             }
-            _ => Image { width: 0, height: 0, rgb: Vec::new() },
+            _ => Some(Image { width: 0, height: 0, rgb: Vec::new() }),
         };
         Ok(Outputs { mask, preview })
     }
@@ -409,7 +410,7 @@ mod tests {
         params.polygons.insert("CAM_BACK".into(), vec![vec![(0, 6), (8, 6), (8, 8), (0, 8)]]);
         let back = run(params.clone(), info("CAM_BACK", 8, 8), None).unwrap();
         assert_eq!(back.mask.data.iter().filter(|&&v| v == 1).count(), 16);
-        assert_eq!(back.preview.width, 0);
+        assert_eq!(back.preview.unwrap().width, 0);
         let front = run(params.clone(), info("CAM_FRONT", 8, 8), None).unwrap();
         assert!(front.mask.data.iter().all(|&v| v == 0));
 
@@ -477,8 +478,9 @@ mod tests {
         params.polygons.insert("C".into(), vec![vec![(0, 2), (4, 2), (4, 4), (0, 4)]]);
         let image = Image { width: 4, height: 4, rgb: vec![100; 48] };
         let out = run(params, info("C", 4, 4), Some(image.clone())).unwrap();
-        assert_eq!(&out.preview.rgb[..24], &image.rgb[..24], "outside is untouched");
-        assert_eq!(&out.preview.rgb[3 * 8..3 * 8 + 3], &[255, 32, 32], "the mask's edge is red");
+        let shown = out.preview.unwrap();
+        assert_eq!(&shown.rgb[..24], &image.rgb[..24], "outside is untouched");
+        assert_eq!(&shown.rgb[3 * 8..3 * 8 + 3], &[255, 32, 32], "the mask's edge is red");
         let bad = Image { width: 5, height: 4, rgb: vec![0; 60] };
         assert!(run(Params::default(), info("C", 4, 4), Some(bad)).is_err());
     }
