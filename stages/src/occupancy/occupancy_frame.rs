@@ -36,7 +36,7 @@ use crate::stage::Stage;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::TaskContext;
-use dist4d_types::artifact::{Boxes3D, Calibration, File, OccupancyGrid, PointCloud, Pose, TrackClouds};
+use dist4d_types::artifact::{Boxes3D, Calibration, File, Mask, OccupancyGrid, PointCloud, Pose, TrackClouds};
 use dist4d_types::geometry::Se3;
 use dist4d_types::voxels::{cast_masks, MaskCamera};
 use glam::DVec3;
@@ -109,6 +109,9 @@ crate::ports! {
         camera_poses: Many<Pose>,
         /// the scene's `AggregateScene` summary (`scene.summary`), for the frame's metadata
         scene_summary: Optional<File>,
+        /// the ego body in each camera (`Gather("ego.mask", camera)`): no camera ray is cast
+        /// through it (the hood hides what lies behind it)
+        ego_masks: OptionalMany<Mask>,
     }
 }
 
@@ -151,7 +154,13 @@ impl Stage for Occupancy {
         let cameras: Vec<(&Calibration, &Pose)> =
             i.camera_calibs.iter().zip(&i.camera_poses).map(|((_, c), (_, p))| (c, p)).collect();
         let grid = occupancy(&self.0, &i.static_points, &i.tracks, &i.boxes, &ego_from_world)?;
-        let grid = with_masks(&self.0, grid, &i.sweep, &i.lidar_calib, &ego_from_world, &cameras)?;
+        // Each camera's ego mask, matched by its position in the gather.
+        let blocked: Vec<Option<&Mask>> = i
+            .camera_calibs
+            .iter()
+            .map(|(pos, _)| i.ego_masks.iter().find(|(p, _)| p == pos).map(|(_, m)| m))
+            .collect();
+        let grid = with_blocked_masks(&self.0, grid, &i.sweep, &i.lidar_calib, &ego_from_world, &cameras, &blocked)?;
         let meta = frame_meta(i.scene_summary.as_ref(), ctx.label)?;
         Ok(Outputs { grid, meta: File(serde_json::to_vec_pretty(&meta)?) })
     }
@@ -357,21 +366,49 @@ fn fill_ground(semantics: &mut [u8], dims: [usize; 3], r: usize, shape: Shape, f
 /// Steps 2 and 3 of the module doc ([`dist4d_types::voxels::cast_masks`]).
 pub fn with_masks(
     p: &Params,
-    mut grid: OccupancyGrid,
+    grid: OccupancyGrid,
     sweep: &PointCloud,
     lidar_calib: &Calibration,
     ego_from_world: &Se3,
     cameras: &[(&Calibration, &Pose)],
 ) -> Result<OccupancyGrid> {
+    with_blocked_masks(p, grid, sweep, lidar_calib, ego_from_world, cameras, &[])
+}
+
+/// [`with_masks`] where `blocked[k]`, when given, is camera k's ego mask: no ray through it.
+pub fn with_blocked_masks(
+    p: &Params,
+    mut grid: OccupancyGrid,
+    sweep: &PointCloud,
+    lidar_calib: &Calibration,
+    ego_from_world: &Se3,
+    cameras: &[(&Calibration, &Pose)],
+    blocked: &[Option<&Mask>],
+) -> Result<OccupancyGrid> {
     let g = p.grid.grid();
     ensure!(grid.voxels() == g.len(), "the grid has {} voxels, its params {}", grid.voxels(), g.len());
     let mut views = Vec::with_capacity(cameras.len());
     for (k, (calib, pose)) in cameras.iter().enumerate() {
+        let blocked = match blocked.get(k).copied().flatten() {
+            Some(m) if m.width > 0 => {
+                ensure!(
+                    (m.width, m.height) == (calib.width, calib.height),
+                    "camera {k}: its ego mask is {}x{}, its calibration {}x{}",
+                    m.width,
+                    m.height,
+                    calib.width,
+                    calib.height
+                );
+                m.data.clone()
+            }
+            _ => Vec::new(),
+        };
         views.push(MaskCamera {
             ego_from_camera: ego_from_world.then_from(&pose.ego_to_world.then_from(&calib.sensor_to_ego)),
             k: calib.intrinsics.with_context(|| format!("camera {k}: its calibration has no intrinsics"))?,
             width: calib.width,
             height: calib.height,
+            blocked,
         });
     }
     let returns = sweep
@@ -546,5 +583,25 @@ mod tests {
         assert!(!lidar_seen.contains(&g.index(DVec3::new(-5.0, 0.0, 0.0)).unwrap()), "behind: not seen");
         assert!(grid.mask_camera.iter().zip(&grid.mask_lidar).all(|(&c, &l)| c <= l), "camera within lidar");
         assert!(grid.mask_camera.iter().any(|&c| c != 0), "the camera saw what the LiDAR saw ahead");
+        // The same camera whose lower half is the car's body: fewer voxels seen, none new; wholly
+        // the body: none. An empty mask changes nothing.
+        let fresh = || OccupancyGrid { mask_lidar: Vec::new(), mask_camera: Vec::new(), ..grid.clone() };
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let seen = |blocked: &Mask| {
+            let out = with_blocked_masks(&p, fresh(), &sweep, &lidar, &Se3::default(), &[(&camera, &pose)], &[Some(blocked)]);
+            out.unwrap().mask_camera
+        };
+        let lower = Mask { width: w as u32, height: h as u32, data: (0..w * h).map(|k| (k / w >= h / 2) as u8).collect() };
+        let half = seen(&lower);
+        let count = |m: &[u8]| m.iter().filter(|&&c| c != 0).count();
+        assert!(count(&half) < count(&grid.mask_camera), "{} {}", count(&half), count(&grid.mask_camera));
+        assert!(half.iter().zip(&grid.mask_camera).all(|(&a, &b)| a <= b));
+        let all = Mask { data: vec![1; w * h], ..lower.clone() };
+        assert_eq!(count(&seen(&all)), 0);
+        let none = Mask { data: vec![0; w * h], ..lower.clone() };
+        assert_eq!(seen(&none), grid.mask_camera);
+        let wrong = Mask { width: 3, height: 2, data: vec![1; 6] };
+        let e = with_blocked_masks(&p, fresh(), &sweep, &lidar, &Se3::default(), &[(&camera, &pose)], &[Some(&wrong)]);
+        assert!(e.err().unwrap().to_string().contains("ego mask is 3x2"));
     }
 }

@@ -653,6 +653,8 @@ fn exact_occupancy(
                 k: rig.intrinsics(config.width, config.height),
                 width: config.width,
                 height: config.height,
+                // The synthetic cameras see no car body.
+                blocked: Vec::new(),
             })
         })
         .collect();

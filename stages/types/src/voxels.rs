@@ -113,6 +113,9 @@ pub struct MaskCamera {
     pub k: [[f64; 3]; 3],
     pub width: u32,
     pub height: u32,
+    /// Pixels (row-major, non-zero) through which the camera sees nothing of the scene: the
+    /// recording car's body. No ray is cast through them. Empty = none.
+    pub blocked: Vec<u8>,
 }
 
 /// The visibility masks of an occupancy frame (C order over the grid, 0/1):
@@ -149,6 +152,9 @@ pub fn cast_masks(
         let centre = cam.ego_from_camera.translation;
         for y in (step / 2..cam.height as usize).step_by(step) {
             for x in (step / 2..cam.width as usize).step_by(step) {
+                if cam.blocked.get(y * cam.width as usize + x).is_some_and(|&b| b != 0) {
+                    continue;
+                }
                 let yc = (y as f64 + 0.5 - k[1][2]) / k[1][1];
                 let xc = (x as f64 + 0.5 - k[0][2] - k[0][1] * yc) / k[0][0];
                 let dir = cam.ego_from_camera.rotation * DVec3::new(xc, yc, 1.0).normalize();
