@@ -1925,14 +1925,11 @@ impl Stage for CompleteDepth {
         self.1.resource()
     }
     fn run(&self, ctx: &TaskContext, mut i: Inputs) -> Result<Outputs> {
-        let ego = super::ego_mask::wired(i.ego.as_ref(), i.sparse.width, i.sparse.height, "prompt")?.map(<[u8]>::to_vec);
-        if let Some(ego) = &ego {
+        let ego_mask = i.ego.take();
+        let ego = super::ego_mask::wired(ego_mask.as_ref(), i.sparse.width, i.sparse.height, "prompt")?;
+        if let Some(ego) = ego {
             // A prompt made without the mask still has the road behind the hood on it.
-            for (z, &e) in i.sparse.data.iter_mut().zip(ego) {
-                if e != 0 {
-                    *z = 0.0;
-                }
-            }
+            super::ego_mask::set_where(&mut i.sparse.data, ego, 0.0);
         }
         let mut out = if self.1.is_set() {
             worker_completion(ctx, &self.0, &self.1, &i)?
@@ -1942,13 +1939,9 @@ impl Stage for CompleteDepth {
             dist4d_types::cancel::check()?;
             Outputs { depth: c.depth, support: c.support }
         };
-        if let Some(ego) = &ego {
+        if let Some(ego) = ego {
             for map in std::iter::once(&mut out.depth).chain(out.support.as_mut()) {
-                for (z, &e) in map.data.iter_mut().zip(ego) {
-                    if e != 0 {
-                        *z = 0.0;
-                    }
-                }
+                super::ego_mask::set_where(&mut map.data, ego, 0.0);
             }
         }
         Ok(out)

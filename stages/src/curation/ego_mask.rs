@@ -86,14 +86,7 @@ impl Rig {
     /// The rig's mask of `camera` at `w` x `h`, if it has the camera at that size.
     fn mask(&self, camera: &str, w: u32, h: u32) -> Option<Vec<u8>> {
         let polygons = self.cameras.get(camera).filter(|_| (self.width, self.height) == (w, h))?;
-        let mut out = vec![0u8; (w * h) as usize];
-        for p in polygons {
-            let shifted: Vec<(f64, f64)> = p.iter().map(|&[x, y]| (x + 0.5, y + 0.5)).collect();
-            for (o, v) in out.iter_mut().zip(fill_polygons_f64(w, h, &[shifted])) {
-                *o |= v;
-            }
-        }
-        Some(out)
+        Some(fill_opencv_polygons(w, h, polygons))
     }
 
     /// Whether the rig is the one of the camera of `info`: it names the camera, or a camera of
@@ -189,6 +182,29 @@ pub fn fill_polygons_f64(w: u32, h: u32, polygons: &[Vec<(f64, f64)>]) -> Vec<u8
         }
     }
     out
+}
+
+/// The union of `polygons` drawn one by one (so overlapping ones never cut holes), with vertices
+/// in OpenCV's `fillPoly` convention (the pixel (i, j) is the point (i, j)): hand labels and the
+/// built-in rigs.
+pub fn fill_opencv_polygons<'a>(w: u32, h: u32, polygons: impl IntoIterator<Item = &'a Vec<[f64; 2]>>) -> Vec<u8> {
+    let mut out = vec![0u8; (w * h) as usize];
+    for p in polygons {
+        let shifted: Vec<(f64, f64)> = p.iter().map(|&[x, y]| (x + 0.5, y + 0.5)).collect();
+        for (o, v) in out.iter_mut().zip(fill_polygons_f64(w, h, &[shifted])) {
+            *o |= v;
+        }
+    }
+    out
+}
+
+/// Sets `values` to `to` wherever `mask` is non-zero: what a stage does on the ego body.
+pub fn set_where<T: Copy>(values: &mut [T], mask: &[u8], to: T) {
+    for (v, &m) in values.iter_mut().zip(mask) {
+        if m != 0 {
+            *v = to;
+        }
+    }
 }
 
 /// `mask` widened by `by` pixels in every direction (a (2by+1)-square dilation, separable).

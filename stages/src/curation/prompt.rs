@@ -180,11 +180,7 @@ impl Stage for DepthPrompt {
         let view = i.view.view()?;
         let mut sparse = project_points(&self.0, &i.points, &view);
         if let Some(ego) = super::ego_mask::wired(i.ego.as_ref(), sparse.width, sparse.height, "prompt")? {
-            for (z, &e) in sparse.data.iter_mut().zip(ego) {
-                if e != 0 {
-                    *z = 0.0;
-                }
-            }
+            super::ego_mask::set_where(&mut sparse.data, ego, 0.0);
         }
         Ok(Outputs { sparse })
     }

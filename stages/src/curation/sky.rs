@@ -408,11 +408,7 @@ impl Stage for EstimateSky {
         let ego = i.ego.take();
         let mut out = self.sky(ctx, i)?;
         if let Some(ego) = super::ego_mask::wired(ego.as_ref(), out.sky.width, out.sky.height, "image")? {
-            for (s, &e) in out.sky.data.iter_mut().zip(ego) {
-                if e != 0 {
-                    *s = 0;
-                }
-            }
+            super::ego_mask::set_where(&mut out.sky.data, ego, 0);
         }
         Ok(out)
     }

@@ -61,21 +61,8 @@ impl LabelFile {
 
     /// The pixels of the regions of `class`, as 1 in a row-major map.
     pub fn mask(&self, class: &str) -> Vec<u8> {
-        let polygons: Vec<Vec<(f64, f64)>> = self
-            .regions
-            .iter()
-            .filter(|r| r.class == class)
-            .map(|r| r.polygon.iter().map(|&[x, y]| (x + 0.5, y + 0.5)).collect())
-            .collect();
-        // One region at a time: overlapping regions of one class must not cut holes.
-        let mut out = vec![0u8; (self.width * self.height) as usize];
-        for p in &polygons {
-            let one = crate::curation::ego_mask::fill_polygons_f64(self.width, self.height, std::slice::from_ref(p));
-            for (o, v) in out.iter_mut().zip(one) {
-                *o |= v;
-            }
-        }
-        out
+        let polygons = self.regions.iter().filter(|r| r.class == class).map(|r| &r.polygon);
+        crate::curation::ego_mask::fill_opencv_polygons(self.width, self.height, polygons)
     }
 }
 

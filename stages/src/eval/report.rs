@@ -364,13 +364,11 @@ fn temporal_tables(
             let t: TemporalScores = serde_json::from_slice(&bytes)
                 .with_context(|| format!("{} is not an {TEMPORAL_KIND} score file", path.display()))?;
             let camera = entry.item.rsplit('/').next().unwrap_or_default().to_string();
-            for (source, map) in [(0, &t.depth), (1, &t.gt)] {
-                for (offset, a) in map {
-                    let slot = pooled.entry((camera.clone(), offset.clone())).or_default();
-                    let into = if source == 0 { &mut slot.0 } else { &mut slot.1 };
-                    into.seen_by_both += a.seen_by_both;
-                    into.agree += a.agree;
-                }
+            for (offset, a) in &t.depth {
+                pooled.entry((camera.clone(), offset.clone())).or_default().0.add(a);
+            }
+            for (offset, a) in &t.gt {
+                pooled.entry((camera.clone(), offset.clone())).or_default().1.add(a);
             }
             images += 1;
         }
@@ -391,10 +389,8 @@ fn temporal_tables(
         for ((camera, offset), (d, g)) in &pooled {
             text.push_str(&format!("| {camera} | {offset} | {} | {} |\n", cell(d), cell(g)));
             let slot = all.entry(offset.clone()).or_default();
-            slot.0.seen_by_both += d.seen_by_both;
-            slot.0.agree += d.agree;
-            slot.1.seen_by_both += g.seen_by_both;
-            slot.1.agree += g.agree;
+            slot.0.add(d);
+            slot.1.add(g);
         }
         for (offset, (d, g)) in &all {
             text.push_str(&format!("| all | {offset} | {} | {} |\n", cell(d), cell(g)));

@@ -73,6 +73,11 @@ pub struct Agreement {
 }
 
 impl Agreement {
+    pub fn add(&mut self, other: &Agreement) {
+        self.seen_by_both += other.seen_by_both;
+        self.agree += other.agree;
+    }
+
     pub fn share(&self) -> Option<f64> {
         (self.seen_by_both > 0).then(|| self.agree as f64 / self.seen_by_both as f64)
     }
@@ -80,7 +85,7 @@ impl Agreement {
 
 /// The agreement of `target`'s static structure with `other`'s (see the module doc).
 pub fn agreement(p: &Params, target: &Frame, other: &Frame, moving: &Boxes3D) -> Result<Agreement> {
-    let (w, h) = (target.depth.width as usize, target.depth.height as usize);
+    let w = target.depth.width as usize;
     for f in [target, other] {
         ensure!(
             (f.depth.width, f.depth.height) == (f.calib.width, f.calib.height),
@@ -126,7 +131,6 @@ pub fn agreement(p: &Params, target: &Frame, other: &Frame, moving: &Boxes3D) ->
         a.seen_by_both += 1;
         a.agree += (((found as f64) - q.z).abs() <= p.agree * q.z) as u64;
     }
-    let _ = h;
     Ok(a)
 }
 
