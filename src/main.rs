@@ -927,6 +927,18 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 Ok(x) => x,
                 Err(code) => return Ok(code),
             };
+            // The data may live on another machine (checked here, run on the cluster): a root
+            // that is not here is a note; one that holds another kind's data is an error.
+            match registry.dataset_root_problem(&pipeline) {
+                Some(missing @ dist4d_datasets::registry::RootProblem::Missing(_)) => {
+                    eprintln!("note: {missing}; `run` needs it")
+                }
+                Some(other) => {
+                    eprintln!("error: {}: {other}", p.pipeline.display());
+                    return Ok(ExitCode::from(2));
+                }
+                None => {}
+            }
             let stages = pipeline.stage_order().count();
             println!(
                 "{}: ok ({} stages, {} dataset ports, {} exports)",

@@ -251,3 +251,95 @@ fn the_12hz_tables_written_outside_the_root_say_how_to_load_them() {
     assert!(t.contains(&format!("ln -s {} {}", out.display(), root.join("interp_12Hz_mini").display())), "{t}");
     assert!(t.contains(&format!("NuScenes(version='interp_12Hz_mini', dataroot='{}')", root.display())), "{t}");
 }
+
+#[test]
+fn check_and_run_say_when_the_root_is_missing_or_holds_another_kind() {
+    let tmp = tempfile::tempdir().unwrap();
+    let lidar = repo().join("pipelines/lidar_depth.ron").display().to_string();
+    // Missing: `check` notes it (the data may be on the cluster), `run` refuses before any work.
+    let missing = tmp.path().join("not-here");
+    let set = format!("dataset.root={}", missing.display());
+    let o = dist4d(&["check", &lidar, "--set", &set]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains(&format!("dataset root {} does not exist", missing.display())), "{}", text(&o));
+    let (cache, out) = (tmp.path().join("c"), tmp.path().join("o"));
+    let o = run_lidar_depth(&missing, &cache, &out);
+    assert!(!o.status.success() && text(&o).contains("does not exist"), "{}", text(&o));
+    // A nuScenes pipeline pointed at a DGP root (a scene_dataset*.json): `check` names the kind.
+    let dgp = tmp.path().join("ddad");
+    std::fs::create_dir_all(&dgp).unwrap();
+    std::fs::write(dgp.join("scene_dataset_v1.0.json"), "{}").unwrap();
+    let o = dist4d(&["check", &lidar, "--set", &format!("dataset.root={}", dgp.display())]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    let said = text(&o);
+    assert!(said.contains(&format!("did you mean `Dgp(root: \"{}\")`?", dgp.display())), "{said}");
+    assert!(said.contains("dataset kinds: NuScenes, Dgp, Synth"), "{said}");
+    // And a DGP pipeline at a nuScenes root, the other way round.
+    let (_keep, nus) = synthetic_nuscenes(1);
+    let o = dist4d(&["check", &lidar, "--set", &format!("dataset=Dgp(root: \"{}\")", nus.display())]);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(text(&o).contains("did you mean `NuScenes(root: "), "{}", text(&o));
+}
+
+#[test]
+fn a_synth_dataset_is_made_on_first_use_and_read_like_the_folder_dist4d_synth_writes() {
+    let tmp = tempfile::tempdir().unwrap();
+    let lidar = repo().join("pipelines/lidar_depth.ron").display().to_string();
+    let world = tmp.path().join("world");
+    let dataset = format!("dataset=Synth(root: \"{}\", keyframes: 2, width: 96, height: 54, seed: 3)", world.display());
+    let (cache, out) = (tmp.path().join("cache"), tmp.path().join("o1"));
+    let o = dist4d(&[
+        "run",
+        &lidar,
+        "--progress",
+        "off",
+        "--cache",
+        cache.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--set",
+        &dataset,
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(world.join("groundtruth/synth.json").is_file());
+    // The same world written by `dist4d synth` and read as NuScenes gives the same files.
+    let written = tmp.path().join("written");
+    let o = dist4d(&[
+        "synth",
+        "--out",
+        written.to_str().unwrap(),
+        "--seed",
+        "3",
+        "--keyframes",
+        "2",
+        "--width",
+        "96",
+        "--height",
+        "54",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let out2 = tmp.path().join("o2");
+    let o = run_lidar_depth(&written, &tmp.path().join("cache2"), &out2);
+    assert!(o.status.success(), "{}", text(&o));
+    let depths = |dir: &Path| tree(dir).into_iter().filter(|(name, _)| name.ends_with("_uvz.npy")).collect::<Vec<_>>();
+    let (a, b) = (depths(&out), depths(&out2));
+    assert!(a.len() >= 12, "{}", a.len());
+    assert_eq!(a, b);
+    // A second run finds the world in place; another seed in the same folder is refused.
+    let o = dist4d(&["check", &lidar, "--set", &dataset]);
+    assert!(o.status.success(), "{}", text(&o));
+    let other = dataset.replace("seed: 3", "seed: 4");
+    let o = dist4d(&[
+        "run",
+        &lidar,
+        "--progress",
+        "off",
+        "--cache",
+        cache.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--set",
+        &other,
+    ]);
+    assert!(!o.status.success() && text(&o).contains("other settings"), "{}", text(&o));
+}

@@ -18,8 +18,7 @@ pub mod stage;
 pub mod stereo;
 
 use anyhow::{anyhow, Context, Result};
-use dist4d_datasets::surround::Surround;
-use dist4d_graph::ParamsValue;
+use dist4d_datasets::{DatasetDef, DATASETS};
 use dist4d_graph::{Catalog, DatasetSchema, Pipeline, StageSchema};
 use dist4d_runtime::{Dataset, Operator};
 use stage::StageDef;
@@ -27,8 +26,8 @@ use stage::StageDef;
 /// Every stage kind and dataset kind dist4d has.
 pub struct Registry {
     stages: Vec<StageDef>,
-    nuscenes: DatasetSchema,
-    dgp: DatasetSchema,
+    /// Each dataset kind's schema beside how to open it, in [`DATASETS`] order.
+    datasets: Vec<(DatasetSchema, &'static DatasetDef)>,
 }
 
 impl Default for Registry {
@@ -45,20 +44,27 @@ impl Default for Registry {
             .into_iter()
             .flatten()
             .collect(),
-            nuscenes: dist4d_datasets::nuscenes::schema(),
-            dgp: dist4d_datasets::dgp::schema(),
+            datasets: DATASETS.iter().map(|d| ((d.schema)(), d)).collect(),
         }
     }
 }
 
 impl Registry {
     /// Every dataset kind, in registry order.
-    pub fn dataset_schemas(&self) -> [&DatasetSchema; 2] {
-        [&self.nuscenes, &self.dgp]
+    pub fn dataset_schemas(&self) -> impl Iterator<Item = &DatasetSchema> {
+        self.datasets.iter().map(|(s, _)| s)
     }
 
     pub fn stage_defs(&self) -> &[StageDef] {
         &self.stages
+    }
+
+    /// What a look at the pipeline's dataset root finds wrong before opening it: it does not
+    /// exist, or it holds another kind's data (the message says which, and how to read it).
+    pub fn dataset_root_problem(&self, p: &Pipeline) -> Option<dist4d_datasets::registry::RootProblem> {
+        let (_, def) = self.datasets.iter().find(|(s, _)| s.kind == p.dataset.kind)?;
+        let root = (def.root)(&p.dataset.config)?;
+        dist4d_datasets::registry::root_problem(DATASETS, &p.dataset.kind, &root)
     }
 
     /// Opens the dataset a pipeline names (with the pipeline's variants under its items, when
@@ -72,33 +78,20 @@ impl Registry {
     }
 
     fn open_dataset_only(&self, p: &Pipeline) -> Result<Box<dyn Dataset>> {
-        match p.dataset.kind.as_str() {
-            "NuScenes" => {
-                let ds = dist4d_datasets::nuscenes::NuScenes::open(config(&p.dataset.config)?)
-                    .context("opening the NuScenes dataset")?;
-                for w in &ds.warnings {
-                    eprintln!("warning: {w}");
-                }
-                let what = format!("NuScenes at {}", ds.config.root);
-                for w in occupancy::geometry_only_warnings(p, ds.has_point_labels, &what) {
-                    eprintln!("warning: {w}");
-                }
-                Ok(Box::new(Surround(ds)))
-            }
-            "Dgp" => {
-                let ds =
-                    dist4d_datasets::dgp::Dgp::open(config(&p.dataset.config)?).context("opening the DGP dataset")?;
-                for w in &ds.warnings {
-                    eprintln!("warning: {w}");
-                }
-                let what = format!("Dgp at {}", ds.config.root);
-                for w in occupancy::geometry_only_warnings(p, false, &what) {
-                    eprintln!("warning: {w}");
-                }
-                Ok(Box::new(Surround(ds)))
-            }
-            other => Err(anyhow!("unknown dataset kind {other}")),
+        let kind = p.dataset.kind.as_str();
+        let (_, def) =
+            self.datasets.iter().find(|(s, _)| s.kind == kind).ok_or_else(|| anyhow!("unknown dataset kind {kind}"))?;
+        if let Some(problem) = self.dataset_root_problem(p) {
+            anyhow::bail!("{problem}");
         }
+        let opened = (def.open)(&p.dataset.config)?;
+        for w in &opened.warnings {
+            eprintln!("warning: {w}");
+        }
+        for w in occupancy::geometry_only_warnings(p, opened.has_point_labels, &opened.description) {
+            eprintln!("warning: {w}");
+        }
+        Ok(opened.dataset)
     }
 
     /// One operator per pipeline node (None for sources).
@@ -129,10 +122,10 @@ impl Catalog for Registry {
         self.stages.iter().map(|s| s.schema.kind).collect()
     }
     fn dataset(&self, kind: &str) -> Option<&DatasetSchema> {
-        [&self.nuscenes, &self.dgp].into_iter().find(|d| d.kind == kind)
+        self.dataset_schemas().find(|d| d.kind == kind)
     }
     fn dataset_kinds(&self) -> Vec<&'static str> {
-        vec![self.nuscenes.kind, self.dgp.kind]
+        self.dataset_schemas().map(|d| d.kind).collect()
     }
     fn exportable(&self, ty: &str) -> bool {
         ty == dist4d_types::artifact::File::TYPE
@@ -140,14 +133,6 @@ impl Catalog for Registry {
 }
 
 use dist4d_types::artifact::Artifact as _;
-
-/// The typed config of a dataset, as the graph checked it.
-fn config<C: Clone + 'static>(checked: &ParamsValue) -> Result<C> {
-    checked
-        .get::<C>()
-        .cloned()
-        .ok_or_else(|| anyhow!("the dataset config was checked as another type, not {}", std::any::type_name::<C>()))
-}
 
 #[cfg(test)]
 mod tests {

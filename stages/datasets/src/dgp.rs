@@ -440,6 +440,29 @@ impl dist4d_graph::Validate for DgpConfig {
 }
 
 /// The Dgp dataset kind as pipelines see it: the items and ports of nuScenes.
+/// The `Dgp(..)` dataset kind.
+pub const DATASET: crate::DatasetDef =
+    crate::DatasetDef { schema, open: open_checked, root: root_of, recognises, makes_root: false };
+
+fn open_checked(checked: &dist4d_graph::ParamsValue) -> Result<crate::Opened> {
+    let ds = Dgp::open(crate::registry::config::<DgpConfig>(checked)?.clone()).context("opening the DGP dataset")?;
+    Ok(crate::Opened {
+        description: format!("Dgp at {}", ds.config.root),
+        warnings: ds.warnings.clone(),
+        has_point_labels: false,
+        dataset: Box::new(crate::surround::Surround(ds)),
+    })
+}
+
+fn root_of(checked: &dist4d_graph::ParamsValue) -> Option<PathBuf> {
+    checked.get::<DgpConfig>().map(|c| PathBuf::from(&c.root))
+}
+
+/// A DGP root holds its `scene_dataset*.json`.
+fn recognises(folder: &Path) -> bool {
+    crate::registry::has_entry(folder, |n| n.starts_with("scene_dataset") && n.ends_with(".json"))
+}
+
 pub fn schema() -> DatasetSchema {
     DatasetSchema {
         kind: "Dgp",

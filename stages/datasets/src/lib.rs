@@ -7,7 +7,15 @@ pub mod checks;
 pub mod dgp;
 pub mod files;
 pub mod nuscenes;
+pub mod registry;
 pub mod sidecar;
 pub mod surround;
+pub mod synth;
 #[cfg(test)]
 mod testing;
+
+pub use registry::{DatasetDef, Opened};
+
+/// Every dataset kind, in the order `dist4d check` lists them: a reader is its module and its
+/// line here.
+pub const DATASETS: &[DatasetDef] = &[nuscenes::DATASET, dgp::DATASET, synth::DATASET];

@@ -1308,6 +1308,32 @@ impl dist4d_graph::Validate for NuScenesConfig {
     }
 }
 
+/// The `NuScenes(..)` dataset kind.
+pub const DATASET: crate::DatasetDef =
+    crate::DatasetDef { schema, open: open_checked, root: root_of, recognises, makes_root: false };
+
+fn open_checked(checked: &dist4d_graph::ParamsValue) -> Result<crate::Opened> {
+    let ds = NuScenes::open(crate::registry::config::<NuScenesConfig>(checked)?.clone())
+        .context("opening the NuScenes dataset")?;
+    Ok(crate::Opened {
+        description: format!("NuScenes at {}", ds.config.root),
+        warnings: ds.warnings.clone(),
+        has_point_labels: ds.has_point_labels,
+        dataset: Box::new(crate::surround::Surround(ds)),
+    })
+}
+
+fn root_of(checked: &dist4d_graph::ParamsValue) -> Option<PathBuf> {
+    checked.get::<NuScenesConfig>().map(|c| PathBuf::from(&c.root))
+}
+
+/// A nuScenes root holds table folders (`v1.0-mini/scene.json`, ASAP's `interp_12Hz_*`).
+fn recognises(folder: &Path) -> bool {
+    crate::registry::has_entry(folder, |n| {
+        (n.starts_with("v1.0-") || n.starts_with("interp_12Hz_")) && folder.join(n).join("scene.json").is_file()
+    })
+}
+
 /// The NuScenes dataset kind as pipelines see it.
 pub fn schema() -> DatasetSchema {
     DatasetSchema {

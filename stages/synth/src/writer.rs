@@ -135,6 +135,14 @@ impl Tables {
 
 /// Writes the dataset of `config` to `root`. If `root` already holds the dataset of the same
 /// config, nothing is done; if it holds anything else, that is an error (nothing is overwritten).
+/// Whether `record` (a dataset's `synth.json`) says it holds the world of `config`.
+fn same_world(record: &Path, config: &SynthConfig) -> bool {
+    std::fs::read_to_string(record)
+        .ok()
+        .and_then(|text| serde_json::from_str::<SynthFile>(&text).ok())
+        .is_some_and(|file| file.generator_version == GENERATOR_VERSION && &file.config == config)
+}
+
 pub fn write_dataset(config: &SynthConfig, root: &Path, log: &(dyn Fn(&str) + Sync)) -> Result<Option<Summary>> {
     let record = root.join(GROUND_TRUTH_DIR).join("synth.json");
     if root.exists() {
@@ -163,7 +171,20 @@ pub fn write_dataset(config: &SynthConfig, root: &Path, log: &(dyn Fn(&str) + Sy
     anyhow::ensure!(config.keyframes >= 1 && config.scenes >= 1, "need at least one scene and one keyframe");
     let start = std::time::Instant::now();
     let name = root.file_name().context("the output folder needs a name")?.to_string_lossy().to_string();
-    let partial = root.with_file_name(format!(".{name}.partial"));
+    // One partial folder per process: two processes that open the same `Synth(..)` dataset at
+    // once (a Slurm array's tasks) each write their own, and the second rename finds the world
+    // in place. A dead process's leftover is removed.
+    let prefix = format!(".{name}.partial-");
+    if let Some(parent) = root.parent().filter(|p| p.is_dir()) {
+        for leftover in std::fs::read_dir(parent)?.flatten() {
+            let file_name = leftover.file_name();
+            let Some(pid) = file_name.to_str().and_then(|n| n.strip_prefix(&prefix)) else { continue };
+            if !Path::new("/proc").join(pid).exists() {
+                let _ = std::fs::remove_dir_all(leftover.path());
+            }
+        }
+    }
+    let partial = root.with_file_name(format!("{prefix}{}", std::process::id()));
     if partial.exists() {
         std::fs::remove_dir_all(&partial).with_context(|| format!("removing the leftover {}", partial.display()))?;
     }
@@ -195,7 +216,14 @@ pub fn write_dataset(config: &SynthConfig, root: &Path, log: &(dyn Fn(&str) + Sy
     if let Some(parent) = root.parent() {
         std::fs::create_dir_all(parent)?;
     }
-    std::fs::rename(&partial, root).with_context(|| format!("moving {} to {}", partial.display(), root.display()))?;
+    if let Err(e) = std::fs::rename(&partial, root) {
+        let _ = std::fs::remove_dir_all(&partial);
+        // Another process made it meanwhile: the same world is there, or the error says why not.
+        if same_world(&record, config) {
+            return Ok(None);
+        }
+        return Err(e).with_context(|| format!("moving {} to {}", partial.display(), root.display()));
+    }
     summary.scenes = config.scenes as usize;
     summary.seconds = start.elapsed().as_secs_f64();
     Ok(Some(summary))
