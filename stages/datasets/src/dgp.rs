@@ -295,6 +295,7 @@ fn datum(d: &Value, sensor: &str, src: &Sources, notes: &mut Renormalised) -> Re
         pose: Pose { ego_to_world: sensor_to_world.then_from(&sensor_to_ego.inverse()), timestamp_us: timestamp },
         what: format!("datum {key}"),
         token: key.to_string(),
+        row: None,
     };
     let boxes =
         body.pointer("/annotations/1").and_then(|a| a.as_str()).map(|a| join_inside(src.dir, &at, "annotations.1", a));

@@ -62,6 +62,23 @@ pub fn read_camera_image(path: &Path, width: u32, height: u32, source: &str) -> 
     decode_image(path, &bytes, w, h).with_context(|| source.to_string())
 }
 
+/// A camera image held in memory (`bytes`, e.g. a row of a log), checked and decoded as
+/// [`read_camera_image`] does a file; `source` names where the bytes are (file and row).
+pub fn decode_camera_image(bytes: &[u8], width: u32, height: u32, source: &str) -> Result<Image> {
+    let place = Path::new(source);
+    check_jpeg_end(bytes).with_context(|| format!("{source} is truncated"))?;
+    let (w, h) = image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(anyhow::Error::from)
+        .and_then(|r| Ok(r.into_dimensions()?))
+        .with_context(|| format!("{source} is not a readable image (its header)"))?;
+    crate::checks::image_size(source, "its header", w, h).map_err(anyhow::Error::msg)?;
+    if width > 0 && height > 0 && (w, h) != (width, height) {
+        bail!("{source} is {w}x{h} but its metadata says {width}x{height}");
+    }
+    decode_image(place, bytes, w, h)
+}
+
 /// A whole image file and the size its header declares (within the bounds of
 /// [`crate::checks::image_size`]).
 fn read_image_header(path: &Path) -> Result<(Vec<u8>, u32, u32)> {

@@ -7,6 +7,7 @@ pub mod checks;
 pub mod dgp;
 pub mod files;
 pub mod nuscenes;
+pub mod py123d;
 pub mod registry;
 pub mod sidecar;
 pub mod surround;
@@ -18,4 +19,4 @@ pub use registry::{DatasetDef, Opened};
 
 /// Every dataset kind, in the order `dist4d check` lists them: a reader is its module and its
 /// line here.
-pub const DATASETS: &[DatasetDef] = &[nuscenes::DATASET, dgp::DATASET, synth::DATASET];
+pub const DATASETS: &[DatasetDef] = &[nuscenes::DATASET, dgp::DATASET, synth::DATASET, py123d::DATASET];

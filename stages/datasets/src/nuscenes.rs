@@ -633,6 +633,7 @@ impl NuScenes {
                 pose: Pose { ego_to_world, timestamp_us: sd.timestamp },
                 what: format!("sample_data {}", sd.token),
                 token: sd.token.clone(),
+                row: None,
             })
         };
         // A LiDAR reading and its lidarseg labels: a refused labels file fails the whole reading.
@@ -1266,7 +1267,7 @@ impl NuScenes {
 
 /// The box of a track a fraction `w` of the way from annotation `a` to annotation `b`: linear
 /// centre, size and velocity, slerp rotation.
-fn interpolate(a: &Box3D, b: &Box3D, w: f64) -> Box3D {
+pub(crate) fn interpolate(a: &Box3D, b: &Box3D, w: f64) -> Box3D {
     let lerp = |x: [f64; 3], y: [f64; 3]| [0, 1, 2].map(|i| x[i] + (y[i] - x[i]) * w);
     let q0 = glam::DQuat::from_xyzw(a.rotation[1], a.rotation[2], a.rotation[3], a.rotation[0]).normalize();
     let q1 = glam::DQuat::from_xyzw(b.rotation[1], b.rotation[2], b.rotation[3], b.rotation[0]).normalize();

@@ -12,7 +12,7 @@ use crate::sidecar::Sidecars;
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{DimSpec, SourcePortSpec};
 use dist4d_runtime::{Dataset, Digest, DigestBuilder, FileDigests, ItemKey, ItemSpace};
-use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, ImageInfo, PointCloud, Pose};
+use dist4d_types::artifact::{Artifact, Box3D, Boxes3D, Calibration, Image, ImageInfo, PointCloud, Pose};
 use dist4d_types::geometry::Se3;
 use std::path::{Path, PathBuf};
 
@@ -98,6 +98,8 @@ pub struct Reading {
     pub what: String,
     /// Its token in the metadata (nuScenes `sample_data` token, DGP datum key).
     pub token: String,
+    /// Its row in `file` when the file is a table of readings (a py123d log's Arrow file).
+    pub row: Option<u64>,
 }
 
 impl Reading {
@@ -105,11 +107,15 @@ impl Reading {
     /// when it lies under it) and timestamp (us).
     fn record(&self, root: &Path) -> serde_json::Value {
         let file = self.file.strip_prefix(root).unwrap_or(&self.file);
-        serde_json::json!({
+        let mut record = serde_json::json!({
             "token": self.token,
             "file": file.to_string_lossy(),
             "timestamp_us": self.pose.timestamp_us,
-        })
+        });
+        if let Some(row) = self.row {
+            record["row"] = row.into();
+        }
+        record
     }
 
     /// The content digest of the reading's file.
@@ -186,6 +192,28 @@ pub trait SurroundReader: Send + Sync {
     /// and the `lidar` port drops them, as the nuscenes-devkit's `remove_close` does around the
     /// sensor; every stage then sees the scene only. `None`: the format's sweeps hold none.
     const EGO_BOX: Option<([f64; 3], [f64; 3])> = None;
+    /// The ego box of scene `scene` (tree index): [`Self::EGO_BOX`] unless the format records its
+    /// vehicle per scene.
+    fn ego_box(&self, _scene: usize) -> Option<([f64; 3], [f64; 3])> {
+        Self::EGO_BOX
+    }
+    /// The `image` port of a camera reading: by default its file, decoded.
+    fn read_image(&self, image: &Reading) -> Result<Image> {
+        read_camera_image(&image.file, image.calib.width, image.calib.height, &image.what)
+    }
+    /// The source digest of the `image` port: by default its file's.
+    fn image_digest(&self, image: &Reading, files: &dyn FileDigests) -> Result<Option<Digest>> {
+        image.file_digest(files)
+    }
+    /// The size the image's own header declares, for the calibration's check (`None`: not
+    /// there, e.g. a LiDAR-only download); by default its file's header.
+    fn image_header_size(&self, image: &Reading) -> Result<Option<(u32, u32)>> {
+        match image_dimensions(&image.file) {
+            Ok(dims) => Ok(Some(dims)),
+            Err(e) if is_not_found(&e) => Ok(None),
+            Err(e) => Err(e.context(image.what.clone())),
+        }
+    }
     /// The format's id of frame `frame` of scene `scene` (tree indices): by default its LiDAR
     /// reading's token.
     fn frame_token(&self, scene: usize, frame: usize) -> Option<String> {
@@ -265,7 +293,7 @@ impl<R: SurroundReader> Dataset for Surround<R> {
                 let (_, frame) = tree.scene_frame(item)?;
                 let files_digest = self.0.lidar_digest(tree.reading(port, item)?, &frame.extra, files)?;
                 // The port drops the ego box's returns: the box is part of what it gives.
-                match (files_digest, R::EGO_BOX) {
+                match (files_digest, self.0.ego_box(item.idx[0] as usize)) {
                     (Some(d), Some((lo, hi))) => {
                         let mut b = DigestBuilder::new("lidar without the ego box");
                         b.digest(&d);
@@ -277,7 +305,7 @@ impl<R: SurroundReader> Dataset for Surround<R> {
                     (d, _) => d,
                 }
             }
-            "image" => tree.reading(port, item)?.file_digest(files)?,
+            "image" => self.0.image_digest(tree.reading(port, item)?, files)?,
             "gt_depth" | "semantic" => {
                 let r = tree.reading("image", item)?;
                 sidecar_digest(&tree.sidecars, port, tree.camera(item), &r.file, files)?
@@ -363,12 +391,12 @@ impl<R: SurroundReader> Dataset for Surround<R> {
             "lidar" => {
                 let cloud = self.0.read_lidar(r, &tree.scene_frame(item)?.1.extra)?;
                 crate::checks::lidar_points(&r.file, &r.what, &cloud.points).map_err(anyhow::Error::msg)?;
-                match R::EGO_BOX {
+                match self.0.ego_box(item.idx[0] as usize) {
                     Some(ego) => without_ego_returns(cloud, &r.calib.sensor_to_ego, ego).encode(),
                     None => cloud.encode(),
                 }
             }
-            "image" => read_camera_image(&r.file, r.calib.width, r.calib.height, &r.what)?.encode(),
+            "image" => self.0.read_image(r)?.encode(),
             "gt_depth" => tree.sidecars.gt_depth(tree.camera(item), &r.file)?.encode(),
             "semantic" => tree.sidecars.semantic(tree.camera(item), &r.file)?.encode(),
             "lidar_calib" => r.calib.encode(),
@@ -377,11 +405,7 @@ impl<R: SurroundReader> Dataset for Surround<R> {
                 // the image: so the metadata's size is checked against the file's header here.
                 // An image that is not there (a LiDAR-only download) leaves the metadata's size,
                 // which is bounded when the dataset is opened.
-                let dims = match image_dimensions(&r.file) {
-                    Ok(dims) => Some(dims),
-                    Err(e) if is_not_found(&e) => None,
-                    Err(e) => return Err(e.context(r.what.clone())),
-                };
+                let dims = self.0.image_header_size(r)?;
                 if let Some((w, h)) = dims.filter(|&d| d != (r.calib.width, r.calib.height)) {
                     bail!(
                         "{} is {w}x{h} but {} (fields width, height) says {}x{}",
