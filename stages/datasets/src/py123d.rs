@@ -18,6 +18,8 @@
 //! cameras), a camera dimension named from the log's camera metadata.
 
 pub mod classes;
+#[cfg(test)]
+mod cross_check;
 pub mod ipc;
 
 use crate::checks::{self, Place, Renormalised, Transform};
@@ -115,7 +117,7 @@ struct CameraFile {
     /// Camera -> ego and intrinsics, or why the camera is refused (its model).
     calib: std::result::Result<Calibration, String>,
     /// (time, camera -> world) per row.
-    rows: Vec<(i64, Se3)>,
+    rows: Vec<(i64, std::result::Result<Se3, String>)>,
     /// Path storage: the path of each row.
     paths: Vec<Option<String>>,
 }
@@ -148,8 +150,8 @@ struct Log {
     ego_box: ([f64; 3], [f64; 3]),
     cameras: Vec<Option<CameraFile>>,
     lidar: LidarFile,
-    /// Annotated times and their boxes.
-    keyframes: Vec<(i64, Vec<Box3D>)>,
+    /// Annotated times and their boxes (or why a box of that time is refused).
+    keyframes: Vec<(i64, std::result::Result<Vec<Box3D>, String>)>,
 }
 
 /// What a frame keeps beside its readings.
@@ -193,12 +195,13 @@ fn find_logs(root: &Path) -> Result<Vec<PathBuf>> {
 }
 
 fn column<'a, T: 'static>(batch: &'a arrow_array::RecordBatch, file: &IpcFile, name: &str) -> Result<&'a T> {
-    let i = batch
-        .schema()
-        .index_of(name)
-        .map_err(|_| anyhow!("{} has no column `{name}`", file.path.display()))?;
+    let i = batch.schema().index_of(name).map_err(|_| anyhow!("{} has no column `{name}`", file.path.display()))?;
     batch.column(i).as_any().downcast_ref::<T>().ok_or_else(|| {
-        anyhow!("{}: column `{name}` is {}, not what py123d {VERSIONS} writes", file.path.display(), batch.column(i).data_type())
+        anyhow!(
+            "{}: column `{name}` is {}, not what py123d {VERSIONS} writes",
+            file.path.display(),
+            batch.column(i).data_type()
+        )
     })
 }
 
@@ -226,8 +229,15 @@ fn fixed_row(list: &FixedSizeListArray, row: usize) -> Option<Vec<f64>> {
     Some(f.values().to_vec())
 }
 
-/// Every (timestamp, pose) row of a file's `ts` and `pose` columns; a bad row is an error naming it.
-fn timed_poses(file: &IpcFile, ts: &str, pose: &str, kind: Transform, notes: &mut Renormalised) -> Result<Vec<(i64, Se3)>> {
+/// Every (timestamp, pose) row of a file's `ts` and `pose` columns; a bad pose is that row's
+/// error (naming file, row and field), so that only the items that use it fail.
+fn timed_poses(
+    file: &IpcFile,
+    ts: &str,
+    pose: &str,
+    kind: Transform,
+    notes: &mut Renormalised,
+) -> Result<Vec<(i64, std::result::Result<Se3, String>)>> {
     let cols = [file.column(ts)?, file.column(pose)?];
     let mut out = Vec::new();
     for batch in file.batches(Some(&cols)) {
@@ -238,8 +248,11 @@ fn timed_poses(file: &IpcFile, ts: &str, pose: &str, kind: Transform, notes: &mu
             let row = out.len();
             let at = Place::new(&file.path, format!("row {row}"));
             ensure!(!t.is_null(i), "{at}: field {ts} is null");
-            let values = fixed_row(p, i).ok_or_else(|| anyhow!("{at}: field {pose} is null"))?;
-            out.push((t.value(i), pose7(&values, &at, pose, kind, notes).map_err(anyhow::Error::msg)?));
+            let se3 = match fixed_row(p, i) {
+                None => Err(format!("{at}: field {pose} is null")),
+                Some(values) => pose7(&values, &at, pose, kind, notes),
+            };
+            out.push((t.value(i), se3));
         }
     }
     Ok(out)
@@ -275,7 +288,10 @@ fn ego_at(track: &[(i64, Se3)], t: i64) -> Option<Se3> {
         (_, Some((t1, p1))) if *t1 == t => Some(*p1),
         (Some((t0, p0)), Some((t1, p1))) => {
             let w = (t - t0) as f64 / (t1 - t0) as f64;
-            Some(Se3 { rotation: p0.rotation.slerp(p1.rotation, w), translation: p0.translation.lerp(p1.translation, w) })
+            Some(Se3 {
+                rotation: p0.rotation.slerp(p1.rotation, w),
+                translation: p0.translation.lerp(p1.translation, w),
+            })
         }
         (Some((t0, p0)), None) if t - t0 <= MAX_IMAGE_OFFSET_US => Some(*p0),
         (None, Some((t1, p1))) if t1 - t <= MAX_IMAGE_OFFSET_US => Some(*p1),
@@ -328,14 +344,23 @@ impl Py123d {
             let log = read_log(dir, &config, &cameras, &mut notes, &mut warnings)
                 .with_context(|| format!("reading the py123d log {}", dir.display()))?;
             if let Some(other) = names.insert(log.name.clone(), dir.clone()) {
-                bail!("two logs are named {}: {} and {}; choose one with dataset.logs", log.name, other.display(), dir.display());
+                bail!(
+                    "two logs are named {}: {} and {}; choose one with dataset.logs",
+                    log.name,
+                    other.display(),
+                    dir.display()
+                );
             }
             logs.push(log);
         }
         warnings.extend(notes.warnings());
         let mut scenes = Vec::new();
         for (l, log) in logs.iter().enumerate() {
-            scenes.push(Scene { name: log.name.clone(), frames: frames_of(log, l, &cameras, &config, &mut warnings), extra: l });
+            scenes.push(Scene {
+                name: log.name.clone(),
+                frames: frames_of(log, l, &cameras, &config, &mut warnings),
+                extra: l,
+            });
         }
         let has_point_labels = logs.iter().all(|l| l.lidar.labels);
         let tree = Tree { root, cameras, scenes, sidecars: Sidecars::default() };
@@ -359,7 +384,9 @@ fn camera_names(dir: &Path, notes: &mut Renormalised) -> Result<Vec<String>> {
         let yaw = pose_json(&meta["camera_to_imu_se3"], &at, "camera_to_imu_se3", Transform::Mount, notes)
             .map(|m| {
                 let axis = m.rotation * glam::DVec3::Z;
-                (-axis.y).atan2(axis.x).rem_euclid(std::f64::consts::TAU)
+                // Clockwise from straight ahead; a front camera a few degrees to the left of it
+                // still comes first.
+                ((-axis.y).atan2(axis.x) + std::f64::consts::PI / 12.0).rem_euclid(std::f64::consts::TAU)
             })
             .unwrap_or(f64::MAX);
         found.push((yaw, name, camera));
@@ -391,7 +418,16 @@ fn read_log(
     // The ego track.
     let ego_file = IpcFile::open(&dir.join("ego_state_se3.arrow"))
         .context("the ego track (every py123d log has ego_state_se3.arrow)")?;
-    let mut ego = timed_poses(&ego_file, "ego_state_se3.timestamp_us", "ego_state_se3.imu_se3", Transform::Pose, notes)?;
+    let mut ego = Vec::new();
+    for (t, pose) in
+        timed_poses(&ego_file, "ego_state_se3.timestamp_us", "ego_state_se3.imu_se3", Transform::Pose, notes)?
+    {
+        match pose {
+            Ok(p) => ego.push((t, p)),
+            // The ego pose at that time is then interpolated from its neighbours.
+            Err(why) => warnings.push(format!("{why}: the ego track leaves this row out")),
+        }
+    }
     ego.sort_by_key(|(t, _)| *t);
     ensure!(!ego.is_empty(), "{} has no rows", ego_file.path.display());
     let ego_meta = ipc::metadata_json(&ego_file)?;
@@ -412,14 +448,11 @@ fn read_log(
     let mut files = Vec::new();
     for camera in cameras {
         let Some(path) = by_name.get(camera) else {
-            warnings.push(format!(
-                "log {name} has no camera {camera} (it has: {}): its items of that camera fail",
-                {
-                    let mut have: Vec<&String> = by_name.keys().collect();
-                    have.sort();
-                    have.into_iter().cloned().collect::<Vec<_>>().join(", ")
-                }
-            ));
+            warnings.push(format!("log {name} has no camera {camera} (it has: {}): its items of that camera fail", {
+                let mut have: Vec<&String> = by_name.keys().collect();
+                have.sort();
+                have.into_iter().cloned().collect::<Vec<_>>().join(", ")
+            }));
             files.push(None);
             continue;
         };
@@ -446,10 +479,18 @@ fn ego_box_of(dataset: &str, meta: &Value, file: &Path, notes: &mut Renormalised
     };
     let c = center.translation;
     let m = 0.3;
-    Ok(([c.x - l / 2.0 - m, c.y - w / 2.0 - m, c.z - h / 2.0 - m], [c.x + l / 2.0 + m, c.y + w / 2.0 + m, c.z + h / 2.0 + m]))
+    Ok((
+        [c.x - l / 2.0 - m, c.y - w / 2.0 - m, c.z - h / 2.0 - m],
+        [c.x + l / 2.0 + m, c.y + w / 2.0 + m, c.z + h / 2.0 + m],
+    ))
 }
 
-fn read_camera(path: &Path, config: &Py123dConfig, notes: &mut Renormalised, warnings: &mut Vec<String>) -> Result<CameraFile> {
+fn read_camera(
+    path: &Path,
+    config: &Py123dConfig,
+    notes: &mut Renormalised,
+    warnings: &mut Vec<String>,
+) -> Result<CameraFile> {
     let file = IpcFile::open(path)?;
     let key = path.file_stem().unwrap_or_default().to_string_lossy().into_owned();
     let meta = ipc::metadata_json(&file)?;
@@ -502,7 +543,8 @@ fn camera_calib(
         ));
     }
     let sensor_to_ego = pose_json(&meta["camera_to_imu_se3"], at, "camera_to_imu_se3", Transform::Mount, notes)?;
-    let k: Vec<f64> = meta["intrinsics"].as_array().map(|a| a.iter().filter_map(|v| v.as_f64()).collect()).unwrap_or_default();
+    let k: Vec<f64> =
+        meta["intrinsics"].as_array().map(|a| a.iter().filter_map(|v| v.as_f64()).collect()).unwrap_or_default();
     if k.len() < 4 {
         return Err(format!("{at}: field intrinsics is not [fx, fy, cx, cy, skew]"));
     }
@@ -511,7 +553,8 @@ fn camera_calib(
     let dim = |f: &str| meta[f].as_u64().map_or(0, |v| u32::try_from(v).unwrap_or(u32::MAX));
     let (width, height) = (dim("width"), dim("height"));
     checks::image_size(&at.to_string(), "fields width, height", width, height)?;
-    let distortion: Vec<f64> = meta["distortion"].as_array().map(|a| a.iter().filter_map(|v| v.as_f64()).collect()).unwrap_or_default();
+    let distortion: Vec<f64> =
+        meta["distortion"].as_array().map(|a| a.iter().filter_map(|v| v.as_f64()).collect()).unwrap_or_default();
     if meta["is_undistorted"].as_bool() != Some(true) && distortion.iter().any(|d| *d != 0.0) {
         warnings.push(format!(
             "{at}: camera {name} has lens distortion {distortion:?} (OpenCV k1, k2, p1, p2, k3), which dist4d's pinhole \
@@ -561,7 +604,8 @@ fn read_lidar_file(dir: &Path, config: &Py123dConfig, notes: &mut Renormalised) 
         None => sensors.iter().position(|s| s.0 == 2).unwrap_or(0),
     };
     let storage = storage_of(&file, "lidar.lidar_merged.data")?;
-    let (t0, t1) = (file.column("lidar.lidar_merged.timestamp_us")?, file.column("lidar.lidar_merged.end_timestamp_us"));
+    let (t0, t1) =
+        (file.column("lidar.lidar_merged.timestamp_us")?, file.column("lidar.lidar_merged.end_timestamp_us"));
     let mut rows = Vec::new();
     let cols: Vec<usize> = [Some(t0), t1.as_ref().ok().copied()].into_iter().flatten().collect();
     for batch in file.batches(Some(&cols)) {
@@ -607,7 +651,12 @@ fn read_lidar_file(dir: &Path, config: &Py123dConfig, notes: &mut Renormalised) 
 }
 
 /// The annotated times and their boxes (world frame, nuScenes size order and categories).
-fn read_boxes(dir: &Path, notes: &mut Renormalised, warnings: &mut Vec<String>) -> Result<Vec<(i64, Vec<Box3D>)>> {
+#[allow(clippy::type_complexity)]
+fn read_boxes(
+    dir: &Path,
+    notes: &mut Renormalised,
+    warnings: &mut Vec<String>,
+) -> Result<Vec<(i64, std::result::Result<Vec<Box3D>, String>)>> {
     let path = dir.join("box_detections_se3.arrow");
     if !path.is_file() {
         return Ok(Vec::new());
@@ -630,35 +679,72 @@ fn read_boxes(dir: &Path, notes: &mut Renormalised, warnings: &mut Vec<String>) 
         let boxes = column::<ListArray>(&batch, &file, &k("bounding_box_se3"))?;
         let tracks = column::<ListArray>(&batch, &file, &k("track_token"))?;
         let labels = column::<ListArray>(&batch, &file, &k("label"))?;
-        let velocity = batch.schema().index_of(&k("velocity_3d")).ok().and_then(|i| batch.column(i).as_any().downcast_ref::<ListArray>().cloned());
-        let points = batch.schema().index_of(&k("num_lidar_points")).ok().and_then(|i| batch.column(i).as_any().downcast_ref::<ListArray>().cloned());
+        let velocity = batch
+            .schema()
+            .index_of(&k("velocity_3d"))
+            .ok()
+            .and_then(|i| batch.column(i).as_any().downcast_ref::<ListArray>().cloned());
+        let points = batch
+            .schema()
+            .index_of(&k("num_lidar_points"))
+            .ok()
+            .and_then(|i| batch.column(i).as_any().downcast_ref::<ListArray>().cloned());
         for i in 0..batch.num_rows() {
             let row = out.len();
             let place = |j: usize| Place::new(&path, format!("row {row} box {j}"));
             let b = boxes.value(i);
-            let b = b.as_any().downcast_ref::<FixedSizeListArray>().ok_or_else(|| anyhow!("{}: bounding_box_se3 is not [10] lists", path.display()))?;
+            let b = b
+                .as_any()
+                .downcast_ref::<FixedSizeListArray>()
+                .ok_or_else(|| anyhow!("{}: bounding_box_se3 is not [10] lists", path.display()))?;
             let t = tracks.value(i);
-            let t = t.as_any().downcast_ref::<StringArray>().ok_or_else(|| anyhow!("{}: track_token is not strings", path.display()))?;
+            let t = t
+                .as_any()
+                .downcast_ref::<StringArray>()
+                .ok_or_else(|| anyhow!("{}: track_token is not strings", path.display()))?;
             let l = labels.value(i);
-            let l = l.as_any().downcast_ref::<UInt16Array>().ok_or_else(|| anyhow!("{}: label is not uint16", path.display()))?;
+            let l = l
+                .as_any()
+                .downcast_ref::<UInt16Array>()
+                .ok_or_else(|| anyhow!("{}: label is not uint16", path.display()))?;
             let v = velocity.as_ref().map(|v| v.value(i));
             let v = v.as_ref().and_then(|v| v.as_any().downcast_ref::<FixedSizeListArray>());
             let n = points.as_ref().map(|p| p.value(i));
             let n = n.as_ref().and_then(|n| n.as_any().downcast_ref::<arrow_array::Int32Array>());
-            ensure!(b.len() == t.len() && b.len() == l.len(), "{}: row {row}: its box lists differ in length", path.display());
+            ensure!(
+                b.len() == t.len() && b.len() == l.len(),
+                "{}: row {row}: its box lists differ in length",
+                path.display()
+            );
             let mut frame = Vec::new();
+            let mut refused = None;
             for j in 0..b.len() {
-                let values = fixed_row(b, j).filter(|x| x.len() == 10).ok_or_else(|| anyhow!("{}: field bounding_box_se3 is not 10 values", place(j)))?;
+                let Some(values) = fixed_row(b, j).filter(|x| x.len() == 10) else {
+                    refused = Some(format!("{}: field bounding_box_se3 is not 10 values", place(j)));
+                    continue;
+                };
                 let center = [values[0], values[1], values[2]];
                 let size = [values[8], values[7], values[9]];
-                let rotation = checks::box_values(&place(j), center, size, [values[3], values[4], values[5], values[6]], notes)
-                    .map_err(anyhow::Error::msg)?;
+                let rotation = match checks::box_values(
+                    &place(j),
+                    center,
+                    size,
+                    [values[3], values[4], values[5], values[6]],
+                    notes,
+                ) {
+                    Ok(r) => r,
+                    Err(why) => {
+                        refused = Some(why);
+                        continue;
+                    }
+                };
                 let label = l.value(j);
                 let category = table
                     .and_then(|t| t.get(label as usize))
                     .map(|(_, c)| c.to_string())
                     .unwrap_or_else(|| format!("py123d.{label}"));
-                let velocity = v.and_then(|v| fixed_row(v, j)).filter(|x| x.len() == 3 && x.iter().all(|c| c.is_finite()));
+                let velocity =
+                    v.and_then(|v| fixed_row(v, j)).filter(|x| x.len() == 3 && x.iter().all(|c| c.is_finite()));
                 frame.push(Box3D {
                     center,
                     size,
@@ -673,7 +759,7 @@ fn read_boxes(dir: &Path, notes: &mut Renormalised, warnings: &mut Vec<String>) 
                 });
             }
             ensure!(!ts.is_null(i), "{}: row {row}: field timestamp_us is null", path.display());
-            out.push((ts.value(i), frame));
+            out.push((ts.value(i), refused.map_or(Ok(frame), Err)));
         }
     }
     out.sort_by_key(|(t, _)| *t);
@@ -681,7 +767,13 @@ fn read_boxes(dir: &Path, notes: &mut Renormalised, warnings: &mut Vec<String>) 
 }
 
 /// The frames of a log by the configured clock.
-fn frames_of(log: &Log, l: usize, cameras: &[String], config: &Py123dConfig, warnings: &mut Vec<String>) -> Vec<Frame<FrameTime>> {
+fn frames_of(
+    log: &Log,
+    l: usize,
+    cameras: &[String],
+    config: &Py123dConfig,
+    warnings: &mut Vec<String>,
+) -> Vec<Frame<FrameTime>> {
     let sweep_ends: Vec<i64> = log.lidar.rows.iter().map(|r| r.1).collect();
     let frame_at = |time: i64, lidar_row: Option<usize>, images: Vec<Option<usize>>| Frame {
         lidar: match lidar_row {
@@ -693,7 +785,9 @@ fn frames_of(log: &Log, l: usize, cameras: &[String], config: &Py123dConfig, war
             .enumerate()
             .map(|(c, row)| match (&log.cameras[c], row) {
                 (None, _) => Err(format!("log {} has no camera {}", log.name, cameras[c])),
-                (Some(_), None) => Err(format!("log {} has no image of {} within 100 ms of {time} us", log.name, cameras[c])),
+                (Some(_), None) => {
+                    Err(format!("log {} has no image of {} within 100 ms of {time} us", log.name, cameras[c]))
+                }
                 (Some(cam), Some(row)) => camera_reading(log, cam, &cameras[c], *row, config),
             })
             .collect(),
@@ -721,28 +815,40 @@ fn frames_of(log: &Log, l: usize, cameras: &[String], config: &Py123dConfig, war
         _ => false,
     };
     match config.frames {
-        FrameMode::Keyframes if keyframes => log
-            .keyframes
-            .iter()
-            .map(|(t, _)| frame_at(*t, nearest(&sweep_ends, *t), nearest_images(*t)))
-            .collect(),
+        FrameMode::Keyframes if keyframes => {
+            log.keyframes.iter().map(|(t, _)| frame_at(*t, nearest(&sweep_ends, *t), nearest_images(*t))).collect()
+        }
         FrameMode::Keyframes | FrameMode::Sweeps => {
             sweep_ends.iter().enumerate().map(|(row, &t)| frame_at(t, Some(row), nearest_images(t))).collect()
         }
         FrameMode::Camera => {
-            let times: Vec<Vec<i64>> =
-                log.cameras.iter().map(|c| c.as_ref().map(|c| c.rows.iter().map(|r| r.0).collect()).unwrap_or_default()).collect();
-            // Each camera's offset from the reference: the median gap from a reference image to
-            // its nearest image.
+            let times: Vec<Vec<i64>> = log
+                .cameras
+                .iter()
+                .map(|c| c.as_ref().map(|c| c.rows.iter().map(|r| r.0).collect()).unwrap_or_default())
+                .collect();
+            // Each camera's offset from the reference. The nuScenes reader takes it from the
+            // keyframe images, which a log does not mark; here it is the median gap from a
+            // reference image to the camera's nearest image, or that gap a period earlier or
+            // later, whichever pairs the two cameras into the fewest rounds (a camera that fires
+            // half a period after the reference is as near the next reference image as its own;
+            // only one of the two choices starts and ends the log with whole rounds).
+            let period = {
+                let mut steps: Vec<i64> = times[0].windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 0).collect();
+                steps.sort_unstable();
+                steps.get(steps.len() / 2).copied().unwrap_or(83_333)
+            };
             let offsets: Vec<i64> = times
                 .iter()
                 .map(|own| {
-                    let mut d: Vec<i64> = times[0]
-                        .iter()
-                        .filter_map(|&t| nearest(own, t).map(|i| own[i] - t))
-                        .collect();
+                    let mut d: Vec<i64> = times[0].iter().filter_map(|&t| Some(own[nearest(own, t)?] - t)).collect();
                     d.sort_unstable();
-                    d.get(d.len() / 2).copied().unwrap_or(0)
+                    let gap = d.get(d.len() / 2).copied().unwrap_or(0);
+                    [gap, gap - period, gap + period]
+                        .into_iter()
+                        .filter(|o| o.abs() < period)
+                        .min_by_key(|&o| (camera_rounds(&[times[0].clone(), own.clone()], &[0, o]).len(), o.abs()))
+                        .unwrap_or(gap)
                 })
                 .collect();
             camera_rounds(&times, &offsets)
@@ -758,7 +864,11 @@ fn lidar_reading(log: &Log, l: usize, row: usize) -> std::result::Result<Reading
     let (_, end) = lidar.rows[row];
     let (_, name, to_ego) = &lidar.sensors[lidar.sensor];
     let ego_to_world = ego_at(&log.ego, end).ok_or_else(|| {
-        format!("log {}: no ego pose within 100 ms of the LiDAR sweep at {end} us ({})", log.name, lidar.file.path.display())
+        format!(
+            "log {}: no ego pose within 100 ms of the LiDAR sweep at {end} us ({})",
+            log.name,
+            lidar.file.path.display()
+        )
     })?;
     let _ = l;
     Ok(Reading {
@@ -771,14 +881,30 @@ fn lidar_reading(log: &Log, l: usize, row: usize) -> std::result::Result<Reading
     })
 }
 
-fn camera_reading(log: &Log, cam: &CameraFile, name: &str, row: usize, config: &Py123dConfig) -> std::result::Result<Reading, String> {
+fn camera_reading(
+    log: &Log,
+    cam: &CameraFile,
+    name: &str,
+    row: usize,
+    config: &Py123dConfig,
+) -> std::result::Result<Reading, String> {
     let calib = cam.calib.clone()?;
-    let (t, camera_to_world) = cam.rows[row];
+    let (t, camera_to_world) = (cam.rows[row].0, cam.rows[row].1.clone()?);
     let file = match cam.storage {
         Storage::Path => {
-            let rel = cam.paths.get(row).cloned().flatten().ok_or_else(|| format!("{} row {row}: no path", cam.file.path.display()))?;
+            let rel = cam
+                .paths
+                .get(row)
+                .cloned()
+                .flatten()
+                .ok_or_else(|| format!("{} row {row}: no path", cam.file.path.display()))?;
             let root = PathBuf::from(config.sensor_root.as_deref().unwrap_or(""));
-            checks::join_inside(&root, &Place::new(&cam.file.path, format!("row {row}")), &format!("{}.data", cam.key), &rel)?
+            checks::join_inside(
+                &root,
+                &Place::new(&cam.file.path, format!("row {row}")),
+                &format!("{}.data", cam.key),
+                &rel,
+            )?
         }
         _ => cam.file.path.clone(),
     };
@@ -809,12 +935,13 @@ impl Py123d {
     /// The boxes of `log` at time `t`: an annotated time's own, otherwise the tracks of the two
     /// annotated times around `t` interpolated, and tracks of only one of them moved with their
     /// velocity up to half the interval (as the nuScenes reader does).
-    fn boxes_at(log: &Log, t: i64) -> Vec<Box3D> {
+    fn boxes_at(log: &Log, t: i64) -> Result<Vec<Box3D>> {
         let keys = &log.keyframes;
+        let own = |k: usize| keys[k].1.as_ref().map_err(|why| anyhow!("{why}"));
         let after = keys.partition_point(|(tk, _)| *tk <= t);
         let before = after.checked_sub(1);
         if let Some(k) = before.filter(|&k| keys[k].0 == t) {
-            return keys[k].1.clone();
+            return Ok(own(k)?.clone());
         }
         let interval = match (before, keys.get(after)) {
             (Some(k0), Some((t1, _))) => t1 - keys[k0].0,
@@ -830,8 +957,11 @@ impl Py123d {
                 ..b.clone()
             })
         };
-        let early: &[Box3D] = before.map_or(&[], |k| &keys[k].1);
-        let late: &[Box3D] = keys.get(after).map_or(&[], |k| &k.1);
+        let early: &[Box3D] = match before {
+            Some(k) => own(k)?,
+            None => &[],
+        };
+        let late: &[Box3D] = if after < keys.len() { own(after)? } else { &[] };
         let (t0, t1) = (before.map(|k| keys[k].0), keys.get(after).map(|k| k.0));
         let mut out = Vec::new();
         for a in early {
@@ -847,7 +977,7 @@ impl Py123d {
         for b in late.iter().filter(|b| !early.iter().any(|a| a.instance == b.instance)) {
             out.extend(extrapolate(b, t1.unwrap_or(t)));
         }
-        out
+        Ok(out)
     }
 
     /// The points of sweep `row` of the merged file, in the frame of the configured sensor.
@@ -867,9 +997,15 @@ impl Py123d {
         let codec_help = "convert the log with py123d's lidar_codec \"ipc_zstd\" (or \"ipc\", \"ipc_lz4\")";
         match blob {
             [0xFF, 0xFF, 0xFF, 0xFF, ..] => {}
-            [b'L', b'A', b'S', b'F', ..] => bail!("{what}: the sweep is LAZ-compressed, which dist4d does not decode: {codec_help}"),
-            [b'D', b'R', b'A', b'C', b'O', ..] => bail!("{what}: the sweep is Draco-compressed, which dist4d does not decode: {codec_help}"),
-            _ => bail!("{what}: the sweep is in no codec py123d {VERSIONS} writes (not an Arrow IPC stream, LAZ or Draco)"),
+            [b'L', b'A', b'S', b'F', ..] => {
+                bail!("{what}: the sweep is LAZ-compressed, which dist4d does not decode: {codec_help}")
+            }
+            [b'D', b'R', b'A', b'C', b'O', ..] => {
+                bail!("{what}: the sweep is Draco-compressed, which dist4d does not decode: {codec_help}")
+            }
+            _ => bail!(
+                "{what}: the sweep is in no codec py123d {VERSIONS} writes (not an Arrow IPC stream, LAZ or Draco)"
+            ),
         }
         let batches = ipc::read_stream(blob).with_context(|| format!("{what}: the sweep's Arrow stream"))?;
         let sensor_from_ego = lidar.sensors[lidar.sensor].2.inverse();
@@ -891,7 +1027,8 @@ impl Py123d {
                         continue;
                     }
                 }
-                let p = sensor_from_ego.apply(glam::DVec3::new(x.value(k) as f64, y.value(k) as f64, z.value(k) as f64));
+                let p =
+                    sensor_from_ego.apply(glam::DVec3::new(x.value(k) as f64, y.value(k) as f64, z.value(k) as f64));
                 let i = intensity.map_or(0.0, |v| v.value(k) as f32);
                 cloud.points.push([p.x as f32, p.y as f32, p.z as f32, i]);
                 if let Some(s) = semantic {
@@ -920,7 +1057,9 @@ impl SurroundReader for Py123d {
         let log = self
             .logs
             .iter()
-            .find(|l| l.lidar.file.path == lidar.file || l.lidar.storage == Storage::Path && lidar.file.starts_with(&l.dir))
+            .find(|l| {
+                l.lidar.file.path == lidar.file || l.lidar.storage == Storage::Path && lidar.file.starts_with(&l.dir)
+            })
             .or_else(|| self.logs.iter().find(|l| l.lidar.file.path == lidar.file));
         let mut b = DigestBuilder::new("py123d.lidar");
         let Some(d) = lidar.file_digest(files)? else { return Ok(None) };
@@ -955,12 +1094,20 @@ impl SurroundReader for Py123d {
                 let (rel, seg) = log.lidar.paths.get(row).cloned().unwrap_or_default();
                 let rel = rel.ok_or_else(|| anyhow!("{}: no path", lidar.what))?;
                 let at = Place::new(&lidar.file, format!("row {row}"));
-                let file = checks::join_inside(&root, &at, "lidar.lidar_merged.data", &rel).map_err(anyhow::Error::msg)?;
+                let file =
+                    checks::join_inside(&root, &at, "lidar.lidar_merged.data", &rel).map_err(anyhow::Error::msg)?;
                 let mut cloud = read_pcd_bin(&file).with_context(|| lidar.what.clone())?;
                 if let Some(seg) = seg {
-                    let path = checks::join_inside(&root, &at, "lidarseg_relative_path", &seg).map_err(anyhow::Error::msg)?;
+                    let path =
+                        checks::join_inside(&root, &at, "lidarseg_relative_path", &seg).map_err(anyhow::Error::msg)?;
                     let labels = crate::files::read_input(&path, "the lidarseg labels", checks::MAX_SENSOR_FILE_BYTES)?;
-                    ensure!(labels.len() == cloud.points.len(), "{} has {} labels for {} points", path.display(), labels.len(), cloud.points.len());
+                    ensure!(
+                        labels.len() == cloud.points.len(),
+                        "{} has {} labels for {} points",
+                        path.display(),
+                        labels.len(),
+                        cloud.points.len()
+                    );
                     cloud.labels = labels;
                 }
                 Ok(cloud)
@@ -979,13 +1126,13 @@ impl SurroundReader for Py123d {
         let (_, frame) = self.tree.scene_frame(item)?;
         let log = self.log_of(item)?;
         let t = frame.lidar.as_ref().map_or(frame.extra.time, |l| l.pose.timestamp_us);
-        Ok(Boxes3D { timestamp_us: t, boxes: Py123d::boxes_at(log, t) })
+        Ok(Boxes3D { timestamp_us: t, boxes: Py123d::boxes_at(log, t)? })
     }
 
     fn camera_boxes(&self, item: &ItemKey) -> Result<Boxes3D> {
         let log = self.log_of(item)?;
         let t = self.tree.reading("image", item)?.pose.timestamp_us;
-        Ok(Boxes3D { timestamp_us: t, boxes: Py123d::boxes_at(log, t) })
+        Ok(Boxes3D { timestamp_us: t, boxes: Py123d::boxes_at(log, t)? })
     }
 
     fn read_image(&self, image: &Reading) -> Result<Image> {
@@ -1040,7 +1187,8 @@ pub const DATASET: crate::DatasetDef =
     crate::DatasetDef { schema, open: open_checked, root: root_of, recognises, makes_root: false };
 
 fn open_checked(checked: &ParamsValue) -> Result<crate::Opened> {
-    let ds = Py123d::open(crate::registry::config::<Py123dConfig>(checked)?.clone()).context("opening the py123d logs")?;
+    let ds =
+        Py123d::open(crate::registry::config::<Py123dConfig>(checked)?.clone()).context("opening the py123d logs")?;
     Ok(crate::Opened {
         description: format!("Py123d at {}", ds.config.root),
         warnings: ds.warnings.clone(),
@@ -1061,7 +1209,8 @@ fn recognises(folder: &Path) -> bool {
 pub fn schema() -> DatasetSchema {
     DatasetSchema {
         kind: "Py123d",
-        summary: "py123d Arrow logs (Waymo, Argoverse 2, nuPlan, KITTI-360, PandaSet, nuScenes, ... converted by py123d)",
+        summary:
+            "py123d Arrow logs (Waymo, Argoverse 2, nuPlan, KITTI-360, PandaSet, nuScenes, ... converted by py123d)",
         dims: crate::surround::DIMS.to_vec(),
         ports: crate::surround::PORTS.to_vec(),
         config: ParamsSpec::of::<Py123dConfig>(),

@@ -145,7 +145,6 @@ pub fn schema() -> DatasetSchema {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use dist4d_runtime::ItemSpace;
 
     fn checked(config: SynthDatasetConfig) -> ParamsValue {
         ParamsValue::new(config).unwrap()

@@ -69,7 +69,11 @@ impl IpcFile {
         let bytes = map.as_slice();
         let len = bytes.len();
         ensure!(&bytes[..6] == MAGIC, "{} (no ARROW1 magic at its start)", what());
-        ensure!(&bytes[len - 6..] == MAGIC, "{} (no ARROW1 magic at its end: truncated or still being written?)", what());
+        ensure!(
+            &bytes[len - 6..] == MAGIC,
+            "{} (no ARROW1 magic at its end: truncated or still being written?)",
+            what()
+        );
         let footer_len = i32::from_le_bytes(bytes[len - 10..len - 6].try_into().unwrap());
         ensure!(
             footer_len > 0 && (footer_len as usize) <= MAX_FOOTER_BYTES && footer_len as usize + 10 + 8 <= len,
@@ -77,7 +81,8 @@ impl IpcFile {
             path.display()
         );
         let footer = bytes[len - 10 - footer_len as usize..len - 10].to_vec();
-        let (verified, metadata) = verified_footer(footer).with_context(|| format!("the footer of {}", path.display()))?;
+        let (verified, metadata) =
+            verified_footer(footer).with_context(|| format!("the footer of {}", path.display()))?;
         let fb = arrow_ipc::root_as_footer(&verified).expect("verified above");
         let ipc_schema = fb.schema().ok_or_else(|| anyhow!("{}: its footer has no schema", path.display()))?;
         // The fields only: the schema's own custom metadata is what `verified_footer` took out.
@@ -142,8 +147,12 @@ impl IpcFile {
         }
         let batch = decoder
             .read_record_batch(&b.block, &data)
-            .with_context(|| format!("decoding rows {}..{} of {}", b.first_row, b.first_row + b.rows, self.path.display()))?
-            .ok_or_else(|| anyhow!("{}: an empty message where rows {}.. should be", self.path.display(), b.first_row))?;
+            .with_context(|| {
+                format!("decoding rows {}..{} of {}", b.first_row, b.first_row + b.rows, self.path.display())
+            })?
+            .ok_or_else(|| {
+                anyhow!("{}: an empty message where rows {}.. should be", self.path.display(), b.first_row)
+            })?;
         ensure!(
             batch.num_rows() as u64 == b.rows,
             "{}: the batch at rows {}.. has {} rows, its header says {}",
@@ -185,7 +194,8 @@ fn verified_footer(mut footer: Vec<u8>) -> Result<(Vec<u8>, Option<Vec<u8>>)> {
             // SAFETY: the footer was verified, and a flatbuffers string is laid out as a vector
             // of bytes (length, bytes, NUL), so this field is a valid `[u8]` vector.
             let bytes = unsafe {
-                kv._tab.get::<flatbuffers::ForwardsUOffset<flatbuffers::Vector<u8>>>(arrow_ipc::KeyValue::VT_VALUE, None)
+                kv._tab
+                    .get::<flatbuffers::ForwardsUOffset<flatbuffers::Vector<u8>>>(arrow_ipc::KeyValue::VT_VALUE, None)
             };
             if let Some(v) = bytes {
                 let start = v.bytes().as_ptr() as usize - footer.as_ptr() as usize;
@@ -241,11 +251,12 @@ mod tests {
     fn write(path: &Path, len: usize, rows: &[&[i64]], compression: Option<arrow_ipc::CompressionType>) {
         let schema = Arc::new(
             Schema::new(vec![Field::new("t", DataType::Int64, true), Field::new("data", DataType::Binary, true)])
-                .with_metadata([("metadata".to_string(), "M".repeat(len))].into()),
+                .with_metadata(std::collections::HashMap::from([("metadata".to_string(), "M".repeat(len))])),
         );
         let options = arrow_ipc::writer::IpcWriteOptions::default().try_with_compression(compression).unwrap();
-        let mut w = arrow_ipc::writer::FileWriter::try_new_with_options(std::fs::File::create(path).unwrap(), &schema, options)
-            .unwrap();
+        let mut w =
+            arrow_ipc::writer::FileWriter::try_new_with_options(std::fs::File::create(path).unwrap(), &schema, options)
+                .unwrap();
         for batch in rows {
             let data: Vec<Vec<u8>> = batch.iter().map(|v| vec![*v as u8; 100]).collect();
             let b = RecordBatch::try_new(
@@ -278,8 +289,8 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         for compression in [None, Some(arrow_ipc::CompressionType::LZ4_FRAME), Some(arrow_ipc::CompressionType::ZSTD)] {
             let path = tmp.path().join("f.arrow");
-            let msgpack = rmp_serde::to_vec_named(&serde_json::json!({"camera_name": "CAM_FRONT", "width": 1600}))
-                .unwrap();
+            let msgpack =
+                rmp_serde::to_vec_named(&serde_json::json!({"camera_name": "CAM_FRONT", "width": 1600})).unwrap();
             write(&path, msgpack.len(), &[&[10, 11, 12], &[13, 14]], compression);
             patch(&path, msgpack.len(), &msgpack);
             // arrow-rs's own reader refuses it: what this module is for.
