@@ -291,3 +291,28 @@ pub fn table(root: &Path, name: &str) -> Vec<Value> {
 pub fn write_table(root: &Path, name: &str, rows: &[Value]) {
     std::fs::write(root.join(format!("v1.0-mini/{name}.json")), serde_json::to_vec(rows).unwrap()).unwrap();
 }
+
+/// The py123d venv's python (`.venv-py123d`, which `.ci/run` makes, or `DIST4D_PY123D_PYTHON`).
+pub fn py123d_python() -> Option<PathBuf> {
+    let p = std::env::var_os("DIST4D_PY123D_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join(".venv-py123d/bin/python"));
+    if Command::new(&p).args(["-c", "import py123d"]).output().is_ok_and(|o| o.status.success()) {
+        Some(p)
+    } else {
+        eprintln!("SKIPPED: no py123d venv at {} (.ci/run makes it: pip install py123d)", p.display());
+        None
+    }
+}
+
+/// Converts the nuScenes-format dataset at `source` into py123d logs under `out` with py123d's
+/// own parser and writer (scripts/py123d_convert.py; `args` as it takes them).
+pub fn py123d_convert(python: &Path, source: &Path, out: &Path, args: &[&str]) {
+    let o = Command::new(python)
+        .arg(repo().join("scripts/py123d_convert.py"))
+        .args(["--nuscenes-root", source.to_str().unwrap(), "--out", out.to_str().unwrap()])
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+}

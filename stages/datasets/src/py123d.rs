@@ -145,6 +145,9 @@ struct Log {
     name: String,
     /// `nuscenes`, `wod-perception`, ... (the log metadata's `dataset`).
     dataset: String,
+    /// The ego metadata's `vehicle_name` (`nuscenes_renault_zoe`); `dist4d_synthetic` for a log of
+    /// dist4d's synthetic world, which py123d's nuScenes parser calls a Zoe too.
+    vehicle: String,
     /// Ego -> world by time.
     ego: Vec<(i64, Se3)>,
     ego_box: ([f64; 3], [f64; 3]),
@@ -431,6 +434,11 @@ fn read_log(
     ego.sort_by_key(|(t, _)| *t);
     ensure!(!ego.is_empty(), "{} has no rows", ego_file.path.display());
     let ego_meta = ipc::metadata_json(&ego_file)?;
+    let vehicle = if meta["location"].as_str() == Some("dist4d-synthetic") {
+        "dist4d_synthetic".to_string()
+    } else {
+        ego_meta["vehicle_name"].as_str().unwrap_or("").to_string()
+    };
     let ego_box = ego_box_of(&dataset, &ego_meta, &ego_file.path, notes)?;
 
     // Cameras, by name.
@@ -460,7 +468,7 @@ fn read_log(
     }
     let lidar = read_lidar_file(dir, config, notes)?;
     let keyframes = read_boxes(dir, notes, warnings)?;
-    Ok(Log { dir: dir.to_path_buf(), name, dataset, ego, ego_box, cameras: files, lidar, keyframes })
+    Ok(Log { dir: dir.to_path_buf(), name, dataset, vehicle, ego, ego_box, cameras: files, lidar, keyframes })
 }
 
 /// The recording car's box (ego frame) whose LiDAR returns the `lidar` port drops: dist4d's
@@ -1047,6 +1055,10 @@ impl SurroundReader for Py123d {
 
     fn tree(&self) -> &Tree<usize, FrameTime> {
         &self.tree
+    }
+
+    fn vehicle(&self, scene: usize) -> Option<String> {
+        self.logs.get(*self.tree.scenes.get(scene).map(|s| &s.extra)?).map(|l| l.vehicle.clone())
     }
 
     fn ego_box(&self, scene: usize) -> Option<([f64; 3], [f64; 3])> {

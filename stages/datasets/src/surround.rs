@@ -197,6 +197,10 @@ pub trait SurroundReader: Send + Sync {
     fn ego_box(&self, _scene: usize) -> Option<([f64; 3], [f64; 3])> {
         Self::EGO_BOX
     }
+    /// The recording vehicle of scene `scene`, where the format names it apart from its files.
+    fn vehicle(&self, _scene: usize) -> Option<String> {
+        None
+    }
     /// The `image` port of a camera reading: by default its file, decoded.
     fn read_image(&self, image: &Reading) -> Result<Image> {
         read_camera_image(&image.file, image.calib.width, image.calib.height, &image.what)
@@ -379,6 +383,7 @@ impl<R: SurroundReader> Dataset for Surround<R> {
                         camera_to_ego: r.calib.sensor_to_ego,
                         ego_to_world: r.pose.ego_to_world,
                         boxes: self.0.camera_boxes(item)?,
+                        vehicle: self.0.vehicle(item.idx[0] as usize).unwrap_or_default(),
                         ..labels
                     },
                 };

@@ -65,6 +65,9 @@ pub struct Rig {
     /// log's files by the vehicle); empty = any (DGP names its files by timestamp).
     #[serde(default)]
     pub vehicles: Vec<String>,
+    /// The same vehicles by the name py123d's logs give them (`vehicle_name` of the ego state).
+    #[serde(default)]
+    pub vehicle_names: Vec<String>,
     pub width: u32,
     pub height: u32,
     /// Per camera, polygons in OpenCV's `fillPoly` convention (the pixel (i, j) is the point (i, j)).
@@ -97,9 +100,15 @@ impl Rig {
     fn fits(&self, info: &ImageInfo) -> bool {
         let family = |c: &str| c.trim_end_matches(|ch: char| ch.is_ascii_digit()).split('_').next().unwrap_or("").to_string();
         let file = info.file.rsplit('/').next().unwrap_or_default();
+        let vehicle = match info.vehicle.as_str() {
+            // Named by its files (nuScenes) or not at all (DGP).
+            "" => self.vehicles.is_empty() || self.vehicles.iter().any(|v| file.starts_with(&format!("{v}-"))),
+            // Named by the dataset (a py123d log).
+            name => self.vehicle_names.iter().any(|v| v == name) || self.vehicles.is_empty() && self.vehicle_names.is_empty(),
+        };
         (self.width, self.height) == (info.width, info.height)
             && self.cameras.keys().any(|c| family(c) == family(&info.camera))
-            && (self.vehicles.is_empty() || self.vehicles.iter().any(|v| file.starts_with(&format!("{v}-"))))
+            && vehicle
     }
 }
 
@@ -478,6 +487,15 @@ mod tests {
         // The synthetic world's files (vehicle n000) are no real car's.
         let synthetic = ImageInfo { file: "samples/CAM_BACK/n000-2018-01-01-00-00-00+0000__CAM_BACK__1.jpg".into(), ..info("CAM_BACK", 1600, 900) };
         assert!(run(auto.clone(), synthetic, None).unwrap().mask.data.iter().all(|&v| v == 0));
+        // A py123d log names its vehicle apart from its files.
+        let logged = |vehicle: &str| ImageInfo {
+            file: "nuscenes-mini_train/scene-0061/camera.pcam_b0.arrow".into(),
+            vehicle: vehicle.into(),
+            ..info("CAM_BACK", 1600, 900)
+        };
+        let masked = |i: ImageInfo| run(auto.clone(), i, None).unwrap().mask.data.iter().filter(|&&v| v > 0).count();
+        assert_eq!(masked(logged("nuscenes_renault_zoe")), boot);
+        assert_eq!(masked(logged("dist4d_synthetic")), 0);
         let none = Params { rig: "none".into(), ..auto.clone() };
         assert_eq!(count(&none, "CAM_BACK", 1600, 900), 0);
         // Polygons given for a camera replace the rig's.

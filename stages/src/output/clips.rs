@@ -255,6 +255,7 @@ mod tests {
                     camera_to_ego: Se3::default(),
                     ego_to_world: Se3::from_wxyz_t([1.0, 0.0, 0.0, 0.0], [f as f64, 0.0, 0.0]),
                     boxes: Boxes3D { timestamp_us: t, boxes: vec![car] },
+                    vehicle: String::new(),
                 });
             }
         }

@@ -199,6 +199,9 @@ pub struct ImageInfo {
     pub camera_to_ego: Se3,
     pub ego_to_world: Se3,
     pub boxes: Boxes3D,
+    /// The recording vehicle, where the dataset names it apart from its file names (py123d's
+    /// `vehicle_name`); empty otherwise.
+    pub vehicle: String,
 }
 
 /// `ImageInfo` without its boxes and transforms, as JSON.
@@ -214,6 +217,9 @@ struct ImageInfoOnDisk {
     width: u32,
     height: u32,
     intrinsics: Option<[[f64; 3]; 3]>,
+    // Left out when empty: the bytes of every dataset that names no vehicle stay as they were.
+    #[serde(default, skip_serializing_if = "String::is_empty")]
+    vehicle: String,
 }
 
 impl Artifact for ImageInfo {
@@ -231,6 +237,7 @@ impl Artifact for ImageInfo {
             width: self.width,
             height: self.height,
             intrinsics: self.intrinsics,
+            vehicle: self.vehicle.clone(),
         };
         let json = serde_json::to_vec(&head).unwrap_or_default();
         let mut out = b"IMI1".to_vec();
@@ -262,6 +269,7 @@ impl Artifact for ImageInfo {
             camera_to_ego,
             ego_to_world,
             boxes,
+            vehicle: head.vehicle,
         })
     }
 }
