@@ -353,3 +353,50 @@ fn bad_logs_are_errors_naming_the_file_the_modality_and_the_row() {
     assert!(e.contains("lidar.lidar_merged.arrow row 0") && e.contains("no codec"), "{e}");
     assert!(ds.load_source("lidar", &ItemKey::new(&[0, 1])).is_ok());
 }
+
+#[test]
+fn a_fisheye_camera_fails_its_own_items_and_the_pinhole_ones_are_read() {
+    let Some(python) = python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    // Written by py123d's own log writer (its KITTI-360 parser needs KITTI-360).
+    let o = Command::new(&python)
+        .arg(repo().join("tests/fixtures/py123d/write_fisheye_log.py"))
+        .arg(tmp.path())
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let ds = through_log(tmp.path(), FrameMode::Keyframes, None);
+    assert!(ds.0.warnings.iter().any(|w| w.contains("camera image_02 is a fisheye_mei camera")), "{:?}", ds.0.warnings);
+    let cameras = &ds.0.tree().cameras;
+    let fisheye = cameras.iter().position(|c| c == "image_02").unwrap() as u32;
+    let front = cameras.iter().position(|c| c == "CAM_FRONT").unwrap() as u32;
+    for f in 0..3 {
+        let e = format!("{:#}", ds.load_source("image", &ItemKey::new(&[0, f, fisheye])).unwrap_err());
+        assert!(e.contains("camera.fmcam_l.arrow") && e.contains("pinhole model only"), "{e}");
+        assert!(ds.load_source("image", &ItemKey::new(&[0, f, front])).is_ok());
+        assert!(ds.load_source("lidar", &ItemKey::new(&[0, f])).is_ok());
+    }
+}
+
+#[test]
+fn mp4_cameras_and_laz_sweeps_fail_their_items_saying_how_to_convert() {
+    let Some(f) = fixture() else { return };
+    let python = python().unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let o = Command::new(&python)
+        .arg(repo().join("scripts/py123d_convert.py"))
+        .args(["--nuscenes-root", f.source.to_str().unwrap(), "--out", tmp.path().to_str().unwrap()])
+        .args(["--keyframes", "--camera-storage", "mp4", "--lidar-storage", "in_log", "--lidar-codec", "laz"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let ds = through_log(tmp.path(), FrameMode::Keyframes, None);
+    assert!(ds.0.warnings.iter().any(|w| w.contains("MP4")), "{:?}", ds.0.warnings);
+    let e = format!("{:#}", ds.load_source("image", &ItemKey::new(&[0, 0, 0])).unwrap_err());
+    assert!(e.contains("MP4") && e.contains("jpeg_binary"), "{e}");
+    let e = format!("{:#}", ds.load_source("lidar", &ItemKey::new(&[0, 0])).unwrap_err());
+    assert!(e.contains("LAZ") && e.contains("ipc_zstd"), "{e}");
+    // Calibrations and poses are read all the same.
+    assert!(ds.load_source("camera_calib", &ItemKey::new(&[0, 0, 0])).is_ok());
+    assert!(ds.load_source("lidar_pose", &ItemKey::new(&[0, 0])).is_ok());
+}
