@@ -141,3 +141,34 @@ fn the_shared_nuscenes_keyframe_through_py123d_runs_the_curation() {
     // nowhere, so the vehicle is matched by the image size alone).
     assert!(out.join("scene-0061/CAM_BACK/000_ego.png").is_file());
 }
+
+#[test]
+fn a_log_of_another_car_with_a_fisheye_camera_says_what_it_lacks_once_and_goes_on() {
+    let Some(python) = py123d_python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let logs = tmp.path().join("logs");
+    let o = std::process::Command::new(&python)
+        .arg(repo().join("tests/fixtures/py123d/write_fisheye_log.py"))
+        .arg(&logs)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    let o =
+        run("curation", &format!("Py123d(root: \"{}\")", logs.display()), &tmp.path().join("c"), &tmp.path().join("o"));
+    let said = text(&o);
+    // The fisheye camera's items fail (the run says why once up front), the pinhole one's are made.
+    let warned = |what: &str| said.lines().filter(|l| l.starts_with("warning: ") && l.contains(what)).count();
+    assert_eq!(warned("camera image_02 is a fisheye_mei camera"), 1, "{said}");
+    assert!(said.contains("failed: ") && said.contains("image_02"), "{said}");
+    assert!(tmp.path().join("o/fisheye-0000/CAM_FRONT/000_depth.npy").is_file(), "{said}");
+    // No rig knows this car: the run says so once instead of leaving the body unmasked silently.
+    assert_eq!(warned("no built-in rig fits camera(s) CAM_FRONT (160x90)"), 1, "{said}");
+    // No lidarseg and no segmenter: occupancy would be geometry only, and its run says so.
+    let o = run(
+        "occupancy",
+        &format!("Py123d(root: \"{}\")", logs.display()),
+        &tmp.path().join("c"),
+        &tmp.path().join("occ"),
+    );
+    assert!(text(&o).contains("occupancy semantics are geometry only"), "{}", text(&o));
+}

@@ -16,7 +16,11 @@ fn main() -> anyhow::Result<()> {
     let start = std::time::Instant::now();
     let ds: Box<dyn Dataset> = match kind {
         "nuscenes" => Box::new(Surround(NuScenes::open(NuScenesConfig { root, ..Default::default() })?)),
-        "py123d" => Box::new(Surround(Py123d::open(Py123dConfig { root, sensor_root: args.get(3).cloned(), ..Default::default() })?)),
+        "py123d" => Box::new(Surround(Py123d::open(Py123dConfig {
+            root,
+            sensor_root: args.get(3).cloned(),
+            ..Default::default()
+        })?)),
         _ => anyhow::bail!("usage: read_sources nuscenes|py123d ROOT [SENSOR_ROOT]"),
     };
     let opened = start.elapsed().as_secs_f64();

@@ -18,7 +18,8 @@
 //!   Renault Zoe's boot in CAM_BACK) and `ddad` (TRI's Ford Fusion: hood, mirrors, pillars and
 //!   boot in CAMERA_05-09). `auto` (the default) takes the rig that names the camera and has its
 //!   image size (nuScenes' CAM_* at 1600x900, DDAD's CAMERA_* at 1936x1216); `none` takes none.
-//! - none: an empty mask. A camera of another rig gets none until its polygons or file are given.
+//! - none: an empty mask. A camera of another rig gets none until its polygons or file are given,
+//!   and the run says so once, naming the cameras (`unmasked_warnings`).
 //!
 //! `grow` then widens the mask by whole pixels: JPEG ringing and motion blur put the body's edge
 //! a pixel or two into the scene, where a sample of the road would still be wrong.
@@ -110,6 +111,50 @@ impl Rig {
             && self.cameras.keys().any(|c| family(c) == family(&info.camera))
             && vehicle
     }
+}
+
+/// Whether `info` is an image of dist4d's synthetic world, whose cameras see no car body.
+fn synthetic(info: &ImageInfo) -> bool {
+    info.vehicle == "dist4d_synthetic" || info.file.rsplit('/').next().is_some_and(|f| f.starts_with("n000-"))
+}
+
+/// The run's note, once, on the cameras of a pipeline's `EgoMask` stages that no source covers
+/// (no polygons or file given, and with `rig: auto` no built-in rig fits): their masks are empty,
+/// so their car body, if they see one, is taken for the scene. Read from the first frame's images.
+pub fn unmasked_warnings(p: &dist4d_graph::Pipeline, dataset: &dyn dist4d_runtime::Dataset) -> Vec<String> {
+    use dist4d_runtime::ItemKey;
+    use dist4d_types::artifact::Artifact;
+    let mut out = Vec::new();
+    for node in &p.nodes {
+        let Some(stage) = node.stage().filter(|s| s.kind == EgoMask::KIND) else { continue };
+        let Some(params) = stage.params.get::<Params>() else { continue };
+        if params.rig != "auto" || dataset.count(&ItemKey::new(&[])) == 0 || dataset.count(&ItemKey::new(&[0])) == 0 {
+            continue;
+        }
+        let frame = ItemKey::new(&[0, 0]);
+        let mut uncovered = Vec::new();
+        for c in 0..dataset.count(&frame) {
+            let Ok(bytes) = dataset.load_source("image_info", &ItemKey::new(&[0, 0, c])) else { continue };
+            let Ok(info) = ImageInfo::decode(&bytes) else { continue };
+            let covered = params.polygons.contains_key(&info.camera)
+                || params.files.contains_key(&info.camera)
+                || rigs().iter().any(|r| r.fits(&info))
+                || synthetic(&info);
+            if !covered && info.missing.is_none() {
+                uncovered.push(format!("{} ({}x{})", info.camera, info.width, info.height));
+            }
+        }
+        if !uncovered.is_empty() {
+            out.push(format!(
+                "stage `{}` (EgoMask): no built-in rig fits camera(s) {} of this dataset, and no polygons or mask files are \
+                 given: their ego masks are empty, so a car body they see is taken for the scene (give `polygons` or \
+                 `files` per camera: docs/stages.md, EgoMask)",
+                node.name,
+                uncovered.join(", ")
+            ));
+        }
+    }
+    out
 }
 
 impl Validate for Params {
