@@ -492,10 +492,20 @@ fn execute(
     for line in dist4d_runtime::nothing::lines(pipeline, &rec.stages) {
         println!("{line}");
     }
-    if rec.missing() > 0 && rec.status == RunStatus::Interrupted {
+    // Tasks an interrupted run never started are in no counter: what is left of the totals.
+    let not_started: u64 = rec
+        .stages
+        .iter()
+        .map(|s| {
+            s.total.saturating_sub(
+                s.executed + s.cached + s.failed + s.skipped + s.not_applicable + s.missing + s.deferred,
+            )
+        })
+        .sum();
+    if rec.status == RunStatus::Interrupted && rec.missing() + not_started > 0 {
         println!(
             "stopped: {} tasks were cut short or not started; rerun the same command to finish (nothing of them was stored)",
-            rec.missing()
+            rec.missing() + not_started
         );
     } else if rec.missing() > 0 {
         println!(

@@ -538,7 +538,7 @@ fn a_nuscenes_root_that_is_missing_or_dgp_data_says_so() {
     assert!(t.contains(&format!("{} does not exist", missing.display())), "{t}");
     let Some(dgp) = shared_dgp() else { return };
     let t = run(&dgp);
-    assert!(t.contains("looks like a DGP dataset") && t.contains("Dgp(root: "), "{t}");
+    assert!(t.contains("it looks like Dgp data: did you mean `Dgp(root: "), "{t}");
 }
 
 /// `dist4d runs --json | head` ends quietly when `head` has read enough, as Unix tools do: it
