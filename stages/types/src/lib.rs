@@ -8,5 +8,6 @@ pub mod deflate_rle;
 pub mod formats;
 pub mod geometry;
 pub mod occ3d;
+pub mod pickle;
 pub mod rng;
 pub mod voxels;
