@@ -91,6 +91,9 @@ impl Registry {
         for w in occupancy::geometry_only_warnings(p, opened.has_point_labels, &opened.description) {
             eprintln!("warning: {w}");
         }
+        for w in occupancy::encode_occ3d_waymo::grid_mismatch_warnings(p) {
+            eprintln!("warning: {w}");
+        }
         for w in curation::ego_mask::unmasked_warnings(p, opened.dataset.as_ref()) {
             eprintln!("warning: {w}");
         }

@@ -374,6 +374,8 @@ impl SurroundReader for Dgp {
     /// DDAD's Ford Fusion (the ego frame on the ground, the cameras 1.55 m up around x 0.1-1.5).
     const EGO_BOX: Option<([f64; 3], [f64; 3])> = Some(dist4d_types::geometry::ego_box::DDAD);
     const FORMAT: &'static str = "DGP";
+    /// DGP is the format TRI ships DDAD in.
+    const SOURCE_DATASET: &'static str = "ddad";
     type Scene = Ontology;
     type Frame = BoxFile;
 

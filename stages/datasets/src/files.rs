@@ -222,6 +222,12 @@ pub fn read_npz(path: &Path, key: &str) -> Result<NpyArray> {
     parse_npy(&member).with_context(|| format!("{}: array `{key}`", path.display()))
 }
 
+/// The `.npy` bytes of array `key` in `.npz` bytes, for readers of other dtypes than
+/// [`parse_npy`]'s (e.g. `dist4d_types::formats::read_npy_u8`).
+pub fn npz_member(npz: &[u8], key: &str) -> Result<Vec<u8>> {
+    zip_member(npz, &format!("{key}.npy")).with_context(|| format!("array `{key}` of the .npz"))
+}
+
 /// One member of a zip archive, found through the central directory.
 fn zip_member(zip: &[u8], name: &str) -> Result<Vec<u8>> {
     let u16at = |i: usize| -> Result<usize> {

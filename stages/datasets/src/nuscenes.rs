@@ -1122,6 +1122,8 @@ impl SurroundReader for NuScenes {
     /// keyframe's sweep); the synthetic world, read by this reader, puts its hatchback inside.
     const EGO_BOX: Option<([f64; 3], [f64; 3])> = Some(dist4d_types::geometry::ego_box::NUSCENES);
     const FORMAT: &'static str = "nuScenes";
+    /// Also dist4d's synthetic world, which is written as a nuScenes dataset.
+    const SOURCE_DATASET: &'static str = "nuscenes";
     type Scene = Keyframes;
     type Frame = Sweep;
 

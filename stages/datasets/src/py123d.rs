@@ -1065,6 +1065,11 @@ impl SurroundReader for Py123d {
         self.logs.get(*self.tree.scenes.get(scene).map(|s| &s.extra)?).map(|l| l.ego_box)
     }
 
+    /// The log metadata's `dataset` (`wod-perception`, `nuscenes`, `av2-sensor`, ...).
+    fn source_dataset(&self, scene: usize) -> String {
+        self.tree.scenes.get(scene).and_then(|s| self.logs.get(s.extra)).map(|l| l.dataset.clone()).unwrap_or_default()
+    }
+
     fn lidar_digest(&self, lidar: &Reading, _frame: &FrameTime, files: &dyn FileDigests) -> Result<Option<Digest>> {
         let log = self
             .logs

@@ -21,7 +21,7 @@ pub(crate) const DIMS: [DimSpec; 3] = [
     DimSpec { name: "frame", ordered: true },
     DimSpec { name: "camera", ordered: false },
 ];
-pub(crate) const PORTS: [SourcePortSpec; 14] = [
+pub(crate) const PORTS: [SourcePortSpec; 15] = [
     SourcePortSpec {
         name: "lidar",
         ty: "PointCloud",
@@ -85,6 +85,12 @@ pub(crate) const PORTS: [SourcePortSpec; 14] = [
         ty: "Segmentation",
         grain: "camera",
         doc: "Cityscapes-id segmentation from the `semantics` folder; empty when none is configured",
+    },
+    SourcePortSpec {
+        name: "source_dataset",
+        ty: "File",
+        grain: "scene",
+        doc: "the dataset the scene was recorded for, UTF-8: `nuscenes`, `ddad`, or a py123d log's own (`wod-perception`, `av2-sensor`, ...), for outputs whose layout follows the source (Occ3D-Waymo)",
     },
 ];
 
@@ -223,6 +229,14 @@ pub trait SurroundReader: Send + Sync {
     fn frame_token(&self, scene: usize, frame: usize) -> Option<String> {
         self.tree().scenes.get(scene)?.frames.get(frame)?.lidar.as_ref().ok().map(|r| r.token.clone())
     }
+    /// The dataset the format's scenes were recorded for (the `source_dataset` port), unless
+    /// the format records it per scene ([`Self::source_dataset`]); empty: unknown.
+    const SOURCE_DATASET: &'static str = "";
+    /// The dataset scene `scene` (tree index) was recorded for: `nuscenes`, `ddad`,
+    /// `wod-perception`, ... Outputs whose layout depends on the source (Occ3D-Waymo's) read it.
+    fn source_dataset(&self, _scene: usize) -> String {
+        Self::SOURCE_DATASET.to_string()
+    }
     /// The map mask of scene `scene` (index in the tree), when the format has one.
     fn map_file(&self, _scene: usize) -> Option<&Path> {
         None
@@ -344,6 +358,7 @@ impl<R: SurroundReader> Dataset for Surround<R> {
             "boxes" => return Ok(self.0.boxes(item)?.encode()),
             "camera_boxes" => return Ok(self.0.camera_boxes(item)?.encode()),
             "frame_token" => return Ok(self.token(item).unwrap_or_default().into_bytes()),
+            "source_dataset" => return Ok(self.0.source_dataset(item.idx[0] as usize).into_bytes()),
             "map" => {
                 return match self.0.map_file(item.idx[0] as usize) {
                     Some(path) => crate::files::read_input(path, "the map", crate::checks::MAX_SENSOR_FILE_BYTES),

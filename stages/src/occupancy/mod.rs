@@ -67,6 +67,7 @@ crate::stage_modules! {
     annotations::Occ3dAnnotations,
     conditions::DitConditions,
     encode_occ3d::EncodeOcc3d,
+    encode_occ3d_waymo::EncodeOcc3dWaymo,
     eval::EvalOccupancy,
     exact::ExactOccupancy,
     generate::GenerateHexPlane,

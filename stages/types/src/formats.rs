@@ -282,6 +282,15 @@ pub fn npy_f32(shape: &[usize], data: &[f32]) -> Vec<u8> {
     out
 }
 
+/// NPY v1.0 of a little-endian float64 array (a 4 x 4 pose).
+pub fn npy_f64(shape: &[usize], data: &[f64]) -> Vec<u8> {
+    let mut out = npy_header("<f8", shape, 8 * data.len());
+    for x in data {
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+    out
+}
+
 /// NPY v1.0 of a uint8 array (an RGB image H x W x 3, a mask H x W).
 pub fn npy_u8(shape: &[usize], data: &[u8]) -> Vec<u8> {
     let mut out = npy_header("|u1", shape, data.len());
