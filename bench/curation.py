@@ -122,7 +122,7 @@ def variant(base, name, tmp, prompt_points=None, follow_points=None, visible_poi
         t = edit(t, '"prompt": DepthPrompt(\n            inputs: {\n                "points": "visible.points",',
                  f'"prompt": DepthPrompt(\n            inputs: {{\n                "points": "{prompt_points}",')
     if not sky:  # the completion gets no sky mask
-        t = edit(t, '"sparse": "prompt.sparse", "sky": "sky.sky"}', '"sparse": "prompt.sparse"}')
+        t = edit(t, '"sparse": "prompt.sparse", "sky": "sky.sky", "ego": "ego.mask"}', '"sparse": "prompt.sparse", "ego": "ego.mask"}')
     path = tmp / f"{name}.ron"
     path.write_text(t)
     return path
@@ -339,6 +339,9 @@ def section_chain(data, tmp, base):
     # exported (it also makes the preview, which the peer does not: not exported).
     t = variant(base, "chain", tmp, visible_points="aggregate.points", sky=False, slim=False).read_text()
     names = set(re.findall(r'^        "(\w+)": \w+\(', t, re.M))
+    # No ego mask either (the synthetic world's is empty, and the peer has none).
+    t = re.sub(r'\n\s*"ego": "ego\.mask",', "", t)
+    t = t.replace(', "ego": "ego.mask"', "")
     t = drop_stages(t, names - {"aggregate", "visible", "prompt", "complete", "encode"})
     t = t[:t.index("    export: {")] + """    export: {
         "encode.exr": "{scene}/{camera}/{frame}_depth.exr",
