@@ -8,6 +8,7 @@ pub mod eval;
 pub mod generation;
 pub mod hull;
 pub mod lift;
+pub mod lone_points;
 pub mod middlebury;
 pub mod model_worker;
 pub mod novel_view;

@@ -25,8 +25,11 @@
 //!    edge away (a lone pixel of another depth, a speckle of the completion, has no surface to
 //!    belong to).
 //! 5. **It has support**, where a support map is wired (`CompleteDepth`'s `support`: px to the
-//!    nearest prompt sample): at most `max_support_px` (0 = no limit). Far from every sample the
-//!    completion's depth is an extrapolation.
+//!    nearest prompt sample): at most `max_support_px` (0 = no limit), and at most
+//!    `max_support_m` metres at the pixel's own depth (`support * z / f`; 0 = no limit). Far from
+//!    every sample the completion's depth is an extrapolation, and how far is a matter of metres
+//!    on the surface, not of pixels: 5 px from a LiDAR return is 0.1 m on a wall at 5 m and 1.5 m
+//!    on one at 60 m, where the completion has a whole gap between two LiDAR rings to bridge.
 //!
 //! The defaults and what they do on the synthetic and the DGP scenes are in docs/stages.md
 //! ("Lifting depth to 3D") and docs/BENCHMARKS.md ("Flying pixels (issue 42)").
@@ -49,13 +52,16 @@ pub struct LiftParams {
     /// Px to the nearest prompt sample above which a pixel is not lifted (when a support map is
     /// wired); 0 = no limit.
     pub max_support_px: f32,
+    /// Metres on the surface (support px times depth over the focal length) to the nearest prompt
+    /// sample above which a pixel is not lifted (when a support map is wired); 0 = no limit.
+    pub max_support_m: f32,
     /// The sky's fill value (m): depths at least 99.5% of it are sky.
     pub sky_depth: f32,
 }
 
 impl Default for LiftParams {
     fn default() -> Self {
-        LiftParams { max_jump: 0.05, min_plane_distance: 1.0, min_neighbours: 2, max_support_px: 0.0, sky_depth: 100.0 }
+        LiftParams { max_jump: 0.05, min_plane_distance: 1.0, min_neighbours: 2, max_support_px: 0.0, max_support_m: 0.0, sky_depth: 100.0 }
     }
 }
 
@@ -66,6 +72,7 @@ impl LiftParams {
             .above("min_plane_distance", self.min_plane_distance as f64, 0.0, 1e4)
             .count("min_neighbours", self.min_neighbours as u64, 0, 8)
             .within("max_support_px", self.max_support_px as f64, 0.0, 1e6)
+            .within("max_support_m", self.max_support_m as f64, 0.0, 1e6)
             .above("sky_depth", self.sky_depth as f64, 0.0, 1e6);
     }
 
@@ -96,11 +103,14 @@ pub fn liftable(
     assert_eq!(depth.len(), w * h, "the depth map is not {w}x{h}");
     let surface: Vec<bool> = depth.iter().map(|&z| p.is_surface(z)).collect();
     let mut out = surface.clone();
-    if let (Some(s), true) = (support, p.max_support_px > 0.0) {
+    if let (Some(s), true) = (support, p.max_support_px > 0.0 || p.max_support_m > 0.0) {
         assert_eq!(s.len(), w * h, "the support map is not {w}x{h}");
-        for (o, &d) in out.iter_mut().zip(s) {
+        let px = if p.max_support_px > 0.0 { p.max_support_px } else { f32::INFINITY };
+        // support * z / f <= max_support_m, as support * z <= max_support_m * f.
+        let m = if p.max_support_m > 0.0 { (p.max_support_m as f64 * focal_px) as f32 } else { f32::INFINITY };
+        for ((o, &d), &z) in out.iter_mut().zip(s).zip(depth) {
             // NaN (no sample at all) is no support either.
-            *o &= d <= p.max_support_px;
+            *o &= d <= px && d * z <= m;
         }
     }
     if p.max_jump <= 0.0 {
@@ -283,5 +293,22 @@ mod tests {
         assert!(keep[7] && !keep[8]);
         // 0 = no limit.
         assert!(liftable(&d, w, h, 500.0, Some(&support), &LiftParams::default()).iter().all(|&k| k));
+    }
+
+    #[test]
+    fn support_in_metres_asks_more_of_far_pixels_than_of_near_ones() {
+        // Two walls, at 5 m (top rows) and 50 m (bottom rows), every pixel 4 px from a sample;
+        // f = 500 px: 4 px is 0.04 m on the near wall and 0.4 m on the far one.
+        let (w, h) = (6, 6);
+        let d: Vec<f32> = (0..w * h).map(|k| if k / w < 3 { 5.0 } else { 50.0 }).collect();
+        let support = vec![4.0f32; w * h];
+        let p = LiftParams { max_support_m: 0.25, max_jump: 0.0, ..LiftParams::default() };
+        let keep = liftable(&d, w, h, 500.0, Some(&support), &p);
+        for (k, &ok) in keep.iter().enumerate() {
+            assert_eq!(ok, d[k] < 10.0, "pixel {k} at {} m", d[k]);
+        }
+        // The same support in px alone keeps both walls or neither.
+        let px = LiftParams { max_support_px: 4.0, max_jump: 0.0, ..LiftParams::default() };
+        assert!(liftable(&d, w, h, 500.0, Some(&support), &px).iter().all(|&k| k));
     }
 }

@@ -18,8 +18,8 @@
 use crate::model_worker::{npy_rgb8, read_npy_rgb8, worker_depth, Exchange, ModelWorker, WorkerSpec};
 use crate::novel_view::fill_baseline::fill;
 use crate::novel_view::frame_pair::{camera_views, frame_record, info_view, view_of};
-use crate::novel_view::moving::{split, Moving};
-use crate::lift::LiftParams;
+use crate::novel_view::moving::{split, Moving, Piece};
+use crate::lift::{focal_of, liftable, LiftParams};
 use crate::novel_view::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
 use crate::stage::{variant_of, Stage};
 use anyhow::{ensure, Context, Result};
@@ -61,6 +61,11 @@ pub struct Params {
     pub splat: SplatParams,
     /// Which reference pixels are drawn ([`crate::lift`]; its `sky_depth` is this stage's).
     pub lift: LiftParams,
+    /// Metres on the surface (support px times depth over the focal length) from the nearest
+    /// prompt sample beyond which a drawn pixel is not `trusted` (when `supports` are wired): the
+    /// view draws it (a hole filled in is worse to look at), the `trusted` mask, and with it the
+    /// bullet-time cloud, leaves it out. 0 = every drawn pixel is trusted.
+    pub trusted_support_m: f32,
     /// DiST-T (or any future-frame generator) as an external worker in place of the baseline:
     /// `Some((program: "python3", args: ["my_dist_t.py"]))`, op `generate_future`
     /// (docs/workers.md). Its name, version and weights enter the task keys.
@@ -80,6 +85,7 @@ impl Default for Params {
             background_tolerance: 0.1,
             splat: SplatParams::default(),
             lift: LiftParams::default(),
+            trusted_support_m: 0.2,
             worker: None,
         }
     }
@@ -104,6 +110,7 @@ impl Validate for Params {
         );
         self.splat.check(&mut c);
         self.lift.check(&mut c);
+        c.within("trusted_support_m", self.trusted_support_m as f64, 0.0, 1e6);
         if let Some(w) = &self.worker {
             w.check(&mut c);
         }
@@ -140,6 +147,10 @@ crate::ports! {
         /// 1 where the reference frame saw what is drawn (the baseline's warp landed), 0 where it
         /// was filled in; all 1 from a worker
         mask: One<Mask>,
+        /// the part of `mask` drawn from reference pixels within `trusted_support_m` of a prompt
+        /// sample (all of `mask` without `supports` or from a worker): what a bullet-time cloud
+        /// makes points of
+        trusted: One<Mask>,
         /// the camera's ego pose at the step (its time included): where the view was generated
         pose: One<Pose>,
         /// JSON: the reference frame, the step, and the view's camera, time and pose
@@ -153,7 +164,8 @@ impl Stage for GenerateFuture {
     const KIND: &'static str = "GenerateFuture";
     // 2: a record of each view; the sky's depth exactly `sky_depth` after the fill.
     // 3: the reference depth lifted by the shared rule (crate::lift): no flying pixels.
-    const VERSION: u32 = 3;
+    // 4: the `trusted` mask (support in metres).
+    const VERSION: u32 = 4;
     const SUMMARY: &'static str =
         "DiST-T: future multi-camera RGB-D per step from a reference frame and controls (worker, or a warp baseline)";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -186,8 +198,11 @@ impl Stage for GenerateFuture {
         let view = info_view(target).context("the step's camera")?;
         let references = references(&i)?;
         let pose = Pose { ego_to_world: target.ego_to_world, timestamp_us: target.timestamp_us };
-        let (image, depth, mask) = if self.1.is_set() {
-            generate_by_worker(ctx, &self.1, &references, target, i.layout.as_ref(), &view, label, step.offset)?
+        let (image, depth, mask, trusted) = if self.1.is_set() {
+            let (image, depth, mask) =
+                generate_by_worker(ctx, &self.1, &references, target, i.layout.as_ref(), &view, label, step.offset)?;
+            let trusted = mask.clone();
+            (image, depth, mask, trusted)
         } else {
             warp_baseline(&self.0, &references, target, &view)?
         };
@@ -205,7 +220,7 @@ impl Stage for GenerateFuture {
             "seen": seen,
             "view": step_record(target, &view),
         });
-        Ok(Outputs { image, depth, mask, pose, record: File(serde_json::to_vec_pretty(&record)?) })
+        Ok(Outputs { image, depth, mask, trusted, pose, record: File(serde_json::to_vec_pretty(&record)?) })
     }
 }
 
@@ -266,25 +281,56 @@ fn references(i: &Inputs) -> Result<Vec<Reference<'_>>> {
     Ok(out)
 }
 
-/// The built-in baseline of the module doc.
-fn warp_baseline(p: &Params, refs: &[Reference], target: &ImageInfo, view: &PinholeView) -> Result<(Image, DepthMap, Mask)> {
+/// The built-in baseline of the module doc, with the `trusted` mask.
+fn warp_baseline(
+    p: &Params,
+    refs: &[Reference],
+    target: &ImageInfo,
+    view: &PinholeView,
+) -> Result<(Image, DepthMap, Mask, Mask)> {
     let (w, h) = (view.width, view.height);
     let lift = LiftParams { sky_depth: p.sky_depth, ..p.lift.clone() };
     // Surfaces: every reference camera's liftable depth (crate::lift: no edges' far sides, no
     // sky, no unsupported pixels), split into the static rest and the objects that moved by the
     // step's time; the sky apart, drawn as directions.
+    // Of each piece, the pixels with support in metres (`trusted_support_m`), when that asks
+    // anything: drawn again on their own, they mark where the view shows a trusted surface.
+    let strict = (p.trusted_support_m > 0.0 && refs.iter().any(|r| r.support.is_some()))
+        .then(|| LiftParams { max_support_m: p.trusted_support_m, ..lift.clone() });
     let mut pieces = Vec::new();
+    let mut trusted_pieces = Vec::new();
     let mut skies = Vec::new();
     for r in refs {
-        let (surface, sky) = lift_source(&r.depth.data, &r.view, r.support.map(|s| &s.data[..]), &lift);
+        let support = r.support.map(|s| &s.data[..]);
+        let (surface, sky) = lift_source(&r.depth.data, &r.view, support, &lift);
         let (parts, _) = split(&surface, &r.view, &r.info.boxes.boxes, &target.boxes.boxes, p.moving);
+        if let Some(strict) = &strict {
+            let keep = liftable(&r.depth.data, r.view.width as usize, r.view.height as usize, focal_of(&r.view.k), support, strict);
+            for piece in &parts {
+                let depth = piece.depth.iter().zip(&keep).map(|(&z, &k)| if k { z } else { 0.0 }).collect();
+                trusted_pieces.push((r.image, Piece { depth, view: piece.view }));
+            }
+        }
         pieces.extend(parts.into_iter().map(|piece| (r.image, piece)));
         skies.push((r.image, sky, r.view));
     }
-    let rgbd: Vec<RgbdView> =
-        pieces.iter().map(|(image, piece)| RgbdView { rgb: &image.rgb, depth: &piece.depth, view: &piece.view }).collect();
+    fn rgbd<'a>(pieces: &'a [(&'a Image, Piece)]) -> Vec<RgbdView<'a>> {
+        pieces.iter().map(|(image, piece)| RgbdView { rgb: &image.rgb, depth: &piece.depth, view: &piece.view }).collect()
+    }
     let splat = SplatParams { max_depth: f32::MAX, ..p.splat.clone() };
-    let mut surfaces = reproject(&rgbd, view, &splat)?;
+    let mut surfaces = reproject(&rgbd(&pieces), view, &splat)?;
+    // Trusted where the nearest surface drawn is a trusted one: both drawings agree there.
+    let trusted: Vec<u8> = if strict.is_some() {
+        let t = reproject(&rgbd(&trusted_pieces), view, &splat)?;
+        (0..surfaces.valid.len())
+            .map(|k| {
+                let (a, b) = (surfaces.depth[k], t.depth[k]);
+                (surfaces.valid[k] != 0 && t.valid[k] != 0 && (a - b).abs() <= p.splat.surface_tolerance * a) as u8
+            })
+            .collect()
+    } else {
+        surfaces.valid.clone()
+    };
     let sky_views: Vec<RgbdView> =
         skies.iter().map(|(image, sky, v)| RgbdView { rgb: &image.rgb, depth: sky, view: v }).collect();
     draw_sky(&mut surfaces, &sky_views, view, &splat, p.sky_depth)?;
@@ -295,7 +341,12 @@ fn warp_baseline(p: &Params, refs: &[Reference], target: &ImageInfo, view: &Pinh
     for z in depth.iter_mut().filter(|z| lift.is_sky(**z)) {
         *z = p.sky_depth;
     }
-    Ok((Image { width: w, height: h, rgb }, DepthMap { width: w, height: h, data: depth }, mask))
+    Ok((
+        Image { width: w, height: h, rgb },
+        DepthMap { width: w, height: h, data: depth },
+        mask,
+        Mask { width: w, height: h, data: trusted },
+    ))
 }
 
 /// The step generated by the stage's worker (op `generate_future`): inputs `image_<i>` (NPY uint8
@@ -397,11 +448,46 @@ mod tests {
             view: info_view(&reference).unwrap(),
         }];
         let view: PinholeView = info_view(&target).unwrap();
-        let (_, out, mask) = warp_baseline(&Params::default(), &refs, &target, &view).unwrap();
+        let (_, out, mask, _) = warp_baseline(&Params::default(), &refs, &target, &view).unwrap();
         let at = |x: u32, y: u32| out.data[(y * w + x) as usize];
         assert!((at(32, 40) - 18.0).abs() < 0.05, "the wall is 18 m ahead now: {}", at(32, 40));
         assert_eq!(at(32, 5), 100.0, "the sky keeps its depth");
         let seen = mask.data.iter().filter(|&&m| m != 0).count() as f64 / (w * h) as f64;
         assert!(seen > 0.9, "driving towards a wall, the reference saw nearly all of the view: {seen}");
+    }
+
+    #[test]
+    fn pixels_far_from_every_prompt_sample_are_drawn_but_not_trusted() {
+        let (w, h) = (64u32, 48u32);
+        let reference = info("CAM_FRONT", 0.0, w, h);
+        let target = info("CAM_FRONT", 2.0, w, h);
+        let image = Image { width: w, height: h, rgb: vec![90; (w * h * 3) as usize] };
+        let depth = DepthMap { width: w, height: h, data: vec![20.0; (w * h) as usize] };
+        // The left half on the prompt's samples, the right half 8 px from the nearest: 5 m on a
+        // wall at 20 m seen with f = 32 px.
+        let support = DepthMap {
+            width: w,
+            height: h,
+            data: (0..w * h).map(|i| if i % w < w / 2 { 0.0 } else { 8.0 }).collect(),
+        };
+        let refs = vec![Reference {
+            image: &image,
+            depth: &depth,
+            support: Some(&support),
+            info: &reference,
+            view: info_view(&reference).unwrap(),
+        }];
+        let view: PinholeView = info_view(&target).unwrap();
+        let (_, out, mask, trusted) = warp_baseline(&Params::default(), &refs, &target, &view).unwrap();
+        let at = |m: &Mask, x: u32, y: u32| m.data[(y * w + x) as usize];
+        for y in 4..h - 4 {
+            assert_eq!((at(&mask, 8, y), at(&trusted, 8, y)), (1, 1), "left, row {y}: drawn and trusted");
+            assert_eq!((at(&mask, 56, y), at(&trusted, 56, y)), (1, 0), "right, row {y}: drawn, not trusted");
+            assert!((out.data[(y * w + 56) as usize] - 18.0).abs() < 0.05, "the view still draws the wall");
+        }
+        // Without the test every drawn pixel is trusted.
+        let off = Params { trusted_support_m: 0.0, ..Params::default() };
+        let (_, _, mask, trusted) = warp_baseline(&off, &refs, &target, &view).unwrap();
+        assert_eq!(mask, trusted);
     }
 }

@@ -8,6 +8,7 @@
 //! not depend on threads). Only what [`crate::lift`] lifts becomes a point: no pixel on the far
 //! side of a depth edge (the flying pixels between a tree and what is behind it), no lone pixel,
 //! no pixel without a depth (0), and no sky (the curation's 100 m is a convention, not a surface).
+//! Of the thinned cloud, the points alone in the air are dropped last ([`crate::lone_points`]).
 //!
 //! It runs per variant (a step) under a camera, as the generated views do, and reads every camera
 //! of its step through `Across(.., camera)`; the cloud is made once, by the task of the rig's
@@ -17,6 +18,7 @@
 //! same views.
 
 use crate::lift::{focal_of, liftable, LiftParams};
+use crate::lone_points::{with_company, LoneParams};
 use crate::novel_view::frame_pair::{resize_image, VoxelHasher};
 use crate::novel_view::splat::PinholeView;
 use crate::stage::Stage;
@@ -38,6 +40,8 @@ pub struct Params {
     pub max_depth: f32,
     /// Which pixels become points ([`crate::lift`]).
     pub lift: LiftParams,
+    /// Which points of the fused cloud are dropped as alone in the air ([`crate::lone_points`]).
+    pub lone: LoneParams,
     /// The preview's top-down view covers +-this many metres around the ego.
     pub bev_range: f32,
     /// The preview's height (px): the camera images are scaled to fit two rows of it.
@@ -46,7 +50,7 @@ pub struct Params {
 
 impl Default for Params {
     fn default() -> Self {
-        Params { voxel: 0.1, max_depth: 99.0, lift: LiftParams::default(), bev_range: 50.0, preview_height: 480 }
+        Params { voxel: 0.1, max_depth: 99.0, lift: LiftParams::default(), lone: LoneParams::default(), bev_range: 50.0, preview_height: 480 }
     }
 }
 
@@ -58,6 +62,7 @@ impl Validate for Params {
             .above("bev_range", self.bev_range as f64, 0.0, 1e4)
             .count("preview_height", self.preview_height as u64, 64, 4096);
         self.lift.check(&mut c);
+        self.lone.check(&mut c);
         c.done()
     }
 }
@@ -102,7 +107,8 @@ impl Stage for SurroundCloud {
     const KIND: &'static str = "SurroundCloud";
     // 2: the first camera's task is found from its own calibration (an input), not its item.
     // 3: pixels lifted by the shared rule (crate::lift): no flying pixels.
-    const VERSION: u32 = 3;
+    // 4: points alone in the air dropped (crate::lone_points).
+    const VERSION: u32 = 4;
     const SUMMARY: &'static str =
         "bullet time: every camera's RGB-D of a step as one coloured point cloud, and a preview of the step";
     const GRAINS: &'static [&'static str] = &["variant"];
@@ -157,7 +163,7 @@ impl Stage for SurroundCloud {
             });
         }
         let ego_from_world = cams[0].pose.ego_to_world.inverse();
-        let points = fuse(&self.0, &cams, |p| ego_from_world.apply(p))?;
+        let points = drop_lone(fuse(&self.0, &cams, |p| ego_from_world.apply(p))?, &self.0.lone);
         let preview = preview(&self.0, &cams, &points)?;
         let pose = cams[0].pose;
         let t = |s: &dist4d_types::geometry::Se3| serde_json::json!({ "translation": s.translation.to_array(), "rotation": s.wxyz() });
@@ -227,6 +233,22 @@ fn fuse(p: &Params, cams: &[Camera], to_frame: impl Fn(DVec3) -> DVec3) -> Resul
         }
     }
     Ok(cloud)
+}
+
+/// `cloud` without the points [`crate::lone_points`] finds alone.
+fn drop_lone(cloud: PointCloud, p: &LoneParams) -> PointCloud {
+    let xyz: Vec<[f32; 3]> = cloud.points.iter().map(|q| [q[0], q[1], q[2]]).collect();
+    let keep = with_company(&xyz, p);
+    let mut out = PointCloud::default();
+    for (k, &ok) in keep.iter().enumerate() {
+        if ok {
+            out.points.push(cloud.points[k]);
+            if let Some(c) = cloud.rgb.get(k) {
+                out.rgb.push(*c);
+            }
+        }
+    }
+    out
 }
 
 /// The cameras' images in two rows as a driver would place them (the forward-looking ones on
