@@ -224,7 +224,7 @@ fn pose_json(v: &Value, at: &Place, field: &str, kind: Transform, notes: &mut Re
 
 /// The values of row `row` of a fixed-size list column of f64.
 fn fixed_row(list: &FixedSizeListArray, row: usize) -> Option<Vec<f64>> {
-    if list.is_null(row) {
+    if row >= list.len() || list.is_null(row) {
         return None;
     }
     let v = list.value(row);
@@ -761,7 +761,7 @@ fn read_boxes(
                     instance: t.value(j).to_string(),
                     category,
                     attributes: Vec::new(),
-                    num_lidar_pts: n.map_or(0, |n| n.value(j).max(0) as u32),
+                    num_lidar_pts: n.filter(|n| j < n.len()).map_or(0, |n| n.value(j).max(0) as u32),
                     interpolated: false,
                     extrapolated: false,
                 });
