@@ -61,7 +61,14 @@ pub struct LiftParams {
 
 impl Default for LiftParams {
     fn default() -> Self {
-        LiftParams { max_jump: 0.05, min_plane_distance: 1.0, min_neighbours: 2, max_support_px: 0.0, max_support_m: 0.0, sky_depth: 100.0 }
+        LiftParams {
+            max_jump: 0.05,
+            min_plane_distance: 1.0,
+            min_neighbours: 2,
+            max_support_px: 0.0,
+            max_support_m: 0.0,
+            sky_depth: 100.0,
+        }
     }
 }
 

@@ -141,7 +141,6 @@ struct LidarFile {
 }
 
 struct Log {
-    dir: PathBuf,
     name: String,
     /// `nuscenes`, `wod-perception`, ... (the log metadata's `dataset`).
     dataset: String,
@@ -344,8 +343,14 @@ impl Py123d {
         let mut logs = Vec::new();
         let mut names: HashMap<String, PathBuf> = HashMap::new();
         for dir in &dirs {
-            let log = read_log(dir, &config, &cameras, &mut notes, &mut warnings)
-                .with_context(|| format!("reading the py123d log {}", dir.display()))?;
+            // A broken log is left out, said once: the other logs of the dataset still run.
+            let log = match read_log(dir, &config, &cameras, &mut notes, &mut warnings) {
+                Ok(log) => log,
+                Err(e) => {
+                    warnings.push(format!("the py123d log {} is left out: {e:#}", dir.display()));
+                    continue;
+                }
+            };
             if let Some(other) = names.insert(log.name.clone(), dir.clone()) {
                 bail!(
                     "two logs are named {}: {} and {}; choose one with dataset.logs",
@@ -355,6 +360,9 @@ impl Py123d {
                 );
             }
             logs.push(log);
+        }
+        if logs.is_empty() {
+            bail!("no py123d log under {} could be read: {}", root.display(), warnings.join("; "));
         }
         warnings.extend(notes.warnings());
         let mut scenes = Vec::new();
@@ -468,7 +476,7 @@ fn read_log(
     }
     let lidar = read_lidar_file(dir, config, notes)?;
     let keyframes = read_boxes(dir, notes, warnings)?;
-    Ok(Log { dir: dir.to_path_buf(), name, dataset, vehicle, ego, ego_box, cameras: files, lidar, keyframes })
+    Ok(Log { name, dataset, vehicle, ego, ego_box, cameras: files, lidar, keyframes })
 }
 
 /// The recording car's box (ego frame) whose LiDAR returns the `lidar` port drops: dist4d's
@@ -719,13 +727,20 @@ fn read_boxes(
             let v = v.as_ref().and_then(|v| v.as_any().downcast_ref::<FixedSizeListArray>());
             let n = points.as_ref().map(|p| p.value(i));
             let n = n.as_ref().and_then(|n| n.as_any().downcast_ref::<arrow_array::Int32Array>());
-            ensure!(
-                b.len() == t.len() && b.len() == l.len(),
-                "{}: row {row}: its box lists differ in length",
-                path.display()
-            );
             let mut frame = Vec::new();
             let mut refused = None;
+            if b.len() != t.len() || b.len() != l.len() {
+                ensure!(!ts.is_null(i), "{}: row {row}: field timestamp_us is null", path.display());
+                let why = format!(
+                    "{}: row {row}: its box lists are null or differ in length (boxes {}, track tokens {}, labels {})",
+                    path.display(),
+                    b.len(),
+                    t.len(),
+                    l.len()
+                );
+                out.push((ts.value(i), Err(why)));
+                continue;
+            }
             for j in 0..b.len() {
                 let Some(values) = fixed_row(b, j).filter(|x| x.len() == 10) else {
                     refused = Some(format!("{}: field bounding_box_se3 is not 10 values", place(j)));
@@ -783,10 +798,18 @@ fn frames_of(
     warnings: &mut Vec<String>,
 ) -> Vec<Frame<FrameTime>> {
     let sweep_ends: Vec<i64> = log.lidar.rows.iter().map(|r| r.1).collect();
+    // The sweep of a time: the nearest, if within half the sweep period (and a tenth): a log
+    // whose sweeps stop must not give later frames an old sweep, and boxes at its time.
+    let reach = {
+        let mut steps: Vec<i64> = sweep_ends.windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 0).collect();
+        steps.sort_unstable();
+        steps.get(steps.len() / 2).map_or(MAX_IMAGE_OFFSET_US, |&p| p / 2 + p / 10)
+    };
+    let sweep_at = |t: i64| nearest(&sweep_ends, t).filter(|&i| (sweep_ends[i] - t).abs() <= reach);
     let frame_at = |time: i64, lidar_row: Option<usize>, images: Vec<Option<usize>>| Frame {
         lidar: match lidar_row {
             Some(row) => lidar_reading(log, l, row),
-            None => Err(format!("log {} has no LiDAR sweep", log.name)),
+            None => Err(format!("log {} has no LiDAR sweep within {} ms of {time} us", log.name, reach / 1000)),
         },
         cameras: images
             .iter()
@@ -824,7 +847,7 @@ fn frames_of(
     };
     match config.frames {
         FrameMode::Keyframes if keyframes => {
-            log.keyframes.iter().map(|(t, _)| frame_at(*t, nearest(&sweep_ends, *t), nearest_images(*t))).collect()
+            log.keyframes.iter().map(|(t, _)| frame_at(*t, sweep_at(*t), nearest_images(*t))).collect()
         }
         FrameMode::Keyframes | FrameMode::Sweeps => {
             sweep_ends.iter().enumerate().map(|(row, &t)| frame_at(t, Some(row), nearest_images(t))).collect()
@@ -861,7 +884,7 @@ fn frames_of(
                 .collect();
             camera_rounds(&times, &offsets)
                 .into_iter()
-                .map(|round| frame_at(round.time, nearest(&sweep_ends, round.time), round.images))
+                .map(|round| frame_at(round.time, sweep_at(round.time), round.images))
                 .collect()
         }
     }
@@ -938,6 +961,31 @@ impl Py123d {
             .flat_map(|l| l.cameras.iter().flatten())
             .find(|c| c.file.path == image.file)
             .ok_or_else(|| anyhow!("{}: not a camera file of this dataset", image.what))
+    }
+
+    /// The log whose merged LiDAR file `lidar` reads.
+    fn lidar_log(&self, lidar: &Reading) -> Result<&Log> {
+        self.logs
+            .iter()
+            .find(|l| l.lidar.file.path == lidar.file)
+            .ok_or_else(|| anyhow!("{}: not a LiDAR file of this dataset", lidar.what))
+    }
+
+    /// A path-stored sweep's file and lidarseg file under `sensor_root`.
+    fn lidar_paths(&self, log: &Log, lidar: &Reading) -> Result<(PathBuf, Option<PathBuf>)> {
+        let row = lidar.row.unwrap_or(0) as usize;
+        let root = PathBuf::from(self.config.sensor_root.as_deref().unwrap_or(""));
+        let (rel, seg) = log.lidar.paths.get(row).cloned().unwrap_or_default();
+        let rel = rel.ok_or_else(|| anyhow!("{}: no path", lidar.what))?;
+        let at = Place::new(&lidar.file, format!("row {row}"));
+        let file = checks::join_inside(&root, &at, "lidar.lidar_merged.data", &rel).map_err(anyhow::Error::msg)?;
+        let seg = match seg {
+            Some(seg) => {
+                Some(checks::join_inside(&root, &at, "lidarseg_relative_path", &seg).map_err(anyhow::Error::msg)?)
+            }
+            None => None,
+        };
+        Ok((file, seg))
     }
 
     /// The boxes of `log` at time `t`: an annotated time's own, otherwise the tracks of the two
@@ -1071,31 +1119,31 @@ impl SurroundReader for Py123d {
     }
 
     fn lidar_digest(&self, lidar: &Reading, _frame: &FrameTime, files: &dyn FileDigests) -> Result<Option<Digest>> {
-        let log = self
-            .logs
-            .iter()
-            .find(|l| {
-                l.lidar.file.path == lidar.file || l.lidar.storage == Storage::Path && lidar.file.starts_with(&l.dir)
-            })
-            .or_else(|| self.logs.iter().find(|l| l.lidar.file.path == lidar.file));
+        let log = self.lidar_log(lidar)?;
         let mut b = DigestBuilder::new("py123d.lidar");
         let Some(d) = lidar.file_digest(files)? else { return Ok(None) };
         b.digest(&d);
         b.u64(lidar.row.unwrap_or(u64::MAX));
-        if let Some(log) = log {
-            b.u64(log.lidar.only.map_or(u64::MAX, |o| o as u64));
-            b.u64(log.lidar.sensor as u64);
+        b.u64(log.lidar.only.map_or(u64::MAX, |o| o as u64));
+        b.u64(log.lidar.sensor as u64);
+        // Stored as paths: the files read are the sweep and its labels under `sensor_root`.
+        if log.lidar.storage == Storage::Path {
+            let (sweep, labels) = self.lidar_paths(log, lidar)?;
+            for path in std::iter::once(sweep).chain(labels) {
+                let Some(d) =
+                    files.file_digest(&path).with_context(|| format!("{}: {}", lidar.what, path.display()))?
+                else {
+                    return Ok(None);
+                };
+                b.digest(&d);
+            }
         }
         Ok(Some(b.finish()))
     }
 
     fn read_lidar(&self, lidar: &Reading, frame: &FrameTime) -> Result<PointCloud> {
         let _ = frame;
-        let log = self
-            .logs
-            .iter()
-            .find(|l| l.lidar.file.path == lidar.file)
-            .ok_or_else(|| anyhow!("{}: not a LiDAR file of this dataset", lidar.what))?;
+        let log = self.lidar_log(lidar)?;
         match log.lidar.storage {
             Storage::InLog => self.read_in_log_lidar(log, lidar.row.unwrap_or(0)),
             Storage::Path => {
@@ -1107,16 +1155,10 @@ impl SurroundReader for Py123d {
                     lidar.what,
                     log.dataset
                 );
-                let root = PathBuf::from(self.config.sensor_root.as_deref().unwrap_or(""));
-                let (rel, seg) = log.lidar.paths.get(row).cloned().unwrap_or_default();
-                let rel = rel.ok_or_else(|| anyhow!("{}: no path", lidar.what))?;
-                let at = Place::new(&lidar.file, format!("row {row}"));
-                let file =
-                    checks::join_inside(&root, &at, "lidar.lidar_merged.data", &rel).map_err(anyhow::Error::msg)?;
+                let _ = row;
+                let (file, seg) = self.lidar_paths(log, lidar)?;
                 let mut cloud = read_pcd_bin(&file).with_context(|| lidar.what.clone())?;
-                if let Some(seg) = seg {
-                    let path =
-                        checks::join_inside(&root, &at, "lidarseg_relative_path", &seg).map_err(anyhow::Error::msg)?;
+                if let Some(path) = seg {
                     let labels = crate::files::read_input(&path, "the lidarseg labels", checks::MAX_SENSOR_FILE_BYTES)?;
                     ensure!(
                         labels.len() == cloud.points.len(),

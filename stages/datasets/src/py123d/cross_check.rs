@@ -303,7 +303,7 @@ fn open_err(root: &Path) -> String {
 #[test]
 fn bad_logs_are_errors_naming_the_file_the_modality_and_the_row() {
     let Some(f) = fixture() else { return };
-    // A truncated camera file.
+    // A truncated camera file (the dataset's only log: nothing is left to read).
     let (tmp, log) = broken_copy(f);
     let cam = log.join("camera.pcam_f0.arrow");
     let bytes = std::fs::read(&cam).unwrap();
@@ -399,4 +399,76 @@ fn mp4_cameras_and_laz_sweeps_fail_their_items_saying_how_to_convert() {
     // Calibrations and poses are read all the same.
     assert!(ds.load_source("camera_calib", &ItemKey::new(&[0, 0, 0])).is_ok());
     assert!(ds.load_source("lidar_pose", &ItemKey::new(&[0, 0])).is_ok());
+}
+
+/// File digests that hash the bytes (the runtime's own memoise by stat).
+struct Hashing;
+impl FileDigests for Hashing {
+    fn file_digest(&self, path: &Path) -> Result<Option<Digest>> {
+        Ok(Some(Digest::of(&std::fs::read(path)?)))
+    }
+}
+
+#[test]
+fn a_path_stored_sweep_changed_under_sensor_root_changes_its_frames_digest() {
+    let Some(f) = fixture() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let copy = tmp.path().join("source");
+    let o = Command::new("cp").args(["-r", f.source.to_str().unwrap(), copy.to_str().unwrap()]).status().unwrap();
+    assert!(o.success());
+    let ds = through_log(&f.sweeps, FrameMode::Sweeps, Some(&copy));
+    let item = ItemKey::new(&[0, 0]);
+    let before = ds.source_digest("lidar", &item, &Hashing).unwrap();
+    let (_, frame) = ds.0.tree().scene_frame(&item).unwrap();
+    let sweep =
+        ds.0.lidar_paths(ds.0.lidar_log(frame.lidar.as_ref().unwrap()).unwrap(), frame.lidar.as_ref().unwrap())
+            .unwrap()
+            .0;
+    let bytes = std::fs::read(&sweep).unwrap();
+    std::fs::write(&sweep, &bytes[..bytes.len() / 2 / 20 * 20]).unwrap();
+    assert_ne!(ds.source_digest("lidar", &item, &Hashing).unwrap(), before, "a rerun must read the changed sweep");
+}
+
+#[test]
+fn frames_past_the_last_sweep_get_no_old_sweep_and_a_broken_log_is_left_out() {
+    let Some(f) = fixture() else { return };
+    let python = python().unwrap();
+    // A log whose LiDAR stops after its first sweep: py123d's own writer, from the source with
+    // every LiDAR sample_data but the first keyframe's removed is more than a test needs; the
+    // keyframe log's LiDAR file is cut to its first batch row by rewriting it with pyarrow.
+    let (tmp, log) = broken_copy(f);
+    let cut = r#"
+import sys, pyarrow as pa, pyarrow.ipc as ipc
+p = sys.argv[1]
+r = ipc.open_file(p)
+t = r.read_all().slice(0, 1)
+with ipc.new_file(p + ".new", t.schema) as w:
+    w.write_table(t)
+import os; os.replace(p + ".new", p)
+"#;
+    let o = Command::new(&python).args(["-c", cut]).arg(log.join("lidar.lidar_merged.arrow")).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let ds = through_log(tmp.path(), FrameMode::Keyframes, None);
+    assert!(ds.load_source("lidar", &ItemKey::new(&[0, 0])).is_ok());
+    let e = format!("{:#}", ds.load_source("lidar", &ItemKey::new(&[0, 1])).unwrap_err());
+    assert!(e.contains("no LiDAR sweep within"), "{e}");
+    // Beside it, a log whose ego track is gone: left out with a warning, the other one read.
+    let (_, other) = {
+        let dst = tmp.path().join("split").join("broken-0000");
+        std::fs::create_dir_all(&dst).unwrap();
+        for e in std::fs::read_dir(&log).unwrap().flatten() {
+            std::fs::copy(e.path(), dst.join(e.file_name())).unwrap();
+        }
+        std::fs::remove_file(dst.join("ego_state_se3.arrow")).unwrap();
+        ((), dst)
+    };
+    let config = Py123dConfig { root: tmp.path().display().to_string(), logs: None, ..Default::default() };
+    let ds = Py123d::open(config).unwrap();
+    assert_eq!(ds.tree().scenes.len(), 1);
+    assert!(
+        ds.warnings.iter().any(|w| w.contains("is left out") && w.contains("ego_state_se3.arrow")),
+        "{:?}",
+        ds.warnings
+    );
+    let _ = other;
 }

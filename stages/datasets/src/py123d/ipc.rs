@@ -68,6 +68,8 @@ impl IpcFile {
         };
         let bytes = map.as_slice();
         let len = bytes.len();
+        // The file may have shrunk between its metadata and the map.
+        ensure!(len >= 18, "{} ({len} bytes: truncated?)", what());
         ensure!(&bytes[..6] == MAGIC, "{} (no ARROW1 magic at its start)", what());
         ensure!(
             &bytes[len - 6..] == MAGIC,
