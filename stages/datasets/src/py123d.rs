@@ -847,47 +847,69 @@ fn frames_of(
     };
     match config.frames {
         FrameMode::Keyframes if keyframes => {
-            log.keyframes.iter().map(|(t, _)| frame_at(*t, sweep_at(*t), nearest_images(*t))).collect()
+            // A keyframe's images are one round of the cameras: the round of the reference
+            // camera's image nearest the keyframe. The nearest image of each camera alone would
+            // take, for a camera that fires half a period from the reference, the image of the
+            // round before (on a log of every image; a keyframe log has only the rounds).
+            let rounds = rounds_of(log);
+            let round_times: Vec<i64> = rounds.iter().map(|r| r.time).collect();
+            log.keyframes
+                .iter()
+                .map(|(t, _)| {
+                    let images = match nearest(&round_times, *t)
+                        .filter(|&r| (round_times[r] - t).abs() <= MAX_IMAGE_OFFSET_US)
+                    {
+                        Some(r) => {
+                            let near = nearest_images(*t);
+                            rounds[r].images.iter().zip(near).map(|(own, near)| own.or(near)).collect()
+                        }
+                        None => nearest_images(*t),
+                    };
+                    frame_at(*t, sweep_at(*t), images)
+                })
+                .collect()
         }
         FrameMode::Keyframes | FrameMode::Sweeps => {
             sweep_ends.iter().enumerate().map(|(row, &t)| frame_at(t, Some(row), nearest_images(t))).collect()
         }
         FrameMode::Camera => {
-            let times: Vec<Vec<i64>> = log
-                .cameras
-                .iter()
-                .map(|c| c.as_ref().map(|c| c.rows.iter().map(|r| r.0).collect()).unwrap_or_default())
-                .collect();
-            // Each camera's offset from the reference. The nuScenes reader takes it from the
-            // keyframe images, which a log does not mark; here it is the median gap from a
-            // reference image to the camera's nearest image, or that gap a period earlier or
-            // later, whichever pairs the two cameras into the fewest rounds (a camera that fires
-            // half a period after the reference is as near the next reference image as its own;
-            // only one of the two choices starts and ends the log with whole rounds).
-            let period = {
-                let mut steps: Vec<i64> = times[0].windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 0).collect();
-                steps.sort_unstable();
-                steps.get(steps.len() / 2).copied().unwrap_or(83_333)
-            };
-            let offsets: Vec<i64> = times
-                .iter()
-                .map(|own| {
-                    let mut d: Vec<i64> = times[0].iter().filter_map(|&t| Some(own[nearest(own, t)?] - t)).collect();
-                    d.sort_unstable();
-                    let gap = d.get(d.len() / 2).copied().unwrap_or(0);
-                    [gap, gap - period, gap + period]
-                        .into_iter()
-                        .filter(|o| o.abs() < period)
-                        .min_by_key(|&o| (camera_rounds(&[times[0].clone(), own.clone()], &[0, o]).len(), o.abs()))
-                        .unwrap_or(gap)
-                })
-                .collect();
-            camera_rounds(&times, &offsets)
-                .into_iter()
-                .map(|round| frame_at(round.time, sweep_at(round.time), round.images))
-                .collect()
+            rounds_of(log).into_iter().map(|round| frame_at(round.time, sweep_at(round.time), round.images)).collect()
         }
     }
+}
+
+/// The rounds of a log's cameras (every image once; see `NuScenes(frames: Camera)`).
+fn rounds_of(log: &Log) -> Vec<crate::nuscenes::CameraRound> {
+    let times: Vec<Vec<i64>> = log
+        .cameras
+        .iter()
+        .map(|c| c.as_ref().map(|c| c.rows.iter().map(|r| r.0).collect()).unwrap_or_default())
+        .collect();
+    // Each camera's offset from the reference. The nuScenes reader takes it from the
+    // keyframe images, which a log does not mark; here it is the median gap from a
+    // reference image to the camera's nearest image, or that gap a period earlier or
+    // later, whichever pairs the two cameras into the fewest rounds (a camera that fires
+    // half a period after the reference is as near the next reference image as its own;
+    // only one of the two choices starts and ends the log with whole rounds).
+    let period = {
+        let mut steps: Vec<i64> = times[0].windows(2).map(|w| w[1] - w[0]).filter(|&d| d > 0).collect();
+        steps.sort_unstable();
+        steps.get(steps.len() / 2).copied().unwrap_or(83_333)
+    };
+    let offsets: Vec<i64> = times
+        .iter()
+        .map(|own| {
+            let mut d: Vec<i64> = times[0].iter().filter_map(|&t| Some(own[nearest(own, t)?] - t)).collect();
+            d.sort_unstable();
+            let gap = d.get(d.len() / 2).copied().unwrap_or(0);
+            [gap, gap - period, gap + period]
+                .into_iter()
+                .filter(|o| o.abs() < period)
+                .min_by_key(|&o| (camera_rounds(&[times[0].clone(), own.clone()], &[0, o]).len(), o.abs()))
+                .unwrap_or(gap)
+        })
+        .collect();
+    camera_rounds(&times, &offsets)
 }
 
 fn lidar_reading(log: &Log, l: usize, row: usize) -> std::result::Result<Reading, String> {
