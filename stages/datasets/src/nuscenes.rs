@@ -1227,44 +1227,59 @@ impl NuScenes {
         if let Some(k) = key.filter(|&k| k < keys.len()) {
             return own(k);
         }
-        let after = keys.partition_point(|(tk, _)| *tk <= t);
-        let before = after.checked_sub(1);
-        if let Some(k) = before.filter(|&k| keys[k].0 == t) {
-            return own(k);
-        }
-        // Half the interval around t (a neighbouring one at the ends; 0.25 s with one keyframe).
-        let interval = match (before, keys.get(after)) {
-            (Some(k0), Some((t1, _))) => t1 - keys[k0].0,
-            _ => keys.windows(2).map(|w| w[1].0 - w[0].0).next().unwrap_or(500_000),
-        };
-        let reach = interval / 2;
-        let extrapolate = |b: Box3D, from: i64| -> Option<Box3D> {
-            let dt = t - from;
-            if self.config.lone_tracks == LoneTracks::Drop || dt.abs() > reach {
-                return None;
-            }
-            Some(Box3D { center: b.advanced(dt as f64 * 1e-6), num_lidar_pts: 0, extrapolated: true, ..b })
-        };
-        let early: Vec<Box3D> = before.map(own).transpose()?.unwrap_or_default();
-        let late: Vec<Box3D> = if after < keys.len() { own(after)? } else { Vec::new() };
-        let (t0, t1) = (before.map(|k| keys[k].0), keys.get(after).map(|k| k.0));
-        let mut out = Vec::new();
-        for a in &early {
-            match late.iter().find(|b| b.instance == a.instance) {
-                Some(b) => {
-                    let (t0, t1) = (t0.unwrap_or(t), t1.unwrap_or(t));
-                    // Two samples at one time (a malformed table) give the earlier annotation.
-                    let w = if t1 > t0 { (t - t0) as f64 / (t1 - t0) as f64 } else { 0.0 };
-                    out.push(interpolate(a, b, w));
-                }
-                None => out.extend(extrapolate(a.clone(), t0.unwrap_or(t))),
-            }
-        }
-        for b in late.into_iter().filter(|b| !early.iter().any(|a| a.instance == b.instance)) {
-            out.extend(extrapolate(b, t1.unwrap_or(t)));
-        }
-        Ok(out)
+        let times: Vec<i64> = keys.iter().map(|(tk, _)| *tk).collect();
+        boxes_at_time(&times, &own, t, self.config.lone_tracks == LoneTracks::Extrapolate)
     }
+}
+
+/// The boxes at time `t` from annotations at `times` (sorted; `own(k)` the boxes of time k): the
+/// annotated time's own at exactly `t`; otherwise the tracks annotated on both times around `t`,
+/// interpolated (linear centre, size and velocity, slerp rotation), and, with `lone`, the tracks
+/// of only one of them moved with their velocity when `t` is within half the interval of it
+/// (flagged `extrapolated`). Before the first and after the last time only extrapolation applies.
+pub(crate) fn boxes_at_time(
+    times: &[i64],
+    own: &dyn Fn(usize) -> Result<Vec<Box3D>>,
+    t: i64,
+    lone: bool,
+) -> Result<Vec<Box3D>> {
+    let after = times.partition_point(|&tk| tk <= t);
+    let before = after.checked_sub(1);
+    if let Some(k) = before.filter(|&k| times[k] == t) {
+        return own(k);
+    }
+    // Half the interval around t (a neighbouring one at the ends; 0.25 s with one time).
+    let interval = match (before, times.get(after)) {
+        (Some(k0), Some(t1)) => t1 - times[k0],
+        _ => times.windows(2).map(|w| w[1] - w[0]).next().unwrap_or(500_000),
+    };
+    let reach = interval / 2;
+    let extrapolate = |b: Box3D, from: i64| -> Option<Box3D> {
+        let dt = t - from;
+        if !lone || dt.abs() > reach {
+            return None;
+        }
+        Some(Box3D { center: b.advanced(dt as f64 * 1e-6), num_lidar_pts: 0, extrapolated: true, ..b })
+    };
+    let early: Vec<Box3D> = before.map(own).transpose()?.unwrap_or_default();
+    let late: Vec<Box3D> = if after < times.len() { own(after)? } else { Vec::new() };
+    let (t0, t1) = (before.map(|k| times[k]), times.get(after).copied());
+    let mut out = Vec::new();
+    for a in &early {
+        match late.iter().find(|b| b.instance == a.instance) {
+            Some(b) => {
+                let (t0, t1) = (t0.unwrap_or(t), t1.unwrap_or(t));
+                // Two annotations at one time (a malformed table) give the earlier one.
+                let w = if t1 > t0 { (t - t0) as f64 / (t1 - t0) as f64 } else { 0.0 };
+                out.push(interpolate(a, b, w));
+            }
+            None => out.extend(extrapolate(a.clone(), t0.unwrap_or(t))),
+        }
+    }
+    for b in late.into_iter().filter(|b| !early.iter().any(|a| a.instance == b.instance)) {
+        out.extend(extrapolate(b, t1.unwrap_or(t)));
+    }
+    Ok(out)
 }
 
 /// The box of a track a fraction `w` of the way from annotation `a` to annotation `b`: linear

@@ -24,7 +24,7 @@ pub mod ipc;
 
 use crate::checks::{self, Place, Renormalised, Transform};
 use crate::files::decode_camera_image;
-use crate::nuscenes::{camera_rounds, interpolate, read_pcd_bin, FrameMode};
+use crate::nuscenes::{camera_rounds, read_pcd_bin, FrameMode};
 use crate::sidecar::Sidecars;
 use crate::surround::{Frame, Reading, Scene, SurroundReader, Tree};
 use anyhow::{anyhow, bail, ensure, Context, Result};
@@ -1014,48 +1014,9 @@ impl Py123d {
     /// annotated times around `t` interpolated, and tracks of only one of them moved with their
     /// velocity up to half the interval (as the nuScenes reader does).
     fn boxes_at(log: &Log, t: i64) -> Result<Vec<Box3D>> {
-        let keys = &log.keyframes;
-        let own = |k: usize| keys[k].1.as_ref().map_err(|why| anyhow!("{why}"));
-        let after = keys.partition_point(|(tk, _)| *tk <= t);
-        let before = after.checked_sub(1);
-        if let Some(k) = before.filter(|&k| keys[k].0 == t) {
-            return Ok(own(k)?.clone());
-        }
-        let interval = match (before, keys.get(after)) {
-            (Some(k0), Some((t1, _))) => t1 - keys[k0].0,
-            _ => keys.windows(2).map(|w| w[1].0 - w[0].0).next().unwrap_or(500_000),
-        };
-        let reach = interval / 2;
-        let extrapolate = |b: &Box3D, from: i64| -> Option<Box3D> {
-            let dt = t - from;
-            (dt.abs() <= reach).then(|| Box3D {
-                center: b.advanced(dt as f64 * 1e-6),
-                num_lidar_pts: 0,
-                extrapolated: true,
-                ..b.clone()
-            })
-        };
-        let early: &[Box3D] = match before {
-            Some(k) => own(k)?,
-            None => &[],
-        };
-        let late: &[Box3D] = if after < keys.len() { own(after)? } else { &[] };
-        let (t0, t1) = (before.map(|k| keys[k].0), keys.get(after).map(|k| k.0));
-        let mut out = Vec::new();
-        for a in early {
-            match late.iter().find(|b| b.instance == a.instance) {
-                Some(b) => {
-                    let (t0, t1) = (t0.unwrap_or(t), t1.unwrap_or(t));
-                    let w = if t1 > t0 { (t - t0) as f64 / (t1 - t0) as f64 } else { 0.0 };
-                    out.push(interpolate(a, b, w));
-                }
-                None => out.extend(extrapolate(a, t0.unwrap_or(t))),
-            }
-        }
-        for b in late.iter().filter(|b| !early.iter().any(|a| a.instance == b.instance)) {
-            out.extend(extrapolate(b, t1.unwrap_or(t)));
-        }
-        Ok(out)
+        let times: Vec<i64> = log.keyframes.iter().map(|(tk, _)| *tk).collect();
+        let own = |k: usize| log.keyframes[k].1.clone().map_err(|why| anyhow!("{why}"));
+        crate::nuscenes::boxes_at_time(&times, &own, t, true)
     }
 
     /// The points of sweep `row` of the merged file, in the frame of the configured sensor.
