@@ -58,7 +58,8 @@ fn every_shipped_pipeline_runs_on_a_py123d_log() {
     let (_, keyframes, sweeps) = scene(&python, tmp.path());
     let cache = tmp.path().join("cache");
     let kf = format!("Py123d(root: \"{}\")", keyframes.display());
-    let rounds = format!("Py123d(root: \"{}\", frames: Camera)", sweeps.display());
+    // video_12hz.ron says `frames: Camera`; the swap keeps it (no edited copy, no extra field).
+    let rounds = format!("Py123d(root: \"{}\")", sweeps.display());
     let every_sweep = format!("Py123d(root: \"{}\", frames: Sweeps)", sweeps.display());
     for (pipeline, dataset) in [
         ("curation", &kf),
@@ -171,4 +172,44 @@ fn a_log_of_another_car_with_a_fisheye_camera_says_what_it_lacks_once_and_goes_o
         &tmp.path().join("occ"),
     );
     assert!(text(&o).contains("occupancy semantics are geometry only"), "{}", text(&o));
+}
+
+#[test]
+fn training_clips_from_a_log_name_each_images_row_and_the_loader_reads_it() {
+    let Some(python) = py123d_python() else { return };
+    let tmp = tempfile::tempdir().unwrap();
+    let (_, _, sweeps) = scene(&python, tmp.path());
+    let out = tmp.path().join("out");
+    let file = repo().join("pipelines/video_12hz.ron");
+    let dataset = format!("dataset=Py123d(root: \"{}\")", sweeps.display());
+    let cache = tmp.path().join("cache");
+    let args = ["run", file.to_str().unwrap(), "--progress", "off", "--cache", cache.to_str().unwrap()];
+    let o = dist4d(&[&args[..], &["--out", out.to_str().unwrap(), "--set", &dataset, "--set", "clips.frames=4"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    let clips = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().path().join("clips.jsonl"))
+        .find(|p| p.is_file())
+        .expect("a clips.jsonl");
+    let first: serde_json::Value =
+        serde_json::from_str(std::fs::read_to_string(&clips).unwrap().lines().next().unwrap()).unwrap();
+    let camera = &first["frames"][0]["cameras"][0];
+    assert!(camera["image"].as_str().unwrap().ends_with(".arrow"), "{camera}");
+    assert!(camera["image_row"].is_u64(), "{camera}");
+    // The loader of docs/examples gives every image of the clip's first frame as JPEG bytes.
+    let script = format!(
+        "import sys, json; sys.path.insert(0, {examples:?})\n\
+         import clip_loader as c\n\
+         clip = next(c.clips({out:?}))\n\
+         images = [c.image_bytes({root:?}, cam) for f in clip['frames'] for cam in f['cameras']]\n\
+         assert all(i[:3] == b'\\xff\\xd8\\xff' for i in images), [i[:4] for i in images]\n\
+         assert len(set(images)) == len(images), 'every image its own'\n\
+         print(len(images), c.load_clip({out:?}, {root:?}, clip)['image_rows'][0])",
+        examples = repo().join("docs/examples").display().to_string(),
+        out = out.display().to_string(),
+        root = sweeps.display().to_string(),
+    );
+    let o = std::process::Command::new(&python).args(["-c", &script]).output().unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).starts_with("24 "), "{}", text(&o));
 }

@@ -2,7 +2,9 @@
 
 `pipelines/video_12hz.ron` writes `OUT/<scene>/clips.jsonl`: one JSON object per clip (see
 docs/datasets.md, "Training clips"). `load_clip` turns one into arrays; images stay paths (decode
-them with the image library your training code already uses).
+them with the image library your training code already uses). A camera record with `image_row`
+names a py123d log's camera file, which holds the encoded images as rows: `image_bytes` reads
+one (with pyarrow, which py123d users have; everything else here needs numpy alone).
 
     python3 docs/examples/clip_loader.py OUT DATA_ROOT     # prints the first clip's arrays
 """
@@ -34,6 +36,24 @@ def rigid(t):
     return m
 
 
+def image_bytes(data_root, camera):
+    """The encoded image (JPEG or PNG bytes) of one camera record of a clip."""
+    path = Path(data_root) / camera["image"]
+    row = camera.get("image_row")
+    if row is None:
+        return path.read_bytes()
+    import pyarrow as pa  # only for images inside py123d's Arrow files
+
+    reader = pa.ipc.open_file(pa.memory_map(str(path)))
+    column = next(n for n in reader.schema.names if n.endswith(".data"))
+    for b in range(reader.num_record_batches):
+        batch = reader.get_batch(b)
+        if row < batch.num_rows:
+            return batch.column(column)[row].as_py()
+        row -= batch.num_rows
+    raise IndexError(f"{path} has no row {camera['image_row']}")
+
+
 def load_clip(out_dir, data_root, clip):
     """One clip as arrays: F frames x C cameras (the cameras in the record's order)."""
     out_dir, data_root = Path(out_dir), Path(data_root)
@@ -42,7 +62,10 @@ def load_clip(out_dir, data_root, clip):
     load = lambda rel: np.load(out_dir / rel)
     return {
         "cameras": [cam["camera"] for cam in frames[0]["cameras"]],
+        # Paths to open; for a camera record with `image_row` the file is a py123d camera file
+        # (read the image with `image_bytes`).
         "images": [[str(data_root / p) for p in row] for row in per("image")],
+        "image_rows": per("image_row") if "image_row" in frames[0]["cameras"][0] else None,
         "tokens": per("token"),
         "timestamps_us": np.array(per("timestamp_us"), dtype=np.int64),
         "intrinsics": np.array(per("intrinsics"), dtype=np.float64),

@@ -115,6 +115,23 @@ pub fn load_str(
     }
 }
 
+/// Carries the fields of the pipeline's dataset that the replacing kind also takes and the
+/// replacement does not set, so that `--set 'dataset=Py123d(root: ..)'` on a pipeline written for
+/// `NuScenes(.., frames: Camera)` keeps its clock: a field like `frames` belongs to the pipeline
+/// (video_12hz.ron is about camera rounds), not to the data. Paths are not carried: a root of one
+/// kind is not a root of another.
+fn keep_shared_fields(old: &Value, new: &mut Value, catalog: &dyn Catalog) {
+    let Some(schema) = new.type_name().and_then(|k| catalog.dataset(&k.text)) else { return };
+    let (Some(old_fields), Some(new_fields)) = (old.fields(), new.fields_mut()) else { return };
+    for f in old_fields {
+        let name = f.name.text.as_str();
+        let taken = schema.config.fields.iter().any(|p| p.name == name);
+        if taken && !schema.path_fields.contains(&name) && !new_fields.iter().any(|n| n.name.text == name) {
+            new_fields.push(f.clone());
+        }
+    }
+}
+
 /// Applies `--set target.field=value` arguments to the parsed tree.
 fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources, cwd: &Path, checker: &mut Checker) {
     // A whole new dataset first, so that `dataset.field=..` given with it applies to it.
@@ -133,9 +150,12 @@ fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources
         if &arg[..eq] == "dataset" {
             // The whole dataset: the same pipeline on another dataset kind (`Dgp(root: ..)`).
             match parse_override_value(arg, eq + 1, id) {
-                Ok(value) if matches!(value.kind, ValueKind::Struct(Some(_), _)) => {
+                Ok(mut value) if matches!(value.kind, ValueKind::Struct(Some(_), _)) => {
                     match root.fields_mut().and_then(|f| f.iter_mut().find(|f| f.name.text == "dataset")) {
-                        Some(dataset) => dataset.value = value,
+                        Some(dataset) => {
+                            keep_shared_fields(&dataset.value, &mut value, checker.catalog);
+                            dataset.value = value
+                        }
                         None => {
                             checker.diags.push(Diagnostic::error("the pipeline has no `dataset` to replace", path_span))
                         }

@@ -234,6 +234,18 @@ fn set_replaces_the_whole_dataset_and_refuses_what_is_not_one() {
 }
 
 #[test]
+fn set_dataset_keeps_the_fields_the_new_kind_shares_but_not_its_paths() {
+    // video_12hz.ron's `frames: Camera` must survive `--set 'dataset=Py123d(root: ..)'`.
+    let pipeline = GOOD.replace(r#"NuScenes(root: "data")"#, r#"NuScenes(root: "data", version: "v1.0-test")"#);
+    let p = load(&pipeline, &["dataset=NuScenes(root: \"other\")"]).unwrap();
+    assert_eq!(p.dataset.config.canonical, r#"(root:"/cwd/other",version:"v1.0-test")"#);
+    // What the replacement sets wins; a root left out is the new kind's default, not the old root.
+    let p = load(&pipeline, &["dataset=NuScenes(version: \"v1.0-mini\")"]).unwrap();
+    assert!(!p.dataset.config.canonical.contains("data"), "{}", p.dataset.config.canonical);
+    assert!(p.dataset.config.canonical.contains(r#"version:"v1.0-mini""#), "{}", p.dataset.config.canonical);
+}
+
+#[test]
 fn set_errors_point_into_the_argument() {
     let out = errors(GOOD, &["project.min_dept=2", "nosuch.x=1", "project.border=-1"]);
     assert!(out.contains("unknown param `min_dept`"), "{out}");

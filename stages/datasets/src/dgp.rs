@@ -296,6 +296,7 @@ fn datum(d: &Value, sensor: &str, src: &Sources, notes: &mut Renormalised) -> Re
         what: format!("datum {key}"),
         token: key.to_string(),
         row: None,
+        stored_file: None,
     };
     let boxes =
         body.pointer("/annotations/1").and_then(|a| a.as_str()).map(|a| join_inside(src.dir, &at, "annotations.1", a));

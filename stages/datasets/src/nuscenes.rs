@@ -634,6 +634,7 @@ impl NuScenes {
                 what: format!("sample_data {}", sd.token),
                 token: sd.token.clone(),
                 row: None,
+                stored_file: None,
             })
         };
         // A LiDAR reading and its lidarseg labels: a refused labels file fails the whole reading.

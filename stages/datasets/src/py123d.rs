@@ -46,6 +46,9 @@ pub const VERSIONS: &str = "0.7.x";
 /// How far (us) an image may be from the time of the frame it is given to (py123d's own limit).
 const MAX_IMAGE_OFFSET_US: i64 = 100_000;
 
+/// The merged LiDAR's modality key: its file is `<key>.arrow`, its columns `<key>.<field>`.
+const LIDAR_KEY: &str = "lidar.lidar_merged";
+
 #[derive(Serialize, Deserialize, Clone, Debug)]
 #[serde(deny_unknown_fields, default)]
 pub struct Py123dConfig {
@@ -369,7 +372,7 @@ impl Py123d {
         for (l, log) in logs.iter().enumerate() {
             scenes.push(Scene {
                 name: log.name.clone(),
-                frames: frames_of(log, l, &cameras, &config, &mut warnings),
+                frames: frames_of(log, &cameras, &config, &mut warnings),
                 extra: l,
             });
         }
@@ -581,7 +584,7 @@ fn camera_calib(
 }
 
 fn read_lidar_file(dir: &Path, config: &Py123dConfig, notes: &mut Renormalised) -> Result<LidarFile> {
-    let path = dir.join("lidar.lidar_merged.arrow");
+    let path = dir.join(format!("{LIDAR_KEY}.arrow"));
     let file = IpcFile::open(&path).context("the merged LiDAR (py123d writes lidar.lidar_merged.arrow)")?;
     let meta = ipc::metadata_json(&file)?;
     let at = Place::new(&path, "metadata");
@@ -619,7 +622,7 @@ fn read_lidar_file(dir: &Path, config: &Py123dConfig, notes: &mut Renormalised) 
         Some(id) => sensors.iter().position(|s| s.0 == id).unwrap(),
         None => sensors.iter().position(|s| s.0 == 2).unwrap_or(0),
     };
-    let storage = storage_of(&file, "lidar.lidar_merged.data")?;
+    let storage = storage_of(&file, &format!("{LIDAR_KEY}.data"))?;
     let (t0, t1) =
         (file.column("lidar.lidar_merged.timestamp_us")?, file.column("lidar.lidar_merged.end_timestamp_us"));
     let mut rows = Vec::new();
@@ -629,7 +632,7 @@ fn read_lidar_file(dir: &Path, config: &Py123dConfig, notes: &mut Renormalised) 
         let start = column::<Int64Array>(&batch, &file, "lidar.lidar_merged.timestamp_us")?;
         let end = batch
             .schema()
-            .index_of("lidar.lidar_merged.end_timestamp_us")
+            .index_of(&format!("{LIDAR_KEY}.end_timestamp_us"))
             .ok()
             .and_then(|i| batch.column(i).as_any().downcast_ref::<Int64Array>().cloned());
         for i in 0..batch.num_rows() {
@@ -646,8 +649,8 @@ fn read_lidar_file(dir: &Path, config: &Py123dConfig, notes: &mut Renormalised) 
              dataset.sensor_root (py123d reads it from an environment variable, e.g. NUSCENES_DATA_ROOT)",
             path.display()
         );
-        let data = strings(&file, "lidar.lidar_merged.data")?;
-        let kwargs = strings(&file, "lidar.lidar_merged.kwargs")?;
+        let data = strings(&file, &format!("{LIDAR_KEY}.data"))?;
+        let kwargs = strings(&file, &format!("{LIDAR_KEY}.kwargs"))?;
         data.into_iter()
             .enumerate()
             .map(|(i, d)| {
@@ -792,7 +795,6 @@ fn read_boxes(
 /// The frames of a log by the configured clock.
 fn frames_of(
     log: &Log,
-    l: usize,
     cameras: &[String],
     config: &Py123dConfig,
     warnings: &mut Vec<String>,
@@ -806,9 +808,11 @@ fn frames_of(
         steps.get(steps.len() / 2).map_or(MAX_IMAGE_OFFSET_US, |&p| p / 2 + p / 10)
     };
     let sweep_at = |t: i64| nearest(&sweep_ends, t).filter(|&i| (sweep_ends[i] - t).abs() <= reach);
-    let frame_at = |time: i64, lidar_row: Option<usize>, images: Vec<Option<usize>>| Frame {
+    // Why a camera has no image in a frame depends on the clock: a round of the cameras lacks
+    // it, or no image lies near the frame's time.
+    let frame_at = |time: i64, lidar_row: Option<usize>, images: Vec<Option<usize>>, in_rounds: bool| Frame {
         lidar: match lidar_row {
-            Some(row) => lidar_reading(log, l, row),
+            Some(row) => lidar_reading(log, row, config),
             None => Err(format!("log {} has no LiDAR sweep within {} ms of {time} us", log.name, reach / 1000)),
         },
         cameras: images
@@ -816,9 +820,17 @@ fn frames_of(
             .enumerate()
             .map(|(c, row)| match (&log.cameras[c], row) {
                 (None, _) => Err(format!("log {} has no camera {}", log.name, cameras[c])),
-                (Some(_), None) => {
-                    Err(format!("log {} has no image of {} within 100 ms of {time} us", log.name, cameras[c]))
-                }
+                (Some(_), None) if in_rounds => Err(format!(
+                    "log {}: the camera round at {time} us has no image of {} (the camera skipped this round, \
+                     or the log thins it to a lower rate than the other cameras)",
+                    log.name, cameras[c]
+                )),
+                (Some(_), None) => Err(format!(
+                    "log {} has no image of {} within {} ms of {time} us",
+                    log.name,
+                    cameras[c],
+                    MAX_IMAGE_OFFSET_US / 1000
+                )),
                 (Some(cam), Some(row)) => camera_reading(log, cam, &cameras[c], *row, config),
             })
             .collect(),
@@ -865,15 +877,18 @@ fn frames_of(
                         }
                         None => nearest_images(*t),
                     };
-                    frame_at(*t, sweep_at(*t), images)
+                    frame_at(*t, sweep_at(*t), images, false)
                 })
                 .collect()
         }
         FrameMode::Keyframes | FrameMode::Sweeps => {
-            sweep_ends.iter().enumerate().map(|(row, &t)| frame_at(t, Some(row), nearest_images(t))).collect()
+            sweep_ends.iter().enumerate().map(|(row, &t)| frame_at(t, Some(row), nearest_images(t), false)).collect()
         }
         FrameMode::Camera => {
-            rounds_of(log).into_iter().map(|round| frame_at(round.time, sweep_at(round.time), round.images)).collect()
+            rounds_of(log)
+                .into_iter()
+                .map(|round| frame_at(round.time, sweep_at(round.time), round.images, true))
+                .collect()
         }
     }
 }
@@ -912,7 +927,7 @@ fn rounds_of(log: &Log) -> Vec<crate::nuscenes::CameraRound> {
     camera_rounds(&times, &offsets)
 }
 
-fn lidar_reading(log: &Log, l: usize, row: usize) -> std::result::Result<Reading, String> {
+fn lidar_reading(log: &Log, row: usize, config: &Py123dConfig) -> std::result::Result<Reading, String> {
     let lidar = &log.lidar;
     let (_, end) = lidar.rows[row];
     let (_, name, to_ego) = &lidar.sensors[lidar.sensor];
@@ -923,15 +938,37 @@ fn lidar_reading(log: &Log, l: usize, row: usize) -> std::result::Result<Reading
             lidar.file.path.display()
         )
     })?;
-    let _ = l;
+    let stored_file = match lidar.storage {
+        Storage::Path => Some(lidar_paths(log, row, config)?.0),
+        _ => None,
+    };
     Ok(Reading {
         file: lidar.file.path.clone(),
         calib: Calibration { sensor_to_ego: *to_ego, intrinsics: None, width: 0, height: 0 },
         pose: Pose { ego_to_world, timestamp_us: end },
         what: format!("{} row {row} ({name})", lidar.file.path.display()),
-        token: format!("{}:lidar:{end}", log.name),
+        token: format!("{}:{LIDAR_KEY}:{end}", log.name),
         row: Some(row as u64),
+        stored_file,
     })
+}
+
+/// A path-stored sweep's file and lidarseg file under `sensor_root`.
+fn lidar_paths(
+    log: &Log,
+    row: usize,
+    config: &Py123dConfig,
+) -> std::result::Result<(PathBuf, Option<PathBuf>), String> {
+    let root = PathBuf::from(config.sensor_root.as_deref().unwrap_or(""));
+    let (rel, seg) = log.lidar.paths.get(row).cloned().unwrap_or_default();
+    let at = Place::new(&log.lidar.file.path, format!("row {row}"));
+    let rel = rel.ok_or_else(|| format!("{at}: no path"))?;
+    let file = checks::join_inside(&root, &at, &format!("{LIDAR_KEY}.data"), &rel)?;
+    let seg = match seg {
+        Some(seg) => Some(checks::join_inside(&root, &at, "lidarseg_relative_path", &seg)?),
+        None => None,
+    };
+    Ok((file, seg))
 }
 
 fn camera_reading(
@@ -943,7 +980,7 @@ fn camera_reading(
 ) -> std::result::Result<Reading, String> {
     let calib = cam.calib.clone()?;
     let (t, camera_to_world) = (cam.rows[row].0, cam.rows[row].1.clone()?);
-    let file = match cam.storage {
+    let stored_file = match cam.storage {
         Storage::Path => {
             let rel = cam
                 .paths
@@ -952,22 +989,23 @@ fn camera_reading(
                 .flatten()
                 .ok_or_else(|| format!("{} row {row}: no path", cam.file.path.display()))?;
             let root = PathBuf::from(config.sensor_root.as_deref().unwrap_or(""));
-            checks::join_inside(
+            Some(checks::join_inside(
                 &root,
                 &Place::new(&cam.file.path, format!("row {row}")),
                 &format!("{}.data", cam.key),
                 &rel,
-            )?
+            )?)
         }
-        _ => cam.file.path.clone(),
+        _ => None,
     };
     Ok(Reading {
-        file,
+        file: cam.file.path.clone(),
+        stored_file,
         pose: Pose { ego_to_world: camera_to_world.then_from(&calib.sensor_to_ego.inverse()), timestamp_us: t },
         calib,
         what: format!("{} row {row} ({name} of log {})", cam.file.path.display(), log.name),
         token: format!("{}:{}:{t}", log.name, cam.key),
-        row: (cam.storage != Storage::Path).then_some(row as u64),
+        row: Some(row as u64),
     })
 }
 
@@ -994,20 +1032,8 @@ impl Py123d {
     }
 
     /// A path-stored sweep's file and lidarseg file under `sensor_root`.
-    fn lidar_paths(&self, log: &Log, lidar: &Reading) -> Result<(PathBuf, Option<PathBuf>)> {
-        let row = lidar.row.unwrap_or(0) as usize;
-        let root = PathBuf::from(self.config.sensor_root.as_deref().unwrap_or(""));
-        let (rel, seg) = log.lidar.paths.get(row).cloned().unwrap_or_default();
-        let rel = rel.ok_or_else(|| anyhow!("{}: no path", lidar.what))?;
-        let at = Place::new(&lidar.file, format!("row {row}"));
-        let file = checks::join_inside(&root, &at, "lidar.lidar_merged.data", &rel).map_err(anyhow::Error::msg)?;
-        let seg = match seg {
-            Some(seg) => {
-                Some(checks::join_inside(&root, &at, "lidarseg_relative_path", &seg).map_err(anyhow::Error::msg)?)
-            }
-            None => None,
-        };
-        Ok((file, seg))
+    fn sweep_files(&self, log: &Log, lidar: &Reading) -> Result<(PathBuf, Option<PathBuf>)> {
+        lidar_paths(log, lidar.row.unwrap_or(0) as usize, &self.config).map_err(anyhow::Error::msg)
     }
 
     /// The boxes of `log` at time `t`: an annotated time's own, otherwise the tracks of the two
@@ -1022,7 +1048,7 @@ impl Py123d {
     /// The points of sweep `row` of the merged file, in the frame of the configured sensor.
     fn read_in_log_lidar(&self, log: &Log, row: u64) -> Result<PointCloud> {
         let lidar = &log.lidar;
-        let data = lidar.file.column("lidar.lidar_merged.data")?;
+        let data = lidar.file.column(&format!("{LIDAR_KEY}.data"))?;
         let (batch, i) = lidar.file.batch_of(row, Some(&[data]))?;
         let column = batch.column(0);
         let blob: &[u8] = if let Some(b) = column.as_any().downcast_ref::<BinaryArray>() {
@@ -1111,7 +1137,7 @@ impl SurroundReader for Py123d {
         b.u64(log.lidar.sensor as u64);
         // Stored as paths: the files read are the sweep and its labels under `sensor_root`.
         if log.lidar.storage == Storage::Path {
-            let (sweep, labels) = self.lidar_paths(log, lidar)?;
+            let (sweep, labels) = self.sweep_files(log, lidar)?;
             for path in std::iter::once(sweep).chain(labels) {
                 let Some(d) =
                     files.file_digest(&path).with_context(|| format!("{}: {}", lidar.what, path.display()))?
@@ -1139,7 +1165,7 @@ impl SurroundReader for Py123d {
                     log.dataset
                 );
                 let _ = row;
-                let (file, seg) = self.lidar_paths(log, lidar)?;
+                let (file, seg) = self.sweep_files(log, lidar)?;
                 let mut cloud = read_pcd_bin(&file).with_context(|| lidar.what.clone())?;
                 if let Some(path) = seg {
                     let labels = crate::files::read_input(&path, "the lidarseg labels", checks::MAX_SENSOR_FILE_BYTES)?;
@@ -1178,10 +1204,11 @@ impl SurroundReader for Py123d {
     }
 
     fn read_image(&self, image: &Reading) -> Result<Image> {
-        let Some(row) = image.row else {
+        if let Some(stored) = &image.stored_file {
             // Path storage: a file of the source dataset.
-            return crate::files::read_camera_image(&image.file, image.calib.width, image.calib.height, &image.what);
-        };
+            return crate::files::read_camera_image(stored, image.calib.width, image.calib.height, &image.what);
+        }
+        let row = image.row.ok_or_else(|| anyhow!("{}: no row", image.what))?;
         let cam = self.camera_file(image)?;
         ensure!(
             cam.storage == Storage::InLog,
@@ -1205,7 +1232,14 @@ impl SurroundReader for Py123d {
     }
 
     fn image_digest(&self, image: &Reading, files: &dyn FileDigests) -> Result<Option<Digest>> {
-        let Some(d) = image.file_digest(files)? else { return Ok(None) };
+        // The bytes read: the file a path-stored row names, or the camera file's row.
+        let digest = match &image.stored_file {
+            Some(stored) => {
+                files.file_digest(stored).with_context(|| format!("{}: {}", image.what, stored.display()))?
+            }
+            None => image.file_digest(files)?,
+        };
+        let Some(d) = digest else { return Ok(None) };
         let mut b = DigestBuilder::new("py123d.image");
         b.digest(&d);
         b.u64(image.row.unwrap_or(u64::MAX));
@@ -1213,10 +1247,10 @@ impl SurroundReader for Py123d {
     }
 
     fn image_header_size(&self, image: &Reading) -> Result<Option<(u32, u32)>> {
-        match image.row {
+        match &image.stored_file {
             // In the log: decoding checks the size against the metadata.
-            Some(_) => Ok(None),
-            None => match crate::files::image_dimensions(&image.file) {
+            None => Ok(None),
+            Some(stored) => match crate::files::image_dimensions(stored) {
                 Ok(d) => Ok(Some(d)),
                 Err(e) => Err(e.context(image.what.clone())),
             },

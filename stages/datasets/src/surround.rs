@@ -106,6 +106,9 @@ pub struct Reading {
     pub token: String,
     /// Its row in `file` when the file is a table of readings (a py123d log's Arrow file).
     pub row: Option<u64>,
+    /// When that row holds a path instead of the bytes (a py123d log that stores paths into the
+    /// source dataset): the file it names, which is what a loader opens.
+    pub stored_file: Option<PathBuf>,
 }
 
 impl Reading {
@@ -121,7 +124,18 @@ impl Reading {
         if let Some(row) = self.row {
             record["row"] = row.into();
         }
+        if let Some(stored) = &self.stored_file {
+            record["stored_file"] = stored.strip_prefix(root).unwrap_or(stored).to_string_lossy().into();
+        }
         record
+    }
+
+    /// Where a loader finds the bytes: the file and, when that file is a table, the row.
+    fn bytes_at(&self, root: &Path) -> (String, Option<u64>) {
+        match &self.stored_file {
+            Some(stored) => (stored.strip_prefix(root).unwrap_or(stored).to_string_lossy().into_owned(), None),
+            None => (self.file.strip_prefix(root).unwrap_or(&self.file).to_string_lossy().into_owned(), self.row),
+        }
     }
 
     /// The content digest of the reading's file.
@@ -390,7 +404,8 @@ impl<R: SurroundReader> Dataset for Surround<R> {
                     Err(e) => ImageInfo { missing: Some(format!("{e:#}")), ..labels },
                     Ok(r) => ImageInfo {
                         token: r.token.clone(),
-                        file: r.file.strip_prefix(&tree.root).unwrap_or(&r.file).to_string_lossy().into_owned(),
+                        file: r.bytes_at(&tree.root).0,
+                        row: r.bytes_at(&tree.root).1,
                         timestamp_us: r.pose.timestamp_us,
                         width: r.calib.width,
                         height: r.calib.height,

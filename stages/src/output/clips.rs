@@ -91,7 +91,7 @@ fn image_record(p: &Params, info: &ImageInfo) -> Value {
             })
         })
         .collect();
-    json!({
+    let mut record = json!({
         "camera": info.camera,
         "token": info.token,
         "image": info.file,
@@ -105,7 +105,12 @@ fn image_record(p: &Params, info: &ImageInfo) -> Value {
         "boxes": boxes,
         "depth": render(&p.depth, info),
         "confidence": render(&p.confidence, info),
-    })
+    });
+    // A py123d log keeps its images inside its camera files: `image` is that file, this its row.
+    if let Some(row) = info.row {
+        record["image_row"] = row.into();
+    }
+    record
 }
 
 /// The records of a scene's clips, one JSON object per line, from its camera items in order

@@ -192,6 +192,9 @@ pub struct ImageInfo {
     pub token: String,
     /// Relative to the dataset root.
     pub file: String,
+    /// The image's row when `file` is a table of images (a py123d log's camera file: the encoded
+    /// image is that row's `<camera>.data`); `None` when `file` is the image.
+    pub row: Option<u64>,
     pub timestamp_us: i64,
     pub width: u32,
     pub height: u32,
@@ -220,6 +223,9 @@ struct ImageInfoOnDisk {
     // Left out when empty: the bytes of every dataset that names no vehicle stay as they were.
     #[serde(default, skip_serializing_if = "String::is_empty")]
     vehicle: String,
+    // Left out when none, for the same reason.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    row: Option<u64>,
 }
 
 impl Artifact for ImageInfo {
@@ -238,6 +244,7 @@ impl Artifact for ImageInfo {
             height: self.height,
             intrinsics: self.intrinsics,
             vehicle: self.vehicle.clone(),
+            row: self.row,
         };
         let json = serde_json::to_vec(&head).unwrap_or_default();
         let mut out = b"IMI1".to_vec();
@@ -262,6 +269,7 @@ impl Artifact for ImageInfo {
             missing: head.missing,
             token: head.token,
             file: head.file,
+            row: head.row,
             timestamp_us: head.timestamp_us,
             width: head.width,
             height: head.height,

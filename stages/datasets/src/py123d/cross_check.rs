@@ -422,10 +422,9 @@ fn a_path_stored_sweep_changed_under_sensor_root_changes_its_frames_digest() {
     let item = ItemKey::new(&[0, 0]);
     let before = ds.source_digest("lidar", &item, &Hashing).unwrap();
     let (_, frame) = ds.0.tree().scene_frame(&item).unwrap();
-    let sweep =
-        ds.0.lidar_paths(ds.0.lidar_log(frame.lidar.as_ref().unwrap()).unwrap(), frame.lidar.as_ref().unwrap())
-            .unwrap()
-            .0;
+    // The reading names the file its row points at (what index.json records as `stored_file`).
+    let sweep = frame.lidar.as_ref().unwrap().stored_file.clone().unwrap();
+    assert!(sweep.to_string_lossy().ends_with(".pcd.bin"), "{}", sweep.display());
     let bytes = std::fs::read(&sweep).unwrap();
     std::fs::write(&sweep, &bytes[..bytes.len() / 2 / 20 * 20]).unwrap();
     assert_ne!(ds.source_digest("lidar", &item, &Hashing).unwrap(), before, "a rerun must read the changed sweep");
