@@ -416,6 +416,15 @@ fn main() -> ExitCode {
     }
 }
 
+/// For a command that reads the pipeline's data: a root that does not exist or holds another
+/// kind's data is, like a bad pipeline, a problem of the command line (exit 2), found before
+/// anything runs. (`check` only notes a missing root: the data may live on the cluster.)
+fn refuse_dataset_root(args: &PipelineArgs, registry: &Registry, pipeline: &Pipeline) -> Option<ExitCode> {
+    let problem = registry.dataset_root_problem(pipeline)?;
+    eprintln!("error: {}: {problem}", args.pipeline.display());
+    Some(ExitCode::from(2))
+}
+
 /// Loads and checks a pipeline; a bad one prints every problem and exits 2.
 fn load(args: &PipelineArgs, registry: &Registry) -> Result<Result<Pipeline, ExitCode>> {
     let cwd = std::env::current_dir()?;
@@ -692,6 +701,9 @@ fn run_pipeline(
         eprintln!("error: {e:#}");
         return Ok(Err(ExitCode::from(2)));
     }
+    if let Some(code) = refuse_dataset_root(p, registry, &pipeline) {
+        return Ok(Err(code));
+    }
     let (cache, out_dir) = (p.cache_dir(), p.out_dir(out, &pipeline));
     let mut opts = RunOptions {
         fail_fast,
@@ -725,6 +737,9 @@ fn slurm_submit(
         Ok(x) => x,
         Err(code) => return Ok(code),
     };
+    if let Some(code) = refuse_dataset_root(p, registry, &pipeline) {
+        return Ok(code);
+    }
     let (cache, out_dir) = (p.cache_dir(), p.out_dir(out, &pipeline));
     let pending = {
         let dataset = registry.open_dataset(&pipeline)?;
@@ -972,6 +987,9 @@ fn run(cli: Cli) -> Result<ExitCode> {
                 Ok(x) => x,
                 Err(code) => return Ok(code),
             };
+            if let Some(code) = refuse_dataset_root(&p, &registry, &pipeline) {
+                return Ok(code);
+            }
             let dataset = registry.open_dataset(&pipeline)?;
             let ops = registry.operators(&pipeline)?;
             // Explain only reads: no lease, nothing written (it works on a read-only store).

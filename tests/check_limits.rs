@@ -144,8 +144,8 @@ fn jobs_outside_1_to_1024_are_refused() {
             "1024",
         ]);
         let out = text(&o);
-        assert_eq!(o.status.code(), Some(1), "{cmd}: {out}");
-        assert!(!out.contains("--jobs"), "{cmd}: {out}");
+        assert_eq!(o.status.code(), Some(2), "{cmd}: {out}");
+        assert!(!out.contains("--jobs") && out.contains("does not exist"), "{cmd}: {out}");
     }
 }
 

@@ -530,7 +530,7 @@ fn a_nuscenes_root_that_is_missing_or_dgp_data_says_so() {
     let tmp = tempfile::tempdir().unwrap();
     let run = |root: &Path| {
         let o = run_lidar_depth(root, &tmp.path().join("c"), &tmp.path().join("o"));
-        assert_eq!(o.status.code(), Some(1));
+        assert_eq!(o.status.code(), Some(2), "refused before anything runs, as `check` refuses it");
         text(&o)
     };
     let missing = tmp.path().join("no-such-folder");

@@ -264,7 +264,8 @@ fn check_and_run_say_when_the_root_is_missing_or_holds_another_kind() {
     assert!(text(&o).contains(&format!("dataset root {} does not exist", missing.display())), "{}", text(&o));
     let (cache, out) = (tmp.path().join("c"), tmp.path().join("o"));
     let o = run_lidar_depth(&missing, &cache, &out);
-    assert!(!o.status.success() && text(&o).contains("does not exist"), "{}", text(&o));
+    assert_eq!(o.status.code(), Some(2), "a command-line problem, as check says: {}", text(&o));
+    assert!(text(&o).contains("does not exist"), "{}", text(&o));
     // A nuScenes pipeline pointed at a DGP root (a scene_dataset*.json): `check` names the kind.
     let dgp = tmp.path().join("ddad");
     std::fs::create_dir_all(&dgp).unwrap();
@@ -274,6 +275,11 @@ fn check_and_run_say_when_the_root_is_missing_or_holds_another_kind() {
     let said = text(&o);
     assert!(said.contains(&format!("did you mean `Dgp(root: \"{}\")`?", dgp.display())), "{said}");
     assert!(said.contains("dataset kinds: NuScenes, Dgp, Synth"), "{said}");
+    // `run` exits as `check` does, before anything runs.
+    let o = run_lidar_depth(&dgp, &cache, &out);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(text(&o).contains("did you mean `Dgp(root: "), "{}", text(&o));
+    assert!(!cache.join("runs").exists(), "nothing ran");
     // And a DGP pipeline at a nuScenes root, the other way round.
     let (_keep, nus) = synthetic_nuscenes(1);
     let o = dist4d(&["check", &lidar, "--set", &format!("dataset=Dgp(root: \"{}\")", nus.display())]);

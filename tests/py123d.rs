@@ -184,7 +184,8 @@ fn training_clips_from_a_log_name_each_images_row_and_the_loader_reads_it() {
     let dataset = format!("dataset=Py123d(root: \"{}\")", sweeps.display());
     let cache = tmp.path().join("cache");
     let args = ["run", file.to_str().unwrap(), "--progress", "off", "--cache", cache.to_str().unwrap()];
-    let o = dist4d(&[&args[..], &["--out", out.to_str().unwrap(), "--set", &dataset, "--set", "clips.frames=4"]].concat());
+    let o =
+        dist4d(&[&args[..], &["--out", out.to_str().unwrap(), "--set", &dataset, "--set", "clips.frames=4"]].concat());
     assert!(o.status.success(), "{}", text(&o));
     let clips = std::fs::read_dir(&out)
         .unwrap()

@@ -286,11 +286,21 @@ fn strings(file: &IpcFile, name: &str) -> Result<Vec<Option<String>>> {
     Ok(out)
 }
 
-/// Slerp/lerp of the ego track at `t`; the nearest end within `MAX_IMAGE_OFFSET_US` outside it.
+/// The longest gap of the ego track interpolated over: py123d logs hold ego states at 10-20 Hz (2 Hz
+/// in keyframe logs); a longer gap is missing data, where a straight line is a guess.
+const MAX_EGO_GAP_US: i64 = 1_000_000;
+
+/// Slerp/lerp of the ego track at `t` (between states at most `MAX_EGO_GAP_US` apart); the
+/// nearest end within `MAX_IMAGE_OFFSET_US` outside it or beside a longer gap.
 fn ego_at(track: &[(i64, Se3)], t: i64) -> Option<Se3> {
     let after = track.partition_point(|(tk, _)| *tk < t);
     match (after.checked_sub(1).map(|i| &track[i]), track.get(after)) {
         (_, Some((t1, p1))) if *t1 == t => Some(*p1),
+        (Some((t0, p0)), Some((t1, p1))) if t1 - t0 > MAX_EGO_GAP_US => match (t - t0).min(t1 - t) {
+            d if d > MAX_IMAGE_OFFSET_US => None,
+            _ if t - t0 <= t1 - t => Some(*p0),
+            _ => Some(*p1),
+        },
         (Some((t0, p0)), Some((t1, p1))) => {
             let w = (t - t0) as f64 / (t1 - t0) as f64;
             Some(Se3 {
@@ -452,30 +462,31 @@ fn read_log(
     };
     let ego_box = ego_box_of(&dataset, &ego_meta, &ego_file.path, notes)?;
 
-    // Cameras, by name.
-    let mut by_name: HashMap<String, PathBuf> = HashMap::new();
+    // Cameras, by name; each file opened and its metadata parsed once.
+    let mut by_name: HashMap<String, (IpcFile, Value)> = HashMap::new();
     for e in std::fs::read_dir(dir)?.flatten() {
         let file = e.file_name().to_string_lossy().into_owned();
         if file.starts_with("camera.") && file.ends_with(".arrow") {
             let f = IpcFile::open(&e.path())?;
             let m = ipc::metadata_json(&f)?;
             if let Some(n) = m["camera_name"].as_str() {
-                by_name.insert(n.to_string(), e.path());
+                by_name.insert(n.to_string(), (f, m));
             }
         }
     }
+    let mut have: Vec<String> = by_name.keys().cloned().collect();
+    have.sort();
     let mut files = Vec::new();
     for camera in cameras {
-        let Some(path) = by_name.get(camera) else {
-            warnings.push(format!("log {name} has no camera {camera} (it has: {}): its items of that camera fail", {
-                let mut have: Vec<&String> = by_name.keys().collect();
-                have.sort();
-                have.into_iter().cloned().collect::<Vec<_>>().join(", ")
-            }));
+        let Some((file, meta)) = by_name.remove(camera) else {
+            warnings.push(format!(
+                "log {name} has no camera {camera} (it has: {}): its items of that camera fail",
+                have.join(", ")
+            ));
             files.push(None);
             continue;
         };
-        files.push(Some(read_camera(path, config, notes, warnings)?));
+        files.push(Some(read_camera(file, meta, config, notes, warnings)?));
     }
     let lidar = read_lidar_file(dir, config, notes)?;
     let keyframes = read_boxes(dir, notes, warnings)?;
@@ -505,14 +516,15 @@ fn ego_box_of(dataset: &str, meta: &Value, file: &Path, notes: &mut Renormalised
 }
 
 fn read_camera(
-    path: &Path,
+    file: IpcFile,
+    meta: Value,
     config: &Py123dConfig,
     notes: &mut Renormalised,
     warnings: &mut Vec<String>,
 ) -> Result<CameraFile> {
-    let file = IpcFile::open(path)?;
+    let path = file.path.clone();
+    let path = path.as_path();
     let key = path.file_stem().unwrap_or_default().to_string_lossy().into_owned();
-    let meta = ipc::metadata_json(&file)?;
     let at = Place::new(path, "metadata");
     let name = meta["camera_name"].as_str().unwrap_or(&key).to_string();
     let storage = storage_of(&file, &format!("{key}.data"))?;
@@ -776,7 +788,12 @@ fn read_boxes(
                     size,
                     rotation,
                     velocity: velocity.map_or([f64::NAN; 3], |x| [x[0], x[1], x[2]]),
-                    instance: t.value(j).to_string(),
+                    // A box without a track token is its own track: matching the untracked boxes
+                    // of two annotated times to each other would interpolate between strangers.
+                    instance: match t.is_null(j) || t.value(j).is_empty() {
+                        true => format!("untracked:{}:{row}:{j}", path.display()),
+                        false => t.value(j).to_string(),
+                    },
                     category,
                     attributes: Vec::new(),
                     num_lidar_pts: n.filter(|n| j < n.len()).map_or(0, |n| n.value(j).max(0) as u32),
@@ -884,12 +901,10 @@ fn frames_of(
         FrameMode::Keyframes | FrameMode::Sweeps => {
             sweep_ends.iter().enumerate().map(|(row, &t)| frame_at(t, Some(row), nearest_images(t), false)).collect()
         }
-        FrameMode::Camera => {
-            rounds_of(log)
-                .into_iter()
-                .map(|round| frame_at(round.time, sweep_at(round.time), round.images, true))
-                .collect()
-        }
+        FrameMode::Camera => rounds_of(log)
+            .into_iter()
+            .map(|round| frame_at(round.time, sweep_at(round.time), round.images, true))
+            .collect(),
     }
 }
 
@@ -1086,6 +1101,14 @@ impl Py123d {
             let intensity = u8col("intensity");
             let ids = u8col("ids");
             let semantic = u8col("semantic").filter(|_| lidar.labels);
+            // `dataset.lidar` picks one LiDAR of the merged cloud by its per-point id; a sweep
+            // without ids cannot be split, and giving every LiDAR's points would be silently wrong.
+            ensure!(
+                lidar.only.is_none() || ids.is_some() || lidar.sensors.len() == 1,
+                "{what}: dataset.lidar picks one LiDAR, but the sweep has no `ids` column to tell its {} LiDARs \
+                 apart: leave dataset.lidar unset to read them all",
+                lidar.sensors.len()
+            );
             for k in 0..b.num_rows() {
                 if let (Some(only), Some(ids)) = (lidar.only, ids) {
                     if ids.value(k) != only {
@@ -1291,5 +1314,30 @@ pub fn schema() -> DatasetSchema {
         ports: crate::surround::PORTS.to_vec(),
         config: ParamsSpec::of::<Py123dConfig>(),
         path_fields: vec!["root", "sensor_root"],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn at(x: f64) -> Se3 {
+        Se3 { rotation: glam::DQuat::IDENTITY, translation: glam::DVec3::new(x, 0.0, 0.0) }
+    }
+
+    #[test]
+    fn the_ego_track_is_interpolated_over_its_own_rate_but_not_across_a_gap() {
+        let x = |p: Option<Se3>| p.map(|p| p.translation.x);
+        // 10 Hz: interpolated.
+        let track = [(0, at(0.0)), (100_000, at(1.0))];
+        assert_eq!(x(ego_at(&track, 25_000)), Some(0.25));
+        // 2 s without a state: the nearest state near its ends, nothing in the middle.
+        let track = [(0, at(0.0)), (2_000_000, at(40.0))];
+        assert_eq!(x(ego_at(&track, 50_000)), Some(0.0));
+        assert_eq!(x(ego_at(&track, 1_000_000)), None);
+        assert_eq!(x(ego_at(&track, 1_950_000)), Some(40.0));
+        // Past the ends: within 100 ms only.
+        assert_eq!(x(ego_at(&track, 2_090_000)), Some(40.0));
+        assert_eq!(x(ego_at(&track, 2_200_000)), None);
     }
 }

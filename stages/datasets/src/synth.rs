@@ -18,8 +18,9 @@ use std::path::{Path, PathBuf};
 #[serde(deny_unknown_fields, default)]
 pub struct SynthDatasetConfig {
     /// Where the world's files are kept: made on the first open; relative paths are resolved
-    /// against the pipeline file's folder.
-    pub root: String,
+    /// against the pipeline file's folder. Unset: a folder named by the settings under `data/`
+    /// of the working directory, so that every world has its own.
+    pub root: Option<String>,
     pub seed: u64,
     pub scenes: u32,
     /// Keyframes (2 Hz samples) per scene.
@@ -38,7 +39,7 @@ pub struct SynthDatasetConfig {
 impl Default for SynthDatasetConfig {
     fn default() -> Self {
         SynthDatasetConfig {
-            root: "data/synth".into(),
+            root: None,
             seed: 0,
             scenes: 1,
             keyframes: 4,
@@ -52,6 +53,24 @@ impl Default for SynthDatasetConfig {
 }
 
 impl SynthDatasetConfig {
+    /// The folder of the world: `root`, or `data/synth-seed7-1x4-640x360-sweeps` named by the
+    /// settings that change its files (not `frames`, which reads the same files another way).
+    pub fn root(&self) -> PathBuf {
+        match &self.root {
+            Some(root) => PathBuf::from(root),
+            None => PathBuf::from(format!(
+                "data/synth-seed{}-{}x{}-{}x{}{}{}",
+                self.seed,
+                self.scenes,
+                self.keyframes,
+                self.width,
+                self.height,
+                if self.lidar_sweeps { "-sweeps" } else { "" },
+                if self.camera_sweeps { "-12hz" } else { "" }
+            )),
+        }
+    }
+
     /// The generator's config of this world.
     pub fn world(&self) -> SynthConfig {
         SynthConfig {
@@ -92,7 +111,7 @@ pub const DATASET: crate::DatasetDef =
 
 fn open_checked(checked: &ParamsValue) -> Result<crate::Opened> {
     let config = crate::registry::config::<SynthDatasetConfig>(checked)?;
-    let root = PathBuf::from(&config.root);
+    let root = config.root();
     let made =
         dist4d_synth::write_dataset(&config.world(), &root, &|m| eprintln!("synth: {m}")).with_context(|| {
             format!("making the synthetic world of dataset Synth(seed: {}) in {}", config.seed, root.display())
@@ -108,13 +127,13 @@ fn open_checked(checked: &ParamsValue) -> Result<crate::Opened> {
         );
     }
     let ds = NuScenes::open(NuScenesConfig {
-        root: config.root.clone(),
+        root: root.display().to_string(),
         frames: config.frames,
         ..NuScenesConfig::default()
     })
     .with_context(|| format!("reading the synthetic world in {}", root.display()))?;
     Ok(crate::Opened {
-        description: format!("Synth(seed: {}) at {}", config.seed, config.root),
+        description: format!("Synth(seed: {}) at {}", config.seed, root.display()),
         warnings: ds.warnings.clone(),
         has_point_labels: ds.has_point_labels,
         dataset: Box::new(crate::surround::Surround(ds)),
@@ -122,7 +141,7 @@ fn open_checked(checked: &ParamsValue) -> Result<crate::Opened> {
 }
 
 fn root_of(checked: &ParamsValue) -> Option<PathBuf> {
-    checked.get::<SynthDatasetConfig>().map(|c| PathBuf::from(&c.root))
+    checked.get::<SynthDatasetConfig>().map(SynthDatasetConfig::root)
 }
 
 /// A folder `dist4d synth` wrote: its world's config in `groundtruth/synth.json`.
@@ -155,7 +174,7 @@ mod tests {
         let tmp = tempfile::tempdir().unwrap();
         let root = tmp.path().join("w");
         let config = SynthDatasetConfig {
-            root: root.display().to_string(),
+            root: Some(root.display().to_string()),
             keyframes: 2,
             width: 64,
             height: 36,
@@ -173,6 +192,24 @@ mod tests {
         let e = (DATASET.open)(&checked(SynthDatasetConfig { seed: 5, ..config })).err().unwrap();
         let e = format!("{e:#}");
         assert!(e.contains("Synth(seed: 5)") && e.contains("other settings"), "{e}");
+    }
+
+    #[test]
+    fn worlds_without_a_root_each_get_their_own_folder() {
+        let seven = SynthDatasetConfig { seed: 7, ..Default::default() };
+        assert_eq!(seven.root(), PathBuf::from("data/synth-seed7-1x4-640x360-sweeps"));
+        let roots: std::collections::HashSet<PathBuf> = [
+            SynthDatasetConfig::default(),
+            seven.clone(),
+            SynthDatasetConfig { keyframes: 8, ..seven.clone() },
+            SynthDatasetConfig { camera_sweeps: true, ..seven.clone() },
+        ]
+        .iter()
+        .map(SynthDatasetConfig::root)
+        .collect();
+        assert_eq!(roots.len(), 4);
+        // The clock reads the same files.
+        assert_eq!(SynthDatasetConfig { frames: FrameMode::Sweeps, ..seven.clone() }.root(), seven.root());
     }
 
     #[test]

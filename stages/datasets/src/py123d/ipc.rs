@@ -12,6 +12,9 @@
 //!   bodies), with a projection when only some columns are wanted: the timestamps and poses of a
 //!   camera file are read without touching the pages of its images. (A log truncated by another
 //!   process while a run reads it would be a bus error: logs are written once, as py123d does.)
+//! - A compressed batch (py123d's `ipc_compression`) holds up to 10 images or 1000 sweeps (128 MiB
+//!   at most) and is decompressed whole, so the last few decoded batches are kept (process-wide,
+//!   a handful): reading a log row by row decompresses each batch about once, not once per row.
 
 use anyhow::{anyhow, bail, ensure, Context, Result};
 use arrow_array::RecordBatch;
@@ -21,7 +24,8 @@ use arrow_ipc::{Block, MetadataVersion};
 use arrow_schema::{Schema, SchemaRef};
 use std::path::{Path, PathBuf};
 use std::ptr::NonNull;
-use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 
 const MAGIC: &[u8; 6] = b"ARROW1";
 /// Footers hold a schema and one block per batch: a few KB. A larger one is not a py123d log.
@@ -45,7 +49,19 @@ pub struct IpcFile {
     version: MetadataVersion,
     batches: Vec<BatchBlock>,
     pub rows: u64,
+    /// Tells this file's batches apart in [`RECENT`].
+    id: u64,
 }
+
+/// A decoded batch: which file, which batch, which columns.
+type BatchKey = (u64, usize, Option<Vec<usize>>);
+
+/// The most recently decoded batches, newest last. A decoded uncompressed batch only points into
+/// the map; a compressed one is its decompressed body, so the count is kept small (each is at most
+/// py123d's 128 MiB batch limit).
+static RECENT: Mutex<Vec<(BatchKey, RecordBatch)>> = Mutex::new(Vec::new());
+const RECENT_BATCHES: usize = 8;
+static NEXT_FILE_ID: AtomicU64 = AtomicU64::new(0);
 
 impl std::fmt::Debug for IpcFile {
     fn fmt(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
@@ -110,7 +126,8 @@ impl IpcFile {
             batches.push(BatchBlock { block, first_row: rows, rows: length });
             rows += length;
         }
-        Ok(IpcFile { path: path.to_path_buf(), map, schema, metadata, version, batches, rows })
+        let id = NEXT_FILE_ID.fetch_add(1, Ordering::Relaxed);
+        Ok(IpcFile { path: path.to_path_buf(), map, schema, metadata, version, batches, rows, id })
     }
 
     /// The index of the column named `name`.
@@ -127,12 +144,33 @@ impl IpcFile {
     /// The record batch that holds `row` (only the `columns` given, by index, when some are),
     /// with the row's index inside it.
     pub fn batch_of(&self, row: u64, columns: Option<&[usize]>) -> Result<(RecordBatch, usize)> {
-        let b = self
+        let index = self
             .batches
             .iter()
-            .find(|b| row >= b.first_row && row < b.first_row + b.rows)
+            .position(|b| row >= b.first_row && row < b.first_row + b.rows)
             .ok_or_else(|| anyhow!("{} has {} rows, no row {row}", self.path.display(), self.rows))?;
-        Ok((self.read_batch(b, columns)?, (row - b.first_row) as usize))
+        let b = &self.batches[index];
+        let key: BatchKey = (self.id, index, columns.map(<[usize]>::to_vec));
+        let recent = |r: &mut Vec<(BatchKey, RecordBatch)>| {
+            let at = r.iter().position(|(k, _)| *k == key)?;
+            let hit = r.remove(at);
+            r.push(hit.clone());
+            Some(hit.1)
+        };
+        if let Some(batch) = recent(&mut RECENT.lock().unwrap_or_else(|p| p.into_inner())) {
+            return Ok((batch, (row - b.first_row) as usize));
+        }
+        // Decoded outside the lock: two threads may decode one batch at once, which costs time, not
+        // correctness.
+        let batch = self.read_batch(b, columns)?;
+        let mut r = RECENT.lock().unwrap_or_else(|p| p.into_inner());
+        if recent(&mut r).is_none() {
+            if r.len() >= RECENT_BATCHES {
+                r.remove(0);
+            }
+            r.push((key, batch.clone()));
+        }
+        Ok((batch, (row - b.first_row) as usize))
     }
 
     /// Every record batch in order, with only `columns` (by index) when given.
@@ -307,6 +345,11 @@ mod tests {
             assert_eq!(t.value(i), 13);
             let data = batch.column(1).as_any().downcast_ref::<BinaryArray>().unwrap();
             assert_eq!(data.value(i), &[13u8; 100][..]);
+            // The next row of the batch comes from the batch decoded for row 3 (for a compressed
+            // one, not decompressed again): the same bytes in memory.
+            let (next, _) = f.batch_of(4, None).unwrap();
+            let values = |b: &RecordBatch| b.column(1).to_data().buffers()[1].as_ptr();
+            assert_eq!(values(&next), values(&batch), "{compression:?}");
             let (only_t, _) = f.batch_of(3, Some(&[0])).unwrap();
             assert_eq!(only_t.num_columns(), 1);
             assert!(f.batch_of(5, None).unwrap_err().to_string().contains("has 5 rows, no row 5"));
