@@ -238,7 +238,7 @@ fn demo_synthesizes_once_runs_the_shipped_pipeline_and_says_where_outputs_are() 
     let o = dist4d(&args);
     assert!(o.status.success(), "{}", text(&o));
     let t = text(&o);
-    assert!(t.contains("220 executed"), "2 frames x 6 cameras x 18 stages + 2 x 2 per-frame stages: {t}");
+    assert!(t.contains("232 executed"), "2 frames x 6 cameras x 19 stages + 2 x 2 per-frame stages: {t}");
     assert!(t.contains("gt (raw)"), "the demo prints its scores against ground truth: {t}");
     let sheet = dir.join("pipelines/out/curation/synth-0000/sheets/001.png");
     assert!(t.contains(&sheet.display().to_string()), "{t}");
@@ -246,7 +246,7 @@ fn demo_synthesizes_once_runs_the_shipped_pipeline_and_says_where_outputs_are() 
     // Second time: the dataset is reused and everything is cached.
     let o = dist4d(&args);
     let t = text(&o);
-    assert!(o.status.success() && t.contains("already there") && t.contains("0 executed, 220 cached"), "{t}");
+    assert!(o.status.success() && t.contains("already there") && t.contains("0 executed, 232 cached"), "{t}");
     // The shipped pipeline, written unchanged beside the data, finds it and its store on its own.
     let written = std::fs::read_to_string(dir.join("pipelines/curation.ron")).unwrap();
     assert_eq!(written, std::fs::read_to_string(repo().join("pipelines/curation.ron")).unwrap());

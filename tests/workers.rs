@@ -188,7 +188,11 @@ fn a_misbehaving_worker_fails_its_items_only_and_a_crash_mid_run_is_survived() {
     let t = text(&o);
     assert_eq!(o.status.code(), Some(1), "{t}");
     assert_eq!(executed(&t, "complete"), 8, "{t}");
-    assert_eq!(executed(&t, "encode"), 8, "the items the worker did are exported: {t}");
+    assert_eq!(executed(&t, "encode_support"), 6, "{t}");
+    // The depth exported is the blend of frames t-1..t+1 (TemporalBlend): an item whose
+    // neighbour's completion failed is skipped with it, here 000/CAM_FRONT_RIGHT (001 hung) and
+    // 001/CAM_BACK_RIGHT (000 malformed); the other six the worker did are exported.
+    assert_eq!(executed(&t, "encode"), 6, "the items the worker did are exported: {t}");
     let failed = failures(&t);
     assert_eq!(failed.len(), 4, "{t}");
     let says = |item: &str, what: &[&str]| {

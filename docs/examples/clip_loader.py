@@ -65,7 +65,7 @@ def load_clip(out_dir, data_root, clip):
         # Paths to open; for a camera record with `image_row` the file is a py123d camera file
         # (read the image with `image_bytes`).
         "images": [[str(data_root / p) for p in row] for row in per("image")],
-        "image_rows": per("image_row") if "image_row" in frames[0]["cameras"][0] else None,
+        "image_rows": per("image_row") if "image_row" in frames[0]["cameras"][0] else [],
         "tokens": per("token"),
         "timestamps_us": np.array(per("timestamp_us"), dtype=np.int64),
         "intrinsics": np.array(per("intrinsics"), dtype=np.float64),
@@ -87,4 +87,4 @@ if __name__ == "__main__":
     arrays = load_clip(sys.argv[1], sys.argv[2], first)
     for key, value in arrays.items():
         shape = getattr(value, "shape", None)
-        print(key, list(shape) if shape is not None else f"{len(value)} x {len(value[0])}")
+        print(key, list(shape) if shape is not None else f"{len(value)} x {len(value[0]) if value else 0}")

@@ -14,4 +14,5 @@ crate::stage_modules! {
     project_lidar::ProjectLidar,
     prompt::DepthPrompt,
     sky::EstimateSky,
+    temporal_blend::TemporalBlend,
 }

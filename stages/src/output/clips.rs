@@ -253,6 +253,7 @@ mod tests {
                     missing: None,
                     token: format!("tok{f}-{c}"),
                     file: format!("sweeps/CAM{c}/{t}.jpg"),
+                    row: (c == 1).then_some(f as u64),
                     timestamp_us: t,
                     width: 1600,
                     height: 900,
@@ -285,6 +286,9 @@ mod tests {
         let image = &clips[1]["frames"][0]["cameras"][1];
         assert_eq!(image["camera"], "CAM1");
         assert_eq!(image["token"], "tok2-1");
+        // An image inside a table (a py123d camera file) names its row; a file of its own does not.
+        assert_eq!(image["image_row"], 2);
+        assert!(clips[1]["frames"][0]["cameras"][0].get("image_row").is_none());
         assert_eq!(image["depth"], "s/CAM1/002_depth.npy");
         assert_eq!(image["confidence"], "s/CAM1/002_support.npy");
         assert_eq!(image["timestamp_us"], 2 * 83_333 + 8_000);
