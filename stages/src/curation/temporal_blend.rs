@@ -49,6 +49,8 @@ pub struct Params {
     pub max_depth: f64,
     /// Boxes faster than this (m/s) are moving: their pixels keep their own depth.
     pub min_speed: f64,
+    /// The corrections are averaged over a box of this radius (px) before they are applied.
+    pub smooth: usize,
     /// Moving boxes grow by this (m) on each side and on top.
     pub box_margin: f64,
 }
@@ -56,12 +58,13 @@ pub struct Params {
 impl Default for Params {
     fn default() -> Self {
         Params {
-            min_support: 8.0,
-            better: 0.5,
+            min_support: 4.0,
+            better: 0.8,
             occluded: 0.7,
             max_change: 1.0,
             max_depth: 99.0,
             min_speed: 0.5,
+            smooth: 8,
             box_margin: 0.3,
         }
     }
@@ -76,6 +79,7 @@ impl Validate for Params {
             .within("max_change", self.max_change, 0.0, 100.0)
             .above("max_depth", self.max_depth, 0.0, 1e6)
             .within("min_speed", self.min_speed, 0.0, 1000.0)
+            .count("smooth", self.smooth as u64, 0, 256)
             .within("box_margin", self.box_margin, 0.0, 100.0)
             .done()
     }
@@ -124,8 +128,13 @@ pub fn blend(p: &Params, target: &Frame, others: &[Frame], moving: &Boxes3D) -> 
         .map(|b| b.test(&cam_from_world, p.box_margin, 0.1))
         .collect();
     let structure = |z: f32| z > 0.0 && (z as f64) < p.max_depth;
-    let mut depth = target.depth.clone();
-    let mut support = target.support.clone();
+    let n = target.depth.data.len();
+    // Per pixel with a candidate: ln(candidate / own depth), and the candidate's support.
+    let mut log_ratio = vec![0.0f64; n];
+    let mut cand_support = vec![0.0f64; n];
+    let mut has = vec![0.0f64; n];
+    // Pixels of moving objects: they keep their depth, even where static neighbours are corrected.
+    let mut moving = vec![false; n];
     for (i, &z) in target.depth.data.iter().enumerate() {
         let s = target.support.data[i] as f64;
         if !structure(z) || s < p.min_support {
@@ -134,6 +143,7 @@ pub fn blend(p: &Params, target: &Frame, others: &[Frame], moving: &Boxes3D) -> 
         let (u, v) = ((i % w) as f64 + 0.5, (i / w) as f64 + 0.5);
         let c = own.unproject(u, v, z as f64);
         if boxes.iter().any(|b| b.contains(c)) {
+            moving[i] = true;
             continue;
         }
         let mut best: Option<(f64, f32)> = None;
@@ -162,11 +172,58 @@ pub fn blend(p: &Params, target: &Frame, others: &[Frame], moving: &Boxes3D) -> 
             }
         }
         if let Some((s_best, z_best)) = best {
-            depth.data[i] = z_best;
-            support.data[i] = s_best as f32;
+            log_ratio[i] = (z_best as f64 / z as f64).ln();
+            cand_support[i] = s_best;
+            has[i] = 1.0;
         }
     }
+    // The corrections are applied smoothed (a box of `smooth` px): a per-pixel switch between
+    // frames' depths cuts the frame's own smooth fill into patches with steps between them, and
+    // lifting drops pixels at steps. Scaling the own depth by the neighbourhood's mean ratio keeps
+    // the frame's own edges and moves its levels to the better supported ones.
+    let h = target.depth.height as usize;
+    let r = p.smooth;
+    let (count, sum_ratio, sum_support) =
+        (box_sum(&has, w, h, r), box_sum(&log_ratio, w, h, r), box_sum(&cand_support, w, h, r));
+    // The box's own size (smaller at the image's edges).
+    let area = box_sum(&vec![1.0; n], w, h, r);
+    let mut depth = target.depth.clone();
+    let mut support = target.support.clone();
+    for i in 0..n {
+        let (z, s) = (target.depth.data[i], target.support.data[i] as f64);
+        if !structure(z) || s < p.min_support || count[i] == 0.0 || moving[i] {
+            continue;
+        }
+        // How much of the neighbourhood had a candidate, and how far the pixel is into the
+        // weakly supported region: both ramp the correction in.
+        let weight = (count[i] / area[i]) * ((s - p.min_support) / p.min_support).clamp(0.0, 1.0);
+        depth.data[i] = (z as f64 * (weight * sum_ratio[i] / count[i]).exp()) as f32;
+        support.data[i] = (s + weight * (sum_support[i] / count[i] - s)) as f32;
+    }
     Ok((depth, support))
+}
+
+/// The sum of `values` over the (2r+1)^2 box around each pixel (clipped at the image's edges).
+fn box_sum(values: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
+    // Summed-area table with a zero row and column in front.
+    let mut table = vec![0.0f64; (w + 1) * (h + 1)];
+    for y in 0..h {
+        let mut row = 0.0;
+        for x in 0..w {
+            row += values[y * w + x];
+            table[(y + 1) * (w + 1) + x + 1] = table[y * (w + 1) + x + 1] + row;
+        }
+    }
+    let mut out = vec![0.0f64; w * h];
+    for y in 0..h {
+        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+        for x in 0..w {
+            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+            out[y * w + x] =
+                table[y1 * (w + 1) + x1] - table[y0 * (w + 1) + x1] - table[y1 * (w + 1) + x0] + table[y0 * (w + 1) + x0];
+        }
+    }
+    out
 }
 
 crate::ports! {
@@ -197,7 +254,8 @@ pub struct TemporalBlend(Params);
 
 impl Stage for TemporalBlend {
     const KIND: &'static str = "TemporalBlend";
-    const VERSION: u32 = 1;
+    // 2: corrections smoothed over a box instead of switched per pixel.
+    const VERSION: u32 = 2;
     const SUMMARY: &'static str =
         "Completions of a window of frames -> the target's, weakly supported pixels taken from neighbours that know them better";
     const GRAINS: &'static [&'static str] = &["camera"];
@@ -269,23 +327,27 @@ mod tests {
         let n = Frame { depth: &d1, support: &s1, calib: &c1, pose: &p1 };
         let (depth, support) = blend(&p, &t, &[n], &Boxes3D::default()).unwrap();
         let at = |m: &DepthMap, c: usize, r: usize| m.data[r * 60 + c];
-        // Upper half, where the point lands inside the neighbour: its depth and support.
+        // Upper half, where the point lands inside the neighbour and so do its neighbours: the
+        // neighbour's depth and support.
         assert!((at(&depth, 20, 5) - 10.0).abs() < 0.01, "{}", at(&depth, 20, 5));
-        assert_eq!(at(&support, 20, 5), 1.0);
+        assert!((at(&support, 20, 5) - 1.0).abs() < 1e-4, "{}", at(&support, 20, 5));
         // The columns on the side the car moves away from land outside the neighbour's view
-        // (about 4 px at 12 m): unchanged.
-        assert_eq!(at(&depth, 1, 5), 12.0);
+        // (about 4 px at 12 m): the correction fades in over the smoothing box, no step.
+        let edge: Vec<f32> = (0..14).map(|c| at(&depth, c, 5)).collect();
+        assert!(edge[0] > 10.5 && edge[0] < 12.0, "{edge:?}");
+        assert!(edge.windows(2).all(|p| p[1] <= p[0] && p[0] - p[1] < 0.3), "{edge:?}");
+        assert!((edge[13] - 10.0).abs() < 0.01, "{edge:?}");
         // Supported pixels keep their own depth, whatever the neighbour says.
         assert_eq!(at(&depth, 20, 30), 10.0);
         assert_eq!(at(&support, 20, 30), 0.0);
 
         // A neighbour no better supported, a neighbour that sees sky or an occluder there, and a
         // moving box over the pixels: no change.
-        for (nd, ns) in [(10.0, 20.0), (100.0, 1.0), (4.0, 1.0)] {
+        for (nd, ns) in [(10.0, 28.0), (100.0, 1.0), (4.0, 1.0)] {
             let (d2, s2, c2, p2) = frame(1.0, |_, _| nd, |_, _| ns);
             let n = Frame { depth: &d2, support: &s2, calib: &c2, pose: &p2 };
             let (depth, _) = blend(&p, &t, &[n], &Boxes3D::default()).unwrap();
-            assert_eq!(depth.data, d0.data, "neighbour at {nd} m, support {ns}");
+            assert!(depth.data == d0.data, "neighbour at {nd} m, support {ns}: the depth changed");
         }
         let moving = Boxes3D {
             timestamp_us: 0,
