@@ -1,6 +1,6 @@
 """Where the completion's bad pixels are relative to the prompt's highest sample in each column,
-and what multi-view stereo could still bring there (docs/BENCHMARKS.md, "Where the bad pixels are,
-what MVS could still bring, and the speed on an AMD Zen 5 VM").
+and what multi-view stereo could still bring there (docs/BENCHMARKS.md, "What the
+completion can reach").
 
     .venv-peers/bin/python bench/above_samples.py DATA OUT WORK [--harness BIN] [--every N] [--set k=v ...]
 

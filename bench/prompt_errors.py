@@ -1,5 +1,5 @@
-"""Which wrong prompt samples cost the completion the most (docs/BENCHMARKS.md, "Which wrong
-samples cost the most, and samples seen through a crown").
+"""Which wrong prompt samples cost the completion the most (docs/BENCHMARKS.md, "What the
+completion can reach").
 
     .venv-peers/bin/python bench/prompt_errors.py DATA OUT WORK [--harness BIN] [--every N] [--set k=v ...]
 

@@ -953,7 +953,8 @@ fn smooth_unsupported(p: &Params, inv: &mut [f32], planes: &[u8], near: &[u8], c
     // The links compare texture-evened colours (`smooth_texture`): a 2x2 block's mean keeps most
     // of a facade's or a crown's texture, whose steps added up along every path. On seed 0's 40
     // keyframes this took the pixels off by more than 10% from 1.74% to 1.48% (docs/BENCHMARKS.md,
-    // twentieth session). The spread back to the pixels keeps the blocks' own colours.
+    // "Curation accuracy on synthetic scenes"). The spread back to the pixels keeps the blocks' own
+    // colours.
     // (An `if`, not `then(|| ...)`: a closure is compiled apart, without this build's instructions.)
     let evened;
     let link_planes = if p.smooth_texture > 0 {
@@ -1898,7 +1899,7 @@ impl Stage for CompleteDepth {
     // 10: the refinement's CG on the system scaled to a unit diagonal (the same iterates as the
     //    Jacobi-preconditioned one; outputs within 3e-4 of 9's).
     // 11: the 2D fill over 2x2 blocks, spread back by colour likeness, in 2 passes; the refinement
-    //    40 steps in a 5 px band (docs/BENCHMARKS.md, "The 2D fill over blocks (fifteenth session)").
+    //    40 steps in a 5 px band (docs/BENCHMARKS.md, "Completion time vs IP-Basic").
     // 12: depths rounded to 16 significant bits (`to_16_significant_bits`; within 1.5e-5 of 11's),
     //    the sky's and a worker's too.
     // 13: no depth farther than the farthest sample (a few pixels of 26-53 km on the shared DGP

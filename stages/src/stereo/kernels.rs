@@ -8,7 +8,7 @@
 //! bytes: the vector ones do the same f32 operations in the same order (no fused multiply-add),
 //! integer costs are exact, and the tests below compare each with the portable one on random data.
 //! On a CPU with AVX-512 (and its VPOPCNTDQ popcount) the wider versions take ~0.7x the AVX2 ones'
-//! time (docs/BENCHMARKS.md, "MultiViewStereo with AVX-512").
+//! time (docs/BENCHMARKS.md, "MultiViewStereo speed and memory").
 //!
 //! The AVX2 versions need at least [`AVX2_MIN_PLANES`] planes (a sweep has at least 8), the
 //! AVX-512 ones [`AVX512_MIN_PLANES`]; below that the narrower ones run.

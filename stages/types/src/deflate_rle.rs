@@ -4,8 +4,8 @@
 //! Why not a general deflate: the byte planes of a PXR24 block (the high, middle and low bytes of
 //! each 24-bit float's difference from its left neighbour) have their redundancy in runs (the high
 //! plane of a smooth surface is zeros) and in skewed byte frequencies, not in repeats at other
-//! distances. Measured on curated 1600x900 maps (docs/BENCHMARKS.md, "The chain with direct
-//! writes and 16-bit depths"): zlib's RLE strategy leaves them within 2% of its level-1 size and
+//! distances. Measured on curated 1600x900 maps (docs/BENCHMARKS.md, "Store and
+//! encoders"): zlib's RLE strategy leaves them within 2% of its level-1 size and
 //! of miniz_oxide's, and skipping the hash chains makes this encoder several times faster.
 //! Any inflater reads the stream (zlib, miniz_oxide, OpenEXR's).
 

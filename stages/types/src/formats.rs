@@ -123,7 +123,7 @@ fn exr_zip_block(values: &[f32]) -> Vec<u8> {
 /// PNG16's 1/256 m below 128 m. CompleteDepth rounds every depth it outputs so: the bits below are
 /// its solver's noise (its last conjugate-gradient step moves depths by far more), and they made a
 /// curated map's EXR incompressible; without them EncodeDepth writes it as PXR24 in ~0.4 of the
-/// bytes of a ZIP of the full floats, in half the time (docs/BENCHMARKS.md, sixteenth session), and
+/// bytes of a ZIP of the full floats, in half the time (docs/BENCHMARKS.md, "Store and encoders"), and
 /// the store's copy shrinks too. Positive finite `v` only (a carry into the exponent is the correct
 /// rounding).
 pub fn to_16_significant_bits(v: f32) -> f32 {
