@@ -2,6 +2,7 @@
 //! does the work, grouped by family (`curation`, `eval`, `output`), and the registry that offers
 //! them with the dataset readers to the graph and the runtime.
 
+pub mod box_sum;
 pub mod camera;
 pub mod curation;
 pub mod eval;

@@ -33,6 +33,7 @@
 //! above the LiDAR with no MVS support), on dark skies (dusk, night) and on red or green skies.
 //! Figures are in docs/BENCHMARKS.md.
 
+use crate::box_sum::box_sum;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -64,6 +65,12 @@ pub struct Params {
     pub min_area: f32,
     /// Largest enclosed non-sky speck without depth that becomes sky, as a fraction of the image area.
     pub max_hole: f32,
+    /// A sky pixel darker than this fraction of the frame's mean sky luminance and textured
+    /// (`structure_texture`) is structure the sky crept into; 0 turns the test off.
+    pub structure_luminance: f32,
+    /// Mean luminance texture (|dx| + |dy|, 0-255) over a 15 px box above which a dark sky pixel
+    /// is structure.
+    pub structure_texture: f32,
     /// A semantic segmenter as an external worker (op `segment`: the image in, Cityscapes ids
     /// out; docs/workers.md) in place of the estimate, when the dataset has no segmentation:
     /// `Some((program: "python3", args: ["my_segmenter.py"]))`.
@@ -82,6 +89,8 @@ impl Default for Params {
             max_first_row: 0.5,
             min_area: 0.0003,
             max_hole: 0.0005,
+            structure_luminance: 0.85,
+            structure_texture: 2.5,
             worker: None,
         }
     }
@@ -98,6 +107,8 @@ impl Validate for Params {
             .within("max_first_row", self.max_first_row as f64, 0.0, 1.0)
             .within("min_area", self.min_area as f64, 0.0, 1.0)
             .within("max_hole", self.max_hole as f64, 0.0, 1.0)
+            .within("structure_luminance", self.structure_luminance as f64, 0.0, 1.0)
+            .within("structure_texture", self.structure_texture as f64, 0.0, 510.0)
             .done()
             .into_iter()
             .chain(crate::model_worker::WorkerSpec::problems_of(self.worker.as_ref()))
@@ -289,8 +300,44 @@ pub fn estimate_sky(p: &Params, image: &Image, support: Option<&DepthMap>) -> Ve
             }
         }
     }
+    // Before the holes are filled: a dark, textured speck enclosed by sky (a bird, a wire's knot)
+    // is still sky, while structure the sky crept into joins the structure beside it.
+    drop_dark_texture(p, &mut sky, &lum, w, h);
     fill_holes(&mut sky, &sampled, w, h, (p.max_hole as f64 * (w * h) as f64) as usize);
     sky
+}
+
+/// Takes out of the sky the pixels darker than `structure_luminance` of the frame's sky and
+/// textured (mean |dx| + |dy| over a 15 px box above `structure_texture`): a facade or soffit
+/// the sky region crept into through its smooth panels (nuScenes scene-0061's CAM_FRONT_RIGHT:
+/// the lattice band and the rim of the overhanging building, luminance ~130 and box texture ~5
+/// against the sky's ~185 and ~0.8). Sky is both bright for the frame and smooth around each
+/// pixel, clouds included; the two together keep the darker cloud undersides and the blends at
+/// a tree's outline (dark, or textured, seldom both).
+fn drop_dark_texture(p: &Params, sky: &mut [bool], lum: &[f32], w: usize, h: usize) {
+    let count = sky.iter().filter(|&&s| s).count();
+    if count == 0 || p.structure_luminance <= 0.0 {
+        return;
+    }
+    let mean = sky.iter().zip(lum).filter(|(&s, _)| s).map(|(_, &l)| l as f64).sum::<f64>() / count as f64;
+    let texture: Vec<f64> = (0..w * h)
+        .map(|i| {
+            let (x, y) = (i % w, i / w);
+            let dx = if x + 1 < w { (lum[i + 1] - lum[i]).abs() } else { 0.0 };
+            let dy = if y + 1 < h { (lum[i + w] - lum[i]).abs() } else { 0.0 };
+            (dx + dy) as f64
+        })
+        .collect();
+    const RADIUS: usize = 7;
+    let (sum, area) = (box_sum(&texture, w, h, RADIUS), box_sum(&vec![1.0; w * h], w, h, RADIUS));
+    for i in 0..w * h {
+        if sky[i]
+            && (lum[i] as f64) < p.structure_luminance as f64 * mean
+            && sum[i] / area[i] > p.structure_texture as f64
+        {
+            sky[i] = false;
+        }
+    }
 }
 
 /// Makes sky of the non-sky components (4-way) that do not touch the image border, hold no
@@ -387,7 +434,8 @@ pub struct EstimateSky(Params, crate::model_worker::ModelWorker);
 impl Stage for EstimateSky {
     const KIND: &'static str = "EstimateSky";
     // 3: hue_slack 12 -> 4 (warm grey concrete is not sky).
-    const VERSION: u32 = 3;
+    // 4: dark, textured pixels are taken out of the sky (`structure_luminance`).
+    const VERSION: u32 = 4;
     const SUMMARY: &'static str =
         "Image (+ structure depth samples) -> sky mask: smooth bright region grown from the top, above all depth";
     const GRAINS: &'static [&'static str] = &["camera"];
@@ -574,6 +622,30 @@ mod tests {
             }
         }
         assert!(estimate_sky(&Params { min_area: 0.01, ..Params::default() }, &img, None).iter().all(|&s| !s));
+    }
+
+    #[test]
+    fn dark_textured_pixels_leave_the_sky_but_dark_smooth_or_bright_textured_ones_stay() {
+        // 60x40: columns 0-19 bright smooth sky (200), 20-39 a darker smooth cloud (160), 40-59
+        // a grey facade (130) with bright stripes every 4 columns, all taken for sky.
+        let (w, h) = (60usize, 40usize);
+        let lum: Vec<f32> = (0..w * h)
+            .map(|i| match i % w {
+                x if x < 20 => 200.0,
+                x if x < 40 => 160.0,
+                x if x % 4 == 0 => 190.0,
+                _ => 130.0,
+            })
+            .collect();
+        let mut sky = vec![true; w * h];
+        drop_dark_texture(&Params::default(), &mut sky, &lum, w, h);
+        let column = |x: usize| (0..h).all(|y| sky[y * w + x]);
+        assert!((0..36).all(column), "the sky and the smooth cloud stay");
+        assert!((48..60).all(|x| !column(x) || x % 4 == 0), "the facade's dark pixels leave");
+        // Off: nothing changes.
+        let mut all = vec![true; w * h];
+        drop_dark_texture(&Params { structure_luminance: 0.0, ..Params::default() }, &mut all, &lum, w, h);
+        assert!(all.iter().all(|&s| s));
     }
 
     #[test]

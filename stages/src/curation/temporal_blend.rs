@@ -24,6 +24,7 @@
 //! are far (20-80 m) and the car moves about a metre between frames, so a depth error moves the
 //! landing pixel little, and every pixel of t gets a candidate without holes.
 
+use crate::box_sum::box_sum;
 use crate::camera::CameraView;
 use crate::stage::Stage;
 use anyhow::{anyhow, ensure, Result};
@@ -201,29 +202,6 @@ pub fn blend(p: &Params, target: &Frame, others: &[Frame], moving: &Boxes3D) -> 
         support.data[i] = (s + weight * (sum_support[i] / count[i] - s)) as f32;
     }
     Ok((depth, support))
-}
-
-/// The sum of `values` over the (2r+1)^2 box around each pixel (clipped at the image's edges).
-fn box_sum(values: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
-    // Summed-area table with a zero row and column in front.
-    let mut table = vec![0.0f64; (w + 1) * (h + 1)];
-    for y in 0..h {
-        let mut row = 0.0;
-        for x in 0..w {
-            row += values[y * w + x];
-            table[(y + 1) * (w + 1) + x + 1] = table[y * (w + 1) + x + 1] + row;
-        }
-    }
-    let mut out = vec![0.0f64; w * h];
-    for y in 0..h {
-        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-        for x in 0..w {
-            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-            out[y * w + x] =
-                table[y1 * (w + 1) + x1] - table[y0 * (w + 1) + x1] - table[y1 * (w + 1) + x0] + table[y0 * (w + 1) + x0];
-        }
-    }
-    out
 }
 
 crate::ports! {
