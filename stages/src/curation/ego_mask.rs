@@ -18,8 +18,10 @@
 //!   Renault Zoe's boot in CAM_BACK) and `ddad` (TRI's Ford Fusion: hood, mirrors, pillars and
 //!   boot in CAMERA_05-09). `auto` (the default) takes the rig that names the camera and has its
 //!   image size (nuScenes' CAM_* at 1600x900, DDAD's CAMERA_* at 1936x1216); `none` takes none.
-//! - none: an empty mask. A camera of another rig gets none until its polygons or file are given,
-//!   and the run says so once, naming the cameras (`unmasked_warnings`).
+//! - `estimate`: the mask `EstimateEgo` made from the camera's own frames (what stays in place
+//!   while the scene moves), when the input is wired and `estimate` is on.
+//! - none: an empty mask. A camera of another rig gets none until its polygons or file are given
+//!   (or the estimate is wired), and the run says so once, naming the cameras (`unmasked_warnings`).
 //!
 //! `grow` then widens the mask by whole pixels: JPEG ringing and motion blur put the body's edge
 //! a pixel or two into the scene, where a sample of the road would still be wrong.
@@ -47,11 +49,13 @@ pub struct Params {
     pub rig: String,
     /// Pixels by which the mask grows (a square neighbourhood), 0-64.
     pub grow: u32,
+    /// Whether cameras that no polygons, file or rig cover take the `estimate` input (when wired).
+    pub estimate: bool,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { polygons: BTreeMap::new(), files: BTreeMap::new(), rig: "auto".into(), grow: 1 }
+        Params { polygons: BTreeMap::new(), files: BTreeMap::new(), rig: "auto".into(), grow: 1, estimate: true }
     }
 }
 
@@ -145,13 +149,24 @@ pub fn unmasked_warnings(p: &dist4d_graph::Pipeline, dataset: &dyn dist4d_runtim
             }
         }
         if !uncovered.is_empty() {
-            out.push(format!(
-                "stage `{}` (EgoMask): no built-in rig fits camera(s) {} of this dataset, and no polygons or mask files are \
-                 given: their ego masks are empty, so a car body they see is taken for the scene (give `polygons` or \
-                 `files` per camera: docs/stages.md, EgoMask)",
-                node.name,
-                uncovered.join(", ")
-            ));
+            let estimated = params.estimate && stage.inputs.iter().any(|i| i.port == "estimate");
+            out.push(if estimated {
+                format!(
+                    "stage `{}` (EgoMask): no built-in rig fits camera(s) {} of this dataset, and no polygons or mask files are \
+                     given: their ego masks are estimated from their frames (what stays in place while the car moves; a car \
+                     standing still, or a single frame, gives none: docs/stages.md, EgoMask)",
+                    node.name,
+                    uncovered.join(", ")
+                )
+            } else {
+                format!(
+                    "stage `{}` (EgoMask): no built-in rig fits camera(s) {} of this dataset, and no polygons or mask files are \
+                     given: their ego masks are empty, so a car body they see is taken for the scene (give `polygons` or \
+                     `files` per camera: docs/stages.md, EgoMask)",
+                    node.name,
+                    uncovered.join(", ")
+                )
+            });
         }
     }
     out
@@ -338,6 +353,9 @@ crate::ports! {
         info: One<ImageInfo>,
         /// the image, for the preview only
         image: Optional<Image>,
+        /// the body estimated from the camera's frames (EstimateEgo.mask), for cameras that no
+        /// polygons, file or rig cover
+        estimate: Optional<Mask>,
     }
 }
 
@@ -355,8 +373,9 @@ pub struct EgoMask(Params);
 
 impl Stage for EgoMask {
     const KIND: &'static str = "EgoMask";
-    const VERSION: u32 = 1;
-    const SUMMARY: &'static str = "Camera -> the pixels of the ego vehicle's body (per-camera polygons or mask files)";
+    const VERSION: u32 = 2;
+    const SUMMARY: &'static str =
+        "Camera -> the pixels of the ego vehicle's body (per-camera polygons, mask files, a built-in rig or the estimate)";
     const GRAINS: &'static [&'static str] = &["camera"];
     type Params = Params;
     type Inputs = Inputs;
@@ -388,8 +407,21 @@ impl Stage for EgoMask {
                 "auto" => rigs().iter().find(|r| r.fits(&i.info)),
                 name => rigs().iter().find(|r| r.name == name),
             };
-            // A camera of the rig that shows nothing of the body (CAM_FRONT) gets an empty mask.
-            rig.and_then(|r| r.mask(camera, w, h)).unwrap_or_else(|| vec![0; w as usize * h as usize])
+            let estimate = i.estimate.as_ref().filter(|e| self.0.estimate && e.width > 0);
+            match (rig, estimate) {
+                // A camera of the rig that shows nothing of the body (CAM_FRONT) gets an empty mask.
+                (Some(r), _) => r.mask(camera, w, h).unwrap_or_else(|| vec![0; w as usize * h as usize]),
+                (None, Some(e)) => {
+                    ensure!(
+                        (e.width, e.height) == (w, h),
+                        "the estimated ego mask of camera {camera} is {}x{}, its images {w}x{h}",
+                        e.width,
+                        e.height
+                    );
+                    e.data.clone()
+                }
+                (None, None) => vec![0; w as usize * h as usize],
+            }
         };
         let data = grow(&drawn, w as usize, h as usize, self.0.grow as usize);
         let mask = Mask { width: w, height: h, data };
@@ -471,7 +503,7 @@ mod tests {
 
     fn run(params: Params, info: ImageInfo, image: Option<Image>) -> Result<Outputs> {
         let ctx = TaskContext { item: Default::default(), seed: 0, label: "s/0/c", unread: &[] };
-        EgoMask::new(params)?.run(&ctx, Inputs { info, image })
+        EgoMask::new(params)?.run(&ctx, Inputs { info, image, estimate: None })
     }
 
     #[test]
@@ -549,6 +581,37 @@ mod tests {
         assert!(count(&own, "CAM_BACK", 1600, 900) < 100);
         let bad = Params { rig: "zoe".into(), ..auto };
         assert!(format!("{:?}", bad.validate()).contains("nuscenes, ddad"));
+    }
+
+    #[test]
+    fn the_estimate_masks_only_the_cameras_that_nothing_else_covers() {
+        let ctx = TaskContext { item: Default::default(), seed: 0, label: "s/0/c", unread: &[] };
+        let estimate = Mask { width: 8, height: 8, data: (0..64).map(|i| (i >= 56) as u8).collect() };
+        let mut params = Params { grow: 0, ..Default::default() };
+        params.polygons.insert("CAM_BACK".into(), vec![vec![(0, 0), (8, 0), (8, 1), (0, 1)]]);
+        let masked = |params: &Params, camera: &str, estimate: Option<Mask>| {
+            let out = EgoMask::new(params.clone()).unwrap().run(&ctx, Inputs { info: info(camera, 8, 8), image: None, estimate });
+            out.map(|o| (0..64).filter(|&i| o.mask.data[i] == 1).collect::<Vec<usize>>())
+        };
+        // Polygons win; a camera without takes the estimate's bottom row.
+        assert_eq!(masked(&params, "CAM_BACK", Some(estimate.clone())).unwrap(), (0..8).collect::<Vec<_>>());
+        assert_eq!(masked(&params, "CAM_FRONT", Some(estimate.clone())).unwrap(), (56..64).collect::<Vec<_>>());
+        // Turned off, unwired, or empty (a camera item without an image): none.
+        let off = Params { estimate: false, ..params.clone() };
+        assert!(masked(&off, "CAM_FRONT", Some(estimate.clone())).unwrap().is_empty());
+        assert!(masked(&params, "CAM_FRONT", None).unwrap().is_empty());
+        assert!(masked(&params, "CAM_FRONT", Some(Mask { width: 0, height: 0, data: vec![] })).unwrap().is_empty());
+        // A built-in rig that fits the camera wins over the estimate, even where it masks nothing.
+        let front = ImageInfo {
+            file: "samples/CAM_FRONT/n015-2018-07-24-11-22-45+0800__CAM_FRONT__1532402927637525.jpg".into(),
+            ..info("CAM_FRONT", 1600, 900)
+        };
+        let big = Mask { width: 1600, height: 900, data: vec![1; 1600 * 900] };
+        let out = EgoMask::new(Params::default()).unwrap().run(&ctx, Inputs { info: front, image: None, estimate: Some(big) }).unwrap();
+        assert!(out.mask.data.iter().all(|&v| v == 0));
+        // An estimate of another size is an error naming the camera.
+        let e = masked(&params, "CAM_FRONT", Some(Mask { width: 4, height: 4, data: vec![0; 16] })).err().unwrap().to_string();
+        assert!(e.contains("CAM_FRONT") && e.contains("4x4"), "{e}");
     }
 
     #[test]

@@ -4,6 +4,7 @@
 crate::stage_modules! {
     aggregate::AggregateLidar,
     complete::CompleteDepth,
+    ego_estimate::EstimateEgo,
     ego_mask::EgoMask,
     follow_tracks::FollowTracks,
     fuse::FusePoints,
