@@ -157,7 +157,7 @@ pub fn range_scores(p: &Params, cloud: &PointCloud) -> CloudScores {
 
 /// The share of the cloud's points on the exact surface (see the module doc).
 fn on_surface(p: &Params, i: &Inputs) -> Result<f64> {
-    let renderer = super::render_synthetic::renderer(&i.world.0)?;
+    let renderer = dist4d_synth::Renderer::shared(&i.world.0)?;
     let world: serde_json::Value = serde_json::from_slice(&i.world.0)?;
     let name = world["scene"].as_str().unwrap_or_default();
     let scene = renderer.scene_index(name).with_context(|| format!("the synthetic world has no scene `{name}`"))?;

@@ -10,8 +10,6 @@ use dist4d_runtime::{NotApplicable, TaskContext};
 use dist4d_synth::{PinholeCamera, Renderer};
 use dist4d_types::artifact::{Calibration, DepthMap, File, Image, Pose};
 use serde::{Deserialize, Serialize};
-use std::collections::HashMap;
-use std::sync::{Arc, Mutex, OnceLock};
 
 #[derive(Serialize, Deserialize, Clone, Debug, PartialEq, Default)]
 #[serde(deny_unknown_fields, default)]
@@ -55,20 +53,6 @@ crate::ports! {
 
 pub struct RenderSynthetic(Params);
 
-/// Renderers by world, built once per process (generating a world takes longer than a view).
-pub fn renderer(world: &[u8]) -> Result<Arc<Renderer>> {
-    static CACHE: OnceLock<Mutex<HashMap<[u8; 32], Arc<Renderer>>>> = OnceLock::new();
-    let key = *blake3::hash(world).as_bytes();
-    let cache = CACHE.get_or_init(Default::default);
-    if let Some(r) = cache.lock().map_err(|_| anyhow::anyhow!("renderer cache poisoned"))?.get(&key) {
-        return Ok(r.clone());
-    }
-    let value: serde_json::Value = serde_json::from_slice(world).context("`world` is not JSON")?;
-    let r = Arc::new(Renderer::from_json(value["synth"].clone())?);
-    cache.lock().map_err(|_| anyhow::anyhow!("renderer cache poisoned"))?.insert(key, r.clone());
-    Ok(r)
-}
-
 impl Stage for RenderSynthetic {
     const KIND: &'static str = "RenderSynthetic";
     const VERSION: u32 = 1;
@@ -85,7 +69,7 @@ impl Stage for RenderSynthetic {
         if i.world.0.is_empty() {
             return Err(NotApplicable("not a synthetic dataset: no world to render".into()).into());
         }
-        let r = renderer(&i.world.0)?;
+        let r = Renderer::shared(&i.world.0)?;
         let scene_name: serde_json::Value = serde_json::from_slice(&i.world.0)?;
         let name = scene_name["scene"].as_str().unwrap_or_default();
         let scene = r.scene_index(name).with_context(|| format!("the synthetic world has no scene `{name}`"))?;

@@ -100,7 +100,7 @@ impl Stage for ExactOccupancy {
         if i.world.0.is_empty() {
             return Err(NotApplicable("not a synthetic dataset: no exact occupancy".into()).into());
         }
-        let r = crate::eval::render_synthetic::renderer(&i.world.0)?;
+        let r = dist4d_synth::Renderer::shared(&i.world.0)?;
         let head: serde_json::Value = serde_json::from_slice(&i.world.0)?;
         let name = head["scene"].as_str().unwrap_or_default();
         let scene = r.scene_index(name).with_context(|| format!("the synthetic world has no scene `{name}`"))?;

@@ -192,6 +192,24 @@ impl Renderer {
         Ok(Renderer::new(file.config))
     }
 
+    /// The renderer of a dataset port `synth_world`'s bytes (`{"synth": <synth.json>}`), built once
+    /// per process and world: generating a world takes longer than rendering a view, and every
+    /// stage that scores against the world (novel views, clouds, occupancy) asks for it.
+    pub fn shared(world: &[u8]) -> Result<std::sync::Arc<Renderer>> {
+        use std::collections::HashMap;
+        use std::sync::{Arc, Mutex, OnceLock};
+        static CACHE: OnceLock<Mutex<HashMap<[u8; 32], Arc<Renderer>>>> = OnceLock::new();
+        let key = *blake3::hash(world).as_bytes();
+        let cache = CACHE.get_or_init(Default::default);
+        if let Some(r) = cache.lock().map_err(|_| anyhow::anyhow!("renderer cache poisoned"))?.get(&key) {
+            return Ok(r.clone());
+        }
+        let value: serde_json::Value = serde_json::from_slice(world).context("`world` is not JSON")?;
+        let r = Arc::new(Renderer::from_json(value["synth"].clone())?);
+        cache.lock().map_err(|_| anyhow::anyhow!("renderer cache poisoned"))?.insert(key, r.clone());
+        Ok(r)
+    }
+
     /// The index of the scene the dataset names `name` (`synth-0003` -> 3).
     pub fn scene_index(&self, name: &str) -> Option<u32> {
         let i: u32 = name.strip_prefix("synth-")?.parse().ok()?;

@@ -33,9 +33,12 @@ const CAMERA_SWEEPS_PER_KEYFRAME: i64 = 6; // 12 Hz
 const ANNOTATION_RANGE: f64 = 60.0;
 const MAP_RESOLUTION: f64 = 0.1;
 
+/// 2025-01-01 00:00 UTC, when the first synthetic scene starts.
+const EPOCH_US: i64 = 1_735_689_600_000_000;
+
 /// First timestamp of scene `i` (2025-01-01 00:00 UTC plus an hour per scene).
 pub fn scene_start_us(scene: u32) -> i64 {
-    1_735_689_600_000_000 + scene as i64 * 3_600_000_000
+    EPOCH_US + scene as i64 * 3_600_000_000
 }
 
 /// The nuScenes-lidarseg classes, by index.
@@ -823,7 +826,40 @@ fn fast_png_gray(px: &[u8], width: u32, height: u32) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-/// `YYYY-MM-DD` of a Unix timestamp in microseconds (synthetic timestamps are after 1970).
+/// `YYYY-MM-DD` (UTC) of a synthetic timestamp: the days from 2025-01-01, when the first scene
+/// starts, walked month by month (scenes start an hour apart, so a few days in at most).
 pub(super) fn date_of(us: i64) -> String {
-    dist4d_runtime::runs::format_utc((us.max(0) / 1_000_000) as u64)[..10].to_string()
+    let mut days = (us - EPOCH_US).div_euclid(86_400_000_000).max(0);
+    let (mut year, mut month) = (2025i64, 1u32);
+    loop {
+        let leap = year % 4 == 0 && (year % 100 != 0 || year % 400 == 0);
+        let length = match month {
+            2 if leap => 29,
+            2 => 28,
+            4 | 6 | 9 | 11 => 30,
+            _ => 31,
+        };
+        if days < length {
+            return format!("{year:04}-{month:02}-{:02}", days + 1);
+        }
+        days -= length;
+        (year, month) = if month == 12 { (year + 1, 1) } else { (year, month + 1) };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn dates_walk_the_calendar_from_the_first_scene() {
+        let day = 86_400_000_000;
+        assert_eq!(date_of(scene_start_us(0)), "2025-01-01");
+        assert_eq!(date_of(scene_start_us(23)), "2025-01-01");
+        assert_eq!(date_of(scene_start_us(24)), "2025-01-02");
+        assert_eq!(date_of(EPOCH_US + 31 * day), "2025-02-01");
+        assert_eq!(date_of(EPOCH_US + 59 * day), "2025-03-01");
+        assert_eq!(date_of(EPOCH_US + 365 * day), "2026-01-01");
+        assert_eq!(date_of(EPOCH_US + (365 + 365 + 365 + 59) * day), "2028-02-29");
+    }
 }
