@@ -357,7 +357,7 @@ impl DepthMap {
 impl Artifact for DepthMap {
     const TYPE: &'static str = "DepthMap";
     /// A map with depth at half its pixels or more is an NPY file (v1.0, float32, H x W): the very
-    /// bytes [`crate::formats::npy_f32`] exports, so a dense map and its NPY export are one blob
+    /// bytes [`crate::npy::npy_f32`] exports, so a dense map and its NPY export are one blob
     /// in the store (and a blob a user can `numpy.load`). A sparser one is `DEP2`: width, height,
     /// then runs of (zeros: u32, values: u32, the values as f32); a projected sweep fills ~2% of the
     /// pixels and shrinks ~30x, which matters because every artifact is hashed and stored.
@@ -366,7 +366,7 @@ impl Artifact for DepthMap {
         if 2 * d.iter().filter(|&&z| z != 0.0).count() >= d.len()
             && d.len() == self.width as usize * self.height as usize
         {
-            return crate::formats::npy_f32(&[self.height as usize, self.width as usize], d);
+            return crate::npy::npy_f32(&[self.height as usize, self.width as usize], d);
         }
         let mut out = Vec::with_capacity(12 + 4 * self.data.len() + 8);
         out.extend_from_slice(b"DEP2");
@@ -386,7 +386,7 @@ impl Artifact for DepthMap {
     }
     fn decode(bytes: &[u8]) -> Result<Self> {
         if bytes.starts_with(b"\x93NUMPY") {
-            let (shape, data) = crate::formats::read_npy_f32(bytes).context("DepthMap artifact (NPY)")?;
+            let (shape, data) = crate::npy::read_npy_f32(bytes).context("DepthMap artifact (NPY)")?;
             let [height, width] = shape[..] else { bail!("DepthMap artifact (NPY) has shape {shape:?}, not H x W") };
             let (width, height) = (u32::try_from(width)?, u32::try_from(height)?);
             return Ok(DepthMap { width, height, data });
@@ -755,11 +755,11 @@ mod depth_map_tests {
     #[test]
     fn a_dense_map_is_the_npy_file_that_is_exported_and_a_sparse_one_stays_runs() {
         let dense = DepthMap { width: 3, height: 2, data: vec![1.0, 0.0, 3.0, 4.0, 0.0, 6.0] };
-        assert_eq!(dense.encode(), crate::formats::npy_f32(&[2, 3], &dense.data));
+        assert_eq!(dense.encode(), crate::npy::npy_f32(&[2, 3], &dense.data));
         let sparse = DepthMap { width: 3, height: 2, data: vec![1.0, 0.0, 0.0, 0.0, 0.0, 6.0] };
         assert!(sparse.encode().starts_with(b"DEP2"));
         // An NPY of another dtype, order or rank is not a depth map.
-        let npy = crate::formats::npy_f32(&[6], &dense.data);
+        let npy = crate::npy::npy_f32(&[6], &dense.data);
         assert!(DepthMap::decode(&npy).is_err());
         let mut f64s = dense.encode();
         let at = f64s.windows(3).position(|w| w == b"<f4").unwrap();

@@ -7,6 +7,7 @@ pub mod cancel;
 pub mod deflate_rle;
 pub mod formats;
 pub mod geometry;
+pub mod npy;
 pub mod occ3d;
 pub mod pickle;
 pub mod rng;
