@@ -439,19 +439,32 @@ enum Source {
     Blob,
 }
 
+/// Whether an error comes from a file or folder that was not there.
+fn not_found(e: &anyhow::Error) -> bool {
+    e.chain().any(|c| c.downcast_ref::<std::io::Error>().is_some_and(|io| io.kind() == std::io::ErrorKind::NotFound))
+}
+
 impl ExportJob {
     /// Writes the file unless it already holds the right bytes; returns its stat afterwards.
     pub fn write(self) -> Result<FileStat> {
-        match self.write_once() {
-            // Another run exporting into the folder finished and removed the temp folder, empty
-            // then ([`Exporter::finish`]): made again, once the temp file is in it, it stays.
-            Err(_) if self.tmp.parent().is_some_and(|d| !d.exists()) => {
-                if let Some(d) = self.tmp.parent() {
-                    std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+        // Another run exporting into the folder finished and removed the temp folder, empty then
+        // ([`Exporter::finish`]): made again, once the temp file is in it, it stays. Several
+        // times: a run that finishes makes the folder for its own lists and removes it again, so
+        // it can vanish between our making it and our temp file landing in it (seen with two
+        // shards exporting into one folder on a loaded 2-core machine).
+        let mut attempts = 0;
+        loop {
+            match self.write_once() {
+                // Not found: by the time we look, the other run may have made the folder again for
+                // its own lists, so the error is the test, not whether the folder is there now.
+                Err(e) if attempts < 20 && not_found(&e) => {
+                    attempts += 1;
+                    if let Some(d) = self.tmp.parent() {
+                        std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+                    }
                 }
-                self.write_once()
+                r => return r,
             }
-            r => r,
         }
     }
 
