@@ -46,6 +46,11 @@ pub struct Params {
     /// A neighbour's depth differing from the pixel's by more than this (relative) is another
     /// surface seen past an edge, not the same one known better.
     pub max_change: f64,
+    /// A neighbour is used for a pixel only while the camera moved by at most this fraction of
+    /// the pixel's depth between the two frames (radians of parallax): the lookup at t's own
+    /// depth lands on the same surface only when a depth error moves it little. 10 Hz frames
+    /// (a metre apart) pass for structure beyond ~20 m, 2 Hz keyframes (~5 m apart) seldom.
+    pub max_parallax: f64,
     /// Depths at or beyond this (m) are sky.
     pub max_depth: f64,
     /// Boxes faster than this (m/s) are moving: their pixels keep their own depth.
@@ -63,6 +68,7 @@ impl Default for Params {
             better: 0.8,
             occluded: 0.7,
             max_change: 1.0,
+            max_parallax: 0.1,
             max_depth: 99.0,
             min_speed: 0.5,
             smooth: 8,
@@ -78,6 +84,7 @@ impl Validate for Params {
             .within("better", self.better, 0.0, 1.0)
             .within("occluded", self.occluded, 0.0, 1.0)
             .within("max_change", self.max_change, 0.0, 100.0)
+            .within("max_parallax", self.max_parallax, 0.0, 10.0)
             .above("max_depth", self.max_depth, 0.0, 1e6)
             .within("min_speed", self.min_speed, 0.0, 1000.0)
             .count("smooth", self.smooth as u64, 0, 256)
@@ -118,7 +125,9 @@ pub fn blend(p: &Params, target: &Frame, others: &[Frame], moving: &Boxes3D) -> 
             let into = CameraView::new(target.calib, target.pose, o.calib, o.pose)?;
             let back = CameraView::new(o.calib, o.pose, target.calib, target.pose)?;
             let from = CameraView::new(o.calib, o.pose, o.calib, o.pose)?;
-            Ok((o, into, back, from))
+            // How far the camera moved between the frames (m).
+            let baseline = into.cam_from_cloud.translation.length();
+            Ok((o, into, back, from, baseline))
         })
         .collect::<Result<Vec<_>>>()?;
     let cam_from_world = target.pose.ego_to_world.then_from(&target.calib.sensor_to_ego).inverse();
@@ -148,7 +157,10 @@ pub fn blend(p: &Params, target: &Frame, others: &[Frame], moving: &Boxes3D) -> 
             continue;
         }
         let mut best: Option<(f64, f32)> = None;
-        for (o, into, back, from) in &views {
+        for (o, into, back, from, baseline) in &views {
+            if *baseline > p.max_parallax * z as f64 {
+                continue;
+            }
             let q = into.to_camera(c);
             if q.z <= 0.0 {
                 continue;
@@ -232,8 +244,8 @@ pub struct TemporalBlend(Params);
 
 impl Stage for TemporalBlend {
     const KIND: &'static str = "TemporalBlend";
-    // 2: corrections smoothed over a box instead of switched per pixel.
-    const VERSION: u32 = 2;
+    // 2: corrections smoothed over a box instead of switched per pixel; 3: `max_parallax`.
+    const VERSION: u32 = 3;
     const SUMMARY: &'static str =
         "Completions of a window of frames -> the target's, weakly supported pixels taken from neighbours that know them better";
     const GRAINS: &'static [&'static str] = &["camera"];
@@ -327,6 +339,11 @@ mod tests {
             let (depth, _) = blend(&p, &t, &[n], &Boxes3D::default()).unwrap();
             assert!(depth.data == d0.data, "neighbour at {nd} m, support {ns}: the depth changed");
         }
+        // A neighbour 3 m away sees a 12 m wall with 0.25 rad of parallax (> `max_parallax`):
+        // t's own depth error would move the lookup onto another surface, so it is not used.
+        let (d3, s3, c3, p3) = frame(3.0, |_, _| 10.0, |_, _| 1.0);
+        let far = Frame { depth: &d3, support: &s3, calib: &c3, pose: &p3 };
+        assert!(blend(&p, &t, &[far], &Boxes3D::default()).unwrap().0.data == d0.data, "a wide baseline is not used");
         let moving = Boxes3D {
             timestamp_us: 0,
             boxes: vec![dist4d_types::artifact::Box3D {
