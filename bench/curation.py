@@ -342,6 +342,8 @@ def section_chain(data, tmp, base):
     # No ego mask either (the synthetic world's is empty, and the peer has none).
     t = re.sub(r'\n\s*"ego": "ego\.mask",', "", t)
     t = t.replace(', "ego": "ego.mask"', "")
+    # Nor TemporalBlend (the peer completes each frame on its own): encode the completion.
+    t = t.replace('EncodeDepth(inputs: {"depth": "blend.depth"})', 'EncodeDepth(inputs: {"depth": "complete.depth"})')
     t = drop_stages(t, names - {"aggregate", "visible", "prompt", "complete", "encode"})
     t = t[:t.index("    export: {")] + """    export: {
         "encode.exr": "{scene}/{camera}/{frame}_depth.exr",
