@@ -292,6 +292,35 @@ enum Command {
         #[arg(long)]
         drop_lone_tracks: bool,
     },
+    /// Write the info pickles nuScenes-based generators train on (MagicDrive, MagicDriveDiT,
+    /// UniScene, DiST-4D), as MagicDrive-V2's converter writes them, for every split of the version.
+    ///
+    /// v1.0-* gives nuscenes_infos_{train,val}.pkl; interp_12Hz_* (the folder export-12hz writes,
+    /// or ASAP's) gives nuscenes_interp_12Hz_infos_{train,val}_with_bid.pkl. Each file is written
+    /// whole or not at all. See docs/interop.md. Example:
+    /// dist4d export-infos --root /data/nuscenes --version interp_12Hz_trainval --out data/nuscenes_mmdet3d-12Hz
+    #[command(name = "export-infos")]
+    ExportInfos {
+        /// The nuScenes root (holding the version's table folder).
+        #[arg(long)]
+        root: PathBuf,
+        /// The table folder: v1.0-trainval, v1.0-mini, v1.0-test, interp_12Hz_trainval, interp_12Hz_mini, ...
+        #[arg(long)]
+        version: String,
+        /// Where the pickles go [default: ROOT, as the converter writes].
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// What lidar_path and data_path start with: the converter's --root-path as typed, which the
+        /// training code opens relative to its working directory.
+        #[arg(long, default_value = "./data/nuscenes")]
+        path_prefix: String,
+        /// LiDAR sweeps per info [default: 10 for v1.0-*, 0 at 12 Hz, as MagicDrive-V2's scripts run].
+        #[arg(long)]
+        max_sweeps: Option<usize>,
+        /// Write only this split (train, val or test); repeat for several [default: every split].
+        #[arg(long)]
+        split: Vec<String>,
+    },
     /// Merge the per-scene parts of Occ3D's annotations.json that `pipelines/occupancy.ron`
     /// exports (OUT/occ3d/scenes/<scene>.json) into OUT/annotations.json, with the splits.
     ///
@@ -1199,6 +1228,25 @@ fn run(cli: Cli) -> Result<ExitCode> {
             );
             for line in interp12hz::how_to_load(&root, &out) {
                 println!("{line}");
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::ExportInfos { root, version, out, path_prefix, max_sweeps, split } => {
+            use dist4d_datasets::nuscenes::infos::{write_infos, InfosOptions};
+            let out = out.unwrap_or_else(|| root.clone());
+            let r = write_infos(&InfosOptions { root, version, out, path_prefix, max_sweeps, splits: split })?;
+            for w in &r.warnings {
+                eprintln!("warning: {w}");
+            }
+            for f in &r.files {
+                println!(
+                    "{}: {} {} samples of {} scene(s), {} in scene_tokens",
+                    f.path.display(),
+                    f.samples,
+                    f.split,
+                    f.scenes,
+                    f.scene_lists
+                );
             }
             Ok(ExitCode::SUCCESS)
         }

@@ -292,6 +292,19 @@ pub fn write_table(root: &Path, name: &str, rows: &[Value]) {
     std::fs::write(root.join(format!("v1.0-mini/{name}.json")), serde_json::to_vec(rows).unwrap()).unwrap();
 }
 
+/// A python with mmengine (`.venv-mm`, which `.ci/run` makes, or `DIST4D_MM_PYTHON`): what
+/// MagicDriveDiT's and DiST-4D's datasets load their info pickles with.
+pub fn mm_python() -> Option<PathBuf> {
+    let p =
+        std::env::var_os("DIST4D_MM_PYTHON").map(PathBuf::from).unwrap_or_else(|| repo().join(".venv-mm/bin/python"));
+    if Command::new(&p).args(["-c", "import mmengine"]).output().is_ok_and(|o| o.status.success()) {
+        Some(p)
+    } else {
+        eprintln!("SKIPPED: no python with mmengine at {} (.ci/run makes .venv-mm)", p.display());
+        None
+    }
+}
+
 /// The py123d venv's python (`.venv-py123d`, which `.ci/run` makes, or `DIST4D_PY123D_PYTHON`).
 pub fn py123d_python() -> Option<PathBuf> {
     let p = std::env::var_os("DIST4D_PY123D_PYTHON")

@@ -23,6 +23,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
+pub mod infos;
 pub mod interp12hz;
 
 /// The six cameras in the devkit's order.
@@ -92,6 +93,9 @@ struct SceneRow {
     first_sample_token: String,
     #[serde(default)]
     log_token: String,
+    /// Free text; the info pickles copy it.
+    #[serde(default)]
+    description: String,
 }
 
 /// A row of map.json: the map mask (semantic prior, 0.1 m per pixel) of the logs it lists.
@@ -187,6 +191,11 @@ struct AnnotationRow {
     next: String,
     #[serde(default)]
     num_lidar_pts: u32,
+    /// Read by the info pickles only (`num_radar_pts`, `visibility`, `valid_flag`).
+    #[serde(default)]
+    num_radar_pts: u32,
+    #[serde(default)]
+    visibility_token: String,
 }
 
 #[derive(Deserialize)]

@@ -68,6 +68,9 @@ impl Array {
     pub fn i32(shape: &[usize], values: &[i32]) -> Array {
         Array::of(Dtype::I32, shape, values.iter().flat_map(|v| v.to_le_bytes()).collect())
     }
+    pub fn u8(shape: &[usize], values: &[u8]) -> Array {
+        Array::of(Dtype::U8, shape, values.to_vec())
+    }
     pub fn bool(shape: &[usize], values: &[bool]) -> Array {
         Array::of(Dtype::Bool, shape, values.iter().map(|&v| v as u8).collect())
     }
@@ -102,6 +105,78 @@ pub fn dumps(value: &Value) -> Vec<u8> {
     w.value(value);
     w.out.push(b'.');
     w.out
+}
+
+/// `value`'s opcodes alone (no protocol header, no STOP), appended to `out`: one item of a list
+/// that a [`DictStream`] writes, so that items can be encoded in parallel and written in order.
+pub fn encode_into(out: &mut Vec<u8>, value: &Value) {
+    let mut w = Writer { out: std::mem::take(out) };
+    w.value(value);
+    *out = w.out;
+}
+
+/// A pickle of a dict written entry by entry, whose list entries are written item by item: an
+/// info file of 200 k samples never has to be one value in memory. The bytes are those
+/// [`dumps`] gives for the same dict.
+pub struct DictStream<W: std::io::Write> {
+    out: W,
+    /// Items written into the open list's current APPENDS batch; `None` outside a list.
+    batch: Option<usize>,
+}
+
+impl<W: std::io::Write> DictStream<W> {
+    /// Starts the pickle: protocol 2, an empty dict, the MARK of its SETITEMS.
+    pub fn new(mut out: W) -> std::io::Result<Self> {
+        out.write_all(&[0x80, 2, b'}', b'('])?;
+        Ok(DictStream { out, batch: None })
+    }
+
+    pub fn entry(&mut self, key: &str, value: &Value) -> std::io::Result<()> {
+        assert!(self.batch.is_none(), "an entry inside an open list");
+        let mut w = Writer { out: Vec::new() };
+        w.str(key);
+        w.value(value);
+        self.out.write_all(&w.out)
+    }
+
+    /// Opens a list entry; its items follow with [`DictStream::item`], then [`DictStream::end_list`].
+    pub fn begin_list(&mut self, key: &str) -> std::io::Result<()> {
+        assert!(self.batch.is_none(), "a list inside an open list");
+        let mut w = Writer { out: Vec::new() };
+        w.str(key);
+        w.out.push(b']');
+        self.batch = Some(0);
+        self.out.write_all(&w.out)
+    }
+
+    /// One item, already encoded by [`encode_into`].
+    pub fn item(&mut self, encoded: &[u8]) -> std::io::Result<()> {
+        let n = self.batch.as_mut().expect("an item outside a list");
+        if *n == 0 {
+            self.out.write_all(b"(")?;
+        }
+        self.out.write_all(encoded)?;
+        *n += 1;
+        if *n == BATCH {
+            self.out.write_all(b"e")?;
+            *n = 0;
+        }
+        Ok(())
+    }
+
+    pub fn end_list(&mut self) -> std::io::Result<()> {
+        if self.batch.take().expect("no open list") > 0 {
+            self.out.write_all(b"e")?;
+        }
+        Ok(())
+    }
+
+    /// Closes the dict and the pickle; gives the writer back (to flush and sync it).
+    pub fn finish(mut self) -> std::io::Result<W> {
+        assert!(self.batch.is_none(), "the pickle ends inside an open list");
+        self.out.write_all(b"u.")?;
+        Ok(self.out)
+    }
 }
 
 struct Writer {
@@ -279,6 +354,31 @@ mod tests {
         want.extend_from_slice(&1.5f64.to_be_bytes());
         want.extend_from_slice(&[0x87, b'u', b'.']);
         assert_eq!(dumps(&v), want);
+    }
+
+    #[test]
+    fn a_streamed_dict_is_the_dict_dumps_writes() {
+        // 2500 items: two full APPENDS batches and a short one; then an empty list.
+        let items: Vec<Value> =
+            (0..2500).map(|i| Value::Tuple(vec![Value::Int(i), Value::Str(format!("s{i}"))])).collect();
+        let meta = Value::Dict(vec![("version".into(), Value::Str("v1.0-mini".into()))]);
+        let whole = Value::Dict(vec![
+            ("infos".into(), Value::List(items.clone())),
+            ("metadata".into(), meta.clone()),
+            ("empty".into(), Value::List(vec![])),
+        ]);
+        let mut s = DictStream::new(Vec::new()).unwrap();
+        s.begin_list("infos").unwrap();
+        for item in &items {
+            let mut b = Vec::new();
+            encode_into(&mut b, item);
+            s.item(&b).unwrap();
+        }
+        s.end_list().unwrap();
+        s.entry("metadata", &meta).unwrap();
+        s.begin_list("empty").unwrap();
+        s.end_list().unwrap();
+        assert_eq!(s.finish().unwrap(), dumps(&whole));
     }
 
     #[test]
