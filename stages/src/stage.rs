@@ -396,6 +396,15 @@ pub fn ensure_valid<P: Validate>(params: &P) -> Result<()> {
     Err(anyhow!("{}", list.join("; ")))
 }
 
+/// The artifact at window position `pos` of a `Many` input (`Window(.., frame, -1, 1)` gives
+/// positions -1, 0, 1), or an error naming the port.
+pub fn at_position<'a, A>(list: &'a [(i64, A)], pos: i64, port: &str) -> Result<&'a A> {
+    list.iter()
+        .find(|(p, _)| *p == pos)
+        .map(|(_, a)| a)
+        .ok_or_else(|| anyhow::anyhow!("input `{port}` has nothing at position {pos}"))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

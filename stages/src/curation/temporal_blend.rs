@@ -257,16 +257,14 @@ impl Stage for TemporalBlend {
         Ok(TemporalBlend(params))
     }
     fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        fn at<'a, T>(list: &'a [(i64, T)], pos: i64, name: &str) -> Result<&'a T> {
-            list.iter().find(|(p, _)| *p == pos).map(|(_, d)| d).ok_or_else(|| anyhow!("no {name} at position {pos}"))
-        }
+        use crate::stage::at_position as at;
         let frame = |pos: i64| -> Result<Option<Frame>> {
-            let depth = at(&i.depths, pos, "depth")?;
+            let depth = at(&i.depths, pos, "depths")?;
             if depth.data.is_empty() {
                 return Ok(None);
             }
-            let support = at(&i.supports, pos, "support")?;
-            Ok(Some(Frame { depth, support, calib: at(&i.calibs, pos, "calib")?, pose: at(&i.poses, pos, "pose")? }))
+            let support = at(&i.supports, pos, "supports")?;
+            Ok(Some(Frame { depth, support, calib: at(&i.calibs, pos, "calibs")?, pose: at(&i.poses, pos, "poses")? }))
         };
         let target = frame(0)?.ok_or_else(|| anyhow!("the target frame has no depth"))?;
         let mut others = Vec::new();

@@ -149,7 +149,7 @@ impl Stage for Reproject {
             let support = if inputs.supports.is_empty() {
                 None
             } else {
-                let m = at(&inputs.supports, s.pos, "supports")?;
+                let m = crate::stage::at_position(&inputs.supports, s.pos, "supports")?;
                 ensure!(
                     (m.width, m.height) == (s.depth.width, s.depth.height),
                     "source at position {}: support map {}x{} and depth {}x{} differ in size",
@@ -204,9 +204,9 @@ impl Sources {
     fn match_by_position(inputs: &Inputs) -> Result<Vec<Source<'_>>> {
         let mut out = Vec::with_capacity(inputs.images.len());
         for (pos, image) in &inputs.images {
-            let depth = at(&inputs.depths, *pos, "depths")?;
-            let calib = at(&inputs.calibs, *pos, "calibs")?;
-            let pose = at(&inputs.poses, *pos, "poses")?;
+            let depth = crate::stage::at_position(&inputs.depths, *pos, "depths")?;
+            let calib = crate::stage::at_position(&inputs.calibs, *pos, "calibs")?;
+            let pose = crate::stage::at_position(&inputs.poses, *pos, "poses")?;
             out.push(Source { pos: *pos, image, depth, calib, pose });
         }
         for (port, n) in
@@ -224,10 +224,3 @@ impl Sources {
     }
 }
 
-/// The artifact at position `pos` of input `port`.
-fn at<'a, A>(list: &'a [(i64, A)], pos: i64, port: &str) -> Result<&'a A> {
-    list.iter()
-        .find(|(p, _)| *p == pos)
-        .map(|(_, a)| a)
-        .with_context(|| format!("input `{port}` has nothing at position {pos}, which `images` has"))
-}
