@@ -321,6 +321,17 @@ enum Command {
         #[arg(long)]
         split: Vec<String>,
     },
+    /// Index the DiST-4D depth files an export wrote (pipelines/dist4d_layout.ron) in
+    /// OUT/nus_sampletoken2depthroot.json: sample token -> its folder, for DiST-4D's loaders.
+    ///
+    /// Run it after every run (or every shard) into OUT; it lists exactly the samples that have
+    /// <folder>/<CAMERA>/refined_depth.npz. See docs/interop.md. Example:
+    /// dist4d depthroot pipelines/out/dist4d_layout
+    #[command(name = "depthroot")]
+    Depthroot {
+        /// The export folder (the pipeline's --out).
+        out: PathBuf,
+    },
     /// Merge the per-scene parts of Occ3D's annotations.json that `pipelines/occupancy.ron`
     /// exports (OUT/occ3d/scenes/<scene>.json) into OUT/annotations.json, with the splits.
     ///
@@ -1248,6 +1259,16 @@ fn run(cli: Cli) -> Result<ExitCode> {
                     f.scene_lists
                 );
             }
+            Ok(ExitCode::SUCCESS)
+        }
+        Command::Depthroot { out } => {
+            let r = dist4d_stages::output::depthroot::write_depthroot(&out)?;
+            println!(
+                "{}: {} samples ({} depth files)",
+                out.join(dist4d_stages::output::depthroot::INDEX).display(),
+                r.samples,
+                r.files
+            );
             Ok(ExitCode::SUCCESS)
         }
         Command::Verify { out, store, cache } => {
