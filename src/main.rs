@@ -748,7 +748,7 @@ fn run_pipeline(
     let mut opts = RunOptions {
         fail_fast,
         outer_items: p.scenes.clone(),
-        second_dim_limit: p.limit,
+        limit: p.limit,
         shard: p.shard,
         out_dir: Some(out_dir.clone()),
         progress: progress_mode(progress),
@@ -892,7 +892,7 @@ fn slurm_merge(
     }
     let mut opts = RunOptions {
         outer_items: p.scenes.clone(),
-        second_dim_limit: p.limit,
+        limit: p.limit,
         out_dir: Some(out_dir.clone()),
         progress: progress_mode(progress),
         execute_only: Some(retry.clone()),
@@ -1039,9 +1039,8 @@ fn run(cli: Cli) -> Result<ExitCode> {
             // The scenes a run with the same --shard would take.
             let scenes = match p.shard {
                 Some(shard) => Some(dist4d_runtime::exec::shard_labels(
+                    &pipeline,
                     dataset.as_ref(),
-                    pipeline.dims.len(),
-                    &pipeline.dims[0].name,
                     p.scenes.as_deref(),
                     p.limit,
                     shard,

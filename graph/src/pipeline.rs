@@ -182,6 +182,13 @@ pub struct Pipeline {
 }
 
 impl Pipeline {
+    /// The dimension items are ordered along (time, for driving data): the first one the
+    /// dataset's schema declares `ordered`. The engine takes ready tasks in its order and cuts a
+    /// run's limit along it.
+    pub fn ordered_dim(&self) -> Option<usize> {
+        self.dims.iter().position(|d| d.ordered)
+    }
+
     pub fn node_by_name(&self, name: &str) -> Option<NodeId> {
         self.nodes.iter().position(|n| n.name == name)
     }

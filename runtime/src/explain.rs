@@ -23,7 +23,7 @@ pub struct StageExplain {
     pub cached: u64,
     pub will_run: u64,
     /// Tasks that had nothing to make (cached as such), or that have nothing because an input
-    /// they need had nothing (see [`crate::NotApplicable`]).
+    /// they need had nothing (see [`crate::Made::Nothing`]).
     pub not_applicable: u64,
     /// Tasks that will run and failed in the last run of this pipeline.
     pub failed_last_run: u64,
@@ -42,15 +42,15 @@ struct Previous {
 }
 
 /// Explains the tasks under the selected outer items (all when `outer_items` is `None`), with the
-/// first `second_dim_limit` items along the second dimension, as [`crate::RunOptions`] selects them,
+/// first `limit` items along the ordered dimension, as [`crate::RunOptions`] selects them,
 /// for a run that exports into `out_dir` (whose files hold the outputs the store does not keep).
 pub fn explain(
     engine: &Engine,
     outer_items: Option<&[String]>,
-    second_dim_limit: Option<u32>,
+    limit: Option<u32>,
     out_dir: Option<&Path>,
 ) -> Result<Vec<StageExplain>> {
-    Ok(explain_per_outer(engine, outer_items, second_dim_limit, out_dir, true)?.0)
+    Ok(explain_per_outer(engine, outer_items, limit, out_dir, true)?.0)
 }
 
 /// Per outer item (by index), how many of its tasks will run.
@@ -65,13 +65,13 @@ pub type PerOuter = Vec<(u32, u64)>;
 pub fn explain_per_outer(
     engine: &Engine,
     outer_items: Option<&[String]>,
-    second_dim_limit: Option<u32>,
+    limit: Option<u32>,
     out_dir: Option<&Path>,
     hash: bool,
 ) -> Result<(Vec<StageExplain>, PerOuter)> {
     let p = engine.pipeline;
     let store = engine.store;
-    let view = View { space: engine.dataset, second_dim_limit };
+    let view = View::limited(p, engine.dataset, limit)?;
     let outers = select_outer(engine.dataset, &p.dims[0].name, outer_items)?;
 
     // The record of every (stage, item) to say what changed against: this pipeline's own previous

@@ -38,7 +38,7 @@ use crate::digest::Digest;
 use crate::item::ItemKey;
 use crate::operator::{Blob, Dataset};
 use crate::record::OutputRef;
-use crate::store::{read_blob, sync_filesystem, write_atomic_via, write_whole_via, BlobError, Store};
+use crate::store::{read_blob, sync_filesystem, write_atomic_via, write_whole_io, BlobError, Store, Unread};
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{Dim, Export, TemplatePart};
 use serde::{Deserialize, Serialize};
@@ -439,14 +439,37 @@ enum Source {
     Blob,
 }
 
-/// Whether an error comes from a file or folder that was not there.
-fn not_found(e: &anyhow::Error) -> bool {
-    e.chain().any(|c| c.downcast_ref::<std::io::Error>().is_some_and(|io| io.kind() == std::io::ErrorKind::NotFound))
+
+/// Why an export job did not write its file.
+#[derive(Debug)]
+pub enum ExportError {
+    /// The blob holding its bytes is missing or corrupt: the scheduler runs its task again, which
+    /// exports it anew.
+    LostBlob(BlobError),
+    /// The temp file or its folder was not there when written or renamed (another run that
+    /// exported into the folder removed its temp folder): worth another try.
+    NotFound(anyhow::Error),
+    Failed(anyhow::Error),
+}
+
+impl From<anyhow::Error> for ExportError {
+    fn from(e: anyhow::Error) -> ExportError {
+        ExportError::Failed(e)
+    }
+}
+
+impl std::fmt::Display for ExportError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ExportError::LostBlob(e) => e.fmt(f),
+            ExportError::NotFound(e) | ExportError::Failed(e) => write!(f, "{e:#}"),
+        }
+    }
 }
 
 impl ExportJob {
     /// Writes the file unless it already holds the right bytes; returns its stat afterwards.
-    pub fn write(self) -> Result<FileStat> {
+    pub fn write(self) -> std::result::Result<FileStat, ExportError> {
         // Another run exporting into the folder finished and removed the temp folder, empty then
         // ([`Exporter::finish`]): made again, once the temp file is in it, it stays. Several
         // times: a run that finishes makes the folder for its own lists and removes it again, so
@@ -457,7 +480,7 @@ impl ExportJob {
             match self.write_once() {
                 // Not found: by the time we look, the other run may have made the folder again for
                 // its own lists, so the error is the test, not whether the folder is there now.
-                Err(e) if attempts < 20 && not_found(&e) => {
+                Err(ExportError::NotFound(_)) if attempts < 20 => {
                     attempts += 1;
                     if let Some(d) = self.tmp.parent() {
                         std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
@@ -468,7 +491,7 @@ impl ExportJob {
         }
     }
 
-    fn write_once(&self) -> Result<FileStat> {
+    fn write_once(&self) -> std::result::Result<FileStat, ExportError> {
         if let Some(stat) = FileStat::of(&self.dest).filter(|s| self.confirm && s.size == self.size) {
             // Same size: maybe the same bytes (a copied folder, a touched file, a v1 manifest).
             if file_digest(&self.dest) == Some(self.digest) {
@@ -482,22 +505,34 @@ impl ExportJob {
                 (Source::Inline(b), _) => b,
                 (Source::Blob, cas) => {
                     let path = cas.as_ref().ok_or_else(|| anyhow!("no bytes to export {}", self.dest.display()))?;
-                    owned = read_blob(path, &self.digest)?;
+                    owned = read_blob(path, &self.digest).map_err(|e| match e {
+                        Unread::Lost(lost) => ExportError::LostBlob(lost),
+                        newer @ Unread::Newer(_) => ExportError::Failed(newer.into_error()),
+                    })?;
                     &owned
                 }
             };
+            if let Some(dir) = self.dest.parent() {
+                std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            }
             // Made durable together before the manifest is written (`Exporter::finish`).
-            write_whole_via(&self.tmp, &self.dest, bytes, false)
-                .with_context(|| format!("exporting {}", self.dest.display()))?;
+            if let Err(io) = write_whole_io(&self.tmp, &self.dest, bytes, false) {
+                let gone = io.kind() == std::io::ErrorKind::NotFound;
+                let e = anyhow::Error::new(io)
+                    .context(format!("writing {}", self.dest.display()))
+                    .context(format!("exporting {}", self.dest.display()));
+                return Err(if gone { ExportError::NotFound(e) } else { ExportError::Failed(e) });
+            }
         }
-        FileStat::of(&self.dest).ok_or_else(|| anyhow!("{} vanished right after it was written", self.dest.display()))
+        Ok(FileStat::of(&self.dest)
+            .ok_or_else(|| anyhow!("{} vanished right after it was written", self.dest.display()))?)
     }
 
     /// Materializes the file by reflink from its blob when the blob holds its bytes raw and the
     /// filesystem shares blocks between files (btrfs, XFS): no second copy on disk. The clone is
     /// hashed before it is renamed into place, as a read of the blob would be. Ok(false) when
     /// no reflink was made (the caller writes the bytes).
-    fn try_reflink(&self) -> Result<bool> {
+    fn try_reflink(&self) -> std::result::Result<bool, ExportError> {
         let Some(cas) = self.cas.as_ref().filter(|_| self.reflinks.load(Ordering::Relaxed)) else { return Ok(false) };
         if !blob::is_raw_file(cas) {
             return Ok(false);
@@ -520,11 +555,10 @@ impl ExportJob {
             let _ = std::fs::remove_file(&self.tmp);
             let _ = std::fs::remove_file(cas);
             if matches!(self.bytes, Source::Blob) {
-                return Err(BlobError {
+                return Err(ExportError::LostBlob(BlobError {
                     digest: self.digest,
                     problem: format!("is corrupt and was removed ({})", cas.display()),
-                }
-                .into());
+                }));
             }
             return Ok(false);
         }

@@ -29,12 +29,10 @@ pub use digest::{Digest, DigestBuilder};
 pub use exec::{Engine, RunOptions, RunSummary};
 pub use item::{ItemKey, ItemSpace};
 pub use operator::{
-    Artifact, Blob, Dataset, FileDigests, NotApplicable, Operator, Output, Resource, TaskContext, WithVariants,
+    Artifact, Blob, Dataset, FileDigests, Made, Operator, Output, Resource, TaskContext, WithVariants,
 };
 pub use progress::ProgressMode;
 pub use runs::{RunRecord, RunStatus};
 pub use store::{Access, Store};
 pub mod testkit;
 
-#[cfg(test)]
-mod exec_tests;

@@ -1,5 +1,5 @@
 //! Why a run made nothing for some items: the first reason each stage's tasks gave when they had
-//! nothing to make ([`crate::NotApplicable`], kept by the engine in [`StageStats::nothing`]). The run table only counts them ("n/a"); a stage that made
+//! nothing to make ([`crate::Made::Nothing`], kept by the engine in [`StageStats::nothing`]). The run table only counts them ("n/a"); a stage that made
 //! nothing at all (a window longer than the scene, a clip index with no clip) would otherwise go
 //! unexplained, and its outputs would just be missing.
 

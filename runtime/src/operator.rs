@@ -70,21 +70,42 @@ impl TaskContext<'_> {
     }
 }
 
-/// What a stage returns (as its error) when its item has nothing to make: a training pair whose
-/// target frame lies past the scene's end, a view of a camera the item does not have. Not a
-/// failure: the run records the task with no outputs (a rerun does not ask again), drops it from
-/// the lists of the tasks that gather it, passes the others over (they have nothing to make
-/// either), and counts them all as "not applicable".
-#[derive(Debug)]
-pub struct NotApplicable(pub String);
+/// What a stage's work on one item made: its outputs, or nothing (with the reason) when the item
+/// has nothing to make: a training pair whose target frame lies past the scene's end, a view of
+/// a camera the item does not have. Nothing to make is not a failure (that is the `Err` beside
+/// it): the run records the task with no outputs (a rerun does not ask again), drops it from the
+/// lists of the tasks that gather it, passes the others over (they have nothing to make either),
+/// and counts them all as "not applicable", saying the first reason.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Made<T> {
+    Outputs(T),
+    Nothing(String),
+}
 
-impl std::fmt::Display for NotApplicable {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "not applicable: {}", self.0)
+impl<T> From<T> for Made<T> {
+    fn from(outputs: T) -> Made<T> {
+        Made::Outputs(outputs)
     }
 }
 
-impl std::error::Error for NotApplicable {}
+impl<T> Made<T> {
+    /// The outputs; panics with the reason when there was nothing to make (as `Option::unwrap`,
+    /// for tests and callers that know).
+    #[track_caller]
+    pub fn unwrap(self) -> T {
+        match self {
+            Made::Outputs(t) => t,
+            Made::Nothing(why) => panic!("nothing to make: {why}"),
+        }
+    }
+
+    pub fn map<U>(self, f: impl FnOnce(T) -> U) -> Made<U> {
+        match self {
+            Made::Outputs(t) => Made::Outputs(f(t)),
+            Made::Nothing(why) => Made::Nothing(why),
+        }
+    }
+}
 
 /// One output of a task: its bytes and the artifact type they are encoded as. The runtime checks
 /// the type against the one the output port declares before anything is stored, so a wrongly
@@ -110,7 +131,7 @@ impl Output {
 /// A stage's work on one item: input artifacts (per input port, in port order) to its outputs
 /// (per output port, in port order). Must be deterministic: same inputs, same bytes.
 pub trait Operator: Send + Sync {
-    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Vec<Output>>;
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Made<Vec<Output>>>;
     /// What, besides its params, decides this operator's outputs and is known only when it runs:
     /// an external worker's name, version and weights digest. Folded into its task keys, so a new
     /// model version reruns exactly its stage and what depends on it. `None` for code that the

@@ -6,6 +6,7 @@
 //! unit because selectors never reach across it (`All` reads every item under it).
 
 use crate::item::{ItemKey, ItemSpace};
+use anyhow::{bail, Result};
 use dist4d_graph::{NodeKind, Pipeline, Selector};
 use std::collections::HashMap;
 
@@ -36,17 +37,40 @@ pub struct OuterPlan {
     pub tasks: Vec<Task>,
 }
 
-/// The item tree seen through the run's filters: a limit on the second dimension (index 1).
+/// The item tree seen through the run's filters: at most `limit.1` items along dimension
+/// `limit.0` under each of its prefixes (see [`View::limited`]).
 pub struct View<'a> {
     pub space: &'a dyn ItemSpace,
-    pub second_dim_limit: Option<u32>,
+    pub limit: Option<(usize, u32)>,
 }
 
-impl View<'_> {
+impl<'a> View<'a> {
+    /// The items of `space`, at most `limit` of them along the pipeline's ordered dimension (the
+    /// first its dataset's schema declares `ordered`, [`Pipeline::ordered_dim`]): a run's
+    /// "first N frames" without the engine knowing what a frame is.
+    pub fn limited(p: &Pipeline, space: &'a dyn ItemSpace, limit: Option<u32>) -> Result<View<'a>> {
+        let limit = match limit {
+            None => None,
+            Some(n) => match p.ordered_dim() {
+                Some(d) => Some((d, n)),
+                None => bail!(
+                    "a limit of {n} items needs an ordered dimension, and the dataset's dimensions ({}) have none",
+                    p.dims.iter().map(|d| d.name.as_str()).collect::<Vec<_>>().join(", ")
+                ),
+            },
+        };
+        Ok(View { space, limit })
+    }
+
+    /// Every item of `space`.
+    pub fn all(space: &'a dyn ItemSpace) -> View<'a> {
+        View { space, limit: None }
+    }
+
     pub fn count(&self, prefix: &ItemKey) -> u32 {
         let n = self.space.count(prefix);
-        match (prefix.depth, self.second_dim_limit) {
-            (1, Some(limit)) => n.min(limit),
+        match self.limit {
+            Some((dim, limit)) if prefix.depth as usize == dim => n.min(limit),
             _ => n,
         }
     }

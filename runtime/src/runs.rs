@@ -17,7 +17,7 @@ pub struct StageStats {
     pub failed: u64,
     /// Not run because an input failed.
     pub skipped: u64,
-    /// Finished with nothing to make (see [`crate::NotApplicable`]), or passed over because an
+    /// Finished with nothing to make (see [`crate::Made::Nothing`]), or passed over because an
     /// input they need had nothing; counted here and not as failed.
     #[serde(default)]
     pub not_applicable: u64,
@@ -36,7 +36,7 @@ pub struct StageStats {
     /// Summed run time of executed tasks.
     pub seconds: f64,
     /// Why this stage made nothing for some items: the reason its first task (by item label)
-    /// with nothing to make gave ([`crate::NotApplicable`]), and that item. `None` when no task
+    /// with nothing to make gave ([`crate::Made::Nothing`]), and that item. `None` when no task
     /// of this run said (none had nothing, or those that had were cached or passed over).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub nothing: Option<(String, String)>,

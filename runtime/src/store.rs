@@ -74,10 +74,32 @@ impl std::fmt::Display for NewerBlob {
 
 impl std::error::Error for NewerBlob {}
 
-impl BlobError {
-    /// The blob error in an error's chain, if any.
-    pub fn find(e: &anyhow::Error) -> Option<&BlobError> {
-        e.chain().find_map(|c| c.downcast_ref::<BlobError>())
+/// Why a blob could not be read, as a value the scheduler acts on: a lost blob is remade by
+/// running its task again, a newer dist4d's is left alone and its reader fails.
+#[derive(Debug)]
+pub enum Unread {
+    Lost(BlobError),
+    Newer(NewerBlob),
+}
+
+impl std::fmt::Display for Unread {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Unread::Lost(e) => e.fmt(f),
+            Unread::Newer(e) => e.fmt(f),
+        }
+    }
+}
+
+impl std::error::Error for Unread {}
+
+impl Unread {
+    /// As an error carrying the [`BlobError`] or [`NewerBlob`] itself.
+    pub fn into_error(self) -> anyhow::Error {
+        match self {
+            Unread::Lost(e) => anyhow::Error::new(e),
+            Unread::Newer(e) => anyhow::Error::new(e),
+        }
     }
 }
 
@@ -418,10 +440,14 @@ impl Store {
     }
 
     /// Reads a blob and checks its digest: a corrupt blob is removed so that it is made again.
-    /// Fails with a [`BlobError`] (which the scheduler recognises, to recompute the blob), or a
-    /// [`NewerBlob`] for one a newer dist4d wrote (left in place; the task needing it fails).
     /// A store opened [`Access::ReadOnly`] leaves a corrupt blob in place (it writes nothing).
     pub fn get_blob(&self, digest: &Digest) -> Result<Vec<u8>> {
+        self.read_blob(digest).map_err(Unread::into_error)
+    }
+
+    /// [`Store::get_blob`], saying why a blob could not be read as a value: [`Unread::Lost`] (the
+    /// scheduler runs the task that made it again) or [`Unread::Newer`] (a newer dist4d wrote it).
+    pub fn read_blob(&self, digest: &Digest) -> std::result::Result<Vec<u8>, Unread> {
         read_checked(&self.blob_path(digest), digest, !self.read_only)
     }
 
@@ -601,24 +627,24 @@ impl Drop for Store {
 
 /// Reads the blob file at `path`, unpacks it and checks its digest; a corrupt one is removed
 /// ([`BlobError`]), one that a newer dist4d wrote is not ([`NewerBlob`]).
-pub fn read_blob(path: &Path, digest: &Digest) -> Result<Vec<u8>> {
+pub fn read_blob(path: &Path, digest: &Digest) -> std::result::Result<Vec<u8>, Unread> {
     read_checked(path, digest, true)
 }
 
 /// [`read_blob`], removing a corrupt blob only with `remove_corrupt`.
-fn read_checked(path: &Path, digest: &Digest, remove_corrupt: bool) -> Result<Vec<u8>> {
-    let file = read_retrying(path)
-        .map_err(|e| BlobError { digest: *digest, problem: format!("cannot be read ({}): {e}", path.display()) })?;
+fn read_checked(path: &Path, digest: &Digest, remove_corrupt: bool) -> std::result::Result<Vec<u8>, Unread> {
+    let lost = |problem: String| Unread::Lost(BlobError { digest: *digest, problem });
+    let file = read_retrying(path).map_err(|e| lost(format!("cannot be read ({}): {e}", path.display())))?;
     match blob::unpack(file, digest) {
         Ok(bytes) => Ok(bytes),
         Err(why @ blob::Unreadable::Newer { .. }) => {
-            Err(NewerBlob { digest: *digest, path: path.to_path_buf(), why }.into())
+            Err(Unread::Newer(NewerBlob { digest: *digest, path: path.to_path_buf(), why }))
         }
         Err(why) if remove_corrupt => {
             let _ = fs::remove_file(path);
-            Err(BlobError { digest: *digest, problem: format!("{why} and was removed ({})", path.display()) }.into())
+            Err(lost(format!("{why} and was removed ({})", path.display())))
         }
-        Err(why) => Err(BlobError { digest: *digest, problem: format!("{why} ({})", path.display()) }.into()),
+        Err(why) => Err(lost(format!("{why} ({})", path.display()))),
     }
 }
 
@@ -739,6 +765,12 @@ pub fn write_whole_via(tmp: &Path, dest: &Path, bytes: &[u8], durable: bool) -> 
     if let Some(dir) = dest.parent() {
         fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     }
+    write_whole_io(tmp, dest, bytes, durable).with_context(|| format!("writing {}", dest.display()))
+}
+
+/// [`write_whole_via`] into folders that exist, with the io error as it is: a caller may act on
+/// its kind.
+pub fn write_whole_io(tmp: &Path, dest: &Path, bytes: &[u8], durable: bool) -> std::io::Result<()> {
     let result = (|| -> std::io::Result<()> {
         let f = File::create(tmp)?;
         let direct = crate::direct_io::write_new(&f, bytes)?;
@@ -762,7 +794,7 @@ pub fn write_whole_via(tmp: &Path, dest: &Path, bytes: &[u8], durable: bool) -> 
     if result.is_err() {
         let _ = fs::remove_file(tmp);
     }
-    result.with_context(|| format!("writing {}", dest.display()))
+    result
 }
 
 fn unique_writer_id() -> String {
@@ -1028,8 +1060,8 @@ mod tests {
         let at = file.len() - 5;
         file[at] ^= 0xff;
         fs::write(&path, &file).unwrap();
-        let e = s.get_blob(&d).unwrap_err();
-        assert!(BlobError::find(&e).is_some(), "{e:#}");
+        let e = s.read_blob(&d).unwrap_err();
+        assert!(matches!(e, Unread::Lost(_)), "{e:#}");
         assert!(e.to_string().contains("corrupt"), "{e}");
         assert!(!s.has_blob(&d), "removed, so that its task runs again");
     }
@@ -1045,9 +1077,8 @@ mod tests {
         let mut file = fs::read(&path).unwrap();
         file[4] = 9;
         fs::write(&path, &file).unwrap();
+        let Unread::Newer(newer) = s.read_blob(&d).unwrap_err() else { panic!("not a blob to remake") };
         let e = s.get_blob(&d).unwrap_err();
-        assert!(BlobError::find(&e).is_none(), "not a blob to remake: {e:#}");
-        let newer = e.downcast_ref::<NewerBlob>().expect("a newer dist4d's blob");
         assert_eq!(newer.why, blob::Unreadable::Newer { codec: 9 });
         assert!(e.to_string().contains("was written by a newer dist4d (blob codec 9"), "{e}");
         assert_eq!(fs::read(&path).unwrap(), file, "neither removed nor rewritten");

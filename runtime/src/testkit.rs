@@ -7,7 +7,7 @@
 
 use crate::digest::{Digest, DigestBuilder};
 use crate::item::{ItemKey, ItemSpace};
-use crate::operator::{Artifact, Dataset, FileDigests, Operator, Output, TaskContext};
+use crate::operator::{Artifact, Dataset, FileDigests, Made, Operator, Output, TaskContext};
 use anyhow::{bail, Result};
 use dist4d_graph::{Catalog, DatasetSchema, DimSpec, ParamsSpec, Pipeline, PortSpec, SourcePortSpec, StageSchema};
 use serde::{Deserialize, Serialize};
@@ -97,7 +97,7 @@ pub struct EchoParams {
     pub sleep_ms: u64,
     /// Tag the output with a type no port declares (for the runtime's output type check).
     pub mistag: bool,
-    /// Item paths on which the task has nothing to make ([`crate::NotApplicable`]).
+    /// Item paths on which the task has nothing to make ([`crate::Made::Nothing`]).
     pub nothing_on: Vec<String>,
     /// For `Vary`: a salt per variant label (the stage runs once per variant).
     pub variants: std::collections::BTreeMap<String, u32>,
@@ -234,7 +234,7 @@ struct EchoOp {
 }
 
 impl Operator for EchoOp {
-    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Vec<Output>> {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> Result<Made<Vec<Output>>> {
         let params = &self.params;
         if params.sleep_ms > 0 {
             std::thread::sleep(std::time::Duration::from_millis(params.sleep_ms));
@@ -243,7 +243,7 @@ impl Operator for EchoOp {
             bail!("asked to fail on {}", ctx.label);
         }
         if params.nothing_on.iter().any(|f| f == ctx.label) {
-            return Err(crate::NotApplicable(format!("asked for nothing on {}", ctx.label)).into());
+            return Ok(Made::Nothing(format!("asked for nothing on {}", ctx.label)));
         }
         let mut b = DigestBuilder::new("echo");
         b.u64(params.salt as u64);
@@ -266,7 +266,7 @@ impl Operator for EchoOp {
             let d = if port == 0 { d } else { DigestBuilder::new("echo port").digest(&d).u64(port as u64).finish() };
             Output::new(ty, d.0.iter().copied().cycle().take(n).collect())
         };
-        Ok(self.outputs.iter().enumerate().map(made).collect())
+        Ok(Made::Outputs(self.outputs.iter().enumerate().map(made).collect()))
     }
 }
 

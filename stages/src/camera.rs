@@ -148,7 +148,7 @@ mod tests {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     /// The inputs a [`CameraView`] is made from, shared by the stages that look at a point cloud
     /// from one camera (declare a field `view: Group<ViewPorts>` after the cloud).
     pub struct ViewPorts {
@@ -169,7 +169,7 @@ impl ViewPorts {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     /// The inputs of a stage that looks at a point cloud from one camera: the cloud and its view.
     pub struct CloudInView {
         /// the cloud, in the frame of `cloud_calib` at `cloud_pose`

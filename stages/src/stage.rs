@@ -1,11 +1,11 @@
 //! How a stage is declared: a type implementing [`Stage`], with its params and its typed ports
-//! (declared with [`crate::ports!`]), and one line in its family's [`crate::stage_modules!`].
+//! (declared with [`crate::inputs!`] and [`crate::outputs!`]), and one line in its family's [`crate::stage_modules!`].
 //! [`StageDef::of`] turns it into what the graph checks pipelines against (the schema: ports and
 //! their artifact types come from the Rust types) and what the runtime runs (an operator that
 //! decodes inputs by port name and encodes outputs with their type tags).
 //!
 //! ```ignore
-//! crate::ports! {
+//! crate::inputs! {
 //!     pub struct Inputs {
 //!         /// The sweep, in the LiDAR frame.
 //!         points: One<PointCloud>,
@@ -19,7 +19,7 @@
 
 use anyhow::{anyhow, bail, Context, Result};
 use dist4d_graph::{ParamsSpec, ParamsValue, PortSpec, StageSchema, Validate};
-use dist4d_runtime::{Operator, TaskContext};
+use dist4d_runtime::{Made, Operator, TaskContext};
 use dist4d_types::artifact::Artifact;
 use serde::{de::DeserializeOwned, Serialize};
 use std::marker::PhantomData;
@@ -52,8 +52,8 @@ pub trait Stage: Sized + Send + Sync + 'static {
     /// `variant`, and [`Stage::run`] finds its variant with [`variant_of`].
     const VARIANTS: bool = false;
     type Params: Params;
-    type Inputs: Ports;
-    type Outputs: Ports;
+    type Inputs: InputPorts;
+    type Outputs: OutputPorts;
     fn new(params: Self::Params) -> Result<Self>;
     /// What besides params and version decides the outputs (an external worker's identity; see
     /// [`dist4d_runtime::Operator::identity`]).
@@ -79,7 +79,21 @@ pub trait Stage: Sized + Send + Sync + 'static {
     fn unused_inputs(_params: &Self::Params) -> Vec<&'static str> {
         Vec::new()
     }
-    fn run(&self, ctx: &TaskContext, inputs: Self::Inputs) -> Result<Self::Outputs>;
+    /// The stage's work on one item: its outputs, or nothing to make with the reason
+    /// ([`Made::Nothing`]: not a failure, see [`Made`]); a failure is the `Err`.
+    fn run(&self, ctx: &TaskContext, inputs: Self::Inputs) -> Result<Made<Self::Outputs>>;
+}
+
+/// The value of a [`Made`], or, when it is [`Made::Nothing`], return that from the enclosing
+/// [`Stage::run`].
+#[macro_export]
+macro_rules! or_nothing {
+    ($made:expr) => {
+        match $made {
+            dist4d_runtime::Made::Outputs(value) => value,
+            dist4d_runtime::Made::Nothing(why) => return Ok(dist4d_runtime::Made::Nothing(why)),
+        }
+    };
 }
 
 /// The variant a task of a variant-declaring stage runs: the entry of `variants` (the params'
@@ -114,20 +128,82 @@ impl InputSet<'_> {
 /// before the output enters the store).
 pub use dist4d_runtime::Output as Encoded;
 
-/// A struct of ports, as [`crate::ports!`] declares it.
-pub trait Ports: Sized {
+/// A struct of input ports, as [`crate::inputs!`] declares it.
+pub trait InputPorts: Sized {
     fn specs() -> Vec<PortSpec>;
     fn decode(inputs: &InputSet) -> Result<Self>;
+}
+
+/// A struct of output ports, as [`crate::outputs!`] declares it.
+pub trait OutputPorts: Sized {
+    fn specs() -> Vec<PortSpec>;
     fn encode(self) -> Result<Vec<Encoded>>;
 }
 
-/// How many artifacts a port carries: the field types of a [`crate::ports!`] struct.
-pub trait Port {
+/// How many artifacts an input port carries: the field types of an [`crate::inputs!`] struct
+/// ([`One`], [`Optional`], [`Many`], [`OptionalMany`], [`Group`]).
+pub trait InPort {
     /// What the field holds.
     type Value;
     /// The schema entries of field `name` documented `doc` (one port, or a group's ports).
     fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec>;
     fn decode(port: &str, inputs: &InputSet) -> Result<Self::Value>;
+}
+
+/// What an output port carries: the field types of an [`crate::outputs!`] struct ([`One`],
+/// [`OnDemand`]). A kind that is not one (an `Optional` output, an `OnDemand` input) does not
+/// compile:
+///
+/// ```compile_fail
+/// dist4d_stages::outputs! {
+///     pub struct Outputs {
+///         /// An output that may be missing: not a kind of output.
+///         depth: Optional<dist4d_types::artifact::DepthMap>,
+///     }
+/// }
+/// ```
+///
+/// ```compile_fail
+/// dist4d_stages::inputs! {
+///     pub struct Inputs {
+///         /// Made only when read: a kind of output, not of input.
+///         depth: OnDemand<dist4d_types::artifact::DepthMap>,
+///     }
+/// }
+/// ```
+///
+/// ```compile_fail
+/// dist4d_stages::outputs! {
+///     pub struct Outputs {
+///         /// A window is what a stage reads, not what it makes.
+///         depths: Many<dist4d_types::artifact::DepthMap>,
+///     }
+/// }
+/// ```
+///
+/// while the right kinds do:
+///
+/// ```
+/// dist4d_stages::inputs! {
+///     pub struct Inputs {
+///         /// One depth map.
+///         depth: One<dist4d_types::artifact::DepthMap>,
+///         /// Its neighbours.
+///         window: Many<dist4d_types::artifact::DepthMap>,
+///     }
+/// }
+/// dist4d_stages::outputs! {
+///     pub struct Outputs {
+///         /// One depth map.
+///         depth: One<dist4d_types::artifact::DepthMap>,
+///         /// Made when something reads it.
+///         preview: OnDemand<dist4d_types::artifact::Image>,
+///     }
+/// }
+/// ```
+pub trait OutPort {
+    type Value;
+    fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec>;
     fn encode(port: &str, value: Self::Value) -> Result<Vec<Encoded>>;
 }
 
@@ -135,12 +211,12 @@ fn port_spec<A: Artifact>(name: &'static str, doc: &'static str, many: bool, opt
     vec![PortSpec { name, ty: A::TYPE, many, optional, doc: doc.trim() }]
 }
 
-/// Exactly one artifact (the field is the artifact).
+/// Exactly one artifact (the field is the artifact): an input or an output.
 pub struct One<A>(PhantomData<A>);
-/// One artifact, or none when the input is not wired (the field is an `Option`).
+/// An input of one artifact, or none when the input is not wired (the field is an `Option`).
 pub struct Optional<A>(PhantomData<A>);
-/// Several artifacts (a window, a gather), each with its position (the offset along the window's
-/// dimension, the index of a gathered item): the field is a `Vec<(i64, A)>`.
+/// An input of several artifacts (a window, a gather), each with its position (the offset along
+/// the window's dimension, the index of a gathered item): the field is a `Vec<(i64, A)>`.
 pub struct Many<A>(PhantomData<A>);
 /// Several artifacts like [`Many`], or none when the input is not wired (an empty `Vec`): what a
 /// stage gathers only when the pipeline has it (e.g. ground truth for a sheet).
@@ -149,11 +225,11 @@ pub struct OptionalMany<A>(PhantomData<A>);
 /// [`TaskContext::wants`] says nothing reads it, e.g. an encoding nobody exports). A later run
 /// that reads it runs the task again.
 pub struct OnDemand<A>(PhantomData<A>);
-/// The ports of another [`crate::ports!`] struct, under their own names (inputs several stages
+/// The ports of another [`crate::inputs!`] struct, under their own names (inputs several stages
 /// share, such as the four a camera view is made from): the field is that struct.
 pub struct Group<P>(PhantomData<P>);
 
-impl<P: Ports> Port for Group<P> {
+impl<P: InputPorts> InPort for Group<P> {
     type Value = P;
     fn specs(_: &'static str, _: &'static str) -> Vec<PortSpec> {
         P::specs()
@@ -161,16 +237,13 @@ impl<P: Ports> Port for Group<P> {
     fn decode(_: &str, inputs: &InputSet) -> Result<P> {
         P::decode(inputs)
     }
-    fn encode(_: &str, value: P) -> Result<Vec<Encoded>> {
-        value.encode()
-    }
 }
 
 fn decode_one<A: Artifact>(port: &str, a: &dist4d_runtime::Artifact) -> Result<A> {
     A::decode(&a.bytes).with_context(|| format!("decoding input `{port}` as {}", A::TYPE))
 }
 
-impl<A: Artifact> Port for One<A> {
+impl<A: Artifact> InPort for One<A> {
     type Value = A;
     fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
         port_spec::<A>(name, doc, false, false)
@@ -182,25 +255,29 @@ impl<A: Artifact> Port for One<A> {
             None => bail!("input `{port}` is not wired"),
         }
     }
+}
+
+impl<A: Artifact> OutPort for One<A> {
+    type Value = A;
+    fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
+        port_spec::<A>(name, doc, false, false)
+    }
     fn encode(_: &str, value: A) -> Result<Vec<Encoded>> {
         Ok(vec![Encoded::new(A::TYPE, value.encode())])
     }
 }
 
-impl<A: Artifact> Port for OnDemand<A> {
+impl<A: Artifact> OutPort for OnDemand<A> {
     type Value = Option<A>;
     fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
         port_spec::<A>(name, doc, false, false)
-    }
-    fn decode(port: &str, _: &InputSet) -> Result<Option<A>> {
-        bail!("input `{port}`: `OnDemand` is for outputs")
     }
     fn encode(_: &str, value: Option<A>) -> Result<Vec<Encoded>> {
         Ok(vec![value.map_or_else(|| Encoded::unmade(A::TYPE), |v| Encoded::new(A::TYPE, v.encode()))])
     }
 }
 
-impl<A: Artifact> Port for Optional<A> {
+impl<A: Artifact> InPort for Optional<A> {
     type Value = Option<A>;
     fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
         port_spec::<A>(name, doc, false, true)
@@ -211,9 +288,6 @@ impl<A: Artifact> Port for Optional<A> {
             Some([a]) => decode_one(port, a).map(Some),
             Some(list) => bail!("input `{port}` takes one {}, it was given {}", A::TYPE, list.len()),
         }
-    }
-    fn encode(port: &str, _: Option<A>) -> Result<Vec<Encoded>> {
-        bail!("output `{port}`: outputs are `One`, not `Optional`")
     }
 }
 
@@ -227,7 +301,7 @@ fn decode_many<A: Artifact>(port: &str, list: &[dist4d_runtime::Artifact]) -> Re
         .collect()
 }
 
-impl<A: Artifact> Port for Many<A> {
+impl<A: Artifact> InPort for Many<A> {
     type Value = Vec<(i64, A)>;
     fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
         port_spec::<A>(name, doc, true, false)
@@ -235,12 +309,9 @@ impl<A: Artifact> Port for Many<A> {
     fn decode(port: &str, inputs: &InputSet) -> Result<Vec<(i64, A)>> {
         decode_many(port, inputs.get(port).ok_or_else(|| anyhow!("input `{port}` is not wired"))?)
     }
-    fn encode(port: &str, _: Vec<(i64, A)>) -> Result<Vec<Encoded>> {
-        bail!("output `{port}`: outputs are `One`, not `Many`")
-    }
 }
 
-impl<A: Artifact> Port for OptionalMany<A> {
+impl<A: Artifact> InPort for OptionalMany<A> {
     type Value = Vec<(i64, A)>;
     fn specs(name: &'static str, doc: &'static str) -> Vec<PortSpec> {
         port_spec::<A>(name, doc, true, true)
@@ -248,15 +319,13 @@ impl<A: Artifact> Port for OptionalMany<A> {
     fn decode(port: &str, inputs: &InputSet) -> Result<Vec<(i64, A)>> {
         decode_many(port, inputs.get(port).unwrap_or_default())
     }
-    fn encode(port: &str, _: Vec<(i64, A)>) -> Result<Vec<Encoded>> {
-        bail!("output `{port}`: outputs are `One`, not `OptionalMany`")
-    }
 }
 
-/// Declares a struct of typed ports: each field `name: One<T>`, `Optional<T>`, `Many<T>` or
-/// `OptionalMany<T>` with a doc comment, in port order. Implements [`Ports`] for it.
+/// Declares a struct of typed input ports: each field `name: One<T>`, `Optional<T>`, `Many<T>`,
+/// `OptionalMany<T>` or `Group<P>` with a doc comment, in port order. Implements
+/// [`InputPorts`] for it; an output kind ([`OnDemand`]) does not compile.
 #[macro_export]
-macro_rules! ports {
+macro_rules! inputs {
     (
         $(#[$meta:meta])*
         $vis:vis struct $name:ident {
@@ -265,25 +334,51 @@ macro_rules! ports {
     ) => {
         $(#[$meta])*
         $vis struct $name {
-            $( $(#[doc = $doc])* pub $field: <$crate::stage::$port<$ty> as $crate::stage::Port>::Value, )*
+            $( $(#[doc = $doc])* pub $field: <$crate::stage::$port<$ty> as $crate::stage::InPort>::Value, )*
         }
 
-        impl $crate::stage::Ports for $name {
+        impl $crate::stage::InputPorts for $name {
             fn specs() -> Vec<dist4d_graph::PortSpec> {
                 let mut specs = Vec::new();
-                $( specs.extend(<$crate::stage::$port<$ty> as $crate::stage::Port>::specs(stringify!($field), concat!($($doc),*))); )*
+                $( specs.extend(<$crate::stage::$port<$ty> as $crate::stage::InPort>::specs(stringify!($field), concat!($($doc),*))); )*
                 specs
             }
             #[allow(unused_variables)]
             fn decode(inputs: &$crate::stage::InputSet) -> anyhow::Result<Self> {
                 Ok($name {
-                    $( $field: <$crate::stage::$port<$ty> as $crate::stage::Port>::decode(stringify!($field), inputs)?, )*
+                    $( $field: <$crate::stage::$port<$ty> as $crate::stage::InPort>::decode(stringify!($field), inputs)?, )*
                 })
+            }
+        }
+    };
+}
+
+/// Declares a struct of typed output ports: each field `name: One<T>` or `OnDemand<T>` with a doc
+/// comment, in port order. Implements [`OutputPorts`] for it; an input kind (`Optional`, `Many`,
+/// ...) does not compile.
+#[macro_export]
+macro_rules! outputs {
+    (
+        $(#[$meta:meta])*
+        $vis:vis struct $name:ident {
+            $( $(#[doc = $doc:literal])* $field:ident : $port:ident < $ty:ty > ),* $(,)?
+        }
+    ) => {
+        $(#[$meta])*
+        $vis struct $name {
+            $( $(#[doc = $doc])* pub $field: <$crate::stage::$port<$ty> as $crate::stage::OutPort>::Value, )*
+        }
+
+        impl $crate::stage::OutputPorts for $name {
+            fn specs() -> Vec<dist4d_graph::PortSpec> {
+                let mut specs = Vec::new();
+                $( specs.extend(<$crate::stage::$port<$ty> as $crate::stage::OutPort>::specs(stringify!($field), concat!($($doc),*))); )*
+                specs
             }
             #[allow(unused_mut)]
             fn encode(self) -> anyhow::Result<Vec<$crate::stage::Encoded>> {
                 let mut out = Vec::new();
-                $( out.extend(<$crate::stage::$port<$ty> as $crate::stage::Port>::encode(stringify!($field), self.$field)?); )*
+                $( out.extend(<$crate::stage::$port<$ty> as $crate::stage::OutPort>::encode(stringify!($field), self.$field)?); )*
                 Ok(out)
             }
         }
@@ -371,9 +466,12 @@ struct StageOp<S> {
 }
 
 impl<S: Stage> Operator for StageOp<S> {
-    fn run(&self, ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Vec<Encoded>> {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<dist4d_runtime::Artifact>]) -> Result<Made<Vec<Encoded>>> {
         let inputs = S::Inputs::decode(&InputSet { wired: &self.wired, lists: inputs })?;
-        self.stage.run(ctx, inputs)?.encode()
+        Ok(match self.stage.run(ctx, inputs)? {
+            Made::Outputs(outputs) => Made::Outputs(outputs.encode()?),
+            Made::Nothing(why) => Made::Nothing(why),
+        })
     }
     fn identity(&self) -> Result<Option<String>> {
         self.stage.identity()
@@ -413,10 +511,10 @@ mod tests {
     #[test]
     fn an_unwired_optional_many_input_is_an_empty_list_and_an_unwired_many_an_error() {
         let inputs = InputSet { wired: &[], lists: &[] };
-        assert!(<OptionalMany<DepthMap> as Port>::decode("gt", &inputs).unwrap().is_empty());
-        let err = <Many<DepthMap> as Port>::decode("gt", &inputs).unwrap_err();
+        assert!(<OptionalMany<DepthMap> as InPort>::decode("gt", &inputs).unwrap().is_empty());
+        let err = <Many<DepthMap> as InPort>::decode("gt", &inputs).unwrap_err();
         assert!(err.to_string().contains("`gt` is not wired"), "{err}");
-        let spec = &<OptionalMany<DepthMap> as Port>::specs("gt", "ground truth")[0];
+        let spec = &<OptionalMany<DepthMap> as InPort>::specs("gt", "ground truth")[0];
         assert!(spec.many && spec.optional && spec.ty == DepthMap::TYPE);
     }
 }

@@ -15,6 +15,7 @@
 //! out of the aggregate and returns them separately, so a curated depth can be scored on LiDAR
 //! points it never saw (works on real data).
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::{anyhow, ensure, Result};
@@ -166,7 +167,7 @@ pub fn aggregate(params: &Params, seed: u64, sweeps: &[Sweep]) -> Result<(PointC
     Ok((out, held))
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the window's sweeps: Window("dataset.lidar", frame, -1, 1)
         sweeps: Many<PointCloud>,
@@ -179,7 +180,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the aggregate, in the target frame's LiDAR frame
         points: One<PointCloud>,
@@ -205,7 +206,7 @@ impl Stage for AggregateLidar {
     fn new(params: Params) -> Result<Self> {
         Ok(AggregateLidar(params))
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let (points, calibs, poses, boxes) = (&i.sweeps, &i.calibs, &i.poses, &i.boxes);
         ensure!(
             calibs.len() == points.len() && poses.len() == points.len() && boxes.len() == points.len(),
@@ -231,7 +232,7 @@ impl Stage for AggregateLidar {
             });
         }
         let (points, holdout) = aggregate(&self.0, ctx.seed, &sweeps)?;
-        Ok(Outputs { points, holdout })
+        Ok(Outputs { points, holdout }.into())
     }
 }
 

@@ -20,6 +20,7 @@
 //!
 //! Other completers (e.g. a learned one behind a worker) implement [`DepthCompleter`].
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{bail, ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -1865,7 +1866,7 @@ impl BlockSum {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the camera image
         image: One<Image>,
@@ -1879,7 +1880,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// dense metric depth, sky at sky_depth, 0 on the ego body
         depth: One<DepthMap>,
@@ -1925,7 +1926,7 @@ impl Stage for CompleteDepth {
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         self.1.resource()
     }
-    fn run(&self, ctx: &TaskContext, mut i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, mut i: Inputs) -> Result<Made<Outputs>> {
         let ego_mask = i.ego.take();
         let ego = super::ego_mask::wired(ego_mask.as_ref(), i.sparse.width, i.sparse.height, "prompt")?;
         if let Some(ego) = ego {
@@ -1945,7 +1946,7 @@ impl Stage for CompleteDepth {
                 super::ego_mask::set_where(&mut map.data, ego, 0.0);
             }
         }
-        Ok(out)
+        Ok(out.into())
     }
 }
 

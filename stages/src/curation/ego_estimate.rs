@@ -33,6 +33,7 @@
 //! ego's own shadow, stay in place like the body; a single frame (a nuScenes keyframe without
 //! its sweeps' images) says nothing.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{anyhow, ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -640,7 +641,7 @@ pub fn preview(image: &Image, e: &Estimate) -> Image {
     out
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the camera's images of a window of frames: Window("dataset.image", frame, -2, 2)
         images: Many<Image>,
@@ -654,7 +655,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// 1 = the ego vehicle's body (all 0 when the frames give no evidence)
         mask: One<Mask>,
@@ -679,7 +680,7 @@ impl Stage for EstimateEgo {
     fn new(params: Params) -> Result<Self> {
         Ok(EstimateEgo(params))
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let mut frames = Vec::new();
         for (pos, image) in &i.images {
             let calib =
@@ -691,14 +692,14 @@ impl Stage for EstimateEgo {
         if frames.iter().any(|f| f.position == 0 && f.image.width == 0) {
             let mask = Mask { width: 0, height: 0, data: Vec::new() };
             let preview = ctx.wants("preview").then(|| Image { width: 0, height: 0, rgb: Vec::new() });
-            return Ok(Outputs { mask, preview });
+            return Ok(Outputs { mask, preview }.into());
         }
         let e = estimate(&self.0, &frames, i.depth.as_ref())?;
         let preview = match frames.iter().find(|f| f.position == 0) {
             Some(t) if ctx.wants("preview") => Some(preview(t.image, &e)),
             _ => None,
         };
-        Ok(Outputs { mask: e.mask, preview })
+        Ok(Outputs { mask: e.mask, preview }.into())
     }
 }
 

@@ -26,6 +26,7 @@
 //! `grow` then widens the mask by whole pixels: JPEG ringing and motion blur put the body's edge
 //! a pixel or two into the scene, where a sample of the road would still be wrong.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -347,7 +348,7 @@ pub fn preview(image: &Image, mask: &Mask) -> Image {
     Image { width: image.width, height: image.height, rgb }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the camera and its image size (dataset.image_info)
         info: One<ImageInfo>,
@@ -359,7 +360,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// 1 = the ego vehicle's body
         mask: One<Mask>,
@@ -395,7 +396,7 @@ impl Stage for EgoMask {
         }
         Ok(Some(text))
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let (w, h, camera) = (i.info.width, i.info.height, i.info.camera.as_str());
         let drawn = if let Some(polygons) = self.0.polygons.get(camera) {
             fill_polygons(w, h, polygons)
@@ -438,7 +439,7 @@ impl Stage for EgoMask {
             }
             _ => Some(Image { width: 0, height: 0, rgb: Vec::new() }),
         };
-        Ok(Outputs { mask, preview })
+        Ok(Outputs { mask, preview }.into())
     }
 }
 
@@ -503,7 +504,7 @@ mod tests {
 
     fn run(params: Params, info: ImageInfo, image: Option<Image>) -> Result<Outputs> {
         let ctx = TaskContext { item: Default::default(), seed: 0, label: "s/0/c", unread: &[] };
-        EgoMask::new(params)?.run(&ctx, Inputs { info, image, estimate: None })
+        EgoMask::new(params)?.run(&ctx, Inputs { info, image, estimate: None }).map(Made::unwrap)
     }
 
     #[test]
@@ -591,7 +592,8 @@ mod tests {
         params.polygons.insert("CAM_BACK".into(), vec![vec![(0, 0), (8, 0), (8, 1), (0, 1)]]);
         let masked = |params: &Params, camera: &str, estimate: Option<Mask>| {
             let out = EgoMask::new(params.clone()).unwrap().run(&ctx, Inputs { info: info(camera, 8, 8), image: None, estimate });
-            out.map(|o| (0..64).filter(|&i| o.mask.data[i] == 1).collect::<Vec<usize>>())
+            let mask = out.map(|o| o.unwrap().mask);
+            mask.map(|m| (0..64).filter(|&i| m.data[i] == 1).collect::<Vec<usize>>())
         };
         // Polygons win; a camera without takes the estimate's bottom row.
         assert_eq!(masked(&params, "CAM_BACK", Some(estimate.clone())).unwrap(), (0..8).collect::<Vec<_>>());
@@ -607,7 +609,7 @@ mod tests {
             ..info("CAM_FRONT", 1600, 900)
         };
         let big = Mask { width: 1600, height: 900, data: vec![1; 1600 * 900] };
-        let out = EgoMask::new(Params::default()).unwrap().run(&ctx, Inputs { info: front, image: None, estimate: Some(big) }).unwrap();
+        let out = EgoMask::new(Params::default()).unwrap().run(&ctx, Inputs { info: front, image: None, estimate: Some(big) }).unwrap().unwrap();
         assert!(out.mask.data.iter().all(|&v| v == 0));
         // An estimate of another size is an error naming the camera.
         let e = masked(&params, "CAM_FRONT", Some(Mask { width: 4, height: 4, data: vec![0; 16] })).err().unwrap().to_string();

@@ -13,6 +13,7 @@
 //! where they were measured. Boxes grow by `box_margin` sideways and on top, and their bottom is
 //! raised by `ground_clearance` so that the road under a car stays (as in `AggregateLidar`).
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -95,7 +96,7 @@ pub fn follow_tracks(
     PointCloud { points: moved, labels: points.labels.clone(), rgb: points.rgb.clone() }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the cloud, in its sensor frame (e.g. the aggregate, or the fused cloud of one camera)
         points: One<PointCloud>,
@@ -110,7 +111,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the same cloud, moving objects where they are at the image's time
         points: One<PointCloud>,
@@ -131,8 +132,8 @@ impl Stage for FollowTracks {
     fn new(params: Params) -> Result<Self> {
         Ok(FollowTracks(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        Ok(Outputs { points: follow_tracks(&self.0, &i.points, &i.cloud_calib, &i.cloud_pose, &i.boxes, &i.image_boxes) })
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
+        Ok(Outputs { points: follow_tracks(&self.0, &i.points, &i.cloud_calib, &i.cloud_pose, &i.boxes, &i.image_boxes) }.into())
     }
 }
 

@@ -7,6 +7,7 @@
 //! stays at least one cell away from the LiDAR's coverage). Both clouds are in the same frame
 //! (the target LiDAR's); the output is the whole LiDAR cloud followed by the kept MVS points.
 
+use dist4d_runtime::Made;
 use crate::camera::{CameraView, ViewPorts};
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
@@ -79,7 +80,7 @@ pub fn fuse(params: &Params, lidar: &PointCloud, mvs: &PointCloud, view: &Camera
     Ok(out)
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the LiDAR cloud (has priority), e.g. aggregate.points
         points: One<PointCloud>,
@@ -90,7 +91,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the LiDAR points, then the kept MVS points (same frame)
         points: One<PointCloud>,
@@ -110,9 +111,9 @@ impl Stage for FusePoints {
     fn new(params: Params) -> Result<Self> {
         Ok(FusePoints(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let view = i.view.view()?;
-        Ok(Outputs { points: fuse(&self.0, &i.points, &i.mvs, &view)? })
+        Ok(Outputs { points: fuse(&self.0, &i.points, &i.mvs, &view)? }.into())
     }
 }
 

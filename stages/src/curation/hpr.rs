@@ -31,6 +31,7 @@
 //! go into the hull: the others never reach the image, and leaving them out makes the hull 5-6x
 //! smaller for a surround rig.
 
+use dist4d_runtime::Made;
 use crate::camera::{CameraView, ViewPorts};
 use crate::hull::hull_vertices;
 use crate::stage::Stage;
@@ -365,14 +366,14 @@ impl WindowMin {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the visible points, same frame, in input order
         points: One<PointCloud>,
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
         points: One<PointCloud>,
@@ -398,11 +399,11 @@ impl Stage for HiddenPointRemoval {
     fn new(params: Params) -> Result<Self> {
         Ok(HiddenPointRemoval(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let view = i.view.view()?;
         let cloud_from_world = i.view.cloud_pose.ego_to_world.then_from(&i.view.cloud_calib.sensor_to_ego).inverse();
         let boxes = i.boxes.as_ref().map(|b| (b, &cloud_from_world, i.view.camera_pose.timestamp_us));
-        Ok(Outputs { points: visible_points(&self.0, &i.points, &view, boxes) })
+        Ok(Outputs { points: visible_points(&self.0, &i.points, &view, boxes) }.into())
     }
 }
 

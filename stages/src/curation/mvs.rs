@@ -16,6 +16,7 @@
 //! fail the uniqueness or consistency test and get no depth rather than a wrong one.
 //! A frame without neighbours (a one-frame scene) gets no depth.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use crate::stereo::{
@@ -237,7 +238,7 @@ pub fn multi_view_stereo(params: &Params, frames: &[Frame]) -> Result<(DepthMap,
     Ok((DepthMap { width: w, height: h, data: depth.depth }, DepthMap { width: w, height: h, data: depth.confidence }))
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the camera's images: Window("dataset.image", frame, -1, 1)
         images: Many<Image>,
@@ -248,7 +249,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// depth of the target image at 1/downscale size, 0 = none
         depth: One<DepthMap>,
@@ -275,7 +276,7 @@ impl Stage for MultiViewStereo {
     fn peak_memory(&self) -> Option<u64> {
         Some(MAX_COST_VOLUME_BYTES)
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let mut frames = Vec::new();
         for (pos, image) in &i.images {
             let calib =
@@ -284,7 +285,7 @@ impl Stage for MultiViewStereo {
             frames.push(Frame { position: *pos, image, calib: &calib.1, pose: &pose.1 });
         }
         let (depth, confidence) = multi_view_stereo(&self.0, &frames)?;
-        Ok(Outputs { depth, confidence })
+        Ok(Outputs { depth, confidence }.into())
     }
 }
 

@@ -16,6 +16,7 @@
 //! `voxel_down_sample`: voxels anchored at the cloud's minimum corner less half a voxel), in voxel
 //! order so the output does not depend on thread count.
 
+use dist4d_runtime::Made;
 use crate::camera::CameraView;
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
@@ -239,7 +240,7 @@ pub fn static_points(params: &Params, m: &MvsInputs) -> Result<PointCloud> {
     Ok(PointCloud { points: voxel_mean(&kept, params.voxel), labels: Vec::new(), rgb: Vec::new() })
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// MultiViewStereo depth (any size; pixels scale to the image)
         depth: One<DepthMap>,
@@ -263,7 +264,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// static MVS points in the target LiDAR frame
         points: One<PointCloud>,
@@ -283,7 +284,7 @@ impl Stage for StaticMvsPoints {
     fn new(params: Params) -> Result<Self> {
         Ok(StaticMvsPoints(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let view = CameraView::new(&i.cloud_calib, &i.cloud_pose, &i.camera_calib, &i.camera_pose)?;
         let cloud_from_world = i.cloud_pose.ego_to_world.then_from(&i.cloud_calib.sensor_to_ego).inverse();
         // Both masks say "no MVS point here": one map of their union.
@@ -311,7 +312,7 @@ impl Stage for StaticMvsPoints {
             cloud_from_world,
             boxes: &i.boxes,
         };
-        Ok(Outputs { points: static_points(&self.0, &m)? })
+        Ok(Outputs { points: static_points(&self.0, &m)? }.into())
     }
 }
 

@@ -7,6 +7,7 @@
 //! for 1600x900, which is why it is a stage of its own: pipelines run it only when a completer
 //! reads it.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::Result;
@@ -107,14 +108,14 @@ pub fn nearest_fill(sparse: &DepthMap) -> DepthMap {
     DepthMap { width: sparse.width, height: sparse.height, data }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// sparse depth, 0 = none (e.g. DepthPrompt.sparse)
         sparse: One<DepthMap>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the nearest-neighbour fill (all 0 when there is no sample)
         prompt: One<DepthMap>,
@@ -135,8 +136,8 @@ impl Stage for NearestFill {
     fn new(_: Params) -> Result<Self> {
         Ok(NearestFill)
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        Ok(Outputs { prompt: nearest_fill(&i.sparse) })
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
+        Ok(Outputs { prompt: nearest_fill(&i.sparse) }.into())
     }
 }
 

@@ -5,6 +5,7 @@
 //! `min_depth` and they fall strictly inside the image less a `border_px` margin (devkit: 1 m,
 //! 1 px). The depth map takes, per pixel (floor(u), floor(v)), the nearest point (z-buffer).
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
 use anyhow::{anyhow, Result};
@@ -84,7 +85,7 @@ pub fn project(
     Ok((depth, ProjectedPoints { rows }))
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the sweep, in the LiDAR frame
         points: One<PointCloud>,
@@ -99,7 +100,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// sparse depth, 0 = none
         depth: One<DepthMap>,
@@ -121,9 +122,9 @@ impl Stage for ProjectLidar {
     fn new(params: Params) -> Result<Self> {
         Ok(ProjectLidar(params))
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let (depth, uvz) = project(&self.0, &i.points, &i.lidar_calib, &i.lidar_pose, &i.camera_calib, &i.camera_pose)?;
-        Ok(Outputs { depth, uvz: ctx.wants("uvz").then_some(uvz) })
+        Ok(Outputs { depth, uvz: ctx.wants("uvz").then_some(uvz) }.into())
     }
 }
 

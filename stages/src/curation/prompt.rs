@@ -25,6 +25,7 @@
 //! hold-out cannot judge this alone: its points have the same LiDAR-versus-camera visibility as
 //! the leaks.
 
+use dist4d_runtime::Made;
 use crate::camera::{CameraView, ViewPorts, ZBuffer};
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
@@ -144,7 +145,7 @@ pub fn drop_occluded(map: &mut DepthMap, window: [f64; 2], tolerance: f64) {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the cloud, in the frame of `cloud_calib` at `cloud_pose`
         points: One<PointCloud>,
@@ -156,7 +157,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// z-buffered projection, 0 = no point
         sparse: One<DepthMap>,
@@ -176,13 +177,13 @@ impl Stage for DepthPrompt {
     fn new(params: Params) -> Result<Self> {
         Ok(DepthPrompt(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let view = i.view.view()?;
         let mut sparse = project_points(&self.0, &i.points, &view);
         if let Some(ego) = super::ego_mask::wired(i.ego.as_ref(), sparse.width, sparse.height, "prompt")? {
             super::ego_mask::set_where(&mut sparse.data, ego, 0.0);
         }
-        Ok(Outputs { sparse })
+        Ok(Outputs { sparse }.into())
     }
 }
 

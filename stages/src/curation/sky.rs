@@ -33,6 +33,7 @@
 //! above the LiDAR with no MVS support), on dark skies (dusk, night) and on red or green skies.
 //! Figures are in docs/BENCHMARKS.md.
 
+use dist4d_runtime::Made;
 use crate::box_sum::box_sum;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
@@ -409,7 +410,7 @@ fn fill_holes(sky: &mut [bool], sampled: &[bool], w: usize, h: usize, max: usize
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the camera image
         image: One<Image>,
@@ -422,7 +423,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// 1 = sky
         sky: One<Mask>,
@@ -452,13 +453,13 @@ impl Stage for EstimateSky {
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         self.1.resource()
     }
-    fn run(&self, ctx: &TaskContext, mut i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, mut i: Inputs) -> Result<Made<Outputs>> {
         let ego = i.ego.take();
         let mut out = self.sky(ctx, i)?;
         if let Some(ego) = super::ego_mask::wired(ego.as_ref(), out.sky.width, out.sky.height, "image")? {
             super::ego_mask::set_where(&mut out.sky.data, ego, 0);
         }
-        Ok(out)
+        Ok(out.into())
     }
 }
 

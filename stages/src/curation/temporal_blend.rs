@@ -24,6 +24,7 @@
 //! are far (20-80 m) and the car moves about a metre between frames, so a depth error moves the
 //! landing pixel little, and every pixel of t gets a candidate without holes.
 
+use dist4d_runtime::Made;
 use crate::box_sum::box_sum;
 use crate::camera::CameraView;
 use crate::stage::Stage;
@@ -216,7 +217,7 @@ pub fn blend(p: &Params, target: &Frame, others: &[Frame], moving: &Boxes3D) -> 
     Ok((depth, support))
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the completions of the window's frames: Window("complete.depth", frame, -1, 1)
         depths: Many<DepthMap>,
@@ -231,7 +232,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the target frame's depth, weakly supported structure taken from better-supported neighbours
         depth: One<DepthMap>,
@@ -256,7 +257,7 @@ impl Stage for TemporalBlend {
     fn new(params: Params) -> Result<Self> {
         Ok(TemporalBlend(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         use crate::stage::at_position as at;
         let frame = |pos: i64| -> Result<Option<Frame>> {
             let depth = at(&i.depths, pos, "depths")?;
@@ -272,7 +273,7 @@ impl Stage for TemporalBlend {
             others.extend(frame(*pos)?);
         }
         let (depth, support) = blend(&self.0, &target, &others, &i.boxes)?;
-        Ok(Outputs { depth, support })
+        Ok(Outputs { depth, support }.into())
     }
 }
 

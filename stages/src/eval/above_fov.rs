@@ -9,6 +9,7 @@
 //! the highest `outlier_share` of them), so no sensor table is needed; `top_elevation_deg`
 //! overrides it for sweeps that were cropped.
 
+use dist4d_runtime::Made;
 use crate::camera::{CameraView, ViewPorts};
 use crate::stage::Stage;
 use dist4d_runtime::TaskContext;
@@ -116,7 +117,7 @@ fn above_slope(p: glam::DVec3, slope: f64) -> bool {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the target frame's sweep, in its sensor frame (for its top beam)
         points: One<PointCloud>,
@@ -127,7 +128,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the input depth above the top beam, 0 elsewhere (empty if the input is)
         depth: One<DepthMap>,
@@ -148,14 +149,14 @@ impl Stage for AboveLidarFov {
     fn new(params: Params) -> Result<Self> {
         Ok(AboveLidarFov(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         // No reference (a dataset without ground truth) or no sweep: nothing to restrict.
         let top = top_elevation(&self.0, &i.points);
         let (Some(top), true) = (top, i.depth.width > 0 && i.depth.height > 0) else {
-            return Ok(Outputs { depth: DepthMap::new(0, 0) });
+            return Ok(Outputs { depth: DepthMap::new(0, 0) }.into());
         };
         let view = i.view.view()?;
-        Ok(Outputs { depth: above_fov(&i.depth, &view, top)? })
+        Ok(Outputs { depth: above_fov(&i.depth, &view, top)? }.into())
     }
 }
 

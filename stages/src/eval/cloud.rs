@@ -22,6 +22,7 @@
 //!
 //! `dist4d eval` tabulates the three per step (the item's variant) with a mean row.
 
+use dist4d_runtime::Made;
 use crate::novel_view::splat::PinholeView;
 use crate::stage::Stage;
 use anyhow::{ensure, Context, Result};
@@ -74,7 +75,7 @@ pub struct CloudScores {
     pub on_surface: Option<f64>,
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the bullet-time cloud (`cloud.points`), in the ego frame of the rig's first camera
         points: One<PointCloud>,
@@ -90,7 +91,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the scores, JSON
         json: One<File>,
@@ -111,12 +112,12 @@ impl Stage for EvalCloud {
     fn new(params: Params) -> Result<Self> {
         Ok(EvalCloud(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let mut s = range_scores(&self.0, &i.points);
         if !i.world.0.is_empty() {
             s.on_surface = Some(on_surface(&self.0, &i)?);
         }
-        Ok(Outputs { json: File(serde_json::to_vec(&s)?) })
+        Ok(Outputs { json: File(serde_json::to_vec(&s)?) }.into())
     }
 }
 

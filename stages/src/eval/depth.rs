@@ -22,6 +22,7 @@
 //! truth only where it lies above the LiDAR's vertical field of view, from `AboveLidarFov`: where
 //! LiDAR cannot help and MVS must; sparse, as it is 0 elsewhere, the sky included).
 
+use dist4d_runtime::Made;
 use super::boundary::{boundary_metrics, BoundaryMetrics, EdgeParams};
 use super::sky::{sky_metrics, SkyMetrics};
 use crate::stage::Stage;
@@ -277,7 +278,7 @@ pub fn evaluate(
     Ok(out)
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the depth to score
         depth: One<DepthMap>,
@@ -297,7 +298,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// scores per reference (JSON); `dist4d eval` tabulates them
         json: One<File>,
@@ -318,7 +319,7 @@ impl Stage for EvalDepth {
     fn new(params: Params) -> Result<Self> {
         Ok(EvalDepth(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         use Coverage::*;
         let references = [
             ("gt", i.gt.as_ref(), Dense),
@@ -329,7 +330,7 @@ impl Stage for EvalDepth {
             ("gt_moving", i.gt_moving.as_ref(), Sparse),
         ];
         let scores = evaluate(&self.0, &i.depth, &references)?;
-        Ok(Outputs { json: File(serde_json::to_vec_pretty(&scores)?) })
+        Ok(Outputs { json: File(serde_json::to_vec_pretty(&scores)?) }.into())
     }
 }
 

@@ -8,6 +8,7 @@
 //! time: the dataset's `camera_boxes`) moving faster than `min_speed`, grown by `box_margin` and
 //! with its bottom raised by `ground_clearance` (the road under the car is not the car).
 
+use dist4d_runtime::Made;
 use crate::camera::CameraView;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
@@ -94,7 +95,7 @@ pub fn on_moving_objects(
     Ok(DepthMap { width: depth.width, height: depth.height, data })
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the depth to restrict (e.g. dataset.gt_depth; empty = none)
         depth: One<DepthMap>,
@@ -107,7 +108,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the input depth on moving objects, 0 elsewhere (empty if the input is)
         depth: One<DepthMap>,
@@ -128,8 +129,8 @@ impl Stage for OnMovingObjects {
     fn new(params: Params) -> Result<Self> {
         Ok(OnMovingObjects(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        Ok(Outputs { depth: on_moving_objects(&self.0, &i.depth, &i.camera_calib, &i.camera_pose, &i.boxes)? })
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
+        Ok(Outputs { depth: on_moving_objects(&self.0, &i.depth, &i.camera_calib, &i.camera_pose, &i.boxes)? }.into())
     }
 }
 

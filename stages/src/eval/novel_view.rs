@@ -4,6 +4,7 @@
 //! reference is structure within `min_depth..max_depth` (the sky and beyond are left out, as in
 //! the depth evaluation). `dist4d eval` tabulates the scores per variant (the shift).
 
+use dist4d_runtime::Made;
 use super::image_scores::{psnr, ssim_both};
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
@@ -55,7 +56,7 @@ pub struct ViewScores {
     pub depth_pixels: u64,
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the generated view's RGB
         image: One<Image>,
@@ -70,7 +71,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the scores, JSON
         json: One<File>,
@@ -139,7 +140,7 @@ impl Stage for EvalNovelView {
     fn new(params: Params) -> Result<Self> {
         Ok(EvalNovelView(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        Ok(Outputs { json: File(serde_json::to_vec(&score(&self.0, &i)?)?) })
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
+        Ok(Outputs { json: File(serde_json::to_vec(&score(&self.0, &i)?)?) }.into())
     }
 }

@@ -6,7 +6,7 @@
 use crate::stage::Stage;
 use anyhow::{Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_runtime::{Made, TaskContext};
 use dist4d_synth::{PinholeCamera, Renderer};
 use dist4d_types::artifact::{Calibration, DepthMap, File, Image, Pose};
 use serde::{Deserialize, Serialize};
@@ -31,7 +31,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the synthetic world (`dataset.synth_world`; empty for other datasets)
         world: One<File>,
@@ -42,7 +42,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// exact RGB
         image: One<Image>,
@@ -65,9 +65,9 @@ impl Stage for RenderSynthetic {
     fn new(params: Params) -> Result<Self> {
         Ok(RenderSynthetic(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         if i.world.0.is_empty() {
-            return Err(NotApplicable("not a synthetic dataset: no world to render".into()).into());
+            return Ok(Made::Nothing("not a synthetic dataset: no world to render".into()));
         }
         let r = Renderer::shared(&i.world.0)?;
         let scene_name: serde_json::Value = serde_json::from_slice(&i.world.0)?;
@@ -84,6 +84,6 @@ impl Stage for RenderSynthetic {
         Ok(Outputs {
             image: Image { width: img.width, height: img.height, rgb: img.rgb },
             depth: DepthMap { width: img.width, height: img.height, data: img.depth },
-        })
+        }.into())
     }
 }

@@ -14,6 +14,7 @@
 //! same share is computed for it too, a ceiling the curated depth can be compared with (it
 //! differs from 100% by sampling at pixel centres and object edges only).
 
+use dist4d_runtime::Made;
 use crate::camera::CameraView;
 use crate::stage::Stage;
 use anyhow::{anyhow, ensure, Result};
@@ -143,7 +144,7 @@ pub struct TemporalScores {
     pub gt: BTreeMap<String, Agreement>,
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the curated depth of the window's frames: Window("complete.depth", frame, -2, 2)
         depths: Many<DepthMap>,
@@ -158,7 +159,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// TemporalScores as JSON; `dist4d eval` tabulates them
         json: One<File>,
@@ -180,7 +181,7 @@ impl Stage for EvalTemporal {
     fn new(params: Params) -> Result<Self> {
         Ok(EvalTemporal(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let at = |pos: i64| -> Result<(&Calibration, &Pose)> {
             let c = i.calibs.iter().find(|(p, _)| *p == pos).ok_or_else(|| anyhow!("no camera_calib at position {pos}"))?;
             let p = i.poses.iter().find(|(p, _)| *p == pos).ok_or_else(|| anyhow!("no camera_pose at position {pos}"))?;
@@ -202,7 +203,7 @@ impl Stage for EvalTemporal {
             Ok(out)
         };
         let scores = TemporalScores { depth: score(&i.depths)?, gt: score(&i.gts)? };
-        Ok(Outputs { json: File(serde_json::to_vec_pretty(&scores)?) })
+        Ok(Outputs { json: File(serde_json::to_vec_pretty(&scores)?) }.into())
     }
 }
 

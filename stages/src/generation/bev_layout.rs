@@ -13,6 +13,7 @@
 //! where > 0, `map_resolution` metres per pixel, pixel (col, row) at world (x, y) = (col * res,
 //! (height - row) * res).
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -53,7 +54,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the scene's map mask (`dataset.map`; empty: no map)
         map: One<File>,
@@ -62,7 +63,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the layout (RGB8, `size` x `size`)
         layout: One<Image>,
@@ -97,10 +98,10 @@ impl Stage for BevLayout {
         Ok(BevLayout { params, last_map: Mutex::new(None) })
     }
 
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         ensure!(i.info.missing.is_none(), "the item has no image, so no pose: {}", i.info.missing.clone().unwrap_or_default());
         let map = if i.map.0.is_empty() { None } else { Some(self.map(&i.map.0)?) };
-        Ok(Outputs { layout: draw(&self.params, map.as_deref(), &i.info.ego_to_world, &i.info.boxes.boxes) })
+        Ok(Outputs { layout: draw(&self.params, map.as_deref(), &i.info.ego_to_world, &i.info.boxes.boxes) }.into())
     }
 }
 

@@ -15,6 +15,7 @@
 //! The controls come in as the future item's `ImageInfo` (`Offset("dataset.image_info", frame,
 //! variant)`): its pose, calibration and boxes, never its pixels.
 
+use dist4d_runtime::Made;
 use crate::model_worker::{npy_rgb8, read_npy_rgb8, worker_depth, Exchange, ModelWorker, WorkerSpec};
 use crate::novel_view::fill_baseline::fill;
 use crate::novel_view::frame_pair::{camera_views, frame_record, info_view, view_of};
@@ -118,7 +119,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the reference frame's images, every camera (`Across("dataset.image", camera)`)
         images: Many<Image>,
@@ -138,7 +139,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the generated image of this camera at the step
         image: One<Image>,
@@ -192,7 +193,7 @@ impl Stage for GenerateFuture {
         )
     }
 
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let (label, step) = variant_of(ctx, &self.0.variants)?;
         let target = &i.target_info;
         let view = info_view(target).context("the step's camera")?;
@@ -220,7 +221,7 @@ impl Stage for GenerateFuture {
             "seen": seen,
             "view": step_record(target, &view),
         });
-        Ok(Outputs { image, depth, mask, trusted, pose, record: File(serde_json::to_vec_pretty(&record)?) })
+        Ok(Outputs { image, depth, mask, trusted, pose, record: File(serde_json::to_vec_pretty(&record)?) }.into())
     }
 }
 

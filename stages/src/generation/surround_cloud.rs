@@ -24,7 +24,7 @@ use crate::novel_view::splat::PinholeView;
 use crate::stage::Stage;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_runtime::{Made, TaskContext};
 use dist4d_types::artifact::{Calibration, DepthMap, File, Image, Mask, PointCloud, Pose};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -67,7 +67,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// every camera's image at the step (`Across("future.image", camera)`)
         images: Many<Image>,
@@ -89,7 +89,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the coloured surround cloud, in the first camera's ego frame at the step
         points: One<PointCloud>,
@@ -120,7 +120,7 @@ impl Stage for SurroundCloud {
         Ok(SurroundCloud(params))
     }
 
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let n = i.images.len();
         ensure!(
             n > 0 && i.depths.len() == n && i.calibs.len() == n && i.poses.len() == n,
@@ -130,7 +130,7 @@ impl Stage for SurroundCloud {
             i.poses.len()
         );
         if i.calibs[0].1 != i.camera_calib {
-            return Err(NotApplicable("the step's surround cloud is made by its first camera's task".into()).into());
+            return Ok(Made::Nothing("the step's surround cloud is made by its first camera's task".into()));
         }
         ensure!(
             i.masks.is_empty() || i.masks.len() == n,
@@ -174,7 +174,7 @@ impl Stage for SurroundCloud {
             "points": points.points.len(),
             "voxel": self.0.voxel,
         });
-        Ok(Outputs { points, preview, record: File(serde_json::to_vec_pretty(&record)?) })
+        Ok(Outputs { points, preview, record: File(serde_json::to_vec_pretty(&record)?) }.into())
     }
 }
 

@@ -6,6 +6,7 @@
 //! this stage makes them and the pair's record, in the format of the DiST-S pairs with `kind:
 //! "scc"` and the shift, so one loader reads both.
 
+use dist4d_runtime::Made;
 use super::frame_pair::{frame_record, resize_depth_nearest, resize_image, view_of};
 use super::shift_view::lateral_of;
 use crate::stage::Stage;
@@ -39,7 +40,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the original image
         image: One<Image>,
@@ -52,7 +53,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the original image at the model size
         target_image: One<Image>,
@@ -76,7 +77,7 @@ impl Stage for CyclePair {
     fn new(params: Params) -> Result<Self> {
         Ok(CyclePair(params))
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let (w, h) = (self.0.width, self.0.height);
         let view = view_of(&i.info, &i.image, &i.depth)?;
         let original = Pose { ego_to_world: i.info.ego_to_world, timestamp_us: i.info.timestamp_us };
@@ -106,6 +107,6 @@ impl Stage for CyclePair {
             target_image: resize_image(&i.image, w, h)?,
             target_depth: resize_depth_nearest(&i.depth, w, h),
             record: File(serde_json::to_vec(&record)?),
-        })
+        }.into())
     }
 }

@@ -12,6 +12,7 @@
 //! second pass. The result is blurry and streaky inside large holes: it is a baseline, not a
 //! generator, and its scores (docs/BENCHMARKS.md) are what a learned model must beat.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -48,7 +49,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the image condition (reprojected colours)
         image: One<Image>,
@@ -59,7 +60,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// dense RGB at the novel view
         image: One<Image>,
@@ -89,21 +90,21 @@ impl Stage for FillViewBaseline {
     fn resource(&self) -> Option<dist4d_runtime::Resource> {
         self.1.resource()
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let (w, h) = (i.image.width as usize, i.image.height as usize);
         ensure!(
             i.image.rgb.len() == 3 * w * h && i.depth.data.len() == w * h && i.mask.data.len() == w * h,
             "the condition's image, depth and mask must all be {w}x{h}"
         );
         if self.1.is_set() {
-            return generate_by_worker(ctx, &self.1, &i);
+            return generate_by_worker(ctx, &self.1, &i).map(Made::from);
         }
         let valid: Vec<bool> = i.mask.data.iter().zip(&i.depth.data).map(|(&m, &z)| m != 0 && z > 0.0).collect();
         let (rgb, depth) = fill(&i.image.rgb, &i.depth.data, &valid, w, h, self.0.background_tolerance);
         Ok(Outputs {
             image: Image { width: w as u32, height: h as u32, rgb },
             depth: DepthMap { width: w as u32, height: h as u32, data: depth },
-        })
+        }.into())
     }
 }
 

@@ -13,6 +13,7 @@
 //! (JSON) says what the pair is; the `PairIndex` stage collects the records of a scene into its
 //! index with the exported paths.
 
+use dist4d_runtime::Made;
 use super::moving::{split, Moved, Moving};
 use super::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
 use crate::lift::LiftParams;
@@ -114,7 +115,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the pair's own image at frame t
         image: One<Image>,
@@ -144,7 +145,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the source frame's colours drawn at the target (model size), black where none
         cond_image: One<Image>,
@@ -202,7 +203,7 @@ impl Stage for FramePair {
         )
     }
 
-    fn run(&self, ctx: &TaskContext, inputs: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, inputs: Inputs) -> Result<Made<Outputs>> {
         let (label, variant) = variant_of(ctx, &self.params.variants)?;
         let (src_image, src_depth, src_info) = (&inputs.image, &inputs.depth, &inputs.info);
         let (tgt_image, tgt_depth, tgt_info) = (&inputs.target_image, &inputs.target_depth, &inputs.target_info);
@@ -310,7 +311,7 @@ impl Stage for FramePair {
             target_image: resize_image(tgt_image, w, h)?,
             target_depth: resize_depth_nearest(tgt_depth, w, h),
             record: File(serde_json::to_vec(&record)?),
-        })
+        }.into())
     }
 }
 

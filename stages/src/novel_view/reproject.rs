@@ -5,6 +5,7 @@
 //! sky's depth (the default) it is drawn as directions from the target camera under the
 //! surfaces, at `lift.sky_depth`; with `max_depth: 99` it is left out of the condition.
 
+use dist4d_runtime::Made;
 use super::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
 use crate::lift::LiftParams;
 use crate::stage::Stage;
@@ -54,7 +55,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the source images (one, a window of frames, or a gather of cameras), matched to the
         /// depths, calibrations and poses by position
@@ -75,7 +76,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// image condition: the sources' colours where they land, black elsewhere
         image: One<Image>,
@@ -107,7 +108,7 @@ impl Stage for Reproject {
         Ok(Reproject { params })
     }
 
-    fn run(&self, _ctx: &TaskContext, inputs: Inputs) -> Result<Outputs> {
+    fn run(&self, _ctx: &TaskContext, inputs: Inputs) -> Result<Made<Outputs>> {
         let target = PinholeView::new(&inputs.target_calib, &inputs.target_pose).context("target camera")?;
         let target = match (self.params.width, self.params.height) {
             (0, 0) => target,
@@ -183,7 +184,7 @@ impl Stage for Reproject {
             image: Image { width: out.width, height: out.height, rgb: out.rgb },
             depth: DepthMap { width: out.width, height: out.height, data: out.depth },
             mask: Mask { width: out.width, height: out.height, data: out.valid },
-        })
+        }.into())
     }
 }
 

@@ -3,6 +3,7 @@
 //! camera-size image nor a resize of its own. The image is resized with an antialiasing triangle
 //! filter, the depth by nearest sample (see `FramePair`).
 
+use dist4d_runtime::Made;
 use super::frame_pair::{resize_depth_nearest, resize_image};
 use crate::stage::Stage;
 use anyhow::Result;
@@ -34,7 +35,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the camera image
         image: One<Image>,
@@ -43,7 +44,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the image at the model's size
         image: One<Image>,
@@ -65,8 +66,8 @@ impl Stage for ResizeView {
     fn new(params: Params) -> Result<Self> {
         Ok(ResizeView(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let (w, h) = (self.0.width, self.0.height);
-        Ok(Outputs { image: resize_image(&i.image, w, h)?, depth: resize_depth_nearest(&i.depth, w, h) })
+        Ok(Outputs { image: resize_image(&i.image, w, h)?, depth: resize_depth_nearest(&i.depth, w, h) }.into())
     }
 }

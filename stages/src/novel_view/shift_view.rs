@@ -7,6 +7,7 @@
 //! seeded by the frame (the item's scene and frame), the variant and `seed`, so a rerun gives the
 //! same shifts and another `seed` new ones.
 
+use dist4d_runtime::Made;
 use crate::stage::{variant_of, Stage};
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate, Variants};
@@ -64,14 +65,14 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the ego pose at the image's time
         pose: One<Pose>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the same pose moved sideways (same time)
         pose: One<Pose>,
@@ -97,7 +98,7 @@ impl Stage for ShiftView {
     fn variants(params: &Params) -> Option<Variants> {
         Variants::split(params, |p| std::mem::take(&mut p.variants))
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let (label, shift) = variant_of(ctx, &self.0.variants)?;
         let tau = match shift.range {
             Some([lo, hi]) => {
@@ -117,7 +118,7 @@ impl Stage for ShiftView {
             }
             None => shift.lateral,
         };
-        Ok(Outputs { pose: shifted(&i.pose, tau) })
+        Ok(Outputs { pose: shifted(&i.pose, tau) }.into())
     }
 }
 

@@ -29,6 +29,7 @@
 //! labels) and how many static points took which. Both clouds are thinned to one point per voxel
 //! (`voxel`, `track_voxel`), the first in sweep, then point order.
 
+use dist4d_runtime::Made;
 use super::classes::{self, DRIVEABLE_SURFACE, DROP, OTHERS, UNLABELLED};
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
@@ -122,7 +123,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// every sweep of the scene (`All("dataset.lidar")`), matched to the rest by position
         sweeps: Many<PointCloud>,
@@ -137,7 +138,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the static points in world coordinates, labels = Occ3D classes
         static_points: One<PointCloud>,
@@ -168,7 +169,7 @@ impl Stage for AggregateScene {
         Ok(AggregateScene(params))
     }
 
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let n = i.sweeps.len();
         ensure!(
             i.calibs.len() == n && i.poses.len() == n && i.boxes.len() == n,
@@ -207,7 +208,7 @@ impl Stage for AggregateScene {
             });
         }
         let (static_points, tracks, summary) = aggregate(&self.0, &sweeps);
-        Ok(Outputs { static_points, tracks, summary: File(serde_json::to_vec_pretty(&summary)?) })
+        Ok(Outputs { static_points, tracks, summary: File(serde_json::to_vec_pretty(&summary)?) }.into())
     }
 }
 

@@ -10,6 +10,7 @@
 //! Occ3D has one file for a whole split: `dist4d occ3d-annotations OUT` merges the scenes' parts
 //! into `OUT/annotations.json` and writes the splits.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -44,7 +45,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// every frame's token (`All("dataset.frame_token")`)
         tokens: Many<File>,
@@ -55,7 +56,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// JSON: `{"scene_infos": {<scene>: {<token>: {..}}}}`
         json: One<File>,
@@ -79,7 +80,7 @@ impl Stage for Occ3dAnnotations {
         Ok(Occ3dAnnotations(params))
     }
 
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         ensure!(
             i.tokens.len() == i.poses.len(),
             "`tokens` and `poses` hold {} and {} frames: wire both with All(..)",
@@ -137,7 +138,7 @@ impl Stage for Occ3dAnnotations {
             );
         }
         let out = json!({ "scene_infos": { scene: Value::Object(infos) } });
-        Ok(Outputs { json: File(serde_json::to_vec(&out)?) })
+        Ok(Outputs { json: File(serde_json::to_vec(&out)?) }.into())
     }
 }
 

@@ -18,6 +18,7 @@
 //! windows), so the engine plans only those. A window that would run past the scene's end has
 //! nothing to make.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -63,7 +64,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the window's occupancy (`Window("occupancy.grid", frame, 0, 15)`)
         grids: Many<OccupancyGrid>,
@@ -72,7 +73,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// JSON: `trajectory` (T x 3), `command` (0-3) and its name
         json: One<File>,
@@ -97,11 +98,11 @@ impl Stage for DitConditions {
         Ok(DitConditions(params))
     }
 
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let p = &self.0;
         let t = p.frames as usize;
-        let grids = super::window("grids", &i.grids, t)?;
-        let poses = super::window("poses", &i.poses, t)?;
+        let grids = crate::or_nothing!(super::window("grids", &i.grids, t)?);
+        let poses = crate::or_nothing!(super::window("poses", &i.poses, t)?);
         let trajectory: Vec<[f64; 3]> = {
             let first = poses[0].ego_to_world.translation;
             poses
@@ -124,7 +125,7 @@ impl Stage for DitConditions {
                 "command_name": names[command as usize],
             }))?),
             layout: File(layout),
-        })
+        }.into())
     }
 }
 

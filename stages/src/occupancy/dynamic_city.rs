@@ -12,6 +12,7 @@
 //!   world-from-ego matrix row-major, as `np.loadtxt` reads it; the loader takes x, y from
 //!   entries 3 and 7 and the yaw as atan2(entry 4, entry 0) (`data_utils.get_trajectory`).
 
+use dist4d_runtime::Made;
 use super::classes::FREE;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
@@ -56,14 +57,14 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the frame's occupancy
         grid: One<OccupancyGrid>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// `.label`: uint32 classes, C order over (X, Y, Z)
         label: One<File>,
@@ -86,7 +87,7 @@ impl Stage for EncodeCarlaSC {
     fn new(params: Params) -> Result<Self> {
         Ok(EncodeCarlaSC(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let g = &i.grid;
         let n = g.voxels();
         ensure!(g.semantics.len() == n, "the grid's volumes do not match its size {:?}", g.dims);
@@ -103,7 +104,7 @@ impl Stage for EncodeCarlaSC {
         for &m in mask {
             bin.extend_from_slice(&(if m != 0 { 1.0f32 } else { 0.0 }).to_le_bytes());
         }
-        Ok(Outputs { label: File(label), bin: File(bin) })
+        Ok(Outputs { label: File(label), bin: File(bin) }.into())
     }
 }
 
@@ -114,7 +115,7 @@ mod tests {
     #[test]
     fn the_label_is_uint32_with_free_zero_and_the_bin_marks_the_seen_voxels() {
         let grid = OccupancyGrid { dims: [1, 1, 3], semantics: vec![17, 11, 4], mask_lidar: vec![1, 1, 1], mask_camera: vec![0, 1, 1] };
-        let out = EncodeCarlaSC(Params::default()).run(&TaskContext { item: Default::default(), seed: 0, label: "t", unread: &[] }, Inputs { grid }).unwrap();
+        let out = EncodeCarlaSC(Params::default()).run(&TaskContext { item: Default::default(), seed: 0, label: "t", unread: &[] }, Inputs { grid }).unwrap().unwrap();
         let label: Vec<u32> = out.label.0.chunks(4).map(|c| u32::from_le_bytes(c.try_into().unwrap())).collect();
         assert_eq!(label, vec![0, 12, 5]);
         let bin: Vec<f32> = out.bin.0.chunks(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();

@@ -3,6 +3,7 @@
 //! `np.load(path)` and the keys `semantics`, `mask_lidar`, `mask_camera`): three uint8 arrays of
 //! shape (X, Y, Z) = (200, 200, 16) by default, C order, compressed as `np.savez_compressed` does.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::Validate;
@@ -17,14 +18,14 @@ pub struct Params {}
 
 impl Validate for Params {}
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the frame's occupancy
         grid: One<OccupancyGrid>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// labels.npz: `semantics`, `mask_lidar`, `mask_camera`, uint8 (X, Y, Z)
         npz: One<File>,
@@ -44,7 +45,7 @@ impl Stage for EncodeOcc3d {
     fn new(_: Params) -> Result<Self> {
         Ok(EncodeOcc3d)
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let g = &i.grid;
         let n = g.voxels();
         ensure!(
@@ -59,6 +60,6 @@ impl Stage for EncodeOcc3d {
                 ("mask_lidar", npy_u8(&shape, &g.mask_lidar)),
                 ("mask_camera", npy_u8(&shape, &g.mask_camera)),
             ])),
-        })
+        }.into())
     }
 }

@@ -28,7 +28,7 @@ use super::grid::GridParams;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_runtime::{Made, TaskContext};
 use dist4d_types::artifact::{Calibration, File, OccupancyGrid, Pose};
 use dist4d_types::formats::{npy_f64, npy_u8, npz};
 use glam::DVec3;
@@ -139,7 +139,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the frame's occupancy (on `from_grid`, with Occ3D-nuScenes' classes)
         grid: One<OccupancyGrid>,
@@ -152,7 +152,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// `<frame:03>_04.npz`: `voxel_label`, `origin_voxel_state`, `final_voxel_state`, `infov`
         /// (uint8 X x Y x Z), `ego2global` (float64 4 x 4)
@@ -269,19 +269,18 @@ impl Stage for EncodeOcc3dWaymo {
     fn new(params: Params) -> Result<Self> {
         Ok(EncodeOcc3dWaymo { params })
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let source = String::from_utf8_lossy(&i.source.0).into_owned();
         if self.params.when == When::Auto && !is_waymo(&source) {
             let said = if source.is_empty() { "unknown".to_string() } else { format!("`{source}`") };
-            return Err(NotApplicable(format!(
+            return Ok(Made::Nothing(format!(
                 "the scene's source dataset is {said}, not Waymo Perception (`{WAYMO_PERCEPTION}`); \
                  `when: Always` writes Occ3D-Waymo's layout for any scene"
-            ))
-            .into());
+            )));
         }
         let cameras: Vec<&Calibration> = i.camera_calibs.iter().map(|(_, c)| c).collect();
         let f = waymo_frame(&i.grid, &self.params.from_grid, &self.params.grid, &i.pose, &cameras)?;
-        Ok(Outputs { npz: File(encode(&f)) })
+        Ok(Outputs { npz: File(encode(&f)) }.into())
     }
 }
 

@@ -6,6 +6,7 @@
 //! each class's IoU, the mIoU (NaN-mean over classes 0-16, free left out) and the geometry IoU
 //! (occupied against free).
 
+use dist4d_runtime::Made;
 use super::classes::{FREE, NAMES};
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
@@ -20,7 +21,7 @@ pub struct Params {}
 
 impl Validate for Params {}
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the occupancy to score
         grid: One<OccupancyGrid>,
@@ -29,7 +30,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// JSON: `confusion` (rows: reference class, columns: predicted), and the classes
         json: One<File>,
@@ -57,10 +58,10 @@ impl Stage for EvalOccupancy {
     fn new(_: Params) -> Result<Self> {
         Ok(EvalOccupancy)
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let c = confusion(&i.grid, &i.reference)?;
         let scores = FrameConfusion { classes: NAMES.iter().map(|s| s.to_string()).collect(), confusion: c };
-        Ok(Outputs { json: File(serde_json::to_vec(&scores)?) })
+        Ok(Outputs { json: File(serde_json::to_vec(&scores)?) }.into())
     }
 }
 

@@ -13,7 +13,7 @@ use super::occupancy_frame::{with_masks, Params as FrameParams};
 use crate::stage::Stage;
 use anyhow::{Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_runtime::{Made, TaskContext};
 use dist4d_types::artifact::{Calibration, File, OccupancyGrid, PointCloud, Pose};
 use serde::{Deserialize, Serialize};
 
@@ -54,7 +54,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the synthetic world (`dataset.synth_world`; empty for other datasets)
         world: One<File>,
@@ -71,7 +71,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the exact semantics with the masks
         grid: One<OccupancyGrid>,
@@ -96,9 +96,9 @@ impl Stage for ExactOccupancy {
         Ok(ExactOccupancy(params))
     }
 
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         if i.world.0.is_empty() {
-            return Err(NotApplicable("not a synthetic dataset: no exact occupancy".into()).into());
+            return Ok(Made::Nothing("not a synthetic dataset: no exact occupancy".into()));
         }
         let r = dist4d_synth::Renderer::shared(&i.world.0)?;
         let head: serde_json::Value = serde_json::from_slice(&i.world.0)?;
@@ -129,6 +129,6 @@ impl Stage for ExactOccupancy {
         let ego_from_world = i.lidar_pose.ego_to_world.inverse();
         let cameras: Vec<(&Calibration, &Pose)> =
             i.camera_calibs.iter().zip(&i.camera_poses).map(|((_, c), (_, p))| (c, p)).collect();
-        Ok(Outputs { grid: with_masks(&self.0.frame(), grid, &i.sweep, &i.lidar_calib, &ego_from_world, &cameras)? })
+        Ok(Outputs { grid: with_masks(&self.0.frame(), grid, &i.sweep, &i.lidar_calib, &ego_from_world, &cameras)? }.into())
     }
 }

@@ -11,7 +11,7 @@ use crate::model_worker::{Exchange, ModelWorker, WorkerSpec};
 use crate::stage::Stage;
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_runtime::{Made, TaskContext};
 use dist4d_types::artifact::File;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
@@ -35,7 +35,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the window's conditions (`conditions.json`: trajectory, command)
         conditions: One<File>,
@@ -46,7 +46,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// rollout.npz: the generated `rollout` (C, H, W) float32, its `mask` and `hex_txyz`
         rollout: One<File>,
@@ -75,9 +75,9 @@ impl Stage for GenerateHexPlane {
         self.0.resource()
     }
 
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         if !self.0.is_set() {
-            return Err(NotApplicable("no DiT worker: set `worker` to generate HexPlanes".into()).into());
+            return Ok(Made::Nothing("no DiT worker: set `worker` to generate HexPlanes".into()));
         }
         let ex = Exchange::new()?;
         let inputs = vec![
@@ -87,6 +87,6 @@ impl Stage for GenerateHexPlane {
         ];
         let outputs = self.0.call(ctx, &ex, "generate_hexplane", inputs, json!({}))?;
         let (_, _, file) = super::hexplane::worker_rollout(&ex, &outputs)?;
-        Ok(Outputs { rollout: File(file) })
+        Ok(Outputs { rollout: File(file) }.into())
     }
 }

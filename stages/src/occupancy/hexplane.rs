@@ -22,6 +22,7 @@
 //! rollout out; docs/workers.md); `workers/hexplane_means.py` is a numpy reference that computes
 //! the baseline's planes and rolls them out as the released code does.
 
+use dist4d_runtime::Made;
 use super::classes::{FREE, NAMES};
 use super::eval::scores;
 use crate::stage::Stage;
@@ -257,14 +258,14 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the window's occupancy (`Window("occupancy.grid", frame, 0, 15)`)
         grids: Many<OccupancyGrid>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// rollout.npz: `rollout` (C, X+T+Z, Y+Z+T) float32, C = the 18 Occ3D classes, its
         /// `mask` (X+T+Z, Y+Z+T) uint8, and `hex_txyz` (T, X, Y, Z) as 4 float32
@@ -299,16 +300,16 @@ impl Stage for HexPlaneBaseline {
         self.1.resource()
     }
 
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let t = self.0.frames as usize;
-        let grids = super::window("grids", &i.grids, t)?;
+        let grids = crate::or_nothing!(super::window("grids", &i.grids, t)?);
         let dims = grids[0].dims;
         ensure!(grids.iter().all(|g| g.dims == dims), "the window's grids differ in size");
         let [x, y, z] = dims.map(|d| d as usize);
         let c = NAMES.len();
         let frames: Vec<&[u8]> = grids.iter().map(|g| g.semantics.as_slice()).collect();
         if self.1.is_set() {
-            return encode_by_worker(ctx, &self.1, &frames, [t, x, y, z]);
+            return encode_by_worker(ctx, &self.1, &frames, [t, x, y, z]).map(Made::from);
         }
         let planes = encode_baseline(&frames, c, x, y, z);
         let (h, w) = planes.rollout_size();
@@ -337,7 +338,7 @@ impl Stage for HexPlaneBaseline {
             "iou": per_class,
             "free_class": FREE,
         });
-        Ok(Outputs { rollout: File(file), scores: File(serde_json::to_vec_pretty(&scores)?) })
+        Ok(Outputs { rollout: File(file), scores: File(serde_json::to_vec_pretty(&scores)?) }.into())
     }
 }
 

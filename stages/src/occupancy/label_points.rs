@@ -21,6 +21,7 @@
 //! (not "nothing to make", which would leave `AggregateScene`'s `All(..)` list empty and pass it
 //! over), and `AggregateScene` uses what the dataset has.
 
+use dist4d_runtime::Made;
 use super::classes::{of_cityscapes, UNLABELLED};
 use crate::model_worker::{npy_rgb8, read_npy_gray8, Exchange, ModelWorker, WorkerSpec};
 use crate::stage::Stage;
@@ -66,7 +67,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the frame's sweep
         sweep: One<PointCloud>,
@@ -81,7 +82,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the sweep's points; labels = Occ3D classes, 254 = no camera labelled the point; empty without a worker
         sweep: One<PointCloud>,
@@ -121,9 +122,9 @@ impl Stage for LabelPoints {
         self.1.resource()
     }
 
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         if !self.1.is_set() {
-            return Ok(Outputs { sweep: PointCloud::default() });
+            return Ok(Outputs { sweep: PointCloud::default() }.into());
         }
         ensure!(
             i.images.len() == i.infos.len(),
@@ -154,7 +155,7 @@ impl Stage for LabelPoints {
             });
         }
         let labels = label_points(&self.0, &i.sweep, &i.lidar_calib, &i.lidar_pose, &views);
-        Ok(Outputs { sweep: PointCloud { labels, ..i.sweep } })
+        Ok(Outputs { sweep: PointCloud { labels, ..i.sweep } }.into())
     }
 }
 

@@ -7,27 +7,26 @@ pub mod grid;
 
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
-use dist4d_runtime::NotApplicable;
+use dist4d_runtime::Made;
 
 /// The artifacts of input `port`, a window of `frames` frames wired with
 /// `Window(.., frame, 0, frames - 1)`, in frame order. An error when the wiring reaches outside the
 /// window; nothing to make when the window runs past the scene's end (fewer frames came).
-pub fn window<'a, A>(port: &str, list: &'a [(i64, A)], frames: usize) -> Result<Vec<&'a A>> {
+pub fn window<'a, A>(port: &str, list: &'a [(i64, A)], frames: usize) -> Result<Made<Vec<&'a A>>> {
     ensure!(
         list.iter().all(|(pos, _)| *pos >= 0 && (*pos as usize) < frames),
         "`{port}` reaches past the window of {frames} frames: wire it with Window(.., frame, 0, {})",
         frames.saturating_sub(1)
     );
     if list.len() < frames {
-        return Err(NotApplicable(format!(
+        return Ok(Made::Nothing(format!(
             "the window of {frames} frames runs past the scene's end ({} frame(s) from here)",
             list.len()
-        ))
-        .into());
+        )));
     }
     let mut sorted: Vec<&(i64, A)> = list.iter().collect();
     sorted.sort_by_key(|(pos, _)| *pos);
-    Ok(sorted.into_iter().map(|(_, a)| a).collect())
+    Ok(Made::Outputs(sorted.into_iter().map(|(_, a)| a).collect()))
 }
 
 /// The warnings `run` prints when a pipeline's occupancy will be geometry only (issue 42: it

@@ -30,6 +30,7 @@
 //! `AggregateScene` summary's: `lidarseg`, `camera`, `geometry`, ...), so that a loader can
 //! leave geometry-only frames out of a semantic loss.
 
+use dist4d_runtime::Made;
 use super::classes::FREE;
 use super::grid::GridParams;
 use crate::stage::Stage;
@@ -89,7 +90,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the scene's static points (world frame, Occ3D classes)
         static_points: One<PointCloud>,
@@ -115,7 +116,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// semantics, mask_lidar and mask_camera
         grid: One<OccupancyGrid>,
@@ -143,7 +144,7 @@ impl Stage for Occupancy {
         Ok(Occupancy(params))
     }
 
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         ensure!(
             i.camera_calibs.len() == i.camera_poses.len(),
             "`camera_calibs` and `camera_poses` hold {} and {} items: wire both with Gather(.., camera)",
@@ -162,7 +163,7 @@ impl Stage for Occupancy {
             .collect();
         let grid = with_blocked_masks(&self.0, grid, &i.sweep, &i.lidar_calib, &ego_from_world, &cameras, &blocked)?;
         let meta = frame_meta(i.scene_summary.as_ref(), ctx.label)?;
-        Ok(Outputs { grid, meta: File(serde_json::to_vec_pretty(&meta)?) })
+        Ok(Outputs { grid, meta: File(serde_json::to_vec_pretty(&meta)?) }.into())
     }
 }
 

@@ -3,6 +3,7 @@
 //! released loader takes x, y from entries 3 and 7 and the yaw as atan2(entry 4, entry 0)
 //! (`dynamic_city/utils/data_utils.py`, `get_trajectory`).
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::Result;
 use dist4d_graph::Validate;
@@ -17,14 +18,14 @@ pub struct Params {}
 
 impl Validate for Params {}
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// every frame's ego pose, in frame order (`All("dataset.lidar_pose")`)
         poses: Many<Pose>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// poses.txt
         txt: One<File>,
@@ -44,7 +45,7 @@ impl Stage for PosesTxt {
     fn new(_: Params) -> Result<Self> {
         Ok(PosesTxt)
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let mut poses: Vec<&(i64, Pose)> = i.poses.iter().collect();
         poses.sort_by_key(|(pos, _)| *pos);
         let mut text = String::new();
@@ -57,7 +58,7 @@ impl Stage for PosesTxt {
             let line: Vec<String> = rows.iter().flatten().map(|v| format!("{v:.9e}")).collect();
             writeln!(text, "{}", line.join(" "))?;
         }
-        Ok(Outputs { txt: File(text.into_bytes()) })
+        Ok(Outputs { txt: File(text.into_bytes()) }.into())
     }
 }
 
@@ -70,7 +71,7 @@ mod tests {
     #[test]
     fn poses_give_x_y_and_yaw_where_the_loader_reads_them() {
         let pose = |x: f64, yaw: f64| Pose { ego_to_world: Se3::from_yaw(yaw, DVec3::new(x, 2.0, 0.0)), timestamp_us: 0 };
-        let txt = PosesTxt.run(&TaskContext { item: Default::default(), seed: 0, label: "t", unread: &[] }, Inputs { poses: vec![(1, pose(5.0, 0.5)), (0, pose(3.0, 0.0))] }).unwrap();
+        let txt = PosesTxt.run(&TaskContext { item: Default::default(), seed: 0, label: "t", unread: &[] }, Inputs { poses: vec![(1, pose(5.0, 0.5)), (0, pose(3.0, 0.0))] }).unwrap().unwrap();
         let text = String::from_utf8(txt.txt.0).unwrap();
         let rows: Vec<Vec<f64>> = text.lines().map(|l| l.split(' ').map(|v| v.parse().unwrap()).collect()).collect();
         assert_eq!(rows.len(), 2);

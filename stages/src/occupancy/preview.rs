@@ -4,6 +4,7 @@
 //! grey. And the occupied voxels as a coloured point cloud (one point at each voxel's centre, in
 //! the ego frame, with its class as the label), for `EncodePly`: Open3D and CloudCompare show it.
 
+use dist4d_runtime::Made;
 use super::classes::{FREE, PALETTE};
 use super::grid::GridParams;
 use crate::stage::Stage;
@@ -37,14 +38,14 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the frame's occupancy
         grid: One<OccupancyGrid>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the bird's-eye view
         bev: One<Image>,
@@ -68,7 +69,7 @@ impl Stage for OccupancyPreview {
     fn new(params: Params) -> Result<Self> {
         Ok(OccupancyPreview(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let g = self.0.grid.grid();
         let o = &i.grid;
         ensure!(
@@ -111,6 +112,6 @@ impl Stage for OccupancyPreview {
             voxels.rgb.push(PALETTE[class as usize % PALETTE.len()]);
             voxels.labels.push(class);
         }
-        Ok(Outputs { bev: Image { width: w as u32, height: h as u32, rgb }, voxels })
+        Ok(Outputs { bev: Image { width: w as u32, height: h as u32, rgb }, voxels }.into())
     }
 }

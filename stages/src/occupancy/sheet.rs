@@ -2,6 +2,7 @@
 //! model sees it: the frames' bird's-eye views ([`super::preview`]) in rows of `columns`, in time
 //! order, one sheet per window start (the pipeline's `every` on the stage, as the DiT's windows).
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -37,14 +38,14 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the window's bird's-eye views (`Window("preview.bev", frame, 0, 15)`)
         views: Many<Image>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the sheet
         sheet: One<Image>,
@@ -66,9 +67,9 @@ impl Stage for OccupancySheet {
         Ok(OccupancySheet(params))
     }
 
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let t = self.0.frames as usize;
-        let views = super::window("views", &i.views, t)?;
+        let views = crate::or_nothing!(super::window("views", &i.views, t)?);
         let (w, h) = (views[0].width as usize, views[0].height as usize);
         ensure!(views.iter().all(|v| (v.width as usize, v.height as usize) == (w, h)), "the views differ in size");
         let cols = (self.0.columns as usize).min(t);
@@ -84,6 +85,6 @@ impl Stage for OccupancySheet {
                 rgb[at..at + 3 * w].copy_from_slice(src);
             }
         }
-        Ok(Outputs { sheet: Image { width: sw as u32, height: sh as u32, rgb } })
+        Ok(Outputs { sheet: Image { width: sw as u32, height: sh as u32, rgb } }.into())
     }
 }

@@ -17,7 +17,7 @@
 use crate::stage::Stage;
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
-use dist4d_runtime::{NotApplicable, TaskContext};
+use dist4d_runtime::{Made, TaskContext};
 use dist4d_types::artifact::{File, ImageInfo};
 use dist4d_types::geometry::Se3;
 use serde::{Deserialize, Serialize};
@@ -177,14 +177,14 @@ fn why_no_clips(p: &Params, images: &[ImageInfo]) -> String {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// every camera item's image, calibration, poses and boxes: All("dataset.image_info")
         images: Many<ImageInfo>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// the clips, one JSON object per line
         jsonl: One<File>,
@@ -213,13 +213,13 @@ impl Stage for ClipIndex {
     fn new(params: Params) -> Result<Self> {
         Ok(ClipIndex(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let images = strip(i.images);
         let jsonl = clip_index(&self.0, &images)?;
         if jsonl.is_empty() {
-            return Err(NotApplicable(why_no_clips(&self.0, &images)).into());
+            return Ok(Made::Nothing(why_no_clips(&self.0, &images)));
         }
-        Ok(Outputs { jsonl: File(jsonl) })
+        Ok(Outputs { jsonl: File(jsonl) }.into())
     }
 }
 

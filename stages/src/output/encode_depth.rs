@@ -2,6 +2,7 @@
 //! channel `Y`, which OpenCV reads; compressed losslessly, see [`ExrCodec`]), 16-bit PNG (depth x 256, the KITTI convention; 0 = no depth, clamped at 255.99
 //! m), NPY (float32 H x W) and a colour preview (turbo, near = warm, black = no depth).
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -91,7 +92,7 @@ pub fn depth_preview(d: &DepthMap, max_depth: f32) -> Result<Vec<u8>> {
     png_bytes(d.width, d.height, &px, png::ColorType::Rgb, png::BitDepth::Eight)
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// metric depth, 0 = none
         depth: One<DepthMap>,
@@ -100,7 +101,7 @@ crate::ports! {
 
 // Each made only when the run reads it: a pipeline that exports the NPY alone (the training
 // pairs) does not pay for the EXR's deflate, the PNGs or the preview's colours.
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// OpenEXR, channel Y, float32 metres
         exr: OnDemand<File>,
@@ -134,7 +135,7 @@ impl Stage for EncodeDepth {
     fn new(params: Params) -> Result<Self> {
         Ok(EncodeDepth(params))
     }
-    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, ctx: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let d = i.depth;
         let exr = self.0.exr_compression.for_values(&d.data);
         // Each encoding only if the run reads it (`None` otherwise).
@@ -152,7 +153,7 @@ impl Stage for EncodeDepth {
                 )
             },
         );
-        Ok(Outputs { exr: exr?, png16: png16?, npy: npy?, preview: preview? })
+        Ok(Outputs { exr: exr?, png16: png16?, npy: npy?, preview: preview? }.into())
     }
 }
 
@@ -210,12 +211,12 @@ mod tests {
         let d = DepthMap { width: 3, height: 2, data: vec![0.0, 1.5, 80.0, 300.0, 0.25, 10.0] };
         let unread = ["exr".to_string(), "preview".to_string()];
         let ctx = TaskContext { item: Default::default(), seed: 0, label: "t", unread: &unread };
-        let out = EncodeDepth(Params::default()).run(&ctx, Inputs { depth: d.clone() }).unwrap();
+        let out = EncodeDepth(Params::default()).run(&ctx, Inputs { depth: d.clone() }).unwrap().unwrap();
         assert!(out.exr.is_none() && out.preview.is_none());
         assert_eq!(out.npy.map(|f| f.0), Some(npy_f32(&[2, 3], &d.data)));
         assert_eq!(out.png16.map(|f| f.0), Some(depth_png16(&d).unwrap()));
         let all = TaskContext { unread: &[], ..ctx };
-        let out = EncodeDepth(Params::default()).run(&all, Inputs { depth: d }).unwrap();
+        let out = EncodeDepth(Params::default()).run(&all, Inputs { depth: d }).unwrap().unwrap();
         assert!(out.exr.is_some() && out.png16.is_some() && out.npy.is_some() && out.preview.is_some());
     }
 }

@@ -12,6 +12,7 @@
 //! from the dataset's Cityscapes segmentation through the table below when it has one, else 255
 //! (no class in either space).
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::Validate;
@@ -91,7 +92,7 @@ pub struct Params {
 
 impl Validate for Params {}
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the curated depth (sky at the sky depth, 0 = none)
         depth: One<DepthMap>,
@@ -102,7 +103,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// refined_depth.npz: `depth_pred`, float32 (H, W), metres, 0 = none
         depth: One<File>,
@@ -125,14 +126,14 @@ impl Stage for EncodeDistDepth {
     fn new(params: Params) -> Result<Self> {
         Ok(EncodeDistDepth(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let d = &i.depth;
         let (w, h) = (d.width as usize, d.height as usize);
         let sem = semantic(self.0.label_space, d, i.sky.as_ref(), i.semantic.as_ref())?;
         Ok(Outputs {
             depth: File(npz(&[("depth_pred", npy_f32(&[h, w], &d.data))])),
             semantic: File(npz(&[("sem", npy_u8(&[h, w], &sem))])),
-        })
+        }.into())
     }
 }
 

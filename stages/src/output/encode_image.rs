@@ -1,6 +1,7 @@
 //! `EncodeImage`: an image, or a mask, as a PNG file (RGB8; a mask as 8-bit grey, 255 = set):
 //! the condition and target images of training pairs, which a loader reads losslessly.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::Validate;
@@ -15,7 +16,7 @@ pub struct Params {}
 
 impl Validate for Params {}
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// an RGB8 image (wire this or `mask`)
         image: Optional<Image>,
@@ -24,7 +25,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// PNG: RGB8 for an image, grey 0 / 255 for a mask
         png: One<File>,
@@ -44,7 +45,7 @@ impl Stage for EncodeImage {
     fn new(_: Params) -> Result<Self> {
         Ok(EncodeImage)
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let png = match (i.image, i.mask) {
             (Some(img), None) => {
                 ensure!(
@@ -60,7 +61,7 @@ impl Stage for EncodeImage {
             }
             _ => anyhow::bail!("wire exactly one of `image` and `mask`"),
         };
-        Ok(Outputs { png: File(png) })
+        Ok(Outputs { png: File(png) }.into())
     }
 }
 
@@ -72,10 +73,10 @@ mod tests {
     fn images_and_masks_read_back() {
         let ctx = TaskContext { item: Default::default(), seed: 0, label: "t", unread: &[] };
         let img = Image { width: 2, height: 1, rgb: vec![1, 2, 3, 250, 251, 252] };
-        let out = EncodeImage.run(&ctx, Inputs { image: Some(img.clone()), mask: None }).unwrap();
+        let out = EncodeImage.run(&ctx, Inputs { image: Some(img.clone()), mask: None }).unwrap().unwrap();
         assert_eq!(image::load_from_memory(&out.png.0).unwrap().into_rgb8().into_raw(), img.rgb);
         let m = Mask { width: 3, height: 1, data: vec![0, 1, 7] };
-        let out = EncodeImage.run(&ctx, Inputs { image: None, mask: Some(m) }).unwrap();
+        let out = EncodeImage.run(&ctx, Inputs { image: None, mask: Some(m) }).unwrap().unwrap();
         assert_eq!(image::load_from_memory(&out.png.0).unwrap().into_luma8().into_raw(), vec![0, 255, 255]);
         assert!(EncodeImage.run(&ctx, Inputs { image: None, mask: None }).is_err());
     }

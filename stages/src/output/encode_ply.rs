@@ -4,6 +4,7 @@
 //! `label` (uint8) when it has labels. Coordinates are in the cloud's own frame, as its stage
 //! documents.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
 use dist4d_graph::Validate;
@@ -18,14 +19,14 @@ pub struct Params {}
 
 impl Validate for Params {}
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the cloud
         points: One<PointCloud>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// binary little-endian PLY
         ply: One<File>,
@@ -45,8 +46,8 @@ impl Stage for EncodePly {
     fn new(_: Params) -> Result<Self> {
         Ok(EncodePly)
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        Ok(Outputs { ply: File(ply(&i.points)?) })
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
+        Ok(Outputs { ply: File(ply(&i.points)?) }.into())
     }
 }
 

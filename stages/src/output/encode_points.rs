@@ -1,5 +1,6 @@
 //! `EncodePoints`: projected points as an NPY array, for readers of the `uvz` files.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::Result;
 use dist4d_graph::Validate;
@@ -14,14 +15,14 @@ pub struct Params {}
 
 impl Validate for Params {}
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// projected points
         points: One<ProjectedPoints>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// float32 (N, 3): u, v, depth
         npy: One<File>,
@@ -41,7 +42,7 @@ impl Stage for EncodePoints {
     fn new(_: Params) -> Result<Self> {
         Ok(EncodePoints)
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
-        Ok(Outputs { npy: File(npy_f32(&[i.points.rows.len(), 3], i.points.rows.as_flattened())) })
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
+        Ok(Outputs { npy: File(npy_f32(&[i.points.rows.len(), 3], i.points.rows.as_flattened())) }.into())
     }
 }

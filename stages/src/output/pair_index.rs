@@ -5,6 +5,7 @@
 //! must be the pipeline's export templates of those files (`check` refuses one no export has).
 //! Layout and a numpy-only loader: docs/novel-views.md.
 
+use dist4d_runtime::Made;
 use crate::stage::Stage;
 use anyhow::{Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
@@ -62,14 +63,14 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// every pair record of the scene (`All("pairs.record")`)
         records: Many<File>,
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// JSON lines, one pair each
         jsonl: One<File>,
@@ -91,7 +92,7 @@ impl Stage for PairIndex {
     fn new(params: Params) -> Result<Self> {
         Ok(PairIndex(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let mut out = Vec::new();
         for (pos, File(bytes)) in &i.records {
             let mut record: Value =
@@ -119,6 +120,6 @@ impl Stage for PairIndex {
             serde_json::to_writer(&mut out, &record)?;
             out.push(b'\n');
         }
-        Ok(Outputs { jsonl: File(out) })
+        Ok(Outputs { jsonl: File(out) }.into())
     }
 }

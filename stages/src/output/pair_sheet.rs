@@ -5,6 +5,7 @@
 //! 0, blue = condition nearer, red = farther, saturated at +-`error_cap`). A condition that sits
 //! off its target (a wrong pose, a shifted object) shows as colour in the last panel.
 
+use dist4d_runtime::Made;
 use super::encode_depth::turbo;
 use crate::stage::Stage;
 use anyhow::{ensure, Result};
@@ -38,7 +39,7 @@ impl Validate for Params {
     }
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the condition image
         cond_image: One<Image>,
@@ -53,7 +54,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// RGB PNG, 3 x 2 panels of the pair's size
         png: One<File>,
@@ -74,7 +75,7 @@ impl Stage for PairSheet {
     fn new(params: Params) -> Result<Self> {
         Ok(PairSheet(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let (w, h) = (i.cond_image.width as usize, i.cond_image.height as usize);
         let n = w * h;
         ensure!(
@@ -112,7 +113,7 @@ impl Stage for PairSheet {
         }
         Ok(Outputs {
             png: File(png_bytes(3 * w as u32, 2 * h as u32, &sheet, png::ColorType::Rgb, png::BitDepth::Eight)?),
-        })
+        }.into())
     }
 }
 

@@ -16,6 +16,7 @@
 //! `sky_threshold`. Outlines are 2 px wide in the panel (the pixels on both sides of the
 //! boundary), not drawn along the image border.
 
+use dist4d_runtime::Made;
 use super::encode_depth::turbo;
 use crate::eval::sky::is_sky;
 use crate::stage::Stage;
@@ -212,7 +213,7 @@ fn stack_rows(rows: &[(usize, usize, Vec<u8>)]) -> Result<Vec<u8>> {
     png_bytes(w as u32, h as u32, &out, png::ColorType::Rgb, png::BitDepth::Eight)
 }
 
-crate::ports! {
+crate::inputs! {
     pub struct Inputs {
         /// the cameras' images: Gather("dataset.image", camera)
         images: Many<Image>,
@@ -226,7 +227,7 @@ crate::ports! {
     }
 }
 
-crate::ports! {
+crate::outputs! {
     pub struct Outputs {
         /// RGB PNG, three panels per camera row (four with ground truth)
         png: One<File>,
@@ -249,7 +250,7 @@ impl Stage for DepthSheet {
     fn new(params: Params) -> Result<Self> {
         Ok(DepthSheet(params))
     }
-    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Outputs> {
+    fn run(&self, _: &TaskContext, i: Inputs) -> Result<Made<Outputs>> {
         let n = i.images.len();
         ensure!(
             i.sparse.len() == n && i.depth.len() == n && (i.gt.is_empty() || i.gt.len() == n),
@@ -272,7 +273,7 @@ impl Stage for DepthSheet {
                 .with_context(|| format!("camera {position}"))?;
             rows.push(row);
         }
-        Ok(Outputs { png: File(stack_rows(&rows)?) })
+        Ok(Outputs { png: File(stack_rows(&rows)?) }.into())
     }
 }
 

@@ -351,7 +351,7 @@ fn scene_and_frame_filters_restrict_the_items() {
     let p = testkit::load(CHAIN, &[]);
     let grid = testkit::grid_of(&p);
     let opts =
-        RunOptions { jobs: 2, outer_items: Some(vec!["s1".into()]), second_dim_limit: Some(2), ..Default::default() };
+        RunOptions { jobs: 2, outer_items: Some(vec!["s1".into()]), limit: Some(2), ..Default::default() };
     let r = run_with(&p, &grid, dir.path(), &opts);
     assert_eq!(r.stages[0].executed, 6);
     let bad = RunOptions { outer_items: Some(vec!["nope".into()]), ..Default::default() };
@@ -1166,7 +1166,7 @@ fn across_gives_a_task_its_siblings_and_a_changed_sibling_reruns_them_all() {
     let dir = tempfile::tempdir().unwrap();
     let p = testkit::load(text, &[]);
     let plan =
-        crate::plan::plan_outer(&p, &crate::plan::View { space: &testkit::grid_of(&p), second_dim_limit: None }, 0);
+        crate::plan::plan_outer(&p, &crate::plan::View::all(&testkit::grid_of(&p)), 0);
     let surround: Vec<_> =
         plan.tasks.iter().filter(|t| t.node as usize == p.node_by_name("surround").unwrap()).collect();
     assert_eq!(surround.len(), 6);
@@ -1199,7 +1199,7 @@ struct Waiting {
 }
 
 impl Operator for Waiting {
-    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> anyhow::Result<Vec<Output>> {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> anyhow::Result<crate::Made<Vec<Output>>> {
         let now = self.now.fetch_add(1, Ordering::SeqCst) + 1;
         self.most.fetch_max(now, Ordering::SeqCst);
         let start = self.others_done.load(Ordering::SeqCst);
@@ -1224,7 +1224,7 @@ struct Counting {
 }
 
 impl Operator for Counting {
-    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> anyhow::Result<Vec<Output>> {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> anyhow::Result<crate::Made<Vec<Output>>> {
         let out = self.inner.run(ctx, inputs);
         std::thread::sleep(std::time::Duration::from_millis(5));
         self.done.fetch_add(1, Ordering::SeqCst);
@@ -1329,7 +1329,7 @@ fn processes_sharing_a_store_share_the_work_instead_of_each_doing_all_of_it() {
 struct OnGpu(Box<dyn Operator>);
 
 impl Operator for OnGpu {
-    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> anyhow::Result<Vec<Output>> {
+    fn run(&self, ctx: &TaskContext, inputs: &[Vec<Artifact>]) -> anyhow::Result<crate::Made<Vec<Output>>> {
         self.0.run(ctx, inputs)
     }
     fn resource(&self) -> Option<Resource> {
