@@ -70,70 +70,9 @@ pub fn explain_per_outer(
     hash: bool,
 ) -> Result<(Vec<StageExplain>, PerOuter)> {
     let p = engine.pipeline;
-    let store = engine.store;
     let view = View::limited(p, engine.dataset, limit)?;
     let outers = select_outer(engine.dataset, &p.dims[0].name, outer_items)?;
-
-    // The record of every (stage, item) to say what changed against: this pipeline's own previous
-    // task. Item keys are indices, so one stage and item of the same pipeline run on another
-    // dataset into the same store is another task altogether: records are ranked by the newest
-    // run of this pipeline on this dataset that used them, and those only other datasets' runs
-    // used are left out. Unused records rank last, newest first (the latest alone misleads after
-    // switching back: a run on a worker writes newer records than the cached ones the next run
-    // goes back to). Keyed by kind too: pipelines sharing a store may give one stage name to
-    // stages of different kinds, whose params have nothing to compare.
-    let dataset = crate::runs::dataset_identity(p);
-    let own_runs: Vec<_> = list_runs(&store.runs_dir())?
-        .into_iter()
-        .filter(|r| r.pipeline == p.name && r.status != crate::runs::RunStatus::Running)
-        .collect();
-    let last_run = own_runs.iter().rev().find(|r| r.read_dataset(&dataset)).cloned();
-    let ranks = RunRanks::read(store, &own_runs, &dataset)?;
-    let mut previous: HashMap<(String, String, ItemKey), Previous> = HashMap::new();
-    for (_, payload) in store.all_records() {
-        let Ok(rec) = TaskRecord::decode(payload) else { continue };
-        let Some(rank) = ranks.of(&rec.key) else { continue };
-        let slot = previous.entry((rec.stage.clone(), rec.kind.clone(), rec.item));
-        let newer = match &slot {
-            std::collections::hash_map::Entry::Occupied(o) => {
-                (o.get().rank, o.get().finished_ms) <= (rank, rec.finished_ms)
-            }
-            std::collections::hash_map::Entry::Vacant(_) => true,
-        };
-        if newer {
-            let prev = Previous {
-                rank,
-                finished_ms: rec.finished_ms,
-                version: rec.version,
-                params: rec.params,
-                inputs: rec.inputs.into_iter().map(|i| (i.port, i.digests)).collect(),
-            };
-            match slot {
-                std::collections::hash_map::Entry::Occupied(mut o) => {
-                    o.insert(prev);
-                }
-                std::collections::hash_map::Entry::Vacant(v) => {
-                    v.insert(prev);
-                }
-            }
-        }
-    }
-    // Failures of the last run of this pipeline.
-    let last_failures: HashMap<(String, String), String> =
-        last_run.map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect()).unwrap_or_default();
-
-    let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
-    let unasked = |op: &dyn crate::Operator| !hash && op.resource().is_some();
-    let identities = crate::operator::Identities::of_except(engine.operators, &names, unasked).all()?;
-    let unasked: Vec<bool> = engine.operators.iter().map(|op| op.as_deref().is_some_and(unasked)).collect();
-    let mut keys = Keys::new(p, engine.dataset, store).with_identities(&identities);
-    if let Some(dir) = out_dir.filter(|_| !p.exports.is_empty()) {
-        // A folder another pipeline owns holds nothing of this one's (a run would refuse it).
-        let folder = OutputFolder::read(dir, &p.dims)?;
-        if folder.owner().is_none_or(|o| o == p.name) {
-            keys = keys.exporting_to(Arc::new(folder));
-        }
-    }
+    let x = Explainer::new(engine, out_dir, hash)?;
     let mut out: Vec<StageExplain> = vec![StageExplain::default(); p.nodes.len()];
     for n in p.stage_order() {
         out[n].stage = p.nodes[n].name.clone();
@@ -143,127 +82,230 @@ pub fn explain_per_outer(
     let will_run = |out: &[StageExplain]| out.iter().map(|e| e.will_run).sum::<u64>();
     for outer in outers {
         let before = will_run(&out);
-        let mut plan = plan_outer(p, &view, outer);
+        x.outer(&view, outer, &mut out);
+        pending.push((outer, will_run(&out) - before));
+    }
+    Ok((p.stage_order().map(|n| std::mem::take(&mut out[n])).collect(), pending))
+}
+
+/// What explaining a pipeline's tasks compares against: the previous task of each stage and
+/// item, the last run's failures, and the key layer a run would use.
+struct Explainer<'e> {
+    engine: &'e Engine<'e>,
+    keys: Keys<'e>,
+    previous: HashMap<(String, String, ItemKey), Previous>,
+    /// Failures of the last run of this pipeline, by (stage, item).
+    last_failures: HashMap<(String, String), String>,
+    /// Per node: its model worker is not asked (planning without `hash`).
+    unasked: Vec<bool>,
+    hash: bool,
+}
+
+impl<'e> Explainer<'e> {
+    fn new(engine: &'e Engine<'e>, out_dir: Option<&Path>, hash: bool) -> Result<Explainer<'e>> {
+        let p = engine.pipeline;
+        let store = engine.store;
+        let dataset = crate::runs::dataset_identity(p);
+        let own_runs: Vec<_> = list_runs(&store.runs_dir())?
+            .into_iter()
+            .filter(|r| r.pipeline == p.name && r.status != crate::runs::RunStatus::Running)
+            .collect();
+        let last_run = own_runs.iter().rev().find(|r| r.read_dataset(&dataset)).cloned();
+        let previous = previous_tasks(store, &RunRanks::read(store, &own_runs, &dataset)?);
+        let last_failures =
+            last_run.map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect()).unwrap_or_default();
+        let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
+        let unasked = |op: &dyn crate::Operator| !hash && op.resource().is_some();
+        let identities = crate::operator::Identities::of_except(engine.operators, &names, unasked).all()?;
+        let unasked: Vec<bool> = engine.operators.iter().map(|op| op.as_deref().is_some_and(unasked)).collect();
+        let mut keys = Keys::new(p, engine.dataset, store).with_identities(&identities);
+        if let Some(dir) = out_dir.filter(|_| !p.exports.is_empty()) {
+            // A folder another pipeline owns holds nothing of this one's (a run would refuse it).
+            let folder = OutputFolder::read(dir, &p.dims)?;
+            if folder.owner().is_none_or(|o| o == p.name) {
+                keys = keys.exporting_to(Arc::new(folder));
+            }
+        }
+        Ok(Explainer { engine, keys, previous, last_failures, unasked, hash })
+    }
+
+    /// Counts the tasks of one outer item into `out` (per node), with the reasons of those that
+    /// will run.
+    fn outer(&self, view: &View, outer: u32, out: &mut [StageExplain]) {
+        let p = self.engine.pipeline;
+        let mut plan = plan_outer(p, view, outer);
         // Output digests of tasks known to be cached; None = will run.
         let mut outputs: Vec<Option<Vec<Digest>>> = vec![None; plan.tasks.len()];
         // Tasks with nothing to make, as a run would pass them over (known only from the records
         // of tasks that said so).
         let mut nothing = vec![false; plan.tasks.len()];
         for t in 0..plan.tasks.len() {
-            let task = &plan.tasks[t];
-            let node = task.node as usize;
-            if nothing[t] {
-                out[node].not_applicable += 1;
-                for d in plan.tasks[t].dependents.clone() {
-                    nothing[d as usize] |= plan.drop_upstream(d, t as u32);
-                }
-                continue;
-            }
-            let task = &plan.tasks[t];
-            let stage = p.nodes[node].stage().unwrap();
-            let label = engine.dataset.path(&task.item);
-            if unasked[node] {
+            let node = plan.tasks[t].node as usize;
+            let item = plan.tasks[t].item;
+            let label = self.engine.dataset.path(&item);
+            if !nothing[t] && self.unasked[node] {
                 out[node].will_run += 1;
                 let entry = out[node].reasons.entry("its model worker is not asked when planning".into());
-                entry.or_insert((0, label.clone())).0 += 1;
+                entry.or_insert((0, label)).0 += 1;
                 continue;
             }
-            // The same resolution and decision as a run, hashing changed raw files as a run would.
-            let upstream = |u: u32, port: u16| outputs[u as usize].as_ref().and_then(|o| o.get(port as usize).copied());
-            let inputs = keys.resolve(&plan, t as u32, upstream, hash);
+            let decision = match nothing[t] {
+                true => None,
+                false => {
+                    // The same resolution and decision as a run, hashing changed raw files as a run would.
+                    let upstream =
+                        |u: u32, port: u16| outputs[u as usize].as_ref().and_then(|o| o.get(port as usize).copied());
+                    let inputs = self.keys.resolve(&plan, t as u32, upstream, self.hash);
+                    let decision = self.keys.decide(node, &item, &inputs, self.hash);
+                    Some((inputs, decision))
+                }
+            };
             let e = &mut out[node];
-            let lost = match keys.decide(node, &task.item, &inputs, hash) {
-                Decision::Cached { outputs: outs, .. } if outs.is_empty() && !p.nodes[node].outputs.is_empty() => {
+            let (inputs, lost) = match decision {
+                Some((_, Decision::Cached { outputs: outs, .. })) if !outs.is_empty() || p.nodes[node].outputs.is_empty() => {
+                    e.cached += 1;
+                    outputs[t] = Some(outs.iter().map(|o| o.digest).collect());
+                    continue;
+                }
+                // Nothing to make, found so or passed over: so are the tasks that need it.
+                None | Some((_, Decision::Cached { .. })) => {
                     e.not_applicable += 1;
                     for d in plan.tasks[t].dependents.clone() {
                         nothing[d as usize] |= plan.drop_upstream(d, t as u32);
                     }
                     continue;
                 }
-                Decision::Cached { outputs: outs, .. } => {
-                    e.cached += 1;
-                    outputs[t] = Some(outs.iter().map(|o| o.digest).collect());
-                    continue;
-                }
-                Decision::Run { lost, .. } => lost,
-                Decision::Unknown => None,
+                Some((inputs, Decision::Run { lost, .. })) => (inputs, lost),
+                Some((inputs, Decision::Unknown)) => (inputs, None),
             };
-            let mut unknown_inputs: Vec<String> = Vec::new();
-            for (input, spec) in inputs.iter().zip(&stage.inputs) {
-                for a in input {
-                    let why = match (&a.digest, a.src) {
-                        (Ok(_), _) => continue,
-                        (Err(Unknown::Upstream { task: u }), _) => {
-                            format!("upstream `{}` will run", p.nodes[plan.tasks[*u as usize].node as usize].name)
-                        }
-                        (Err(_), InputSrc::Source { node: sn, .. }) => {
-                            format!("input `{}` cannot be read from `{}`", spec.port, p.nodes[sn as usize].name)
-                        }
-                        (Err(_), InputSrc::Task { .. }) => format!("input `{}` is unknown", spec.port),
-                    };
-                    if !unknown_inputs.contains(&why) {
-                        unknown_inputs.push(why);
-                    }
-                }
-            }
-            let digests = known_digests(&inputs);
             e.will_run += 1;
-            let mut reasons = Vec::new();
-            if let Some(err) = last_failures.get(&(p.nodes[node].name.clone(), label.clone())) {
-                e.failed_last_run += 1;
-                reasons.push(format!("failed in the last run: {}", first_line(err)));
-            }
-            match previous.get(&(p.nodes[node].name.clone(), stage.kind.clone(), task.item)) {
-                None => reasons.push("never run".into()),
-                Some(prev) => {
-                    if prev.version != stage.version {
-                        reasons.push(format!("stage version changed: {} -> {}", prev.version, stage.version));
-                    }
-                    if prev.params != keys.params(node) {
-                        let old = store.get_blob(&prev.params).ok().and_then(|b| String::from_utf8(b).ok());
-                        // A stage with variants: what changed in this task's own variant.
-                        let variant = stage.variants.as_ref().map(|_| label.rsplit('/').next().unwrap_or_default());
-                        reasons.extend(param_changes(old.as_deref(), &stage.params.canonical, variant));
-                    }
-                    reasons.extend(unknown_inputs.iter().cloned());
-                    if let Some(digests) = &digests {
-                        for ((spec, now), (port, then)) in stage.inputs.iter().zip(digests).zip(&prev.inputs) {
-                            let now: Vec<Digest> = now.iter().map(|(_, d)| *d).collect();
-                            if port == &spec.port && &now != then {
-                                let from = &p.nodes[spec.from].name;
-                                reasons.push(format!("input `{}` (from `{from}`) changed", spec.port));
-                            }
-                        }
-                    }
-                }
-            }
-            if reasons.is_empty() {
-                let port = |i: usize| p.nodes[node].outputs[i].name.as_str();
-                reasons.push(match lost {
-                    Some(Lost::Exported(i)) => format!(
-                        "output `{}` is kept only in the output folder, and its file there is missing or changed",
-                        port(i)
-                    ),
-                    Some(Lost::Unmade(i)) => {
-                        format!(
-                            "output `{}` is read now, and the cached task did not make it (nothing read it then)",
-                            port(i)
-                        )
-                    }
-                    Some(Lost::Blob(i)) => {
-                        format!("the cached bytes of output `{}` are missing from the store", port(i))
-                    }
-                    None => "no record of this exact task (removed by gc)".into(),
-                });
-            }
-            for r in reasons {
-                let entry = e.reasons.entry(r).or_insert((0, label.clone()));
-                entry.0 += 1;
+            for r in self.reasons(&plan, t, &label, &inputs, lost, e) {
+                e.reasons.entry(r).or_insert((0, label.clone())).0 += 1;
             }
         }
-        pending.push((outer, will_run(&out) - before));
     }
-    Ok((p.stage_order().map(|n| std::mem::take(&mut out[n])).collect(), pending))
+
+    /// Why task `t` of `plan` will run (counting it in `e` when it failed last time).
+    fn reasons(
+        &self,
+        plan: &crate::plan::OuterPlan,
+        t: usize,
+        label: &str,
+        inputs: &[Vec<crate::keys::Input>],
+        lost: Option<Lost>,
+        e: &mut StageExplain,
+    ) -> Vec<String> {
+        let p = self.engine.pipeline;
+        let task = &plan.tasks[t];
+        let node = task.node as usize;
+        let stage = p.nodes[node].stage().unwrap();
+        let mut reasons = Vec::new();
+        if let Some(err) = self.last_failures.get(&(p.nodes[node].name.clone(), label.to_string())) {
+            e.failed_last_run += 1;
+            reasons.push(format!("failed in the last run: {}", first_line(err)));
+        }
+        match self.previous.get(&(p.nodes[node].name.clone(), stage.kind.clone(), task.item)) {
+            None => reasons.push("never run".into()),
+            Some(prev) => {
+                if prev.version != stage.version {
+                    reasons.push(format!("stage version changed: {} -> {}", prev.version, stage.version));
+                }
+                if prev.params != self.keys.params(node) {
+                    let old = self.engine.store.get_blob(&prev.params).ok().and_then(|b| String::from_utf8(b).ok());
+                    // A stage with variants: what changed in this task's own variant.
+                    let variant = stage.variants.as_ref().map(|_| label.rsplit('/').next().unwrap_or_default());
+                    reasons.extend(param_changes(old.as_deref(), &stage.params.canonical, variant));
+                }
+                reasons.extend(unknown_input_reasons(p, plan, stage, inputs));
+                if let Some(digests) = &known_digests(inputs) {
+                    for ((spec, now), (port, then)) in stage.inputs.iter().zip(digests).zip(&prev.inputs) {
+                        let now: Vec<Digest> = now.iter().map(|(_, d)| *d).collect();
+                        if port == &spec.port && &now != then {
+                            let from = &p.nodes[spec.from].name;
+                            reasons.push(format!("input `{}` (from `{from}`) changed", spec.port));
+                        }
+                    }
+                }
+            }
+        }
+        if reasons.is_empty() {
+            reasons.push(lost_reason(p, node, lost));
+        }
+        reasons
+    }
+}
+
+/// The newest record of every (stage, kind, item) to say what changed against: this pipeline's
+/// own previous task. Item keys are indices, so one stage and item of the same pipeline run on
+/// another dataset into the same store is another task altogether: records are ranked by the
+/// newest run of this pipeline on this dataset that used them, and those only other datasets'
+/// runs used are left out. Unused records rank last, newest first (the latest alone misleads
+/// after switching back: a run on a worker writes newer records than the cached ones the next run
+/// goes back to). Keyed by kind too: pipelines sharing a store may give one stage name to stages
+/// of different kinds, whose params have nothing to compare.
+fn previous_tasks(store: &crate::Store, ranks: &RunRanks) -> HashMap<(String, String, ItemKey), Previous> {
+    let mut previous: HashMap<(String, String, ItemKey), Previous> = HashMap::new();
+    for (_, payload) in store.all_records() {
+        let Ok(rec) = TaskRecord::decode(payload) else { continue };
+        let Some(rank) = ranks.of(&rec.key) else { continue };
+        let key = (rec.stage.clone(), rec.kind.clone(), rec.item);
+        if previous.get(&key).is_some_and(|old| (old.rank, old.finished_ms) > (rank, rec.finished_ms)) {
+            continue;
+        }
+        let prev = Previous {
+            rank,
+            finished_ms: rec.finished_ms,
+            version: rec.version,
+            params: rec.params,
+            inputs: rec.inputs.into_iter().map(|i| (i.port, i.digests)).collect(),
+        };
+        previous.insert(key, prev);
+    }
+    previous
+}
+
+/// One reason per input without a digest: an upstream task that will run, a source that cannot
+/// be read.
+fn unknown_input_reasons(
+    p: &dist4d_graph::Pipeline,
+    plan: &crate::plan::OuterPlan,
+    stage: &dist4d_graph::StageNode,
+    inputs: &[Vec<crate::keys::Input>],
+) -> Vec<String> {
+    let mut out: Vec<String> = Vec::new();
+    for (input, spec) in inputs.iter().zip(&stage.inputs) {
+        for a in input {
+            let why = match (&a.digest, a.src) {
+                (Ok(_), _) => continue,
+                (Err(Unknown::Upstream { task: u }), _) => {
+                    format!("upstream `{}` will run", p.nodes[plan.tasks[*u as usize].node as usize].name)
+                }
+                (Err(_), InputSrc::Source { node: sn, .. }) => {
+                    format!("input `{}` cannot be read from `{}`", spec.port, p.nodes[sn as usize].name)
+                }
+                (Err(_), InputSrc::Task { .. }) => format!("input `{}` is unknown", spec.port),
+            };
+            if !out.contains(&why) {
+                out.push(why);
+            }
+        }
+    }
+    out
+}
+
+/// Why a task whose inputs and params are as before will run: an output's bytes are gone.
+fn lost_reason(p: &dist4d_graph::Pipeline, node: usize, lost: Option<Lost>) -> String {
+    let port = |i: usize| p.nodes[node].outputs[i].name.as_str();
+    match lost {
+        Some(Lost::Exported(i)) => {
+            format!("output `{}` is kept only in the output folder, and its file there is missing or changed", port(i))
+        }
+        Some(Lost::Unmade(i)) => {
+            format!("output `{}` is read now, and the cached task did not make it (nothing read it then)", port(i))
+        }
+        Some(Lost::Blob(i)) => format!("the cached bytes of output `{}` are missing from the store", port(i)),
+        None => "no record of this exact task (removed by gc)".into(),
+    }
 }
 
 /// Which records a pipeline's own runs used: the task keys of its runs on this dataset, ranked

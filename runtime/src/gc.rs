@@ -43,12 +43,24 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>, dry_run: bool) 
     for run in dead.iter().filter(|_| !dry_run) {
         let _ = std::fs::remove_file(store.runs_dir().join(format!("{}.json", run.id)));
     }
-    // A group (the shards and merge of one cluster submission) counts as one run.
-    let mut groups: Vec<Vec<&crate::runs::RunRecord>> = crate::runs::grouped(&all);
-    groups.reverse(); // newest first
     let mut report = GcReport::default();
+    let records = latest_records(&store);
+    let kept = reachable(&store, &all, &records, keep_runs, max_bytes)?;
+    report.runs_kept = kept.runs.len();
+    for run in all.iter().filter(|r| !kept.runs.contains(&r.id)) {
+        if !dry_run {
+            let _ = std::fs::remove_file(store.runs_dir().join(format!("{}.json", run.id)));
+            let _ = std::fs::remove_file(keys_path(&store, &run.id));
+        }
+        report.runs_dropped += 1;
+    }
+    compact_records(&store, root, &records, &kept.keys, dry_run, &mut report)?;
+    drop_blobs(root, &kept.blobs, dry_run, &mut report)?;
+    Ok(report)
+}
 
-    // Latest record per key (the one a run uses), with the blobs it references.
+/// The latest record per key (the one a run uses).
+fn latest_records(store: &Store) -> DigestMap<Vec<u8>> {
     let mut records: DigestMap<Vec<u8>> = DigestMap::default();
     for (_, payload) in store.all_records() {
         let Some(k) = TaskRecord::key_of(payload) else { continue };
@@ -56,42 +68,42 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>, dry_run: bool) 
             records.insert(k, payload.to_vec());
         }
     }
-    let blob_size = |d: &Digest| std::fs::metadata(store.blob_path(d)).map(|m| m.len()).unwrap_or(0);
-    let refs = |payload: &[u8]| -> Vec<Digest> {
-        TaskRecord::decode(payload)
-            .map(|r| {
-                r.outputs
-                    .iter()
-                    .filter(|o| o.inline.is_none() && !o.is_unmade())
-                    .map(|o| o.digest)
-                    .chain([r.params])
-                    .collect()
-            })
-            .unwrap_or_default()
-    };
+    records
+}
 
-    // Choose the runs to keep: newest first, within the count and (if any) the size budget.
-    let mut keys: HashSet<Digest> = HashSet::new();
-    let mut blobs: HashSet<Digest> = HashSet::new();
+/// What the kept runs reach: their ids, task keys and blobs.
+struct Reachable {
+    runs: Vec<String>,
+    keys: HashSet<Digest>,
+    blobs: HashSet<Digest>,
+}
+
+/// The runs to keep, newest first, within the count and (if any) the size budget of the blobs
+/// they reach; a group (the shards and merge of one cluster submission) counts as one run.
+fn reachable(
+    store: &Store,
+    all: &[crate::runs::RunRecord],
+    records: &DigestMap<Vec<u8>>,
+    keep_runs: usize,
+    max_bytes: Option<u64>,
+) -> Result<Reachable> {
+    let mut groups: Vec<Vec<&crate::runs::RunRecord>> = crate::runs::grouped(all);
+    groups.reverse(); // newest first
+    let blob_size = |d: &Digest| std::fs::metadata(store.blob_path(d)).map(|m| m.len()).unwrap_or(0);
+    let mut kept = Reachable { runs: Vec::new(), keys: HashSet::new(), blobs: HashSet::new() };
     let mut bytes = 0u64;
-    let mut kept_runs = Vec::new();
-    for (i, group) in groups.iter().enumerate() {
-        if i >= keep_runs {
-            break;
-        }
+    for (i, group) in groups.iter().enumerate().take(keep_runs) {
         let mut run_keys = Vec::new();
         for run in group {
-            run_keys.extend(read_keys(&keys_path(&store, &run.id))?);
+            run_keys.extend(read_keys(&keys_path(store, &run.id))?);
         }
         let mut new_blobs = Vec::new();
         let mut new_bytes = 0;
-        for k in &run_keys {
-            if let Some(payload) = records.get(k) {
-                for b in refs(payload) {
-                    if !blobs.contains(&b) && !new_blobs.contains(&b) {
-                        new_bytes += blob_size(&b);
-                        new_blobs.push(b);
-                    }
+        for payload in run_keys.iter().filter_map(|k| records.get(k)) {
+            for b in blobs_of(payload) {
+                if !kept.blobs.contains(&b) && !new_blobs.contains(&b) {
+                    new_bytes += blob_size(&b);
+                    new_blobs.push(b);
                 }
             }
         }
@@ -99,27 +111,38 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>, dry_run: bool) 
             break;
         }
         bytes += new_bytes;
-        blobs.extend(new_blobs);
-        keys.extend(run_keys);
-        kept_runs.extend(group.iter().map(|r| r.id.clone()));
+        kept.blobs.extend(new_blobs);
+        kept.keys.extend(run_keys);
+        kept.runs.extend(group.iter().map(|r| r.id.clone()));
     }
-    report.runs_kept = kept_runs.len();
-    for run in all.iter().filter(|r| !kept_runs.contains(&r.id)) {
-        if !dry_run {
-            let _ = std::fs::remove_file(store.runs_dir().join(format!("{}.json", run.id)));
-            let _ = std::fs::remove_file(keys_path(&store, &run.id));
-        }
-        report.runs_dropped += 1;
-    }
+    Ok(kept)
+}
 
-    // Compact records: the kept ones go to a fresh segment, then the old segments go (those it
-    // read: one it cannot read stays).
+/// The blobs a record names: its outputs not inlined, and its params.
+fn blobs_of(payload: &[u8]) -> Vec<Digest> {
+    TaskRecord::decode(payload)
+        .map(|r| {
+            r.outputs.iter().filter(|o| o.inline.is_none() && !o.is_unmade()).map(|o| o.digest).chain([r.params]).collect()
+        })
+        .unwrap_or_default()
+}
+
+/// Compacts records: the kept ones go to a fresh segment, then the old segments go (those it
+/// read: one it cannot read stays); the fingerprint memo is compacted too.
+fn compact_records(
+    store: &Store,
+    root: &Path,
+    records: &DigestMap<Vec<u8>>,
+    keys: &HashSet<Digest>,
+    dry_run: bool,
+    report: &mut GcReport,
+) -> Result<()> {
     let old_segments = if dry_run { Vec::new() } else { removable_segments(&root.join("ac"))? };
     let mut writer = match dry_run {
         true => None,
         false => Some(SegmentWriter::create(&root.join("ac"), &format!("gc-{}", store.writer_id()))?),
     };
-    for (k, payload) in &records {
+    for (k, payload) in records {
         if keys.contains(k) {
             if let Some(w) = writer.as_mut() {
                 w.append(payload)?;
@@ -136,8 +159,11 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>, dry_run: bool) 
         }
         store.compact_fingerprints()?;
     }
+    Ok(())
+}
 
-    // Delete unreachable blobs.
+/// Deletes the blobs no kept record names (a newer dist4d's stay).
+fn drop_blobs(root: &Path, blobs: &HashSet<Digest>, dry_run: bool, report: &mut GcReport) -> Result<()> {
     let cas = root.join("cas");
     for dir in std::fs::read_dir(&cas).with_context(|| format!("listing {}", cas.display()))? {
         let dir = dir?.path();
@@ -167,7 +193,7 @@ pub fn gc(root: &Path, keep_runs: usize, max_bytes: Option<u64>, dry_run: bool) 
             }
         }
     }
-    Ok(report)
+    Ok(())
 }
 
 /// The unknown codec of the blob file at `path`, if a newer dist4d packed it.
