@@ -326,30 +326,8 @@ impl<A: Artifact> InPort for OptionalMany<A> {
 /// [`InputPorts`] for it; an output kind ([`OnDemand`]) does not compile.
 #[macro_export]
 macro_rules! inputs {
-    (
-        $(#[$meta:meta])*
-        $vis:vis struct $name:ident {
-            $( $(#[doc = $doc:literal])* $field:ident : $port:ident < $ty:ty > ),* $(,)?
-        }
-    ) => {
-        $(#[$meta])*
-        $vis struct $name {
-            $( $(#[doc = $doc])* pub $field: <$crate::stage::$port<$ty> as $crate::stage::InPort>::Value, )*
-        }
-
-        impl $crate::stage::InputPorts for $name {
-            fn specs() -> Vec<dist4d_graph::PortSpec> {
-                let mut specs = Vec::new();
-                $( specs.extend(<$crate::stage::$port<$ty> as $crate::stage::InPort>::specs(stringify!($field), concat!($($doc),*))); )*
-                specs
-            }
-            #[allow(unused_variables)]
-            fn decode(inputs: &$crate::stage::InputSet) -> anyhow::Result<Self> {
-                Ok($name {
-                    $( $field: <$crate::stage::$port<$ty> as $crate::stage::InPort>::decode(stringify!($field), inputs)?, )*
-                })
-            }
-        }
+    ($($struct:tt)*) => {
+        $crate::__ports!(input InPort InputPorts; $($struct)*);
     };
 }
 
@@ -358,7 +336,35 @@ macro_rules! inputs {
 /// ...) does not compile.
 #[macro_export]
 macro_rules! outputs {
+    ($($struct:tt)*) => {
+        $crate::__ports!(output OutPort OutputPorts; $($struct)*);
+    };
+}
+
+/// What [`crate::inputs!`] and [`crate::outputs!`] share: the struct, with each field's value
+/// type and schema entries from its port kind through `$kind` ([`InPort`] or [`OutPort`]), and
+/// the decoding or encoding of `$ports`.
+#[doc(hidden)]
+#[macro_export]
+macro_rules! __ports {
+    (@convert input $name:ident { $( $field:ident : $port:ident < $ty:ty > ),* }) => {
+        #[allow(unused_variables)]
+        fn decode(inputs: &$crate::stage::InputSet) -> anyhow::Result<Self> {
+            Ok($name {
+                $( $field: <$crate::stage::$port<$ty> as $crate::stage::InPort>::decode(stringify!($field), inputs)?, )*
+            })
+        }
+    };
+    (@convert output $name:ident { $( $field:ident : $port:ident < $ty:ty > ),* }) => {
+        #[allow(unused_mut)]
+        fn encode(self) -> anyhow::Result<Vec<$crate::stage::Encoded>> {
+            let mut out = Vec::new();
+            $( out.extend(<$crate::stage::$port<$ty> as $crate::stage::OutPort>::encode(stringify!($field), self.$field)?); )*
+            Ok(out)
+        }
+    };
     (
+        $dir:ident $kind:ident $ports:ident;
         $(#[$meta:meta])*
         $vis:vis struct $name:ident {
             $( $(#[doc = $doc:literal])* $field:ident : $port:ident < $ty:ty > ),* $(,)?
@@ -366,21 +372,16 @@ macro_rules! outputs {
     ) => {
         $(#[$meta])*
         $vis struct $name {
-            $( $(#[doc = $doc])* pub $field: <$crate::stage::$port<$ty> as $crate::stage::OutPort>::Value, )*
+            $( $(#[doc = $doc])* pub $field: <$crate::stage::$port<$ty> as $crate::stage::$kind>::Value, )*
         }
 
-        impl $crate::stage::OutputPorts for $name {
+        impl $crate::stage::$ports for $name {
             fn specs() -> Vec<dist4d_graph::PortSpec> {
                 let mut specs = Vec::new();
-                $( specs.extend(<$crate::stage::$port<$ty> as $crate::stage::OutPort>::specs(stringify!($field), concat!($($doc),*))); )*
+                $( specs.extend(<$crate::stage::$port<$ty> as $crate::stage::$kind>::specs(stringify!($field), concat!($($doc),*))); )*
                 specs
             }
-            #[allow(unused_mut)]
-            fn encode(self) -> anyhow::Result<Vec<$crate::stage::Encoded>> {
-                let mut out = Vec::new();
-                $( out.extend(<$crate::stage::$port<$ty> as $crate::stage::OutPort>::encode(stringify!($field), self.$field)?); )*
-                Ok(out)
-            }
+            $crate::__ports!(@convert $dir $name { $( $field : $port < $ty > ),* });
         }
     };
 }
