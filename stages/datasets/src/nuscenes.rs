@@ -486,220 +486,124 @@ fn not_nuscenes(root: &Path, config: &NuScenesConfig) -> String {
     )
 }
 
-impl NuScenes {
-    pub fn open(config: NuScenesConfig) -> Result<NuScenes> {
+/// The tables of one version folder, each read once and in one order, so that a table's error or
+/// warning always comes where it did.
+struct Tables {
+    /// The dataset root (file names are relative to it) and its `<version>/` folder.
+    root: PathBuf,
+    dir: PathBuf,
+    scenes: Vec<SceneRow>,
+    samples: Vec<SampleRow>,
+    sample_data: Vec<SampleDataRow>,
+    calibs: Vec<CalibratedSensorRow>,
+    sensors: Vec<SensorRow>,
+    poses: Vec<EgoPoseRow>,
+    /// The optional tables of the boxes; empty when missing (a warning).
+    annotations: Vec<AnnotationRow>,
+    instances: Vec<InstanceRow>,
+    categories: Vec<NamedRow>,
+    attributes: Vec<NamedRow>,
+    /// Each log's map mask (map.json), for the maps whose file exists.
+    map_of_log: HashMap<String, PathBuf>,
+    /// nuScenes-lidarseg, an add-on: empty when absent.
+    lidarseg: Vec<LidarsegRow>,
+}
+
+impl Tables {
+    /// Reads the tables `open` uses: a missing optional table, a repeated row or a map that is not
+    /// there is a warning; a missing or malformed required table, or a `sample_data` without
+    /// keyframes, is the error.
+    fn read(config: &NuScenesConfig, w: &mut Vec<String>) -> Result<Tables> {
         let root = PathBuf::from(&config.root);
-        let tables = root.join(&config.version);
-        if !tables.is_dir() {
-            bail!("{}", not_nuscenes(&root, &config));
+        let dir = root.join(&config.version);
+        if !dir.is_dir() {
+            bail!("{}", not_nuscenes(&root, config));
         }
-        let mut warnings = Vec::new();
-        let w = &mut warnings;
-        let scenes: Vec<SceneRow> = read_table(&tables, "scene", w)?;
-        let samples: Vec<SampleRow> = read_table(&tables, "sample", w)?;
-        let sample_data: Vec<SampleDataRow> = read_table(&tables, "sample_data", w)?;
-        let calibs: Vec<CalibratedSensorRow> = read_table(&tables, "calibrated_sensor", w)?;
-        let sensors: Vec<SensorRow> = read_table(&tables, "sensor", w)?;
-        let poses: Vec<EgoPoseRow> = read_table(&tables, "ego_pose", w)?;
+        let scenes: Vec<SceneRow> = read_table(&dir, "scene", w)?;
+        let samples: Vec<SampleRow> = read_table(&dir, "sample", w)?;
+        let sample_data: Vec<SampleDataRow> = read_table(&dir, "sample_data", w)?;
+        let calibs: Vec<CalibratedSensorRow> = read_table(&dir, "calibrated_sensor", w)?;
+        let sensors: Vec<SensorRow> = read_table(&dir, "sensor", w)?;
+        let poses: Vec<EgoPoseRow> = read_table(&dir, "ego_pose", w)?;
         let no_boxes = "frames have no boxes";
-        let anns: Vec<AnnotationRow> = read_optional(&tables, "sample_annotation", w, no_boxes)?;
-        let instances: Vec<InstanceRow> = read_optional(&tables, "instance", w, no_boxes)?;
-        let categories: Vec<NamedRow> = read_optional(&tables, "category", w, "boxes have no category")?;
-        let attributes: Vec<NamedRow> = read_optional(&tables, "attribute", w, "boxes have no attributes")?;
+        let annotations: Vec<AnnotationRow> = read_optional(&dir, "sample_annotation", w, no_boxes)?;
+        let instances: Vec<InstanceRow> = read_optional(&dir, "instance", w, no_boxes)?;
+        let categories: Vec<NamedRow> = read_optional(&dir, "category", w, "boxes have no category")?;
+        let attributes: Vec<NamedRow> = read_optional(&dir, "attribute", w, "boxes have no attributes")?;
         for t in ["log", "visibility"] {
-            if !tables.join(format!("{t}.json")).exists() {
-                w.push(format!("{}/{t}.json is missing (not needed by dist4d)", tables.display()));
+            if !dir.join(format!("{t}.json")).exists() {
+                w.push(format!("{}/{t}.json is missing (not needed by dist4d)", dir.display()));
             }
         }
-        let map_rows: Vec<MapRow> = read_optional(&tables, "map", w, "the `map` port is empty")?;
-        let map_file = tables.join("map.json");
-        let mut map_of_log: HashMap<&str, PathBuf> = HashMap::new();
-        for (row, m) in map_rows.iter().enumerate() {
-            // A bad filename only costs the map (a control for generators), never the dataset.
-            match join_inside(&root, &Place::row(&map_file, row, &m.token), "filename", &m.filename) {
-                Ok(path) if path.is_file() => {
-                    for log in &m.log_tokens {
-                        map_of_log.insert(log.as_str(), path.clone());
-                    }
-                }
-                Ok(path) => {
-                    w.push(format!("{}: row {row}: the map {} does not exist", map_file.display(), path.display()))
-                }
-                Err(e) => w.push(e),
-            }
-        }
+        let map_rows: Vec<MapRow> = read_optional(&dir, "map", w, "the `map` port is empty")?;
+        let map_of_log = maps_of_logs(&root, &dir, &map_rows, w);
         // lidarseg is an add-on: absent means no labels, without a warning.
         let lidarseg: Vec<LidarsegRow> =
-            if tables.join("lidarseg.json").exists() { read_table(&tables, "lidarseg", w)? } else { Vec::new() };
-        let has_point_labels = !lidarseg.is_empty();
-        let (sd_file, cs_file) = (tables.join("sample_data.json"), tables.join("calibrated_sensor.json"));
-        ensure_keyframes(&sample_data, &sd_file)?;
+            if dir.join("lidarseg.json").exists() { read_table(&dir, "lidarseg", w)? } else { Vec::new() };
+        ensure_keyframes(&sample_data, &dir.join("sample_data.json"))?;
+        Ok(Tables {
+            root,
+            dir,
+            scenes,
+            samples,
+            sample_data,
+            calibs,
+            sensors,
+            poses,
+            annotations,
+            instances,
+            categories,
+            attributes,
+            map_of_log,
+            lidarseg,
+        })
+    }
 
-        // Every row is checked once here; a bad row becomes the error of the items that use it.
-        let mut renormalised = Renormalised::default();
-        let seg_file = tables.join("lidarseg.json");
-        let labels_by: HashMap<&str, Result<PathBuf, String>> = lidarseg
-            .iter()
-            .map(|l| {
-                let at = Place::row(&seg_file, l.row, &l.token);
-                (l.sample_data_token.as_str(), join_inside(&root, &at, "filename", &l.filename))
-            })
-            .collect();
-        let pose_file = tables.join("ego_pose.json");
-        let pose_by: HashMap<&str, Result<Se3, String>> = poses
-            .iter()
-            .map(|p| {
-                let at = Place::row(&pose_file, p.row, &p.token);
-                let pose = rigid(&at, TRANSFORM_FIELDS, p.rotation, p.translation, Transform::Pose, &mut renormalised);
-                (p.token.as_str(), pose)
-            })
-            .collect();
-        let calib_by: HashMap<&str, (&CalibratedSensorRow, Result<Mount, String>)> =
-            calibs.iter().map(|c| (c.token.as_str(), (c, check_mount(c, &cs_file, &mut renormalised)))).collect();
-        warnings.extend(renormalised.warnings());
-
-        let cameras = match &config.cameras {
+    /// The frames' cameras: `dataset.cameras`, or every camera the data has.
+    fn cameras(&self, config: &NuScenesConfig) -> Result<Vec<String>> {
+        Ok(match &config.cameras {
             Some(c) => c.clone(),
-            None => data_cameras(&sensors, &calibs, &sample_data)
-                .with_context(|| format!("{}: set dataset.cameras", tables.join("sensor.json").display()))?,
-        };
-        let sample_by: HashMap<&str, &SampleRow> = samples.iter().map(|s| (s.token.as_str(), s)).collect();
-        let channel_by: HashMap<&str, &str> = sensors.iter().map(|s| (s.token.as_str(), s.channel.as_str())).collect();
-        let sd_by: HashMap<&str, &SampleDataRow> = sample_data.iter().map(|s| (s.token.as_str(), s)).collect();
-        let mount_of = |sd: &SampleDataRow| -> Result<&(&CalibratedSensorRow, Result<Mount, String>), String> {
-            calib_by.get(sd.calibrated_sensor_token.as_str()).ok_or_else(|| {
-                let (field, value) = ("calibrated_sensor_token", &sd.calibrated_sensor_token);
-                dangling(&sd_file, sd.row, &sd.token, field, value, "calibrated_sensor")
-            })
-        };
-        let channel_of = |sd: &SampleDataRow| -> Result<&str, String> {
-            let (cs, _) = mount_of(sd)?;
-            channel_by
-                .get(cs.sensor_token.as_str())
-                .copied()
-                .ok_or_else(|| dangling(&cs_file, cs.row, &cs.token, "sensor_token", &cs.sensor_token, "sensor"))
-        };
-        // Keyframe sample_data by (sample, channel); those whose channel is unknown, by sample.
-        let mut keyframe: HashMap<(&str, &str), &SampleDataRow> = HashMap::new();
-        let mut unresolved: HashMap<&str, Vec<(&SampleDataRow, String)>> = HashMap::new();
-        for sd in sample_data.iter().filter(|sd| sd.is_key_frame) {
-            match channel_of(sd) {
-                Ok(channel) => {
-                    keyframe.insert((sd.sample_token.as_str(), channel), sd);
-                }
-                Err(e) => unresolved.entry(sd.sample_token.as_str()).or_default().push((sd, e)),
-            }
-        }
-        // Why a sample has no keyframe of a channel: a keyframe of it whose sensor is unknown and
-        // whose file name says that channel is the one, and its dangling token the reason.
-        let no_keyframe = |sample: &str, channel: &str| -> String {
-            let unknown = unresolved.get(sample).map(Vec::as_slice).unwrap_or_default();
-            let named: Vec<&str> = unknown
-                .iter()
-                .filter(|(sd, _)| names_channel(&sd.filename, channel))
-                .map(|(_, e)| e.as_str())
-                .collect();
-            if !named.is_empty() {
-                return named.join("; ");
-            }
-            let mut why = format!("sample {sample} has no keyframe sample_data for channel {channel}");
-            if !unknown.is_empty() {
-                let errors: Vec<&str> = unknown.iter().map(|(_, e)| e.as_str()).collect();
-                why += &format!(" (its keyframes of unknown channel: {})", errors.join("; "));
-            }
-            why
-        };
-        let resolve = |sd: &SampleDataRow, camera: bool| -> Result<Reading, String> {
-            let at = Place::row(&sd_file, sd.row, &sd.token);
-            let file = join_inside(&root, &at, "filename", &sd.filename)?;
-            let mount = mount_of(sd)?.1.as_ref().map_err(String::clone)?;
-            if camera {
-                image_size(&at.to_string(), "fields width, height", sd.width, sd.height)?;
-            }
-            if sd.timestamp < 0 {
-                return Err(format!("{at}: field timestamp {} is negative", sd.timestamp));
-            }
-            match &mount.intrinsics {
-                Some(k) => principal_point_inside(&mount.at, "camera_intrinsic", k, sd.width, sd.height)
-                    .map_err(|e| format!("{e} of {at}"))?,
-                None if camera => {
-                    return Err(format!("{}: field camera_intrinsic is empty, but {at} is a camera image", mount.at))
-                }
-                None => {}
-            }
-            let ego_to_world = pose_by
-                .get(sd.ego_pose_token.as_str())
-                .ok_or_else(|| dangling(&sd_file, sd.row, &sd.token, "ego_pose_token", &sd.ego_pose_token, "ego_pose"))?
-                .clone()?;
-            Ok(Reading {
-                file,
-                calib: Calibration {
-                    sensor_to_ego: mount.sensor_to_ego,
-                    intrinsics: mount.intrinsics,
-                    width: sd.width,
-                    height: sd.height,
-                },
-                pose: Pose { ego_to_world, timestamp_us: sd.timestamp },
-                what: format!("sample_data {}", sd.token),
-                token: sd.token.clone(),
-                row: None,
-                stored_file: None,
-            })
-        };
-        // A LiDAR reading and its lidarseg labels: a refused labels file fails the whole reading.
-        let resolve_lidar = |sd: &SampleDataRow| -> Result<(Reading, Option<PathBuf>), String> {
-            let reading = resolve(sd, false)?;
-            Ok((reading, labels_by.get(sd.token.as_str()).cloned().transpose()?))
-        };
-        let key_row = |sample: &str, channel: &str| -> Result<&SampleDataRow, String> {
-            keyframe.get(&(sample, channel)).copied().ok_or_else(|| no_keyframe(sample, channel))
-        };
-        // A channel's whole sample_data chain through a keyframe (prev to the start, next to the end).
-        fn chain<'a>(
-            start: &'a SampleDataRow,
-            sd_by: &HashMap<&str, &'a SampleDataRow>,
-            tables: &Path,
-        ) -> Result<Vec<&'a SampleDataRow>> {
-            let mut first = start;
-            let mut guard = 0;
-            while !first.prev.is_empty() {
-                first = sd_by.get(first.prev.as_str()).ok_or_else(|| {
-                    anyhow!(
-                        "{}/sample_data.json: sample_data {}: field prev {} names no row",
-                        tables.display(),
-                        first.token,
-                        first.prev
-                    )
-                })?;
-                guard += 1;
-                anyhow::ensure!(guard < 1_000_000, "sample_data {}: the prev chain does not end", start.token);
-            }
-            let mut out = vec![first];
-            while !out.last().map_or(true, |s| s.next.is_empty()) {
-                let cur = out[out.len() - 1];
-                out.push(sd_by.get(cur.next.as_str()).ok_or_else(|| {
-                    anyhow!(
-                        "{}/sample_data.json: sample_data {}: field next {} names no row",
-                        tables.display(),
-                        cur.token,
-                        cur.next
-                    )
-                })?);
-                anyhow::ensure!(out.len() < 1_000_000, "sample_data {}: the next chain does not end", start.token);
-            }
-            Ok(out)
-        }
+            None => data_cameras(&self.sensors, &self.calibs, &self.sample_data)
+                .with_context(|| format!("{}: set dataset.cameras", self.dir.join("sensor.json").display()))?,
+        })
+    }
+}
 
-        // Annotations, with names resolved.
-        let cat_name: HashMap<&str, &str> = categories.iter().map(|c| (c.token.as_str(), c.name.as_str())).collect();
-        let attr_name: HashMap<&str, &str> = attributes.iter().map(|c| (c.token.as_str(), c.name.as_str())).collect();
-        let inst_cat: HashMap<&str, &str> = instances
+/// Each log's map mask file (map.json). A bad filename only costs the map (a control for
+/// generators), never the dataset: it is a warning, as is a map file that does not exist.
+fn maps_of_logs(root: &Path, dir: &Path, map_rows: &[MapRow], w: &mut Vec<String>) -> HashMap<String, PathBuf> {
+    let map_file = dir.join("map.json");
+    let mut map_of_log: HashMap<String, PathBuf> = HashMap::new();
+    for (row, m) in map_rows.iter().enumerate() {
+        match join_inside(root, &Place::row(&map_file, row, &m.token), "filename", &m.filename) {
+            Ok(path) if path.is_file() => {
+                for log in &m.log_tokens {
+                    map_of_log.insert(log.clone(), path.clone());
+                }
+            }
+            Ok(path) => w.push(format!("{}: row {row}: the map {} does not exist", map_file.display(), path.display())),
+            Err(e) => w.push(e),
+        }
+    }
+    map_of_log
+}
+
+impl Annotation {
+    /// The annotation rows as boxes' annotations, category and attribute names resolved; a row
+    /// that is no box keeps why. Quaternions a little off unit norm are normalised (one warning).
+    fn from_rows(rows: Vec<AnnotationRow>, tables: &Tables, warnings: &mut Vec<String>) -> Vec<Annotation> {
+        let cat_name: HashMap<&str, &str> =
+            tables.categories.iter().map(|c| (c.token.as_str(), c.name.as_str())).collect();
+        let attr_name: HashMap<&str, &str> =
+            tables.attributes.iter().map(|c| (c.token.as_str(), c.name.as_str())).collect();
+        let inst_cat: HashMap<&str, &str> = tables
+            .instances
             .iter()
             .map(|i| (i.token.as_str(), cat_name.get(i.category_token.as_str()).copied().unwrap_or("")))
             .collect();
-        let ann_file = tables.join("sample_annotation.json");
+        let ann_file = tables.dir.join("sample_annotation.json");
         let mut box_rotations = Renormalised::default();
-        let annotations: Vec<Annotation> = anns
+        let annotations: Vec<Annotation> = rows
             .into_iter()
             .map(|mut row| {
                 let at = Place::row(&ann_file, row.row, &row.token);
@@ -724,185 +628,251 @@ impl NuScenes {
             })
             .collect();
         warnings.extend(box_rotations.warnings());
-        let mut anns_of_sample: HashMap<&str, Vec<usize>> = HashMap::new();
-        for (i, a) in annotations.iter().enumerate() {
-            anns_of_sample.entry(a.row.sample_token.as_str()).or_default().push(i);
-        }
+        annotations
+    }
+}
 
-        let mut out = Vec::new();
+/// The annotations of each sample (indices into `annotations`), by sample token.
+fn annotations_of_samples(annotations: &[Annotation]) -> HashMap<&str, Vec<usize>> {
+    let mut anns_of_sample: HashMap<&str, Vec<usize>> = HashMap::new();
+    for (i, a) in annotations.iter().enumerate() {
+        anns_of_sample.entry(a.row.sample_token.as_str()).or_default().push(i);
+    }
+    anns_of_sample
+}
+
+/// The rows the frames are made of, by token, each checked once: a bad row becomes the error of
+/// the items that use it, not of the dataset.
+struct Rows<'a> {
+    tables: &'a Tables,
+    config: &'a NuScenesConfig,
+    cameras: &'a [String],
+    /// `sample_data.json` and `calibrated_sensor.json`, which the errors name.
+    sd_file: PathBuf,
+    cs_file: PathBuf,
+    /// Each LiDAR `sample_data`'s lidarseg labels file, by its token.
+    labels_by: HashMap<&'a str, Result<PathBuf, String>>,
+    pose_by: HashMap<&'a str, Result<Se3, String>>,
+    calib_by: HashMap<&'a str, (&'a CalibratedSensorRow, Result<Mount, String>)>,
+    sample_by: HashMap<&'a str, &'a SampleRow>,
+    /// Each sensor's channel, by the sensor's token.
+    channel_by: HashMap<&'a str, &'a str>,
+    sd_by: HashMap<&'a str, &'a SampleDataRow>,
+    /// Keyframe sample_data by (sample, channel); those whose channel is unknown, by sample.
+    keyframe: HashMap<(&'a str, &'a str), &'a SampleDataRow>,
+    unresolved: HashMap<&'a str, Vec<(&'a SampleDataRow, String)>>,
+}
+
+impl<'a> Rows<'a> {
+    /// Checks the poses, mounts and label files and indexes the rows; quaternions a little off
+    /// unit norm are normalised (one warning per table).
+    fn index(
+        tables: &'a Tables,
+        config: &'a NuScenesConfig,
+        cameras: &'a [String],
+        warnings: &mut Vec<String>,
+    ) -> Self {
+        let dir = &tables.dir;
+        let (sd_file, cs_file) = (dir.join("sample_data.json"), dir.join("calibrated_sensor.json"));
+        let mut renormalised = Renormalised::default();
+        let seg_file = dir.join("lidarseg.json");
+        let labels_by: HashMap<&str, Result<PathBuf, String>> = tables
+            .lidarseg
+            .iter()
+            .map(|l| {
+                let at = Place::row(&seg_file, l.row, &l.token);
+                (l.sample_data_token.as_str(), join_inside(&tables.root, &at, "filename", &l.filename))
+            })
+            .collect();
+        let pose_file = dir.join("ego_pose.json");
+        let pose_by: HashMap<&str, Result<Se3, String>> = tables
+            .poses
+            .iter()
+            .map(|p| {
+                let at = Place::row(&pose_file, p.row, &p.token);
+                let pose = rigid(&at, TRANSFORM_FIELDS, p.rotation, p.translation, Transform::Pose, &mut renormalised);
+                (p.token.as_str(), pose)
+            })
+            .collect();
+        let calib_by: HashMap<&str, (&CalibratedSensorRow, Result<Mount, String>)> = tables
+            .calibs
+            .iter()
+            .map(|c| (c.token.as_str(), (c, check_mount(c, &cs_file, &mut renormalised))))
+            .collect();
+        warnings.extend(renormalised.warnings());
+        let mut rows = Rows {
+            tables,
+            config,
+            cameras,
+            sd_file,
+            cs_file,
+            labels_by,
+            pose_by,
+            calib_by,
+            sample_by: tables.samples.iter().map(|s| (s.token.as_str(), s)).collect(),
+            channel_by: tables.sensors.iter().map(|s| (s.token.as_str(), s.channel.as_str())).collect(),
+            sd_by: tables.sample_data.iter().map(|s| (s.token.as_str(), s)).collect(),
+            keyframe: HashMap::new(),
+            unresolved: HashMap::new(),
+        };
+        for sd in tables.sample_data.iter().filter(|sd| sd.is_key_frame) {
+            match rows.channel_of(sd) {
+                Ok(channel) => {
+                    rows.keyframe.insert((sd.sample_token.as_str(), channel), sd);
+                }
+                Err(e) => rows.unresolved.entry(sd.sample_token.as_str()).or_default().push((sd, e)),
+            }
+        }
+        rows
+    }
+
+    fn mount_of(&self, sd: &SampleDataRow) -> Result<&(&'a CalibratedSensorRow, Result<Mount, String>), String> {
+        self.calib_by.get(sd.calibrated_sensor_token.as_str()).ok_or_else(|| {
+            let (field, value) = ("calibrated_sensor_token", &sd.calibrated_sensor_token);
+            dangling(&self.sd_file, sd.row, &sd.token, field, value, "calibrated_sensor")
+        })
+    }
+
+    fn channel_of(&self, sd: &SampleDataRow) -> Result<&'a str, String> {
+        let (cs, _) = self.mount_of(sd)?;
+        self.channel_by
+            .get(cs.sensor_token.as_str())
+            .copied()
+            .ok_or_else(|| dangling(&self.cs_file, cs.row, &cs.token, "sensor_token", &cs.sensor_token, "sensor"))
+    }
+
+    /// Why a sample has no keyframe of a channel: a keyframe of it whose sensor is unknown and
+    /// whose file name says that channel is the one, and its dangling token the reason.
+    fn no_keyframe(&self, sample: &str, channel: &str) -> String {
+        let unknown = self.unresolved.get(sample).map(Vec::as_slice).unwrap_or_default();
+        let named: Vec<&str> =
+            unknown.iter().filter(|(sd, _)| names_channel(&sd.filename, channel)).map(|(_, e)| e.as_str()).collect();
+        if !named.is_empty() {
+            return named.join("; ");
+        }
+        let mut why = format!("sample {sample} has no keyframe sample_data for channel {channel}");
+        if !unknown.is_empty() {
+            let errors: Vec<&str> = unknown.iter().map(|(_, e)| e.as_str()).collect();
+            why += &format!(" (its keyframes of unknown channel: {})", errors.join("; "));
+        }
+        why
+    }
+
+    /// A `sample_data` row as a reading: its file, mount, pose and (for a camera) image size,
+    /// each checked.
+    fn resolve(&self, sd: &SampleDataRow, camera: bool) -> Result<Reading, String> {
+        let at = Place::row(&self.sd_file, sd.row, &sd.token);
+        let file = join_inside(&self.tables.root, &at, "filename", &sd.filename)?;
+        let mount = self.mount_of(sd)?.1.as_ref().map_err(String::clone)?;
+        if camera {
+            image_size(&at.to_string(), "fields width, height", sd.width, sd.height)?;
+        }
+        if sd.timestamp < 0 {
+            return Err(format!("{at}: field timestamp {} is negative", sd.timestamp));
+        }
+        match &mount.intrinsics {
+            Some(k) => principal_point_inside(&mount.at, "camera_intrinsic", k, sd.width, sd.height)
+                .map_err(|e| format!("{e} of {at}"))?,
+            None if camera => {
+                return Err(format!("{}: field camera_intrinsic is empty, but {at} is a camera image", mount.at))
+            }
+            None => {}
+        }
+        let ego_to_world = self
+            .pose_by
+            .get(sd.ego_pose_token.as_str())
+            .ok_or_else(|| {
+                dangling(&self.sd_file, sd.row, &sd.token, "ego_pose_token", &sd.ego_pose_token, "ego_pose")
+            })?
+            .clone()?;
+        Ok(Reading {
+            file,
+            calib: Calibration {
+                sensor_to_ego: mount.sensor_to_ego,
+                intrinsics: mount.intrinsics,
+                width: sd.width,
+                height: sd.height,
+            },
+            pose: Pose { ego_to_world, timestamp_us: sd.timestamp },
+            what: format!("sample_data {}", sd.token),
+            token: sd.token.clone(),
+            row: None,
+            stored_file: None,
+        })
+    }
+
+    /// A LiDAR reading and its lidarseg labels: a refused labels file fails the whole reading.
+    fn resolve_lidar(&self, sd: &SampleDataRow) -> Result<(Reading, Option<PathBuf>), String> {
+        let reading = self.resolve(sd, false)?;
+        Ok((reading, self.labels_by.get(sd.token.as_str()).cloned().transpose()?))
+    }
+
+    fn key_row(&self, sample: &str, channel: &str) -> Result<&'a SampleDataRow, String> {
+        self.keyframe.get(&(sample, channel)).copied().ok_or_else(|| self.no_keyframe(sample, channel))
+    }
+
+    /// A channel's whole sample_data chain through a keyframe (prev to the start, next to the end).
+    fn chain(&self, start: &'a SampleDataRow) -> Result<Vec<&'a SampleDataRow>> {
+        let (sd_by, dir) = (&self.sd_by, &self.tables.dir);
+        let mut first = start;
+        let mut guard = 0;
+        while !first.prev.is_empty() {
+            first = sd_by.get(first.prev.as_str()).ok_or_else(|| {
+                anyhow!(
+                    "{}/sample_data.json: sample_data {}: field prev {} names no row",
+                    dir.display(),
+                    first.token,
+                    first.prev
+                )
+            })?;
+            guard += 1;
+            anyhow::ensure!(guard < 1_000_000, "sample_data {}: the prev chain does not end", start.token);
+        }
+        let mut out = vec![first];
+        while !out.last().map_or(true, |s| s.next.is_empty()) {
+            let cur = out[out.len() - 1];
+            out.push(sd_by.get(cur.next.as_str()).ok_or_else(|| {
+                anyhow!(
+                    "{}/sample_data.json: sample_data {}: field next {} names no row",
+                    dir.display(),
+                    cur.token,
+                    cur.next
+                )
+            })?);
+            anyhow::ensure!(out.len() < 1_000_000, "sample_data {}: the next chain does not end", start.token);
+        }
+        Ok(out)
+    }
+
+    /// Every scene that has samples, with its frames. A scene no sample names is left out (one
+    /// warning for them all), as are the frames of none; a scene whose keyframes are out of time
+    /// order has every frame fail.
+    fn scenes(&self, anns_of_sample: &HashMap<&str, Vec<usize>>, warnings: &mut Vec<String>) -> Result<Scenes> {
+        let dir = &self.tables.dir;
+        let mut out = Scenes::default();
         let mut skipped: Vec<&str> = Vec::new();
         let mut keyframes_only: Vec<(&str, usize)> = Vec::new();
-        let scenes_sampled: std::collections::HashSet<&str> = samples.iter().map(|s| s.scene_token.as_str()).collect();
-        let mut scene_tokens = Vec::new();
-        let mut maps = Vec::new();
-        let mut sample_tokens = Vec::new();
-        for scene in &scenes {
-            let mut keys: Vec<&SampleRow> = Vec::new();
-            let mut token = scene.first_sample_token.as_str();
-            if !token.is_empty() && !sample_by.contains_key(token) && !scenes_sampled.contains(scene.token.as_str()) {
-                // ASAP's interp_12Hz folders keep every scene of trainval but the samples of the
-                // val split only: a scene no sample names has no frames, which the open report
-                // says. (A scene with samples but a wrong first token is still an error below.)
+        let scenes_sampled: std::collections::HashSet<&str> =
+            self.tables.samples.iter().map(|s| s.scene_token.as_str()).collect();
+        for scene in &self.tables.scenes {
+            let Some(keys) = self.keyframes_of(scene, &scenes_sampled)? else {
                 skipped.push(scene.name.as_str());
                 continue;
-            }
-            while !token.is_empty() {
-                let sample = sample_by.get(token).ok_or_else(|| {
-                    anyhow!(
-                        "{}/sample.json: no sample with token {token} (named by scene {} or a sample's `next`)",
-                        tables.display(),
-                        scene.token
-                    )
-                })?;
-                keys.push(sample);
-                token = sample.next.as_str();
-                if keys.len() > 100_000 {
-                    bail!("scene {}: the sample `next` chain does not end", scene.name);
-                }
-            }
+            };
             let samples_of_scene: Vec<(i64, Vec<usize>)> = keys
                 .iter()
                 .map(|k| (k.timestamp, anns_of_sample.get(k.token.as_str()).cloned().unwrap_or_default()))
                 .collect();
-            let mut frames: Vec<Frame<Sweep>> = match config.frames {
-                FrameMode::Keyframes => keys
-                    .iter()
-                    .enumerate()
-                    .map(|(i, k)| {
-                        let lidar = key_row(&k.token, &config.lidar).and_then(resolve_lidar);
-                        let cameras = cameras.iter().map(|c| {
-                            let sd = key_row(&k.token, c);
-                            (sd.as_ref().ok().map(|sd| sd.token.clone()), sd.and_then(|sd| resolve(sd, true)))
-                        });
-                        frame(lidar, cameras.collect(), k.timestamp, Some(i), true)
-                    })
-                    .collect(),
-                FrameMode::Sweeps => {
-                    let Some(first) = keys.first() else { bail!("scene {}: it has no samples", scene.name) };
-                    let Some(first_key) = keyframe.get(&(first.token.as_str(), config.lidar.as_str())) else {
-                        bail!("scene {}: {}", scene.name, no_keyframe(&first.token, &config.lidar));
-                    };
-                    let lidar_chain = chain(first_key, &sd_by, &tables)?;
-                    let camera_chains: Vec<Option<Vec<&SampleDataRow>>> = cameras
-                        .iter()
-                        .map(|c| {
-                            keys.first()
-                                .and_then(|k| keyframe.get(&(k.token.as_str(), c.as_str())))
-                                .map(|sd| chain(sd, &sd_by, &tables))
-                                .transpose()
-                        })
-                        .collect::<Result<_>>()?;
-                    lidar_chain
-                        .iter()
-                        .map(|sd| {
-                            let t = sd.timestamp;
-                            let sample = keys.iter().rposition(|k| k.timestamp <= t);
-                            let cameras = camera_chains.iter().zip(&cameras).map(|(ch, name)| {
-                                let Some(ch) = ch else {
-                                    return (None, Err(format!("scene {}: no {name} images", scene.name)));
-                                };
-                                match ch.iter().min_by_key(|c| (c.timestamp - t).abs()) {
-                                    Some(nearest) => (Some(nearest.token.clone()), resolve(nearest, true)),
-                                    None => (None, Err("empty chain".to_string())),
-                                }
-                            });
-                            frame(resolve_lidar(sd), cameras.collect(), t, sample, sd.is_key_frame)
-                        })
-                        .collect()
-                }
-                FrameMode::Camera => {
-                    let Some(first) = keys.first() else { bail!("scene {}: it has no samples", scene.name) };
-                    // Each camera's whole chain, through its image of the first keyframe.
-                    let chains: Vec<Result<Vec<&SampleDataRow>, String>> = cameras
-                        .iter()
-                        .map(|c| match keyframe.get(&(first.token.as_str(), c.as_str())) {
-                            Some(sd) => chain(sd, &sd_by, &tables).map_err(|e| format!("{e:#}")),
-                            None => Err(format!("scene {}: {}", scene.name, no_keyframe(&first.token, c))),
-                        })
-                        .collect();
-                    let lidar_chain = keyframe
-                        .get(&(first.token.as_str(), config.lidar.as_str()))
-                        .map(|sd| chain(sd, &sd_by, &tables))
-                        .transpose()?
-                        .unwrap_or_default();
-                    let times: Vec<Vec<i64>> = chains
-                        .iter()
-                        .map(|c| c.as_ref().map(|c| c.iter().map(|sd| sd.timestamp).collect()).unwrap_or_default())
-                        .collect();
-                    // A camera's offset from the reference: the median over the keyframes, whose
-                    // images are one round by the dataset's own definition.
-                    let offsets: Vec<i64> = cameras
-                        .iter()
-                        .map(|c| {
-                            let mut d: Vec<i64> = keys
-                                .iter()
-                                .filter_map(|k| {
-                                    let own = keyframe.get(&(k.token.as_str(), c.as_str()))?;
-                                    let reference = keyframe.get(&(k.token.as_str(), cameras[0].as_str()))?;
-                                    Some(own.timestamp - reference.timestamp)
-                                })
-                                .collect();
-                            d.sort_unstable();
-                            d.get(d.len() / 2).copied().unwrap_or(0)
-                        })
-                        .collect();
-                    let sample_of: HashMap<&str, usize> =
-                        keys.iter().enumerate().map(|(i, k)| (k.token.as_str(), i)).collect();
-                    let rounds = camera_rounds(&times, &offsets);
-                    if rounds.len() <= keys.len() && chains.iter().any(Result::is_ok) {
-                        keyframes_only.push((scene.name.as_str(), rounds.len()));
-                    }
-                    let complete: Vec<bool> = chains.iter().map(|c| c.is_ok()).collect();
-                    if let Some(note) = incomplete_rounds(&scene.name, &cameras, &rounds, &complete) {
-                        warnings.push(note);
-                    }
-                    rounds
-                        .iter()
-                        .enumerate()
-                        .map(|(n, round)| {
-                            let image = |c: usize| round.images[c].and_then(|j| chains[c].as_ref().ok().map(|ch| ch[j]));
-                            let key_image = (0..cameras.len()).filter_map(image).find(|sd| sd.is_key_frame);
-                            let cameras = cameras.iter().enumerate().map(|(c, name)| {
-                                (image(c).map(|sd| sd.token.clone()), match (&chains[c], image(c)) {
-                                (Err(e), _) => Err(e.clone()),
-                                (Ok(_), Some(sd)) => resolve(sd, true),
-                                (Ok(_), None) => Err(format!(
-                                    "scene {}: camera round {n} ({} us) has no {name} image: the camera has none within \
-                                     half a frame period of the round (a dropped frame)",
-                                    scene.name, round.time
-                                )),
-                                })
-                            });
-                            let lidar = match lidar_chain.iter().min_by_key(|sd| (sd.timestamp - round.time).abs()) {
-                                Some(sd) => resolve_lidar(sd),
-                                None => Err(format!("scene {}: {}", scene.name, no_keyframe(&first.token, &config.lidar))),
-                            };
-                            let sample = match key_image {
-                                Some(sd) => sample_of.get(sd.sample_token.as_str()).copied(),
-                                None => keys.iter().rposition(|k| k.timestamp <= round.time),
-                            };
-                            frame(lidar, cameras.collect(), round.time, sample, key_image.is_some())
-                        })
-                        .collect()
-                }
+            let mut frames: Vec<Frame<Sweep>> = match self.config.frames {
+                FrameMode::Keyframes => self.keyframe_frames(&keys),
+                FrameMode::Sweeps => self.sweep_frames(scene, &keys)?,
+                FrameMode::Camera => self.camera_frames(scene, &keys, &mut keyframes_only, warnings)?,
             };
-            // Keyframes out of time order (swapped, reversed, repeated) would give wrong windows,
-            // box interpolation (between keyframes found by time) and velocities anywhere in the
-            // scene: every frame of it fails, naming the first bad row. A keyframe before 1970
-            // fails its own frames.
-            let sample_file = tables.join("sample.json");
-            let (negative, disorder) = keyframe_time_problems(&keys, &sample_file);
-            for f in frames.iter_mut() {
-                let why = disorder.as_ref().or_else(|| f.extra.sample.and_then(|k| negative.get(&k)));
-                if let Some(why) = why {
-                    f.lidar = Err(why.clone());
-                    f.cameras.iter_mut().for_each(|c| *c = Err(why.clone()));
-                }
-            }
-            out.push(Scene { name: scene.name.clone(), frames, extra: samples_of_scene });
-            scene_tokens.push(scene.token.clone());
-            maps.push(map_of_log.get(scene.log_token.as_str()).cloned());
-            sample_tokens.push(keys.iter().map(|k| k.token.clone()).collect());
+            fail_frames_on_keyframe_times(&keys, &mut frames, &dir.join("sample.json"));
+            out.scenes.push(Scene { name: scene.name.clone(), frames, extra: samples_of_scene });
+            out.tokens.push(scene.token.clone());
+            out.maps.push(self.tables.map_of_log.get(scene.log_token.as_str()).cloned());
+            out.sample_tokens.push(keys.iter().map(|k| k.token.clone()).collect());
         }
         if let Some((first, rounds)) = keyframes_only.first() {
             warnings.push(format!(
@@ -915,21 +885,256 @@ impl NuScenes {
             warnings.push(format!(
                 "{}/scene.json: {} scene(s) name a first_sample_token that is not in sample.json and have no frames \
                  (first: {first}); a folder written for one split (ASAP's interp_12Hz) keeps the others' scenes",
-                tables.display(),
+                dir.display(),
                 skipped.len()
             ));
         }
-        ensure!(!out.is_empty(), "{}: no scene has samples", tables.join("scene.json").display());
+        ensure!(!out.scenes.is_empty(), "{}: no scene has samples", dir.join("scene.json").display());
+        Ok(out)
+    }
+
+    /// A scene's samples along their `next` chain; `None` for a scene no sample names.
+    fn keyframes_of(
+        &self,
+        scene: &SceneRow,
+        scenes_sampled: &std::collections::HashSet<&str>,
+    ) -> Result<Option<Vec<&'a SampleRow>>> {
+        let mut keys: Vec<&SampleRow> = Vec::new();
+        let mut token = scene.first_sample_token.as_str();
+        if !token.is_empty() && !self.sample_by.contains_key(token) && !scenes_sampled.contains(scene.token.as_str()) {
+            // ASAP's interp_12Hz folders keep every scene of trainval but the samples of the
+            // val split only: a scene no sample names has no frames, which the open report
+            // says. (A scene with samples but a wrong first token is still an error below.)
+            return Ok(None);
+        }
+        while !token.is_empty() {
+            let sample = self.sample_by.get(token).ok_or_else(|| {
+                anyhow!(
+                    "{}/sample.json: no sample with token {token} (named by scene {} or a sample's `next`)",
+                    self.tables.dir.display(),
+                    scene.token
+                )
+            })?;
+            keys.push(sample);
+            token = sample.next.as_str();
+            if keys.len() > 100_000 {
+                bail!("scene {}: the sample `next` chain does not end", scene.name);
+            }
+        }
+        Ok(Some(keys))
+    }
+
+    /// `frames: Keyframes`: one frame per sample, of its keyframe readings.
+    fn keyframe_frames(&self, keys: &[&SampleRow]) -> Vec<Frame<Sweep>> {
+        keys.iter()
+            .enumerate()
+            .map(|(i, k)| {
+                let lidar = self.key_row(&k.token, &self.config.lidar).and_then(|sd| self.resolve_lidar(sd));
+                let cameras = self.cameras.iter().map(|c| {
+                    let sd = self.key_row(&k.token, c);
+                    (sd.as_ref().ok().map(|sd| sd.token.clone()), sd.and_then(|sd| self.resolve(sd, true)))
+                });
+                frame(lidar, cameras.collect(), k.timestamp, Some(i), true)
+            })
+            .collect()
+    }
+
+    /// `frames: Sweeps`: one frame per LiDAR sweep of the scene, each camera's image nearest it.
+    fn sweep_frames(&self, scene: &SceneRow, keys: &[&SampleRow]) -> Result<Vec<Frame<Sweep>>> {
+        let Some(first) = keys.first() else { bail!("scene {}: it has no samples", scene.name) };
+        let Some(first_key) = self.keyframe.get(&(first.token.as_str(), self.config.lidar.as_str())) else {
+            bail!("scene {}: {}", scene.name, self.no_keyframe(&first.token, &self.config.lidar));
+        };
+        let lidar_chain = self.chain(first_key)?;
+        let camera_chains: Vec<Option<Vec<&SampleDataRow>>> = self
+            .cameras
+            .iter()
+            .map(|c| {
+                keys.first()
+                    .and_then(|k| self.keyframe.get(&(k.token.as_str(), c.as_str())))
+                    .map(|sd| self.chain(sd))
+                    .transpose()
+            })
+            .collect::<Result<_>>()?;
+        Ok(lidar_chain
+            .iter()
+            .map(|sd| {
+                let t = sd.timestamp;
+                let sample = keys.iter().rposition(|k| k.timestamp <= t);
+                let cameras = camera_chains.iter().zip(self.cameras).map(|(ch, name)| {
+                    let Some(ch) = ch else {
+                        return (None, Err(format!("scene {}: no {name} images", scene.name)));
+                    };
+                    match ch.iter().min_by_key(|c| (c.timestamp - t).abs()) {
+                        Some(nearest) => (Some(nearest.token.clone()), self.resolve(nearest, true)),
+                        None => (None, Err("empty chain".to_string())),
+                    }
+                });
+                frame(self.resolve_lidar(sd), cameras.collect(), t, sample, sd.is_key_frame)
+            })
+            .collect())
+    }
+
+    /// `frames: Camera`: one frame per round of the surround cameras ([`camera_rounds`]), the
+    /// LiDAR sweep nearest each. A scene with images at keyframes only goes on
+    /// `keyframes_only`; incomplete rounds are a warning.
+    fn camera_frames(
+        &self,
+        scene: &'a SceneRow,
+        keys: &[&SampleRow],
+        keyframes_only: &mut Vec<(&'a str, usize)>,
+        warnings: &mut Vec<String>,
+    ) -> Result<Vec<Frame<Sweep>>> {
+        let Some(first) = keys.first() else { bail!("scene {}: it has no samples", scene.name) };
+        // Each camera's whole chain, through its image of the first keyframe.
+        let chains: Vec<Result<Vec<&SampleDataRow>, String>> = self
+            .cameras
+            .iter()
+            .map(|c| match self.keyframe.get(&(first.token.as_str(), c.as_str())) {
+                Some(sd) => self.chain(sd).map_err(|e| format!("{e:#}")),
+                None => Err(format!("scene {}: {}", scene.name, self.no_keyframe(&first.token, c))),
+            })
+            .collect();
+        let lidar = self
+            .keyframe
+            .get(&(first.token.as_str(), self.config.lidar.as_str()))
+            .map(|sd| self.chain(sd))
+            .transpose()?
+            .unwrap_or_default();
+        let times: Vec<Vec<i64>> = chains
+            .iter()
+            .map(|c| c.as_ref().map(|c| c.iter().map(|sd| sd.timestamp).collect()).unwrap_or_default())
+            .collect();
+        let rounds = camera_rounds(&times, &self.camera_offsets(keys));
+        if rounds.len() <= keys.len() && chains.iter().any(Result::is_ok) {
+            keyframes_only.push((scene.name.as_str(), rounds.len()));
+        }
+        let complete: Vec<bool> = chains.iter().map(|c| c.is_ok()).collect();
+        if let Some(note) = incomplete_rounds(&scene.name, self.cameras, &rounds, &complete) {
+            warnings.push(note);
+        }
+        let sample_of: HashMap<&str, usize> = keys.iter().enumerate().map(|(i, k)| (k.token.as_str(), i)).collect();
+        let chains = RoundChains { cameras: chains, lidar, sample_of };
+        Ok(rounds.iter().enumerate().map(|(n, round)| self.round_frame(scene, keys, &chains, n, round)).collect())
+    }
+
+    /// Each camera's offset from the reference (`cameras[0]`): the median over the keyframes, whose
+    /// images are one round by the dataset's own definition.
+    fn camera_offsets(&self, keys: &[&SampleRow]) -> Vec<i64> {
+        let cameras = self.cameras;
+        cameras
+            .iter()
+            .map(|c| {
+                let mut d: Vec<i64> = keys
+                    .iter()
+                    .filter_map(|k| {
+                        let own = self.keyframe.get(&(k.token.as_str(), c.as_str()))?;
+                        let reference = self.keyframe.get(&(k.token.as_str(), cameras[0].as_str()))?;
+                        Some(own.timestamp - reference.timestamp)
+                    })
+                    .collect();
+                d.sort_unstable();
+                d.get(d.len() / 2).copied().unwrap_or(0)
+            })
+            .collect()
+    }
+
+    /// The frame of camera round `n` of a scene: its images, the LiDAR sweep nearest its time, and
+    /// the sample it is (a keyframe image among its images) or follows.
+    fn round_frame(
+        &self,
+        scene: &SceneRow,
+        keys: &[&SampleRow],
+        chains: &RoundChains,
+        n: usize,
+        round: &CameraRound,
+    ) -> Frame<Sweep> {
+        // (`camera_frames` made no rounds for a scene without samples.)
+        let first = keys[0];
+        let image = |c: usize| round.images[c].and_then(|j| chains.cameras[c].as_ref().ok().map(|ch| ch[j]));
+        let key_image = (0..self.cameras.len()).filter_map(image).find(|sd| sd.is_key_frame);
+        let cameras = self.cameras.iter().enumerate().map(|(c, name)| {
+            (
+                image(c).map(|sd| sd.token.clone()),
+                match (&chains.cameras[c], image(c)) {
+                    (Err(e), _) => Err(e.clone()),
+                    (Ok(_), Some(sd)) => self.resolve(sd, true),
+                    (Ok(_), None) => Err(format!(
+                        "scene {}: camera round {n} ({} us) has no {name} image: the camera has none within \
+                     half a frame period of the round (a dropped frame)",
+                        scene.name, round.time
+                    )),
+                },
+            )
+        });
+        let lidar = match chains.lidar.iter().min_by_key(|sd| (sd.timestamp - round.time).abs()) {
+            Some(sd) => self.resolve_lidar(sd),
+            None => Err(format!("scene {}: {}", scene.name, self.no_keyframe(&first.token, &self.config.lidar))),
+        };
+        let sample = match key_image {
+            Some(sd) => chains.sample_of.get(sd.sample_token.as_str()).copied(),
+            None => keys.iter().rposition(|k| k.timestamp <= round.time),
+        };
+        frame(lidar, cameras.collect(), round.time, sample, key_image.is_some())
+    }
+}
+
+/// What a scene's camera rounds are made of: each camera's `sample_data` chain (or why it has
+/// none), the LiDAR's (empty without one), and each sample's keyframe index by its token.
+struct RoundChains<'a> {
+    cameras: Vec<Result<Vec<&'a SampleDataRow>, String>>,
+    lidar: Vec<&'a SampleDataRow>,
+    sample_of: HashMap<&'a str, usize>,
+}
+
+/// The scenes with frames, and what the reader keeps of each.
+#[derive(Default)]
+struct Scenes {
+    scenes: Vec<Scene<Keyframes, Sweep>>,
+    /// Each scene's `scene` token, map mask (if its log has one) and sample tokens in keyframe order.
+    tokens: Vec<String>,
+    maps: Vec<Option<PathBuf>>,
+    sample_tokens: Vec<Vec<String>>,
+}
+
+/// Keyframes out of time order (swapped, reversed, repeated) would give wrong windows, box
+/// interpolation (between keyframes found by time) and velocities anywhere in the scene: every
+/// frame of it fails, naming the first bad row. A keyframe before 1970 fails its own frames.
+fn fail_frames_on_keyframe_times(keys: &[&SampleRow], frames: &mut [Frame<Sweep>], sample_file: &Path) {
+    let (negative, disorder) = keyframe_time_problems(keys, sample_file);
+    for f in frames.iter_mut() {
+        let why = disorder.as_ref().or_else(|| f.extra.sample.and_then(|k| negative.get(&k)));
+        if let Some(why) = why {
+            f.lidar = Err(why.clone());
+            f.cameras.iter_mut().for_each(|c| *c = Err(why.clone()));
+        }
+    }
+}
+
+impl NuScenes {
+    /// Opens a nuScenes version folder: reads its tables, checks and indexes their rows, resolves
+    /// the boxes' annotations, and makes each scene's frames (keyframes, sweeps or camera rounds).
+    pub fn open(config: NuScenesConfig) -> Result<NuScenes> {
+        let mut warnings = Vec::new();
+        let mut tables = Tables::read(&config, &mut warnings)?;
+        // Moved out, not copied (trainval has over a million): the boxes are made of them once
+        // the other rows are indexed, by reference into the tables.
+        let annotation_rows = std::mem::take(&mut tables.annotations);
+        let cameras = tables.cameras(&config)?;
+        let rows = Rows::index(&tables, &config, &cameras, &mut warnings);
+        let annotations = Annotation::from_rows(annotation_rows, &tables, &mut warnings);
+        let scenes = rows.scenes(&annotations_of_samples(&annotations), &mut warnings)?;
         let annotation_by_token = annotations.iter().enumerate().map(|(i, a)| (a.row.token.clone(), i)).collect();
-        let sample_time = samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
-        let sidecars = Sidecars::new(&root, config.semantics.as_deref());
-        let tree = Tree { root, cameras, scenes: out, sidecars };
+        let sample_time = tables.samples.iter().map(|s| (s.token.clone(), s.timestamp)).collect();
+        let has_point_labels = !tables.lidarseg.is_empty();
+        let sidecars = Sidecars::new(&tables.root, config.semantics.as_deref());
+        let tree = Tree { root: tables.root, cameras, scenes: scenes.scenes, sidecars };
         Ok(NuScenes {
             config,
             tree,
-            scene_tokens,
-            maps,
-            sample_tokens,
+            scene_tokens: scenes.tokens,
+            maps: scenes.maps,
+            sample_tokens: scenes.sample_tokens,
             annotations,
             annotation_by_token,
             sample_time,
