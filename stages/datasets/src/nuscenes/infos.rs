@@ -191,7 +191,7 @@ impl TableRow for InfoSampleDataRow {
 impl TableRow for LogRow {}
 
 /// The tables of one version, indexed as the devkit indexes them.
-struct Tables {
+struct InfoTables {
     dir: PathBuf,
     prefix: String,
     max_sweeps: usize,
@@ -221,8 +221,8 @@ fn index<T>(rows: &[T], token: impl Fn(&T) -> &str) -> HashMap<String, usize> {
     rows.iter().enumerate().map(|(i, r)| (token(r).to_string(), i)).collect()
 }
 
-impl Tables {
-    fn read(options: &InfosOptions, test: bool) -> Result<(Tables, Vec<String>)> {
+impl InfoTables {
+    fn read(options: &InfosOptions, test: bool) -> Result<(InfoTables, Vec<String>)> {
         let dir = options.root.join(&options.version);
         if !dir.is_dir() {
             let config = NuScenesConfig {
@@ -318,7 +318,7 @@ impl Tables {
                 })
             })
             .collect::<Result<Vec<String>>>()?;
-        let tables = Tables {
+        let tables = InfoTables {
             prefix: options.path_prefix.clone(),
             max_sweeps: 0,
             scene_by: index(&scenes, |s| &s.token),
@@ -688,7 +688,7 @@ struct Plan {
     splits: Vec<(&'static str, Vec<usize>, Vec<Vec<String>>, usize)>,
 }
 
-fn plan(tables: &Tables, layout: &Layout, warnings: &mut Vec<String>) -> Result<Plan> {
+fn plan(tables: &InfoTables, layout: &Layout, warnings: &mut Vec<String>) -> Result<Plan> {
     let mut split_of_scene: HashMap<String, usize> = HashMap::new();
     for (k, (_, list)) in layout.splits.iter().enumerate() {
         for name in official_split(list) {
@@ -785,7 +785,7 @@ pub fn write_infos(options: &InfosOptions) -> Result<InfosReport> {
         );
     }
     let test = layout.splits.iter().any(|(n, _)| *n == "test");
-    let (mut tables, mut warnings) = Tables::read(options, test)?;
+    let (mut tables, mut warnings) = InfoTables::read(options, test)?;
     tables.max_sweeps = options.max_sweeps.unwrap_or(if layout.twelve_hz { 0 } else { 10 });
     let plan = plan(&tables, &layout, &mut warnings)?;
     let official = tables.scenes.iter().any(|s| layout.splits.iter().any(|(_, l)| official_split(l).contains(&s.name)));
@@ -872,7 +872,7 @@ pub fn write_infos(options: &InfosOptions) -> Result<InfosReport> {
 /// One pickle: the infos encoded in parallel a chunk at a time and written in order, then
 /// `metadata` and `scene_tokens`; synced before the caller renames it into place.
 fn write_one(
-    tables: &Tables,
+    tables: &InfoTables,
     tmp: &Path,
     samples: &[usize],
     scene_tokens: &[Vec<String>],
