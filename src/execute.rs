@@ -2,7 +2,7 @@
 //! signals, the memory warning, the per-stage table and what the exit code says.
 
 use crate::cli::PipelineArgs;
-use crate::commands::{load, refuse_dataset_root};
+use crate::load::{load, refuse_dataset_root};
 use anyhow::{Context, Result};
 use dist4d_graph::Pipeline;
 use dist4d_runtime::{exec::Engine, Access, ProgressMode, RunOptions, RunStatus, Store};

@@ -10,6 +10,7 @@ use std::process::ExitCode;
 mod cli;
 mod commands;
 mod execute;
+mod load;
 mod slurm;
 
 // Stages allocate and free image-sized buffers (a 1600x900 f32 map is 5.8 MB) many times a

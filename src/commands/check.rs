@@ -1,7 +1,7 @@
 //! `dist4d check`: a pipeline file checked without running it.
 
 use crate::cli::PipelineArgs;
-use crate::commands::load;
+use crate::load::load;
 use anyhow::Result;
 use dist4d_stages::Registry;
 use std::process::ExitCode;

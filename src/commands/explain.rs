@@ -1,7 +1,7 @@
 //! `dist4d explain`: per stage, how many tasks are cached, will run or failed, and why.
 
 use crate::cli::PipelineArgs;
-use crate::commands::{load, refuse_dataset_root};
+use crate::load::{load, refuse_dataset_root};
 use anyhow::Result;
 use dist4d_runtime::{exec::Engine, Access, Store};
 use dist4d_stages::Registry;

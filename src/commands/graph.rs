@@ -1,7 +1,7 @@
 //! `dist4d graph`: the stage DAG as Graphviz DOT.
 
 use crate::cli::PipelineArgs;
-use crate::commands::load;
+use crate::load::load;
 use anyhow::Result;
 use dist4d_stages::Registry;
 use std::process::ExitCode;

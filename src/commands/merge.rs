@@ -1,7 +1,7 @@
 //! `dist4d merge`: the last job of a `dist4d slurm` submission.
 
 use crate::cli::PipelineArgs;
-use crate::commands::load;
+use crate::load::load;
 use crate::execute::{execute, progress_mode};
 use crate::slurm;
 use anyhow::{Context, Result};

@@ -1,5 +1,5 @@
 //! One module per command, each with its `run`; `main` dispatches to them. Here: what several
-//! commands share to find their inputs (the pipeline, loaded and checked; the store).
+//! commands share to find their store (the pipeline is loaded by [`crate::load`]).
 
 pub mod check;
 pub mod demo;
@@ -18,33 +18,8 @@ pub mod slurm;
 pub mod synth;
 pub mod verify;
 
-use crate::cli::PipelineArgs;
 use anyhow::Result;
-use dist4d_graph::{load_file, Pipeline};
-use dist4d_stages::Registry;
 use std::path::PathBuf;
-use std::process::ExitCode;
-
-/// For a command that reads the pipeline's data: a root that does not exist or holds another
-/// kind's data is, like a bad pipeline, a problem of the command line (exit 2), found before
-/// anything runs. (`check` only notes a missing root: the data may live on the cluster.)
-pub fn refuse_dataset_root(args: &PipelineArgs, registry: &Registry, pipeline: &Pipeline) -> Option<ExitCode> {
-    let problem = registry.dataset_root_problem(pipeline)?;
-    eprintln!("error: {}: {problem}", args.pipeline.display());
-    Some(ExitCode::from(2))
-}
-
-/// Loads and checks a pipeline; a bad one prints every problem and exits 2.
-pub fn load(args: &PipelineArgs, registry: &Registry) -> Result<Result<Pipeline, ExitCode>> {
-    let cwd = std::env::current_dir()?;
-    Ok(match load_file(&args.pipeline, &args.sets, &cwd, registry) {
-        Ok(p) => Ok(p),
-        Err(e) => {
-            eprint!("{}", e.render());
-            Err(ExitCode::from(2))
-        }
-    })
-}
 
 /// The store `dist4d runs`, `gc` and `verify --store` read without --cache: the one `dist4d run pipelines/x.ron` uses
 /// (`.dist4d/` beside the pipeline files), else `.dist4d/` here, whichever has runs first.

@@ -2,7 +2,7 @@
 //! a merge job after it (the scripts themselves: `crate::slurm`).
 
 use crate::cli::PipelineArgs;
-use crate::commands::{load, refuse_dataset_root};
+use crate::load::{load, refuse_dataset_root};
 use crate::slurm;
 use anyhow::{Context, Result};
 use dist4d_runtime::{exec::Engine, Access, Store};
