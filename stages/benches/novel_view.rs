@@ -12,7 +12,7 @@
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-use dist4d_stages::novel_view::splat::{reproject, PinholeView, Reprojected, RgbdView, SplatParams};
+use dist4d_stages::views::splat::{reproject, PinholeView, Reprojected, RgbdView, SplatParams};
 use dist4d_synth::{PinholeCamera, SynthConfig, CAMERA_RIG};
 use dist4d_types::geometry::Se3;
 use glam::DVec3;

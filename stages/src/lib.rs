@@ -1,6 +1,7 @@
 //! dist4d-stages: every stage, each a module with its params, ports and a plain function that
-//! does the work, grouped by family (`curation`, `eval`, `output`), and the registry that offers
-//! them with the dataset readers to the graph and the runtime.
+//! does the work, grouped by family (`curation`, `novel_view`, `generation`, `occupancy`, `eval`,
+//! `output`); the library modules the families share (`views`, `lift`, `camera`, `polygons`, ..);
+//! and the registry that offers them with the dataset readers to the graph and the runtime.
 
 pub mod box_sum;
 pub mod camera;
@@ -15,9 +16,12 @@ pub mod model_worker;
 pub mod novel_view;
 pub mod occupancy;
 pub mod output;
+pub mod polygons;
 pub mod reference;
 pub mod stage;
 pub mod stereo;
+pub mod views;
+pub mod voxel_hash;
 
 use anyhow::{anyhow, Context, Result};
 use dist4d_datasets::{DatasetDef, DATASETS};

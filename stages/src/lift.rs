@@ -10,7 +10,7 @@
 //!    vehicle's mask writes 0 there), so 0, NaN and negative values are never lifted.
 //! 2. **It is not the sky**: depth at least 99.5% of `sky_depth` (the curation's fill value, 100 m)
 //!    is a direction, not a surface. Stages that draw the sky draw it as directions from the
-//!    target camera (see [`crate::novel_view::splat::draw_sky`]).
+//!    target camera (see [`crate::views::splat::draw_sky`]).
 //! 3. **No neighbour across an edge is nearer.** Of a depth step between a pixel and one of its 8
 //!    neighbours, the far side is dropped when the step is an edge: the neighbour is nearer by
 //!    more than `max_jump` (relative), *and* the inverse depth changes by more than a plane at

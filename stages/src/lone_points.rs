@@ -14,7 +14,7 @@
 //! The params and what they do are in docs/stages.md (`SurroundCloud`) and docs/BENCHMARKS.md
 //! ("Flying pixels (issue 42)").
 
-use crate::novel_view::frame_pair::VoxelHasher;
+use crate::voxel_hash::VoxelHasher;
 use dist4d_graph::ParamChecks;
 use serde::{Deserialize, Serialize};
 use std::collections::HashMap;

@@ -23,7 +23,7 @@
 //! `dist4d eval` tabulates the three per step (the item's variant) with a mean row.
 
 use dist4d_runtime::Made;
-use crate::novel_view::splat::PinholeView;
+use crate::views::splat::PinholeView;
 use crate::stage::Stage;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};

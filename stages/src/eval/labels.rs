@@ -62,7 +62,7 @@ impl LabelFile {
     /// The pixels of the regions of `class`, as 1 in a row-major map.
     pub fn mask(&self, class: &str) -> Vec<u8> {
         let polygons = self.regions.iter().filter(|r| r.class == class).map(|r| &r.polygon);
-        crate::curation::ego_mask::fill_opencv_polygons(self.width, self.height, polygons)
+        crate::polygons::fill_opencv_polygons(self.width, self.height, polygons)
     }
 }
 

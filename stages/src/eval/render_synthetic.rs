@@ -73,7 +73,7 @@ impl Stage for RenderSynthetic {
         let scene_name: serde_json::Value = serde_json::from_slice(&i.world.0)?;
         let name = scene_name["scene"].as_str().unwrap_or_default();
         let scene = r.scene_index(name).with_context(|| format!("the synthetic world has no scene `{name}`"))?;
-        let view = crate::novel_view::splat::PinholeView::new(&i.camera_calib, &i.pose)?;
+        let view = crate::views::splat::PinholeView::new(&i.camera_calib, &i.pose)?;
         let view = match (self.0.width, self.0.height) {
             (0, 0) => view,
             (w, h) => view.resized(w, h),

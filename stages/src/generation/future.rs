@@ -5,24 +5,24 @@
 //! The learned model runs as an external worker (op `generate_future`, docs/workers.md). The
 //! built-in baseline keeps the pipeline runnable without one, and is named a baseline: every
 //! reference camera's curated RGB-D is drawn into the camera at its future pose
-//! ([`crate::novel_view::splat`]), objects that moved drawn where their box is then (the same
-//! box-track motion as the DiST-S pairs, [`crate::novel_view::moving`]), the sky (the curation's
+//! ([`crate::views::splat`]), objects that moved drawn where their box is then (the same
+//! box-track motion as the DiST-S pairs, [`crate::views::moving`]), the sky (the curation's
 //! 100 m) drawn as directions from the future camera (it does not come nearer as the ego drives
-//! on), and the holes filled background first ([`crate::novel_view::fill_baseline::fill`]). What
-//! the reference frame never saw (the road ahead past its field of view, the far side of an
-//! object) is a smear; docs/BENCHMARKS.md scores it per step against the synthetic world.
+//! on), and the holes filled background first ([`crate::views::fill`]). What the reference frame
+//! never saw (the road ahead past its field of view, the far side of an object) is a smear;
+//! docs/BENCHMARKS.md scores it per step against the synthetic world.
 //!
 //! The controls come in as the future item's `ImageInfo` (`Offset("dataset.image_info", frame,
 //! variant)`): its pose, calibration and boxes, never its pixels.
 
 use dist4d_runtime::Made;
 use crate::model_worker::{npy_rgb8, read_npy_rgb8, worker_depth, Exchange, ModelWorker, WorkerSpec};
-use crate::novel_view::fill_baseline::fill;
-use crate::novel_view::frame_pair::{camera_views, frame_record, info_view, view_of};
-use crate::novel_view::moving::{split, Moving, Piece};
 use crate::lift::{focal_of, liftable, LiftParams};
-use crate::novel_view::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
 use crate::stage::{variant_of, Stage};
+use crate::views::fill::fill;
+use crate::views::frames::{camera_views, frame_record, info_view, view_of};
+use crate::views::moving::{split, Moving, Piece};
+use crate::views::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate, VariantPlan, Variants};
 use dist4d_runtime::TaskContext;
@@ -57,7 +57,7 @@ pub struct Params {
     /// Depths at least this are sky (the curation sets the sky to 100 m): drawn as directions from
     /// the future camera, and given this depth there.
     pub sky_depth: f32,
-    /// The hole filling's background tolerance ([`crate::novel_view::fill_baseline`]).
+    /// The hole filling's background tolerance ([`crate::views::fill`]).
     pub background_tolerance: f32,
     pub splat: SplatParams,
     /// Which reference pixels are drawn ([`crate::lift`]; its `sky_depth` is this stage's).
@@ -407,7 +407,7 @@ fn generate_by_worker(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::novel_view::splat::PinholeView;
+    use crate::views::splat::PinholeView;
     use dist4d_types::artifact::Boxes3D;
     use dist4d_types::geometry::Se3;
     use glam::DVec3;

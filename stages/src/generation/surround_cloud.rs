@@ -19,9 +19,10 @@
 
 use crate::lift::{focal_of, liftable, LiftParams};
 use crate::lone_points::{with_company, LoneParams};
-use crate::novel_view::frame_pair::{resize_image, VoxelHasher};
-use crate::novel_view::splat::PinholeView;
 use crate::stage::Stage;
+use crate::views::resize::resize_image;
+use crate::views::splat::PinholeView;
+use crate::voxel_hash::VoxelHasher;
 use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::{Made, TaskContext};

@@ -7,9 +7,10 @@
 //! "scc"` and the shift, so one loader reads both.
 
 use dist4d_runtime::Made;
-use super::frame_pair::{frame_record, resize_depth_nearest, resize_image, view_of};
 use super::shift_view::lateral_of;
 use crate::stage::Stage;
+use crate::views::frames::{frame_record, view_of};
+use crate::views::resize::{resize_depth_nearest, resize_image};
 use anyhow::{Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::TaskContext;

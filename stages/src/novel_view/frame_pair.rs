@@ -14,11 +14,14 @@
 //! index with the exported paths.
 
 use dist4d_runtime::Made;
-use super::moving::{split, Moved, Moving};
-use super::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
 use crate::lift::LiftParams;
 use crate::stage::{variant_of, Stage};
-use anyhow::{bail, ensure, Context, Result};
+use crate::views::frames::{camera_views, frame_record, info_view, view_of};
+use crate::views::moving::{split, Moved, Moving};
+use crate::views::resize::{resize_depth_nearest, resize_image};
+use crate::views::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
+use crate::voxel_hash::VoxelHasher;
+use anyhow::{ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate, VariantPlan, Variants};
 use dist4d_runtime::TaskContext;
 use dist4d_types::artifact::{DepthMap, File, Image, ImageInfo, Mask};
@@ -315,83 +318,6 @@ impl Stage for FramePair {
     }
 }
 
-/// A frame's camera images wired with `Across(.., camera)` as three inputs (images, their depths
-/// and infos), matched by position; cameras without an image (a dropped frame) are left out.
-/// `what` names the inputs in errors.
-pub fn camera_views<'a>(
-    images: &'a [(i64, Image)],
-    depths: &'a [(i64, DepthMap)],
-    infos: &'a [(i64, ImageInfo)],
-    what: &str,
-) -> Result<Vec<(&'a Image, &'a DepthMap, &'a ImageInfo)>> {
-    ensure!(
-        images.len() == depths.len() && images.len() == infos.len(),
-        "{what} hold {}, {} and {} items: wire them with the same selector (Across(.., camera))",
-        images.len(),
-        depths.len(),
-        infos.len()
-    );
-    let mut out = Vec::with_capacity(images.len());
-    for (((pi, image), (pd, depth)), (pn, info)) in images.iter().zip(depths).zip(infos) {
-        ensure!(pi == pd && pd == pn, "{what} must be wired with the same selector");
-        if info.missing.is_none() {
-            out.push((image, depth, info));
-        }
-    }
-    Ok(out)
-}
-
-/// The camera of an image, as its info gives it.
-pub fn info_view(info: &ImageInfo) -> Result<PinholeView> {
-    if let Some(why) = &info.missing {
-        bail!("{}/{}/{} has no image: {why}", info.scene, info.frame, info.camera);
-    }
-    let k = info.intrinsics.with_context(|| format!("{}/{}/{}: no intrinsics", info.scene, info.frame, info.camera))?;
-    Ok(PinholeView {
-        k,
-        width: info.width,
-        height: info.height,
-        world_from_cam: info.ego_to_world.then_from(&info.camera_to_ego),
-    })
-}
-
-/// The camera of an image, checked against the image and depth it comes with.
-pub fn view_of(info: &ImageInfo, image: &Image, depth: &DepthMap) -> Result<PinholeView> {
-    let view = info_view(info)?;
-    ensure!(
-        (image.width, image.height) == (info.width, info.height)
-            && (depth.width, depth.height) == (info.width, info.height),
-        "{}/{}/{}: image {}x{} and depth {}x{} do not match the camera's {}x{}",
-        info.scene,
-        info.frame,
-        info.camera,
-        image.width,
-        image.height,
-        depth.width,
-        depth.height,
-        info.width,
-        info.height
-    );
-    Ok(view)
-}
-
-/// What a pair's record says of one of its frames: which image, when, and the camera as the
-/// pair's files see it (intrinsics at the model size for the target).
-pub fn frame_record(info: &ImageInfo, view: &PinholeView) -> serde_json::Value {
-    let t = |s: &dist4d_types::geometry::Se3| json!({ "translation": s.translation.to_array(), "rotation": s.wxyz() });
-    json!({
-        "camera": info.camera,
-        "frame": info.frame,
-        "token": info.token,
-        "image": info.file,
-        "timestamp_us": info.timestamp_us,
-        "intrinsics": view.k,
-        "size": [view.height, view.width],
-        "camera_to_ego": t(&info.camera_to_ego),
-        "ego_to_world": t(&info.ego_to_world),
-    })
-}
-
 /// `depth` with one pixel kept per voxel of `size` metres (the first in row order), the others
 /// set to 0: the paper's voxel downsampling of the source cloud, done on the map so the kept
 /// points are splatted like any other (isolated, they get a source pixel's footprint).
@@ -415,54 +341,6 @@ pub fn thin_to_voxels(depth: &[f32], view: &PinholeView, size: f32) -> Vec<f32> 
         let key = ((xc * inv).floor() as i64, (yc * inv).floor() as i64, (z * inv).floor() as i64);
         if seen.insert(key) {
             out[i] = d;
-        }
-    }
-    out
-}
-
-/// A multiply-rotate hasher for voxel keys (the FxHash recipe): the default SipHash cost more
-/// than the thinning itself. Keys come from our own geometry, not from an adversary.
-#[derive(Default)]
-pub struct VoxelHasher(u64);
-
-impl std::hash::Hasher for VoxelHasher {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-    fn write(&mut self, bytes: &[u8]) {
-        for b in bytes {
-            self.write_u64(*b as u64);
-        }
-    }
-    fn write_u64(&mut self, x: u64) {
-        self.0 = (self.0.rotate_left(5) ^ x).wrapping_mul(0x51_7c_c1_b7_27_22_0a_95);
-    }
-    fn write_i64(&mut self, x: i64) {
-        self.write_u64(x as u64);
-    }
-}
-
-/// An image resized with a triangle filter (widened when shrinking, so it averages).
-pub fn resize_image(image: &Image, width: u32, height: u32) -> Result<Image> {
-    if (image.width, image.height) == (width, height) {
-        return Ok(image.clone());
-    }
-    let buf = image::RgbImage::from_raw(image.width, image.height, image.rgb.clone())
-        .context("the image's bytes do not match its size")?;
-    let out = image::imageops::resize(&buf, width, height, image::imageops::FilterType::Triangle);
-    Ok(Image { width, height, rgb: out.into_raw() })
-}
-
-/// A depth map resized by taking, for each output pixel, the input pixel under its centre:
-/// interpolating would invent depths between a foreground edge and its background.
-pub fn resize_depth_nearest(depth: &DepthMap, width: u32, height: u32) -> DepthMap {
-    let (sx, sy) = (depth.width as f64 / width as f64, depth.height as f64 / height as f64);
-    let mut out = DepthMap::new(width, height);
-    for y in 0..height as usize {
-        let ys = (((y as f64 + 0.5) * sy) as usize).min(depth.height as usize - 1);
-        for x in 0..width as usize {
-            let xs = (((x as f64 + 0.5) * sx) as usize).min(depth.width as usize - 1);
-            out.data[y * width as usize + x] = depth.data[ys * depth.width as usize + xs];
         }
     }
     out

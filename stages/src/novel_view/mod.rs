@@ -1,12 +1,6 @@
 //! Novel views (DiST-4D Sec. 3.3-3.4): curated RGB-D reprojected into other cameras, poses and
 //! times, the conditions DiST-S is trained on and the self-supervised cycle-consistency pairs.
 
-pub mod moving;
-pub mod splat;
-
-#[cfg(test)]
-mod exactness_tests;
-
 crate::stage_modules! {
     cycle_pair::CyclePair,
     fill_baseline::FillViewBaseline,

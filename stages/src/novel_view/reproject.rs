@@ -1,14 +1,14 @@
 //! `Reproject`: RGB-D images of one or more cameras and frames drawn into one target camera (any
 //! pose, intrinsics and resolution): the image and depth conditions of DiST-S and SCC (paper Sec.
-//! 3.3-3.4) and the valid mask. How points are splatted is in [`super::splat`]; which pixels
+//! 3.3-3.4) and the valid mask. How points are splatted is in [`crate::views::splat`]; which pixels
 //! become points in [`crate::lift`]. The sky is never a point: when `splat.max_depth` admits the
 //! sky's depth (the default) it is drawn as directions from the target camera under the
 //! surfaces, at `lift.sky_depth`; with `max_depth: 99` it is left out of the condition.
 
 use dist4d_runtime::Made;
-use super::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
 use crate::lift::LiftParams;
 use crate::stage::Stage;
+use crate::views::splat::{draw_sky, lift_source, reproject, PinholeView, RgbdView, SplatParams};
 use anyhow::{bail, ensure, Context, Result};
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::TaskContext;

@@ -4,8 +4,8 @@
 //! filter, the depth by nearest sample (see `FramePair`).
 
 use dist4d_runtime::Made;
-use super::frame_pair::{resize_depth_nearest, resize_image};
 use crate::stage::Stage;
+use crate::views::resize::{resize_depth_nearest, resize_image};
 use anyhow::Result;
 use dist4d_graph::{ParamChecks, ParamProblem, Validate};
 use dist4d_runtime::TaskContext;
