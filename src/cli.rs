@@ -213,31 +213,7 @@ pub enum Command {
     /// Deterministic per seed. Writes v1.0-mini/ tables, samples/, sweeps/, lidarseg/, maps/ and
     /// groundtruth/ (dense depth EXR and semantic PNG per camera image). Example:
     /// dist4d synth --out data/synth --keyframes 10 --width 800 --height 450
-    Synth {
-        /// The dataset folder to create (must not exist, or hold the same synthetic dataset).
-        #[arg(long)]
-        out: PathBuf,
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        #[arg(long, default_value_t = 1)]
-        scenes: u32,
-        /// Keyframes (2 Hz samples) per scene.
-        #[arg(long, default_value_t = 40)]
-        keyframes: u32,
-        #[arg(long, default_value_t = 1600)]
-        width: u32,
-        #[arg(long, default_value_t = 900)]
-        height: u32,
-        /// Also write the 12 Hz camera sweeps between keyframes.
-        #[arg(long)]
-        camera_sweeps: bool,
-        /// Write LiDAR keyframes only (no 20 Hz sweeps in between).
-        #[arg(long)]
-        no_lidar_sweeps: bool,
-        /// Skip the ground-truth depth and semantic images.
-        #[arg(long)]
-        no_ground_truth: bool,
-    },
+    Synth(SynthArgs),
     /// Write the 12 Hz nuScenes tables ASAP's users load: every round of the surround cameras a
     /// `sample`, with its images, its LiDAR sweep and boxes interpolated to its time.
     ///
@@ -404,4 +380,32 @@ fn parse_jobs(s: &str) -> Result<usize, String> {
 /// `rel` beside the pipeline file (in its folder; `.` for a bare file name).
 fn beside(pipeline: &Path, rel: &str) -> PathBuf {
     pipeline.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).join(rel)
+}
+
+/// The arguments of `dist4d synth`.
+#[derive(clap::Args, Debug)]
+pub struct SynthArgs {
+    /// The dataset folder to create (must not exist, or hold the same synthetic dataset).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long, default_value_t = 1)]
+    pub scenes: u32,
+    /// Keyframes (2 Hz samples) per scene.
+    #[arg(long, default_value_t = 40)]
+    pub keyframes: u32,
+    #[arg(long, default_value_t = 1600)]
+    pub width: u32,
+    #[arg(long, default_value_t = 900)]
+    pub height: u32,
+    /// Also write the 12 Hz camera sweeps between keyframes.
+    #[arg(long)]
+    pub camera_sweeps: bool,
+    /// Write LiDAR keyframes only (no 20 Hz sweeps in between).
+    #[arg(long)]
+    pub no_lidar_sweeps: bool,
+    /// Skip the ground-truth depth and semantic images.
+    #[arg(long)]
+    pub no_ground_truth: bool,
 }

@@ -81,27 +81,7 @@ fn dispatch(cli: Cli) -> Result<ExitCode> {
         Command::Demo { dir, keyframes, width, height, progress } => {
             commands::demo::run(&dir, keyframes, width, height, &progress)
         }
-        Command::Synth {
-            out,
-            seed,
-            scenes,
-            keyframes,
-            width,
-            height,
-            camera_sweeps,
-            no_lidar_sweeps,
-            no_ground_truth,
-        } => commands::synth::run(
-            out,
-            seed,
-            scenes,
-            keyframes,
-            width,
-            height,
-            camera_sweeps,
-            no_lidar_sweeps,
-            no_ground_truth,
-        ),
+        Command::Synth(args) => commands::synth::run(args),
         Command::Occ3dAnnotations { out, val } => commands::occ3d_annotations::run(out, val),
         Command::Export12Hz { root, version, out, drop_lone_tracks } => {
             commands::export_12hz::run(root, version, out, drop_lone_tracks)

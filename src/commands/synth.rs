@@ -1,34 +1,24 @@
 //! `dist4d synth`: a nuScenes-format dataset of a procedural street, with exact ground truth.
 
 use anyhow::Result;
-use std::path::{Path, PathBuf};
+use crate::cli::SynthArgs;
+use std::path::Path;
 use std::process::ExitCode;
 
-/// Writes the dataset `out` (deterministic per seed), or finds it already there.
-#[allow(clippy::too_many_arguments)]
-pub fn run(
-    out: PathBuf,
-    seed: u64,
-    scenes: u32,
-    keyframes: u32,
-    width: u32,
-    height: u32,
-    camera_sweeps: bool,
-    no_lidar_sweeps: bool,
-    no_ground_truth: bool,
-) -> Result<ExitCode> {
+/// Writes the dataset `args.out` (deterministic per seed), or finds it already there.
+pub fn run(args: SynthArgs) -> Result<ExitCode> {
     let config = dist4d_synth::SynthConfig {
-        seed,
-        scenes,
-        keyframes,
-        width,
-        height,
-        camera_sweeps,
-        lidar_sweeps: !no_lidar_sweeps,
-        ground_truth: !no_ground_truth,
+        seed: args.seed,
+        scenes: args.scenes,
+        keyframes: args.keyframes,
+        width: args.width,
+        height: args.height,
+        camera_sweeps: args.camera_sweeps,
+        lidar_sweeps: !args.no_lidar_sweeps,
+        ground_truth: !args.no_ground_truth,
         ..Default::default()
     };
-    synthesize(&config, &out)?;
+    synthesize(&config, &args.out)?;
     Ok(ExitCode::SUCCESS)
 }
 
