@@ -1,10 +1,12 @@
 #!/usr/bin/env python3
 """Module cycles of the workspace's crates: which module files name each other, both ways.
 
-Reads every `crate::a::b` path outside comments and tests (`#[cfg(test)]` modules and
-`*tests.rs` files), maps it to the module file it names (the longest existing module prefix),
-and prints the strongly connected components with more than one module, at two levels: module
-files, and each crate's top-level modules (families). Exits 1 when it finds any.
+Reads every `crate::a::b` and `super::a` path outside comments and tests (`#[cfg(test)]` modules
+and `*tests.rs` files; grouped imports `use crate::{a::x, b::y}` are split, one level deep), maps it to the module
+file it names (the longest existing module prefix), and prints the strongly connected components
+with more than one module, at two levels: module files, and each crate's top-level modules.
+Exits 1 when it finds any. It also lists, as information, each place where one stage family (a
+top-level module whose mod.rs declares `stage_modules!`) names another.
 
     python3 scripts/module_cycles.py [crate_src_dir ...]   (default: every crate of the workspace)
 """
@@ -46,6 +48,23 @@ def code_lines(path):
             skip_depth = None
     return lines
 
+def paths_in(line):
+    """(head, [names]) of every `crate::`/`super::` path of a line; `crate::a::{b, c::d}` gives
+    one path per leaf (the first name of each)."""
+    out = []
+    for m in re.finditer(r'\b(crate|super(?:::super)*)((?:::\w+)*)::\{([^{}]*)\}', line):
+        prefix = m.group(2).split('::')[1:]
+        for item in m.group(3).split(','):
+            item = item.strip()
+            if item and item != 'self':
+                out.append((m.group(1), prefix + re.findall(r'\w+', item.split(' as ')[0])[:1]))
+            elif item == 'self':
+                out.append((m.group(1), prefix))
+    rest = re.sub(r'\b(crate|super(?:::super)*)((?:::\w+)*)::\{[^{}]*\}', '', line)
+    for m in re.finditer(r'\b(crate|super(?:::super)*)((?:::\w+)+)', rest):
+        out.append((m.group(1), m.group(2).split('::')[1:]))
+    return out
+
 def edges(src):
     mods = modules(src)
     graph = defaultdict(set)
@@ -53,11 +72,11 @@ def edges(src):
         if os.path.basename(path).endswith('tests.rs') or 'testing' in os.path.basename(path):
             continue
         for line in code_lines(path):
-            for m in re.finditer(r'(crate|super)((?:::\w+)+)', line):
-                parts = m.group(2).split('::')[1:]
-                base = () if m.group(1) == 'crate' else mod[:-1] if not path.endswith(('mod.rs', 'lib.rs')) else mod
-                if m.group(1) == 'super':
-                    base = base[:-1] if path.endswith('mod.rs') else base
+            for head, parts in paths_in(line):
+                if head == 'crate':
+                    base = ()
+                else:
+                    base = mod[:len(mod) - head.count('super')]
                 target = base + tuple(parts)
                 while target and target not in mods:
                     target = target[:-1]
@@ -101,6 +120,12 @@ def main():
     for src in srcs:
         g = edges(src)
         name = os.path.relpath(src, here)
+        families = {m[0] for m, p in modules(src).items()
+                    if len(m) == 1 and p.endswith('mod.rs') and 'stage_modules!' in open(p).read()}
+        for a in sorted(g):
+            for b in sorted(g[a]):
+                if a[0] in families and b[0] in families and a[0] != b[0]:
+                    print(f"{name}: family use (information): {'::'.join(a)} -> {'::'.join(b)}")
         for comp in sccs(g):
             found += 1
             print(f"{name}: module cycle: {' <-> '.join('::'.join(c) for c in comp)}")
