@@ -298,62 +298,90 @@ rows_with_index!(SampleDataRow, CalibratedSensorRow, EgoPoseRow, LidarsegRow, Sa
 fn read_table<T: TableRow>(dir: &Path, name: &str, warnings: &mut Vec<String>) -> Result<Vec<T>> {
     let path = dir.join(format!("{name}.json"));
     let bytes = read_input(&path, "the nuScenes table", MAX_TABLE_FILE_BYTES)?;
-    let rows: Vec<serde_json::Value> = serde_json::from_slice(&bytes)
+    // Row by row: the JSON tree of a whole table takes several times its bytes (trainval's
+    // sample_data.json alone is over a gigabyte, its 12 Hz tables more), so each row is parsed,
+    // checked for a repeated token and typed on its own, and its tree dropped.
+    let raw: Vec<&serde_json::value::RawValue> = serde_json::from_slice(&bytes)
         .with_context(|| format!("malformed nuScenes table {}: not a JSON list", path.display()))?;
-    unique_rows(&path, rows, warnings)?
-        .into_iter()
-        .map(|(i, row)| {
-            let token = row.get("token").and_then(|t| t.as_str()).unwrap_or("?").to_string();
-            let mut parsed: T = serde_path_to_error::deserialize(row).map_err(|e| {
-                anyhow!(
-                    "malformed nuScenes table {}: row {i} (token {token}), field `{}`: {}",
-                    path.display(),
-                    e.path(),
-                    e.inner()
-                )
-            })?;
-            parsed.set_row(i);
-            Ok(parsed)
-        })
-        .collect()
+    let mut tokens = UniqueTokens::new(&path, raw.len());
+    let mut rows = Vec::with_capacity(raw.len());
+    for (i, text) in raw.iter().enumerate() {
+        let row: serde_json::Value = serde_json::from_str(text.get())
+            .with_context(|| format!("malformed nuScenes table {}: row {i}", path.display()))?;
+        let token = row.get("token").and_then(|t| t.as_str()).map(str::to_string);
+        if let Some(token) = &token {
+            if tokens.repeated(i, token, &row)? {
+                continue;
+            }
+        }
+        let mut parsed: T = serde_path_to_error::deserialize(row).map_err(|e| {
+            anyhow!(
+                "malformed nuScenes table {}: row {i} (token {}), field `{}`: {}",
+                path.display(),
+                token.as_deref().unwrap_or("?"),
+                e.path(),
+                e.inner()
+            )
+        })?;
+        parsed.set_row(i);
+        rows.push(parsed);
+    }
+    tokens.warn(warnings);
+    Ok(rows)
 }
 
-/// The rows of a table with their indices, each token once. Two different rows with one token
-/// are an error naming both: every lookup by token would silently take one of them. A row that
-/// repeats an earlier one exactly is dropped with a warning (nothing is ambiguous, but a tool
-/// wrote the table twice over).
-fn unique_rows(
-    path: &Path,
-    rows: Vec<serde_json::Value>,
-    warnings: &mut Vec<String>,
-) -> Result<Vec<(usize, serde_json::Value)>> {
-    use std::collections::hash_map::Entry;
-    // Tokens borrowed from the rows: trainval's sample_data has millions.
-    let mut first: HashMap<&str, usize> = HashMap::with_capacity(rows.len());
-    let mut repeats: Vec<(usize, usize)> = Vec::new();
-    for (i, row) in rows.iter().enumerate() {
-        let Some(token) = row.get("token").and_then(|t| t.as_str()) else { continue };
-        match first.entry(token) {
+/// Each token of a table once. Two different rows with one token are an error naming both: every
+/// lookup by token would silently take one of them. A row that repeats an earlier one exactly is
+/// dropped with a warning (nothing is ambiguous, but a tool wrote the table twice over). Kept as
+/// 16-byte digests of the token and of the row's contents, not the rows: trainval's sample_data
+/// has millions.
+struct UniqueTokens<'p> {
+    path: &'p Path,
+    first: HashMap<[u8; 16], (usize, [u8; 16])>,
+    repeats: usize,
+    /// The first repeat: (earlier row, the repeat, token).
+    first_repeat: Option<(usize, usize, String)>,
+}
+
+impl<'p> UniqueTokens<'p> {
+    fn new(path: &'p Path, rows: usize) -> Self {
+        UniqueTokens { path, first: HashMap::with_capacity(rows), repeats: 0, first_repeat: None }
+    }
+
+    /// Whether row `i` repeats an earlier row exactly (to be dropped); an error when it has an
+    /// earlier row's token and other contents.
+    fn repeated(&mut self, i: usize, token: &str, row: &serde_json::Value) -> Result<bool> {
+        use std::collections::hash_map::Entry;
+        let digest = |bytes: &[u8]| -> [u8; 16] { blake3::hash(bytes).as_bytes()[..16].try_into().expect("16 of 32 bytes") };
+        // serde_json's maps are sorted by key, so equal rows print the same bytes.
+        let contents = digest(&serde_json::to_vec(row).unwrap_or_default());
+        match self.first.entry(digest(token.as_bytes())) {
             Entry::Vacant(e) => {
-                e.insert(i);
+                e.insert((i, contents));
+                Ok(false)
             }
-            Entry::Occupied(e) if rows[*e.get()] == *row => repeats.push((*e.get(), i)),
+            Entry::Occupied(e) if e.get().1 == contents => {
+                self.repeats += 1;
+                self.first_repeat.get_or_insert((e.get().0, i, token.to_string()));
+                Ok(true)
+            }
             Entry::Occupied(e) => {
-                bail!("{}: rows {} and {i} have the same token {token} but different contents", path.display(), e.get())
+                let earlier = e.get().0;
+                bail!("{}: rows {earlier} and {i} have the same token {token} but different contents", self.path.display())
             }
         }
     }
-    if let Some(&(earlier, again)) = repeats.first() {
-        let token = rows[earlier].get("token").and_then(|t| t.as_str()).unwrap_or("?");
-        warnings.push(format!(
-            "{}: {} row(s) repeat an earlier row exactly and were dropped (first: row {again} repeats row {earlier}, \
-             token {token})",
-            path.display(),
-            repeats.len(),
-        ));
+
+    fn warn(self, warnings: &mut Vec<String>) {
+        if let Some((earlier, again, token)) = self.first_repeat {
+            warnings.push(format!(
+                "{}: {} row(s) repeat an earlier row exactly and were dropped (first: row {again} repeats row {earlier}, \
+                 token {token})",
+                self.path.display(),
+                self.repeats,
+            ));
+        }
     }
-    let dropped: std::collections::HashSet<usize> = repeats.iter().map(|&(_, again)| again).collect();
-    Ok(rows.into_iter().enumerate().filter(|(i, _)| !dropped.contains(i)).collect())
 }
 
 /// An optional table: missing is a warning and no rows; malformed is still an error.
