@@ -303,7 +303,7 @@ fn read_table<T: TableRow>(dir: &Path, name: &str, warnings: &mut Vec<String>) -
     // checked for a repeated token and typed on its own, and its tree dropped.
     let raw: Vec<&serde_json::value::RawValue> = serde_json::from_slice(&bytes)
         .with_context(|| format!("malformed nuScenes table {}: not a JSON list", path.display()))?;
-    let mut tokens = UniqueTokens::new(&path, raw.len());
+    let mut tokens = UniqueTokens::new(&path, &raw);
     let mut rows = Vec::with_capacity(raw.len());
     for (i, text) in raw.iter().enumerate() {
         let row: serde_json::Value = serde_json::from_str(text.get())
@@ -332,44 +332,46 @@ fn read_table<T: TableRow>(dir: &Path, name: &str, warnings: &mut Vec<String>) -
 
 /// Each token of a table once. Two different rows with one token are an error naming both: every
 /// lookup by token would silently take one of them. A row that repeats an earlier one exactly is
-/// dropped with a warning (nothing is ambiguous, but a tool wrote the table twice over). Kept as
-/// 16-byte digests of the token and of the row's contents, not the rows: trainval's sample_data
-/// has millions.
-struct UniqueTokens<'p> {
+/// dropped with a warning (nothing is ambiguous, but a tool wrote the table twice over). Kept as a
+/// 16-byte digest of each token and its row's index, not the rows (trainval's sample_data has
+/// millions): on a repeated token the earlier row is parsed again from the table's text.
+struct UniqueTokens<'p, 'r> {
     path: &'p Path,
-    first: HashMap<[u8; 16], (usize, [u8; 16])>,
+    raw: &'r [&'r serde_json::value::RawValue],
+    first: HashMap<[u8; 16], usize>,
     repeats: usize,
     /// The first repeat: (earlier row, the repeat, token).
     first_repeat: Option<(usize, usize, String)>,
 }
 
-impl<'p> UniqueTokens<'p> {
-    fn new(path: &'p Path, rows: usize) -> Self {
-        UniqueTokens { path, first: HashMap::with_capacity(rows), repeats: 0, first_repeat: None }
+impl<'p, 'r> UniqueTokens<'p, 'r> {
+    fn new(path: &'p Path, raw: &'r [&'r serde_json::value::RawValue]) -> Self {
+        UniqueTokens { path, raw, first: HashMap::with_capacity(raw.len()), repeats: 0, first_repeat: None }
     }
 
     /// Whether row `i` repeats an earlier row exactly (to be dropped); an error when it has an
     /// earlier row's token and other contents.
     fn repeated(&mut self, i: usize, token: &str, row: &serde_json::Value) -> Result<bool> {
         use std::collections::hash_map::Entry;
-        let digest = |bytes: &[u8]| -> [u8; 16] { blake3::hash(bytes).as_bytes()[..16].try_into().expect("16 of 32 bytes") };
-        // serde_json's maps are sorted by key, so equal rows print the same bytes.
-        let contents = digest(&serde_json::to_vec(row).unwrap_or_default());
-        match self.first.entry(digest(token.as_bytes())) {
+        let key: [u8; 16] = blake3::hash(token.as_bytes()).as_bytes()[..16].try_into().expect("16 of 32 bytes");
+        let earlier = match self.first.entry(key) {
             Entry::Vacant(e) => {
-                e.insert((i, contents));
-                Ok(false)
+                e.insert(i);
+                return Ok(false);
             }
-            Entry::Occupied(e) if e.get().1 == contents => {
-                self.repeats += 1;
-                self.first_repeat.get_or_insert((e.get().0, i, token.to_string()));
-                Ok(true)
-            }
-            Entry::Occupied(e) => {
-                let earlier = e.get().0;
-                bail!("{}: rows {earlier} and {i} have the same token {token} but different contents", self.path.display())
-            }
+            Entry::Occupied(e) => *e.get(),
+        };
+        let before: serde_json::Value = serde_json::from_str(self.raw[earlier].get()).unwrap_or_default();
+        // Two tokens with one digest would be 2^-64 unlikely; still, only equal tokens compare.
+        if before.get("token").and_then(|t| t.as_str()) != Some(token) {
+            return Ok(false);
         }
+        if before != *row {
+            bail!("{}: rows {earlier} and {i} have the same token {token} but different contents", self.path.display());
+        }
+        self.repeats += 1;
+        self.first_repeat.get_or_insert((earlier, i, token.to_string()));
+        Ok(true)
     }
 
     fn warn(self, warnings: &mut Vec<String>) {
