@@ -161,10 +161,18 @@ fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources
                         }
                     }
                 }
-                Ok(value) => checker.diags.push(
-                    Diagnostic::error("--set dataset=.. takes a dataset, like `Dgp(root: \"/data/ddad\")`", value.span)
-                        .with_label("not a dataset kind with its fields"),
-                ),
+                Ok(value) => {
+                    // The example is the catalog's first kind: the graph names no dataset itself.
+                    let kinds = checker.catalog.dataset_kinds();
+                    let example = kinds.first().copied().unwrap_or("Kind");
+                    let message = format!(
+                        "--set dataset=.. takes a dataset, like `{example}(root: \"/data/..\")` (kinds: {})",
+                        kinds.join(", ")
+                    );
+                    checker.diags.push(
+                        Diagnostic::error(message, value.span).with_label("not a dataset kind with its fields"),
+                    )
+                }
                 Err(d) => checker.diags.push(d),
             }
             continue;
