@@ -169,9 +169,9 @@ fn apply_overrides(root: &mut Value, overrides: &[String], sources: &mut Sources
                         "--set dataset=.. takes a dataset, like `{example}(root: \"/data/..\")` (kinds: {})",
                         kinds.join(", ")
                     );
-                    checker.diags.push(
-                        Diagnostic::error(message, value.span).with_label("not a dataset kind with its fields"),
-                    )
+                    checker
+                        .diags
+                        .push(Diagnostic::error(message, value.span).with_label("not a dataset kind with its fields"))
                 }
                 Err(d) => checker.diags.push(d),
             }

@@ -112,8 +112,9 @@ impl<'e> Explainer<'e> {
             .collect();
         let last_run = own_runs.iter().rev().find(|r| r.read_dataset(&dataset)).cloned();
         let previous = previous_tasks(store, &RunRanks::read(store, &own_runs, &dataset)?);
-        let last_failures =
-            last_run.map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect()).unwrap_or_default();
+        let last_failures = last_run
+            .map(|r| r.failures.into_iter().map(|f| ((f.stage, f.item), f.error)).collect())
+            .unwrap_or_default();
         let names: Vec<String> = p.nodes.iter().map(|n| n.name.clone()).collect();
         let unasked = |op: &dyn crate::Operator| !hash && op.resource().is_some();
         let identities = crate::operator::Identities::of_except(engine.operators, &names, unasked).all()?;
@@ -162,7 +163,9 @@ impl<'e> Explainer<'e> {
             };
             let e = &mut out[node];
             let (inputs, lost) = match decision {
-                Some((_, Decision::Cached { outputs: outs, .. })) if !outs.is_empty() || p.nodes[node].outputs.is_empty() => {
+                Some((_, Decision::Cached { outputs: outs, .. }))
+                    if !outs.is_empty() || p.nodes[node].outputs.is_empty() =>
+                {
                     e.cached += 1;
                     outputs[t] = Some(outs.iter().map(|o| o.digest).collect());
                     continue;

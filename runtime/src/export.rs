@@ -439,7 +439,6 @@ enum Source {
     Blob,
 }
 
-
 /// Why an export job did not write its file.
 #[derive(Debug)]
 pub enum ExportError {

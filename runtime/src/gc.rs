@@ -122,7 +122,12 @@ fn reachable(
 fn blobs_of(payload: &[u8]) -> Vec<Digest> {
     TaskRecord::decode(payload)
         .map(|r| {
-            r.outputs.iter().filter(|o| o.inline.is_none() && !o.is_unmade()).map(|o| o.digest).chain([r.params]).collect()
+            r.outputs
+                .iter()
+                .filter(|o| o.inline.is_none() && !o.is_unmade())
+                .map(|o| o.digest)
+                .chain([r.params])
+                .collect()
         })
         .unwrap_or_default()
 }

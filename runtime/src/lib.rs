@@ -28,11 +28,8 @@ pub mod worker_pool;
 pub use digest::{Digest, DigestBuilder};
 pub use exec::{Engine, RunOptions, RunSummary};
 pub use item::{ItemKey, ItemSpace};
-pub use operator::{
-    Artifact, Blob, Dataset, FileDigests, Made, Operator, Output, Resource, TaskContext, WithVariants,
-};
+pub use operator::{Artifact, Blob, Dataset, FileDigests, Made, Operator, Output, Resource, TaskContext, WithVariants};
 pub use progress::ProgressMode;
 pub use runs::{RunRecord, RunStatus};
 pub use store::{Access, Store};
 pub mod testkit;
-

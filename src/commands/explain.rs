@@ -26,13 +26,9 @@ pub fn run(registry: &Registry, p: &PipelineArgs, out: Option<PathBuf>) -> Resul
     let out_dir = p.out_dir(out, &pipeline);
     // The scenes a run with the same --shard would take.
     let scenes = match p.shard {
-        Some(shard) => Some(dist4d_runtime::exec::shard_labels(
-            &pipeline,
-            dataset.as_ref(),
-            p.scenes.as_deref(),
-            p.limit,
-            shard,
-        )?),
+        Some(shard) => {
+            Some(dist4d_runtime::exec::shard_labels(&pipeline, dataset.as_ref(), p.scenes.as_deref(), p.limit, shard)?)
+        }
         None => p.scenes.clone(),
     };
     let report = dist4d_runtime::explain::explain(&engine, scenes.as_deref(), p.limit, Some(&out_dir))?;

@@ -1,8 +1,8 @@
 //! `dist4d merge`: the last job of a `dist4d slurm` submission.
 
 use crate::cli::PipelineArgs;
-use crate::load::load;
 use crate::execute::{execute, progress_mode};
+use crate::load::load;
 use crate::slurm;
 use anyhow::{Context, Result};
 use dist4d_runtime::RunOptions;

@@ -1,7 +1,7 @@
 //! `dist4d synth`: a nuScenes-format dataset of a procedural street, with exact ground truth.
 
-use anyhow::Result;
 use crate::cli::SynthArgs;
+use anyhow::Result;
 use std::path::Path;
 use std::process::ExitCode;
 

@@ -75,7 +75,11 @@ mod tests {
         let n = t.iter().filter(|&&v| v == 1).count() as f64;
         assert!((n - 5000.0).abs() < 101.0, "{n}");
         // A polygon inside another cuts a hole; vertices beyond the image are clipped.
-        let holed = fill_polygons(10, 10, &[vec![(-5, -5), (15, -5), (15, 15), (-5, 15)], vec![(2, 2), (8, 2), (8, 8), (2, 8)]]);
+        let holed = fill_polygons(
+            10,
+            10,
+            &[vec![(-5, -5), (15, -5), (15, 15), (-5, 15)], vec![(2, 2), (8, 2), (8, 8), (2, 8)]],
+        );
         assert_eq!(holed.iter().filter(|&&v| v == 1).count(), 100 - 36);
     }
 }

@@ -116,7 +116,15 @@ impl Book {
     }
 
     /// Plans an outer item and queues its tasks that have no upstream tasks.
-    pub(super) fn admit(&mut self, p: &Pipeline, view: &View, outer: u32, seq: u64, claim: Option<Claim>, may_execute: bool) {
+    pub(super) fn admit(
+        &mut self,
+        p: &Pipeline,
+        view: &View,
+        outer: u32,
+        seq: u64,
+        claim: Option<Claim>,
+        may_execute: bool,
+    ) {
         let plan = plan_outer(p, view, outer);
         // Tasks that could not be planned (offsets past the end of a dimension) leave the totals.
         for n in p.stage_order() {

@@ -69,4 +69,3 @@ impl<'e> Claims<'e> {
         due
     }
 }
-

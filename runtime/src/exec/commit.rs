@@ -100,9 +100,10 @@ impl Book {
                 let rel = job.rel.clone();
                 // A panic is this file's failure, reported like an error: the scheduler counts
                 // every export job it spawned back in, and would wait forever for one that never is.
-                let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| job.write())).unwrap_or_else(
-                    |panic| Err(ExportError::Failed(anyhow!("writing the file panicked: {}", panic_message(&panic)))),
-                );
+                let result =
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| job.write())).unwrap_or_else(|panic| {
+                        Err(ExportError::Failed(anyhow!("writing the file panicked: {}", panic_message(&panic))))
+                    });
                 let _ = tx.send(Msg::Exported { slot, task, rel, result, awaiting });
             });
         }

@@ -86,9 +86,7 @@ impl Shared<'_, '_> {
                     Src::Cas(d) => match e.store.read_blob(d) {
                         Ok(bytes) => Arc::new(bytes),
                         Err(Unread::Lost(lost)) => return Ok(Err((spec.port.clone(), lost))),
-                        Err(newer) => {
-                            return Err(newer.into_error().context(format!("reading input `{}`", spec.port)))
-                        }
+                        Err(newer) => return Err(newer.into_error().context(format!("reading input `{}`", spec.port))),
                     },
                     Src::Source { port } => Arc::new(
                         e.dataset
@@ -140,7 +138,8 @@ impl Shared<'_, '_> {
                 );
             }
         }
-        if let Some(port) = (0..outs.len()).find(|&p| outs[p].bytes.is_none() && !unread.contains(&node.outputs[p].name))
+        if let Some(port) =
+            (0..outs.len()).find(|&p| outs[p].bytes.is_none() && !unread.contains(&node.outputs[p].name))
         {
             bail!(
                 "stage `{}` ({kind}) did not make output `{}`, which this run reads; nothing was stored",

@@ -32,8 +32,8 @@ use crate::item::{ItemKey, ItemSpace};
 use crate::keys::Keys;
 use crate::operator::{Dataset, Identities, Operator};
 use crate::plan::View;
-use crate::progress::{Counters, Reporter};
 use crate::progress::ProgressMode;
+use crate::progress::{Counters, Reporter};
 use crate::runs::{self, Failure, RunRecord, RunStatus, StageStats};
 use crate::store::Store;
 use anyhow::{bail, ensure, Context, Result};
@@ -457,9 +457,8 @@ impl<'a> Engine<'a> {
         let mut scheduler = Scheduler::new(book, shared, opts, view, outers, executed, unavailable, tx);
         // The scopes guarantee every spawned job has ended before they return, even on an error.
         export_pool.in_place_scope(|export| {
-            wait_pool.in_place_scope(|wait| {
-                pool.in_place_scope(|cpu| scheduler.drive(&Scopes { cpu, wait, export }, &rx))
-            })
+            wait_pool
+                .in_place_scope(|wait| pool.in_place_scope(|cpu| scheduler.drive(&Scopes { cpu, wait, export }, &rx)))
         })?;
         Ok((scheduler.book, scheduler.stopping))
     }

@@ -164,9 +164,10 @@ impl<'s, 'e, 'a> Scheduler<'s, 'e, 'a> {
             self.book.failures.push(Failure {
                 stage: "-".into(),
                 item: "-".into(),
-                error: "this process's lease in the store was lost (it was stopped or its filesystem stalled for \
+                error:
+                    "this process's lease in the store was lost (it was stopped or its filesystem stalled for \
                         longer than the lease timeout, and other processes judged it dead): it stopped; rerun to finish"
-                    .into(),
+                        .into(),
             });
             self.stopping = Some(RunStatus::Stopped);
         }

@@ -15,12 +15,12 @@
 //! to make ([`crate::Made::Nothing`]), each a value, not an error to recognise.
 
 use crate::digest::Digest;
+use crate::export::{ExportError, FileStat};
 use crate::item::ItemKey;
 use crate::keys::Input;
 use crate::operator::Blob;
 use crate::record::{OutputRef, TaskRecord};
 use crate::store::BlobError;
-use crate::export::{ExportError, FileStat};
 use anyhow::Result;
 use std::sync::Arc;
 
@@ -77,7 +77,9 @@ pub(super) enum Keyed {
     Unknown,
     /// Its key is known and it is not cached, but this run does not execute it (see
     /// [`Ended::NotExecuted`]).
-    NotExecuted { deferred: bool },
+    NotExecuted {
+        deferred: bool,
+    },
 }
 
 /// A task a worker ran: its blobs are stored, its record is not written yet (the coordinator's
@@ -99,9 +101,14 @@ pub(super) enum Ended {
     /// Not cached, and this run does not execute it: its outer item is not among those the run
     /// executes ([`super::RunOptions::execute_only`]), or its operator is left to a later run
     /// (`deferred`, [`super::RunOptions::defer_resources`]).
-    NotExecuted { deferred: bool },
+    NotExecuted {
+        deferred: bool,
+    },
     /// A blob input `port` needs is missing or corrupt: the task that made it runs again.
-    LostInput { port: String, lost: BlobError },
+    LostInput {
+        port: String,
+        lost: BlobError,
+    },
 }
 
 impl Ended {
@@ -125,7 +132,13 @@ pub(super) enum Msg {
         result: Result<Ended>,
     },
     /// An export job ended; `awaiting` is the id of the task record waiting for it, if any.
-    Exported { slot: u32, task: u32, rel: String, result: std::result::Result<FileStat, ExportError>, awaiting: Option<u64> },
+    Exported {
+        slot: u32,
+        task: u32,
+        rel: String,
+        result: std::result::Result<FileStat, ExportError>,
+        awaiting: Option<u64>,
+    },
 }
 
 /// The message of a panic caught in a worker or export thread.

@@ -350,8 +350,7 @@ fn scene_and_frame_filters_restrict_the_items() {
     let dir = tempfile::tempdir().unwrap();
     let p = testkit::load(CHAIN, &[]);
     let grid = testkit::grid_of(&p);
-    let opts =
-        RunOptions { jobs: 2, outer_items: Some(vec!["s1".into()]), limit: Some(2), ..Default::default() };
+    let opts = RunOptions { jobs: 2, outer_items: Some(vec!["s1".into()]), limit: Some(2), ..Default::default() };
     let r = run_with(&p, &grid, dir.path(), &opts);
     assert_eq!(r.stages[0].executed, 6);
     let bad = RunOptions { outer_items: Some(vec!["nope".into()]), ..Default::default() };
@@ -1165,8 +1164,7 @@ fn across_gives_a_task_its_siblings_and_a_changed_sibling_reruns_them_all() {
     )"#;
     let dir = tempfile::tempdir().unwrap();
     let p = testkit::load(text, &[]);
-    let plan =
-        crate::plan::plan_outer(&p, &crate::plan::View::all(&testkit::grid_of(&p)), 0);
+    let plan = crate::plan::plan_outer(&p, &crate::plan::View::all(&testkit::grid_of(&p)), 0);
     let surround: Vec<_> =
         plan.tasks.iter().filter(|t| t.node as usize == p.node_by_name("surround").unwrap()).collect();
     assert_eq!(surround.len(), 6);
