@@ -26,7 +26,6 @@ impl Book {
             Ended::NotExecuted { .. } | Ended::LostInput { .. } => unreachable!("only a task that ended is committed"),
         };
         self.keys_out.write_all(&key.0).context("writing the run's task keys")?;
-        let only_in_folder = produced.iter().any(|p| p.only_in_folder);
         let p = e.pipeline;
         let run = self.active[slot as usize].as_mut().unwrap();
         run.state[t] = State::Committed;
@@ -70,7 +69,8 @@ impl Book {
         let produced = Arc::new(produced);
         run.outputs[t] = Some(strip_unread(&produced, &run.readers_left[t]));
         match awaiting {
-            Some(a) if only_in_folder && a.files_left > 0 => {
+            // Files left only for outputs kept only in the folder: the record waits for them.
+            Some(a) if a.files_left > 0 => {
                 self.awaiting.insert(id, a);
                 self.next_awaiting += 1;
             }

@@ -434,6 +434,8 @@ impl<'a> Engine<'a> {
         executed: Option<Vec<u32>>,
         unavailable: Vec<Option<String>>,
     ) -> Result<(Book, Option<RunStatus>)> {
+        let (tx, rx): (Sender<Msg>, Receiver<Msg>) = unbounded();
+        let mut scheduler = Scheduler::new(book, shared, opts, view, outers, executed, unavailable, tx);
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(opts.jobs.max(1))
             .thread_name(|i| format!("dist4d-worker-{i}"))
@@ -442,7 +444,7 @@ impl<'a> Engine<'a> {
         // threads of their own, as many at once as the resource takes, so that waiting for a
         // model does not hold the CPU threads the other stages need.
         let wait_pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(Scheduler::resource_threads(self.operators))
+            .num_threads(scheduler.resource_threads())
             .thread_name(|i| format!("dist4d-wait-{i}"))
             .build()?;
         // Exported files are written on threads of their own: a large file goes to the device
@@ -453,8 +455,6 @@ impl<'a> Engine<'a> {
             .num_threads(opts.jobs.clamp(1, 8))
             .thread_name(|i| format!("dist4d-export-{i}"))
             .build()?;
-        let (tx, rx): (Sender<Msg>, Receiver<Msg>) = unbounded();
-        let mut scheduler = Scheduler::new(book, shared, opts, view, outers, executed, unavailable, tx);
         // The scopes guarantee every spawned job has ended before they return, even on an error.
         export_pool.in_place_scope(|export| {
             wait_pool

@@ -123,8 +123,8 @@ impl<'s, 'e, 'a> Scheduler<'s, 'e, 'a> {
     }
 
     /// How many threads the pool for tasks waiting on resources needs.
-    pub(super) fn resource_threads(operators: &[Option<Box<dyn Operator>>]) -> usize {
-        ResourceClasses::of(operators).slots.iter().sum::<usize>().clamp(1, 256)
+    pub(super) fn resource_threads(&self) -> usize {
+        self.classes.slots.iter().sum::<usize>().clamp(1, 256)
     }
 
     /// Runs until every admitted task and export has ended (or the run stops).
